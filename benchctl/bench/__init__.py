@@ -1,0 +1,1 @@
+"""Benchmarks behind `benchctl bench ...`: each prints a table of times measured side by side with errors."""

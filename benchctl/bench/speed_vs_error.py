@@ -1,0 +1,115 @@
+"""`benchctl bench speed-vs-error`: seconds per frame against PSNR / SSIM for every method and iteration budget."""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+from pathlib import Path
+from typing import Any, Callable
+
+from benchctl.cgh import get_method, method_names
+from benchctl.files import atomic_write_bytes, ensure_dir, write_csv
+from benchctl.profiles import Profile
+from benchctl.runner.holograms import compute_scene
+from benchctl.targets import load_target, prepare_target
+
+DEFAULT_TARGETS = ("chart:siemens", "chart:bars", "chart:text")
+DEFAULT_BUDGETS = (10, 50, 200)
+
+
+def resized_profile(profile: Profile, size: tuple[int, int]) -> Profile:
+    """The same bench with an SLM grid of `size` (H, W) and the ROI scaled by the same factor per axis."""
+    (h, w), (rh, rw) = profile.slm.shape, profile.optics.roi
+    roi = (max(1, round(rh * size[0] / h)), max(1, round(rw * size[1] / w)))
+    return dataclasses.replace(
+        profile,
+        slm=dataclasses.replace(profile.slm, height=size[0], width=size[1]),
+        optics=dataclasses.replace(profile.optics, roi=roi),
+    )
+
+
+def budgets_for(method: str, budgets: tuple[int, ...]) -> list[int | None]:
+    """One-shot methods run once; iterative ones run at every budget."""
+    return [None] if get_method(method).default_iterations is None else list(budgets)
+
+
+def run_speed_vs_error(
+    profile: Profile,
+    *,
+    targets: tuple[str, ...] = DEFAULT_TARGETS,
+    methods: tuple[str, ...] | None = None,
+    budgets: tuple[int, ...] = DEFAULT_BUDGETS,
+    seed: int = 0,
+    out_dir: Path | None = None,
+    out: Callable[[str], None] = print,
+    progress: Callable[[str], Callable[[int, int], None]] | None = None,
+) -> list[dict[str, Any]]:
+    """Run each method at each budget on each target; print a table, write CSV (+ PNG plot if matplotlib)."""
+    methods = tuple(methods or method_names())
+    for name in methods:
+        get_method(name)
+    grid, roi = profile.slm.shape, profile.optics.roi
+    amplitudes = {t: prepare_target(load_target(t, size=roi), grid, roi) for t in targets}
+    out(f"grid {grid[0]}x{grid[1]}, ROI {roi[0]}x{roi[1]}, targets: {', '.join(targets)}")
+    header = f"{'method':<10} {'iters':>6} {'target':<16} {'s/frame':>9} {'PSNR amp':>9} {'SSIM amp':>9} {'PSNR sRGB':>10} {'SSIM sRGB':>10}"
+    out(header)
+    rows = []
+    for method in methods:
+        for iterations in budgets_for(method, budgets):
+            for target, amplitude in amplitudes.items():
+                scene = compute_scene(amplitude, profile, method, iterations=iterations, seed=seed, progress=progress)
+                done = [c for c in scene.colours if not c.skipped]
+                row = {
+                    "method": method,
+                    "iterations": iterations if iterations is not None else "",
+                    "target": target,
+                    "frames": len(done),
+                    "seconds_per_frame": sum(c.seconds for c in done) / max(len(done), 1),
+                    "psnr_amplitude_db": sum(c.scores["psnr_amplitude_db"] for c in done) / max(len(done), 1),
+                    "ssim_amplitude": sum(c.scores["ssim_amplitude"] for c in done) / max(len(done), 1),
+                    "psnr_srgb_db": scene.merged_scores["psnr_srgb_db"],
+                    "ssim_srgb": scene.merged_scores["ssim_srgb"],
+                }
+                rows.append(row)
+                out(f"{method:<10} {row['iterations']!s:>6} {target:<16} {row['seconds_per_frame']:>9.3f} "
+                    f"{row['psnr_amplitude_db']:>9.2f} {row['ssim_amplitude']:>9.3f} {row['psnr_srgb_db']:>10.2f} "
+                    f"{row['ssim_srgb']:>10.3f}")
+    if out_dir is not None:
+        out_dir = ensure_dir(Path(out_dir))
+        out(f"wrote {write_csv(out_dir / 'speed_vs_error.csv', rows)}")
+        plot = _plot(rows, out_dir / "speed_vs_error.png")
+        out(f"wrote {plot}" if plot else "no plot: install the 'plot' extra (matplotlib) for speed_vs_error.png")
+    return rows
+
+
+def _plot(rows: list[dict[str, Any]], path: Path) -> Path | None:
+    """Seconds per frame (log) against merged sRGB PSNR, one line per method; None without matplotlib."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return None
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for method in dict.fromkeys(r["method"] for r in rows):
+        points: dict[Any, list[dict[str, Any]]] = {}
+        for r in rows:
+            if r["method"] == method:
+                points.setdefault(r["iterations"], []).append(r)
+        xs = [sum(r["seconds_per_frame"] for r in rs) / len(rs) for rs in points.values()]
+        ys = [sum(r["psnr_srgb_db"] for r in rs) / len(rs) for rs in points.values()]
+        ax.plot(xs, ys, marker="o", label=method)
+        for x, y, iters in zip(xs, ys, points):
+            if iters != "":
+                ax.annotate(str(iters), (x, y), textcoords="offset points", xytext=(4, 4), fontsize=8)
+    ax.set_xscale("log")
+    ax.set_xlabel("seconds per frame (one colour)")
+    ax.set_ylabel("merged PSNR, sRGB (dB), mean over targets")
+    ax.grid(True, alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=120)
+    plt.close(fig)
+    return atomic_write_bytes(path, buffer.getvalue())

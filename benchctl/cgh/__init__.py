@@ -1,0 +1,40 @@
+"""Hologram generation: the method interface and registry, the optical setup, the classical methods.
+
+Methods register themselves when their module is imported; importing this package registers DPAC ("dpac"),
+Gerchberg-Saxton ("gs") and SGD ("sgd"). Imports only `benchctl.optics` from the rest of benchctl.
+"""
+
+from benchctl.cgh.setup import OpticalSetup
+from benchctl.cgh.method import (
+    METHODS,
+    Algorithm,
+    Method,
+    Progress,
+    check_target,
+    get_method,
+    method_names,
+    register,
+    wrap_phase,
+)
+from benchctl.cgh.dpac import DPAC, double_phase
+from benchctl.cgh.gerchberg_saxton import GERCHBERG_SAXTON
+from benchctl.cgh.sgd import SGD, initial_scale, roi_loss
+
+__all__ = [
+    "DPAC",
+    "GERCHBERG_SAXTON",
+    "METHODS",
+    "SGD",
+    "Algorithm",
+    "Method",
+    "OpticalSetup",
+    "Progress",
+    "check_target",
+    "double_phase",
+    "get_method",
+    "initial_scale",
+    "method_names",
+    "register",
+    "roi_loss",
+    "wrap_phase",
+]

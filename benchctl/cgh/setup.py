@@ -1,0 +1,116 @@
+"""The optical geometry a hologram is computed for: wavelength, SLM grid and pitch, distance, region of interest."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from numbers import Integral, Real
+from typing import Union
+
+import torch
+
+from benchctl.optics import Propagator
+from benchctl.optics.metrics import centred_slices
+from benchctl.profiles import Profile
+
+Padding = Union[str, int]
+
+# Plausibility bounds: they catch values given in the wrong unit (520 for 520 nm, 3.74 for 3.74 um).
+_WAVELENGTH_RANGE_M = (100e-9, 20e-6)
+_PITCH_RANGE_M = (0.1e-6, 1e-3)
+
+
+def _real(name: str, value: object) -> float:
+    if isinstance(value, bool) or not isinstance(value, Real):
+        raise ValueError(f"{name} must be a number, got {value!r}")
+    value = float(value)
+    if not math.isfinite(value):
+        raise ValueError(f"{name} must be finite, got {value}")
+    return value
+
+
+def _in_range(name: str, value: float, bounds: tuple[float, float], unit_hint: str) -> float:
+    low, high = bounds
+    if not low <= value <= high:
+        raise ValueError(f"{name}={value:g} is outside {low:g}..{high:g} m; {unit_hint}")
+    return value
+
+
+def _int_pair(name: str, value: object) -> tuple[int, int]:
+    if not isinstance(value, (tuple, list)) or len(value) != 2:
+        raise ValueError(f"{name} must be a pair (rows, cols), got {value!r}")
+    if any(isinstance(v, bool) or not isinstance(v, Integral) or v < 1 for v in value):
+        raise ValueError(f"{name} must be two positive integers, got {value!r}")
+    return int(value[0]), int(value[1])
+
+
+@dataclass(frozen=True)
+class OpticalSetup:
+    """One colour channel of the bench as the hologram algorithms see it (SI units).
+
+    `shape` is the SLM grid (H, W); `roi` is the (rows, cols) region of the target plane, centred on the grid,
+    where the image must appear (the rest is "don't care"). `pitch_m` may be given as one number (square
+    pixels); it is stored as (dy, dx). The target plane lies `distance_m` > 0 downstream of the SLM (+z).
+    """
+
+    wavelength_m: float
+    pitch_m: tuple[float, float]
+    distance_m: float
+    shape: tuple[int, int]
+    roi: tuple[int, int]
+    padding: Padding = "auto"
+    _to_target: Propagator = field(init=False, repr=False, compare=False)
+    _to_slm: Propagator = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        wavelength = _in_range("wavelength_m", _real("wavelength_m", self.wavelength_m), _WAVELENGTH_RANGE_M,
+                               "give the wavelength in metres (520 nm = 520e-9)")
+        raw_pitch = self.pitch_m if isinstance(self.pitch_m, (tuple, list)) else (self.pitch_m, self.pitch_m)
+        if len(raw_pitch) != 2:
+            raise ValueError(f"pitch_m must be a number or a pair (dy, dx), got {self.pitch_m!r}")
+        pitch = tuple(_in_range("pitch_m", _real("pitch_m", p), _PITCH_RANGE_M,
+                                "give the pixel pitch in metres (3.74 um = 3.74e-6)") for p in raw_pitch)
+        distance = _real("distance_m", self.distance_m)
+        if distance <= 0:
+            raise ValueError(f"distance_m must be > 0 (the target plane lies downstream of the SLM), got {distance}")
+        shape = _int_pair("shape", self.shape)
+        roi = _int_pair("roi", self.roi)
+        if roi[0] > shape[0] or roi[1] > shape[1]:
+            raise ValueError(f"roi {roi} does not fit in the SLM grid {shape}")
+        for name, value in (("wavelength_m", wavelength), ("pitch_m", pitch), ("distance_m", distance),
+                            ("shape", shape), ("roi", roi)):
+            object.__setattr__(self, name, value)
+        # Built now so that a bad `padding` fails here; transfer functions are computed on first use and cached.
+        object.__setattr__(self, "_to_target", self._propagator(distance))
+        object.__setattr__(self, "_to_slm", self._propagator(-distance))
+
+    @classmethod
+    def from_profile(cls, profile: Profile, channel: str, padding: Padding = "auto") -> "OpticalSetup":
+        """The setup of one laser channel of a hardware profile (profile units converted to SI)."""
+        laser = profile.channel(channel)
+        return cls(wavelength_m=laser.wavelength_m, pitch_m=profile.slm.pitch_m, distance_m=profile.optics.distance_m,
+                   shape=profile.slm.shape, roi=profile.optics.roi, padding=padding)
+
+    def _propagator(self, distance_m: float) -> Propagator:
+        return Propagator(self.shape, distance_m, self.wavelength_m, self.pitch_m, padding=self.padding)
+
+    def target_propagator(self) -> Propagator:
+        """The cached propagator SLM -> target plane (+z)."""
+        return self._to_target
+
+    def slm_propagator(self) -> Propagator:
+        """The cached propagator target plane -> SLM (-z)."""
+        return self._to_slm
+
+    @property
+    def roi_slices(self) -> tuple[slice, slice]:
+        """Row and column slices of the centred ROI: `x[..., rows, cols]` crops a (..., H, W) tensor to it."""
+        return centred_slices(self.shape, self.roi)
+
+    def reconstruct(self, phase: torch.Tensor) -> torch.Tensor:
+        """Amplitude at the target plane of a phase-only hologram lit by a unit plane wave: |P_{+z}(exp(i phase))|.
+
+        The one simulation of a hologram everyone uses; differentiable, and its gradient stays finite where the
+        amplitude is exactly zero (complex abs, not a square root of the intensity).
+        """
+        return self.target_propagator()(torch.polar(torch.ones_like(phase), phase)).abs()

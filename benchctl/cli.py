@@ -1,0 +1,200 @@
+"""The `benchctl` command line: parses arguments and calls one function per command; no logic lives here."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Sequence
+
+import benchctl
+from benchctl.errors import BenchctlError
+
+EPILOG = """targets: a bundled chart (see `benchctl targets`) such as chart:siemens, or an image file.
+profiles: a path to a TOML file or a name in hardware_profiles/ (default: simulated, or $BENCHCTL_PROFILE)."""
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        rows, cols = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"size must look like 1088x1920 (rows x cols), got {text!r}") from None
+    if rows < 1 or cols < 1:
+        raise argparse.ArgumentTypeError(f"size must be positive, got {text!r}")
+    return rows, cols
+
+
+def _int_list(text: str) -> tuple[int, ...]:
+    try:
+        values = tuple(int(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers like 10,50,200, got {text!r}") from None
+    if any(v < 1 for v in values):
+        raise argparse.ArgumentTypeError(f"iteration counts must be >= 1, got {text!r}")
+    return values
+
+
+def _names(text: str) -> list[str]:
+    return [v.strip() for v in text.split(",") if v.strip()]
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def _add_profile(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--profile", "-p", metavar="P",
+                        help="hardware profile: TOML path or name in hardware_profiles/ (default: simulated)")
+
+
+def _cmd_generate(args: argparse.Namespace) -> int:
+    from benchctl.console import Progress
+    from benchctl.profiles import load_profile
+    from benchctl.runner.generate import run_generate
+
+    profile = load_profile(args.profile)
+    metrics = run_generate(args.target, profile, Path(args.out), method=args.method, iterations=args.iterations,
+                           colours=args.colours, seed=args.seed, progress=Progress)
+    for name, colour in metrics["colours"].items():
+        if colour["skipped"]:
+            print(f"{name:>6}: skipped (black in the target)")
+        else:
+            print(f"{name:>6}: {colour['seconds']:.2f} s, PSNR {colour['psnr_amplitude_db']:.2f} dB amplitude, "
+                  f"SSIM {colour['ssim_amplitude']:.3f}")
+    merged = metrics["merged"]
+    print(f"merged: PSNR {merged['psnr_srgb_db']:.2f} dB sRGB, SSIM {merged['ssim_srgb']:.3f}; wrote {args.out}/")
+    return 0
+
+
+def _cmd_bench_speed(args: argparse.Namespace) -> int:
+    from benchctl.bench.speed_vs_error import DEFAULT_BUDGETS, DEFAULT_TARGETS, resized_profile, run_speed_vs_error
+    from benchctl.console import Progress
+    from benchctl.profiles import load_profile
+
+    profile = load_profile(args.profile)
+    size = args.size or (profile.slm.height // 4, profile.slm.width // 4)
+    run_speed_vs_error(resized_profile(profile, size), targets=tuple(args.targets or DEFAULT_TARGETS),
+                       methods=tuple(args.methods) if args.methods else None,
+                       budgets=args.iterations or DEFAULT_BUDGETS, seed=args.seed, out_dir=Path(args.out),
+                       progress=Progress)
+    return 0
+
+
+def _cmd_bench_propagation(args: argparse.Namespace) -> int:
+    from benchctl.bench.propagation import run_propagation_bench
+    from benchctl.files import ensure_dir, write_csv
+    from benchctl.profiles import load_profile
+
+    profile = load_profile(args.profile)
+    rows = run_propagation_bench(profile, sizes=args.size or None, repeats=args.repeats)
+    if args.out:
+        print(f"wrote {write_csv(ensure_dir(Path(args.out)) / 'propagation.csv', rows)}")
+    return 0
+
+
+def _cmd_profile_check(args: argparse.Namespace) -> int:
+    from benchctl.profiles import load_profile
+
+    profile = load_profile(args.path)
+    print(profile.describe())
+    print(f"{profile.path}: OK")
+    return 0
+
+
+def _cmd_targets(args: argparse.Namespace) -> int:
+    from benchctl.targets import list_targets
+
+    for name, description in list_targets().items():
+        print(f"{name:<16} {description}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The full argument parser (also used by the docs and tests)."""
+    from benchctl.cgh import method_names
+
+    parser = argparse.ArgumentParser(
+        prog="benchctl",
+        description="Holographic-display experiments on an optical bench, real or simulated.",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--version", action="version", version=f"benchctl {benchctl.__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    gen = sub.add_parser("generate", help="phase holograms for a target, with simulated reconstruction and scores",
+                         description="Generate one 8-bit phase PNG per colour (as the SLM displays it), the "
+                                     "simulated reconstruction and metrics.json. Colours that are black in the "
+                                     "target are skipped.", epilog=EPILOG,
+                         formatter_class=argparse.RawDescriptionHelpFormatter)
+    gen.add_argument("target", help="chart name (e.g. chart:siemens) or image file")
+    gen.add_argument("--method", "-m", default="dpac", choices=method_names(), help="hologram method (default: dpac)")
+    gen.add_argument("--iterations", "-n", type=_positive_int, help="iterations for iterative methods "
+                                                                   "(default: the method's own)")
+    gen.add_argument("--colours", "--colors", type=_names, metavar="LIST",
+                     help="comma-separated laser channels, e.g. red,green (default: all in the profile)")
+    gen.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    gen.add_argument("--out", "-o", required=True, metavar="OUTDIR", help="folder for the PNGs and metrics.json")
+    _add_profile(gen)
+    gen.set_defaults(func=_cmd_generate)
+
+    bench = sub.add_parser("bench", help="benchmarks: speed against error").add_subparsers(
+        dest="bench", metavar="BENCH", required=True)
+    speed = bench.add_parser("speed-vs-error", help="seconds per frame against PSNR/SSIM for each method and budget",
+                             description="Runs every hologram method at several iteration budgets on the targets, "
+                                         "prints a table and writes speed_vs_error.csv (+ .png with matplotlib).")
+    speed.add_argument("--targets", nargs="+", metavar="TARGET", help="targets (default: chart:siemens chart:bars "
+                                                                     "chart:text)")
+    speed.add_argument("--methods", type=_names, metavar="LIST", help="comma-separated methods (default: all)")
+    speed.add_argument("--iterations", type=_int_list, metavar="LIST",
+                       help="iteration budgets for iterative methods (default: 10,50,200)")
+    speed.add_argument("--size", type=_size, metavar="HxW",
+                       help="SLM grid for the benchmark, ROI scaled to match (default: a quarter of the profile's)")
+    speed.add_argument("--seed", type=int, default=0)
+    speed.add_argument("--out", "-o", default="bench-out", metavar="DIR", help="output folder (default: bench-out)")
+    _add_profile(speed)
+    speed.set_defaults(func=_cmd_bench_speed)
+
+    prop = bench.add_parser("propagation", help="padding modes: time vs bare FFT and error vs a float64 reference",
+                            description="For each padding mode, colour and grid: the plan, the time of one "
+                                        "propagation, its ratio to a bare fft2+ifft2 of the same padded grid and "
+                                        "the relative L2 error on the ROI against a converged float64 propagation.")
+    prop.add_argument("--size", type=_size, nargs="+", metavar="HxW",
+                      help="grids to measure (default: 1088x1920 2160x3840)")
+    prop.add_argument("--repeats", type=_positive_int, default=5, help="timed repeats per case (default: 5)")
+    prop.add_argument("--out", "-o", metavar="DIR", help="also write propagation.csv here")
+    _add_profile(prop)
+    prop.set_defaults(func=_cmd_bench_propagation)
+
+    profile = sub.add_parser("profile", help="hardware profiles").add_subparsers(
+        dest="profile_command", metavar="ACTION", required=True)
+    check = profile.add_parser("check", help="validate a profile and print what it describes")
+    check.add_argument("path", nargs="?", help="profile TOML path or name (default: simulated)")
+    check.set_defaults(func=_cmd_profile_check)
+
+    targets = sub.add_parser("targets", help="list the bundled targets")
+    targets.set_defaults(func=_cmd_targets)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the `benchctl` console script; returns the process exit code."""
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except BenchctlError as exc:
+        print(f"benchctl: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("benchctl: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,5 @@
+"""The one exception type that means "the user asked for something wrong" (shown as one line, no traceback)."""
+
+
+class BenchctlError(Exception):
+    """A user-facing error: bad file, key, value or device state. The message names what is wrong."""

@@ -1,0 +1,104 @@
+"""The one place for image scores: ROI crop, least-squares scale, PSNR and SSIM, in torch.
+
+Images are tensors shaped (..., H, W); every leading index (batch, colour channel) is scored on its own and
+the result has shape (...). Callers pass data_range explicitly and say which domain they score in
+(amplitude, linear intensity or sRGB). Nothing here returns NaN or inf, and everything is differentiable.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+PSNR_MSE_FLOOR = 1e-10
+"""MSE floor as a fraction of data_range**2: PSNR never exceeds 100 dB (identical images score exactly 100)."""
+
+SSIM_WINDOW = 11
+SSIM_SIGMA = 1.5
+SSIM_K1 = 0.01
+SSIM_K2 = 0.03
+
+
+def centred_slices(shape: tuple[int, int], roi: tuple[int, int]) -> tuple[slice, slice]:
+    """Row and column slices of a roi = (rows, cols) region centred in an (H, W) grid (extra pixel low)."""
+    (h, w), (rows, cols) = shape, roi
+    if not (0 < rows <= h and 0 < cols <= w):
+        raise ValueError(f"ROI {rows}x{cols} does not fit in a {h}x{w} image")
+    top, left = (h - rows) // 2, (w - cols) // 2
+    return slice(top, top + rows), slice(left, left + cols)
+
+
+def crop_roi(x: torch.Tensor, roi: tuple[int, int]) -> torch.Tensor:
+    """Centred crop of (..., H, W) to roi = (rows, cols): the region that holds the target."""
+    rows, cols = centred_slices((x.shape[-2], x.shape[-1]), roi)
+    return x[..., rows, cols]
+
+
+def _check_pair(pred: torch.Tensor, target: torch.Tensor, data_range: float) -> None:
+    if pred.shape != target.shape:
+        raise ValueError(f"shape mismatch: {tuple(pred.shape)} vs {tuple(target.shape)}")
+    if pred.dim() < 2:
+        raise ValueError(f"images must be shaped (..., H, W), got {tuple(pred.shape)}")
+    if not data_range > 0:
+        raise ValueError(f"data_range must be > 0, got {data_range!r}")
+
+
+def lsq_scale(recon: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Per-image s minimising |s recon - target|^2, i.e. sum(r t) / sum(r^2), shaped (..., 1, 1).
+
+    The shape broadcasts against the images, so `lsq_scale(r, t) * r` is the scaled reconstruction.
+    An all-zero reconstruction has no best scale; it gets s = 1.
+    """
+    if recon.shape != target.shape:
+        raise ValueError(f"shape mismatch: {tuple(recon.shape)} vs {tuple(target.shape)}")
+    num = (recon * target).sum(dim=(-2, -1), keepdim=True)
+    den = (recon * recon).sum(dim=(-2, -1), keepdim=True)
+    nonzero = den > 0
+    return torch.where(nonzero, num / torch.where(nonzero, den, torch.ones_like(den)), torch.ones_like(den))
+
+
+def psnr(pred: torch.Tensor, target: torch.Tensor, data_range: float) -> torch.Tensor:
+    """Peak signal-to-noise ratio in dB per image, shaped (...); capped at 100 dB (see PSNR_MSE_FLOOR)."""
+    _check_pair(pred, target, data_range)
+    mse = ((pred - target) ** 2).mean(dim=(-2, -1))
+    mse = mse.clamp(min=PSNR_MSE_FLOOR * data_range**2)
+    return 10.0 * torch.log10(data_range**2 / mse)
+
+
+def _gaussian_window(size: int, sigma: float, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2
+    g = torch.exp(-(x**2) / (2 * sigma**2))
+    return (g / g.sum()).to(dtype=dtype, device=device)
+
+
+def ssim(pred: torch.Tensor, target: torch.Tensor, data_range: float) -> torch.Tensor:
+    """Structural similarity (Wang et al. 2004) per image, shaped (...).
+
+    Gaussian 11x11 window, sigma 1.5, K1 = 0.01, K2 = 0.03, population (not sample) statistics, averaged over
+    the valid region (no padding). Images narrower than 11 px in either direction use the largest odd window
+    that fits, with the same sigma (the Gaussian is truncated and renormalised). Two identical images score 1,
+    constant and black ones included, because C1 and C2 keep both fractions away from 0 / 0.
+    """
+    _check_pair(pred, target, data_range)
+    if not pred.is_floating_point():
+        pred, target = pred.float(), target.float()
+    *lead, h, w = pred.shape
+    size = min(SSIM_WINDOW, h - (1 - h % 2), w - (1 - w % 2))
+    g = _gaussian_window(size, SSIM_SIGMA, pred.dtype, pred.device)
+    kernel_rows, kernel_cols = g.view(1, 1, size, 1), g.view(1, 1, 1, size)
+
+    def blur(x: torch.Tensor) -> torch.Tensor:
+        return F.conv2d(F.conv2d(x, kernel_rows), kernel_cols)
+
+    x = pred.reshape(-1, 1, h, w)
+    y = target.reshape(-1, 1, h, w)
+    mu_x, mu_y = blur(x), blur(y)
+    var_x = blur(x * x) - mu_x**2
+    var_y = blur(y * y) - mu_y**2
+    cov = blur(x * y) - mu_x * mu_y
+    c1 = (SSIM_K1 * data_range) ** 2
+    c2 = (SSIM_K2 * data_range) ** 2
+    luminance = (2 * mu_x * mu_y + c1) / (mu_x**2 + mu_y**2 + c1)
+    structure = (2 * cov + c2) / (var_x + var_y + c2)
+    return (luminance * structure).mean(dim=(-3, -2, -1)).reshape(lead)
+

@@ -1,0 +1,316 @@
+"""Band-limited angular-spectrum propagation (Matsushima & Shimobaba 2009) with geometry-aware padding.
+
+Conventions: fields are complex tensors shaped (..., H, W); +z propagates SLM -> target plane, -z back.
+The transfer function is built in float64 on the exact FFT frequency grid with the constant k z piston
+removed, then cast to the field's precision; evanescent components are zeroed, so no NaN can appear.
+
+Padding. The discrete transfer function makes a circular convolution over the padded grid, so light that
+leaves the grid on one side comes back on the other unless a zero guard band absorbs it. Light from the
+grid travels sideways by at most K = |z| tan(theta) pixels, theta the steepest angle the grid carries
+(sin theta = lambda / 2 pitch per axis, both axes at once in the corner of the spectrum); and because the
+Matsushima band limit cuts every ray that would travel further than half the padded grid, a guard band as
+wide as the grid is always enough for the geometric light. "auto" therefore pads each axis by
+min(K, N) + margin, the margin absorbing the ringing that the hard spectral edge puts beyond K (see
+`auto_margin`); "2x" pads every axis by N whatever the geometry; "none" wraps all light that leaves.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+from dataclasses import dataclass
+from numbers import Integral
+from typing import Union
+
+import torch
+
+Padding = Union[str, int]
+PADDING_MODES = ("auto", "2x", "none")
+
+
+@dataclass(frozen=True)
+class PropagationPlan:
+    """What one propagation will compute: grid sizes, padding and how much of the spectrum is kept."""
+
+    shape: tuple[int, int]
+    padded_shape: tuple[int, int]
+    pad: tuple[int, int, int, int]  # zeros added at top, bottom, left, right
+    distance_m: float
+    wavelength_m: float
+    pitch_m: tuple[float, float]  # (dy, dx)
+    padding: Padding
+    band_limit: bool
+    spread_px: tuple[float, float]  # K per axis in pixels (inf where the grid carries grazing light)
+    passed_fraction: tuple[float, float]  # fraction of each axis' frequencies kept by the band limit
+
+    @property
+    def spread_fraction(self) -> tuple[float, float]:
+        """K / N per axis: where it is well under 1/2, "auto" pads much less than "2x"."""
+        return self.spread_px[0] / self.shape[0], self.spread_px[1] / self.shape[1]
+
+    def describe(self) -> str:
+        """One line a user can read: grid, padded grid, spread and band-limit figures."""
+        (h, w), (ph, pw) = self.shape, self.padded_shape
+        ky, kx = self.spread_px
+        ry, rx = self.spread_fraction
+        fy, fx = self.passed_fraction
+        return (
+            f"{h}x{w} -> {ph}x{pw} (padding={self.padding!s}, guard {ph - h}+{pw - w} px), "
+            f"z={self.distance_m * 1e3:g} mm, lambda={self.wavelength_m * 1e9:g} nm, "
+            f"spread K={ky:.0f}/{kx:.0f} px (K/N {ry:.2f}/{rx:.2f}), band limit keeps {fy:.2f} x {fx:.2f}"
+        )
+
+
+def _pair(value: float | tuple[float, float] | list[float]) -> tuple[float, float]:
+    if isinstance(value, (tuple, list)):
+        if len(value) != 2:
+            raise ValueError(f"pitch_m must be a float or (dy, dx), got {value!r}")
+        return float(value[0]), float(value[1])
+    return float(value), float(value)
+
+
+def spread_pixels(n: int, distance_m: float, wavelength_m: float, pitch_m: float) -> float:
+    """Lateral reach |z| tan(theta) in pixels of light at one axis' Nyquist angle (sin theta = lambda / 2 pitch).
+
+    The one-axis figure shown in profiles; `n` is not used. Plans use `reach_pixels`, which also counts the
+    other axis' frequency (a ray in the corner of the spectrum is steeper and goes ~0.4 % further at 3.74 um).
+    """
+    s = wavelength_m / (2.0 * pitch_m)
+    if s >= 1.0:
+        return float("inf")
+    return abs(distance_m) * s / math.sqrt(1.0 - s * s) / pitch_m
+
+
+def reach_pixels(distance_m: float, wavelength_m: float,
+                 pitch_m: float | tuple[float, float]) -> tuple[float, float]:
+    """K per axis: the furthest any propagating plane wave of the grid moves sideways over |z|, in pixels.
+
+    A plane wave (fy, fx) moves by lambda |z| f / sqrt(1 - lambda^2 (fy^2 + fx^2)) along each axis; the largest
+    move is at the corner of the spectrum (both frequencies at Nyquist, 1 / (2 pitch)). Where that corner is
+    evanescent the grid carries grazing light and K is infinite.
+    """
+    dy, dx = _pair(pitch_m)
+    sy, sx = wavelength_m / (2.0 * dy), wavelength_m / (2.0 * dx)
+    if distance_m == 0:
+        return 0.0, 0.0
+    cos_theta2 = 1.0 - sy * sy - sx * sx
+    if cos_theta2 <= 0:
+        return float("inf"), float("inf")
+    scale = abs(distance_m) / math.sqrt(cos_theta2)
+    return scale * sy / dy, scale * sx / dx
+
+
+def fresnel_pixels(distance_m: float, wavelength_m: float, pitch_m: float) -> float:
+    """Fresnel length sqrt(lambda |z|) in pixels: the width of the ringing beyond the reach K."""
+    return math.sqrt(wavelength_m * abs(distance_m)) / pitch_m
+
+
+def auto_margin(fresnel_px: float) -> int:
+    """Pixels "auto" adds beyond the geometric reach: a few Fresnel lengths, to absorb edge-diffraction tails.
+
+    A random-phase SLM field fills the spectrum up to Nyquist, so the transfer function ends on a hard edge;
+    the kernel then rings beyond K over about one Fresnel length sqrt(lambda z) and decays as 1 / distance
+    after that. Measured (docs/propagation.md): at the paper's geometry the error on the ROI depends only
+    weakly (about logarithmically) on the margin, because most wrapped light lands near the grid edge,
+    outside the ROI; MARGIN_FRESNEL Fresnel lengths keep "auto" within the error goal with room to spare.
+    """
+    return int(math.ceil(MARGIN_FRESNEL * fresnel_px))
+
+
+MARGIN_FRESNEL = 1.0
+
+
+def _fft_size(n: int) -> int:
+    """Smallest integer >= n whose prime factors are all 2, 3, 5 or 7 (fast sizes for pocketfft and cuFFT)."""
+    m = max(1, n)
+    while True:
+        k = m
+        for p in (2, 3, 5, 7):
+            while k % p == 0:
+                k //= p
+        if k == 1:
+            return m
+        m += 1
+
+
+def _guard(padding: Padding, n: int, reach: float, fresnel: float) -> int:
+    """Zeros to add along one axis of n samples (both sides together)."""
+    if isinstance(padding, Integral) and not isinstance(padding, bool):
+        if padding < 0:
+            raise ValueError(f"padding must be >= 0 pixels per side, got {padding}")
+        return 2 * int(padding)
+    if padding == "none":
+        return 0
+    if isinstance(padding, str) and padding.endswith("x") and padding[:-1].isdigit() and int(padding[:-1]) >= 1:
+        return (int(padding[:-1]) - 1) * n
+    if padding == "auto":
+        if reach == 0:
+            return 0
+        need = math.ceil(min(reach, float(n))) + auto_margin(fresnel)
+        return _fft_size(n + need) - n
+    raise ValueError(f"padding must be one of {PADDING_MODES}, '<k>x' or an int (pixels per side), got {padding!r}")
+
+
+def _band_limit(m: int, pitch: float, distance_m: float, wavelength_m: float) -> float:
+    """Matsushima's per-axis frequency limit for a padded extent of m samples."""
+    df = 1.0 / (m * pitch)
+    return 1.0 / (wavelength_m * math.sqrt((2.0 * df * distance_m) ** 2 + 1.0))
+
+
+def plan_propagation(
+    shape: tuple[int, int],
+    distance_m: float,
+    wavelength_m: float,
+    pitch_m: float | tuple[float, float],
+    *,
+    padding: Padding = "auto",
+    band_limit: bool = True,
+) -> PropagationPlan:
+    """Decide padded grid and band limit for a field of `shape` (H, W) without computing anything big."""
+    if len(shape) != 2:
+        raise ValueError(f"shape must be (H, W), got {shape!r}")
+    h, w = int(shape[0]), int(shape[1])
+    if h < 1 or w < 1:
+        raise ValueError(f"field shape must be at least 1x1, got {shape}")
+    if not (wavelength_m > 0 and math.isfinite(wavelength_m)):
+        raise ValueError(f"wavelength_m must be positive, got {wavelength_m}")
+    if not math.isfinite(distance_m):
+        raise ValueError(f"distance_m must be finite, got {distance_m}")
+    dy, dx = _pair(pitch_m)
+    if not (dy > 0 and dx > 0 and math.isfinite(dy) and math.isfinite(dx)):
+        raise ValueError(f"pitch_m must be positive, got {pitch_m}")
+    ky, kx = reach_pixels(distance_m, wavelength_m, (dy, dx))
+    gy = _guard(padding, h, ky, fresnel_pixels(distance_m, wavelength_m, dy))
+    gx = _guard(padding, w, kx, fresnel_pixels(distance_m, wavelength_m, dx))
+    ph, pw = h + gy, w + gx
+    fractions = []
+    for m, d in ((ph, dy), (pw, dx)):
+        freqs = torch.fft.fftfreq(m, d=d, dtype=torch.float64).abs()
+        keep = freqs < 1.0 / wavelength_m
+        if band_limit and distance_m != 0:
+            keep &= freqs < _band_limit(m, d, distance_m, wavelength_m)
+        fractions.append(float(keep.double().mean()))
+    return PropagationPlan(
+        shape=(h, w),
+        padded_shape=(ph, pw),
+        # All zeros after the field: a circular convolution does not care where the guard band sits.
+        pad=(0, gy, 0, gx),
+        distance_m=float(distance_m),
+        wavelength_m=float(wavelength_m),
+        pitch_m=(dy, dx),
+        padding=padding,
+        band_limit=band_limit,
+        spread_px=(ky, kx),
+        passed_fraction=(fractions[0], fractions[1]),
+    )
+
+
+def transfer_function(plan: PropagationPlan, dtype: torch.dtype = torch.complex64,
+                      device: torch.device | str | None = None) -> torch.Tensor:
+    """The band-limited ASM transfer function on the padded FFT grid (unshifted), as complex `dtype`.
+
+    exp(i 2 pi z (sqrt(1/lambda^2 - f^2) - 1/lambda)): the piston k z is left out (it only sets a global
+    phase) so that the float64 phase stays small enough to survive the cast to complex64.
+    """
+    (m_y, m_x), (dy, dx) = plan.padded_shape, plan.pitch_m
+    z, lam = plan.distance_m, plan.wavelength_m
+    fy = torch.fft.fftfreq(m_y, d=dy, dtype=torch.float64, device=device)
+    fx = torch.fft.fftfreq(m_x, d=dx, dtype=torch.float64, device=device)
+    keep_y, keep_x = torch.ones_like(fy, dtype=torch.bool), torch.ones_like(fx, dtype=torch.bool)
+    if plan.band_limit and z != 0:
+        keep_y = fy.abs() < _band_limit(m_y, dy, z, lam)
+        keep_x = fx.abs() < _band_limit(m_x, dx, z, lam)
+    f2 = fy[:, None].square() + fx[None, :].square()
+    keep = (f2 < 1.0 / lam**2) & keep_y[:, None] & keep_x[None, :]
+    # 2 pi z (sqrt(1/lam^2 - f^2) - 1/lam) rewritten as -2 pi z f^2 / (sqrt(1/lam^2 - f^2) + 1/lam): no
+    # cancellation of two ~1e6 rad terms, and finite (then masked) where the root's argument is negative.
+    root = f2.neg().add_(1.0 / lam**2).clamp_min_(0.0).sqrt_().add_(1.0 / lam)
+    phase = f2.mul_(-2.0 * math.pi * z).div_(root)
+    del root
+    real_dtype = torch.float64 if dtype == torch.complex128 else torch.float32
+    h = torch.complex(torch.cos(phase).to(real_dtype), torch.sin(phase).to(real_dtype))
+    return h.mul_(keep).to(dtype)
+
+
+def _check_shape(field: torch.Tensor) -> None:
+    if not isinstance(field, torch.Tensor):
+        raise TypeError(f"field must be a torch.Tensor, got {type(field).__name__}")
+    if field.dim() < 2:
+        raise ValueError(f"field must be shaped (..., H, W), got shape {tuple(field.shape)}")
+
+
+def _checked_field(field: torch.Tensor) -> torch.Tensor:
+    """`field` as a complex tensor (..., H, W) with finite values; complex128 stays complex128."""
+    _check_shape(field)
+    if not field.is_complex():
+        field = field.to(torch.complex128 if field.dtype == torch.float64 else torch.complex64)
+    # A sum is finite when every value is; only a non-finite sum (NaN/inf, or overflow) needs the full check.
+    total = field.detach().sum()
+    if not bool(torch.isfinite(total)) and not bool(torch.isfinite(torch.view_as_real(field.detach())).all()):
+        raise ValueError("field contains NaN or inf; propagation needs finite values")
+    return field
+
+
+class Propagator:
+    """Propagates fields of one shape over one distance at one wavelength; caches its transfer functions."""
+
+    def __init__(
+        self,
+        shape: tuple[int, int],
+        distance_m: float,
+        wavelength_m: float,
+        pitch_m: float | tuple[float, float],
+        *,
+        padding: Padding = "auto",
+        band_limit: bool = True,
+    ) -> None:
+        self.plan = plan_propagation(shape, distance_m, wavelength_m, pitch_m,
+                                     padding=padding, band_limit=band_limit)
+        self._kernels: dict[tuple[torch.dtype, torch.device], torch.Tensor] = {}
+
+    def kernel(self, dtype: torch.dtype, device: torch.device | str) -> torch.Tensor:
+        """The transfer function for this dtype and device, computed once and cached."""
+        key = (dtype, torch.device(device))
+        if key not in self._kernels:
+            self._kernels[key] = transfer_function(self.plan, dtype, device)
+        return self._kernels[key]
+
+    def __call__(self, field: torch.Tensor) -> torch.Tensor:
+        """The field after propagation, same shape and complex dtype as `field`."""
+        field = _checked_field(field)
+        if tuple(field.shape[-2:]) != self.plan.shape:
+            raise ValueError(f"field is {tuple(field.shape[-2:])}, this propagator is for {self.plan.shape}")
+        if self.plan.distance_m == 0:
+            return field.clone()
+        (h, w), padded_shape = self.plan.shape, self.plan.padded_shape
+        spectrum = torch.fft.fft2(field, s=padded_shape)
+        # In place: the FFT's backward does not need its output, so autograd allows it.
+        spectrum.mul_(self.kernel(spectrum.dtype, spectrum.device))
+        return torch.fft.ifft2(spectrum)[..., :h, :w]
+
+
+_CACHE: OrderedDict[tuple, Propagator] = OrderedDict()
+_CACHE_SIZE = 16
+
+
+def propagate(
+    field: torch.Tensor,
+    distance_m: float,
+    wavelength_m: float,
+    pitch_m: float | tuple[float, float],
+    *,
+    padding: Padding = "auto",
+    band_limit: bool = True,
+) -> torch.Tensor:
+    """Propagate `field` (..., H, W) by `distance_m` (+z: SLM -> target) with a cached `Propagator`."""
+    _check_shape(field)
+    key = (tuple(field.shape[-2:]), float(distance_m), float(wavelength_m), _pair(pitch_m), padding, band_limit)
+    prop = _CACHE.get(key)
+    if prop is None:
+        prop = Propagator(key[0], distance_m, wavelength_m, pitch_m, padding=padding, band_limit=band_limit)
+        _CACHE[key] = prop
+        if len(_CACHE) > _CACHE_SIZE:
+            _CACHE.popitem(last=False)
+    else:
+        _CACHE.move_to_end(key)
+    return prop(field)

@@ -1,0 +1,1 @@
+"""Workflows that compose optics, holograms and (later) devices: generation now, procedures next."""

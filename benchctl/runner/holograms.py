@@ -1,0 +1,138 @@
+"""Holograms for a colour scene: one method per emitting colour, displayed phase, simulated reconstruction, scores.
+
+This is the in-memory core shared by `benchctl generate` and `benchctl bench speed-vs-error`; it writes no files.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import torch
+
+from benchctl.cgh import OpticalSetup, get_method
+from benchctl.errors import BenchctlError
+from benchctl.optics import (
+    PhaseLUT,
+    crop_roi,
+    gray_to_phase,
+    linear_to_srgb,
+    lsq_scale,
+    phase_to_gray,
+    psnr,
+    ssim,
+)
+from benchctl.profiles import LaserChannel, Profile
+from benchctl.targets import active_channels
+
+RGB_PLANES = ("red", "green", "blue")
+
+
+@dataclass
+class ColourResult:
+    """One colour: skipped (black in the target) or its displayed hologram, reconstruction and scores."""
+
+    channel: str
+    wavelength_nm: float
+    skipped: bool
+    seconds: float = 0.0
+    gray: torch.Tensor | None = None  # SLM values as displayed
+    reconstruction: torch.Tensor | None = None  # ROI amplitude, least-squares scaled to the target
+    scores: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class SceneResult:
+    """All colours of one target plus the merged colour image (linear RGB on the ROI) and its scores."""
+
+    method: str
+    iterations: int | None
+    colours: list[ColourResult]
+    target_roi: torch.Tensor  # (3, h, w) amplitude
+    merged_linear: torch.Tensor  # (3, h, w) linear intensity
+    merged_scores: dict[str, float]
+
+
+def target_plane(channel: LaserChannel) -> int:
+    """Which plane of an RGB target this laser channel displays: by name, else by wavelength band."""
+    if channel.name in RGB_PLANES:
+        return RGB_PLANES.index(channel.name)
+    if channel.wavelength_nm >= 590:
+        return 0
+    return 1 if channel.wavelength_nm >= 490 else 2
+
+
+def select_channels(profile: Profile, names: list[str] | None) -> list[LaserChannel]:
+    """The profile's channels in profile order, or the named ones (unknown names are an error)."""
+    if not names:
+        return list(profile.channels)
+    return [profile.channel(name) for name in names]
+
+
+def _scores(recon: torch.Tensor, target: torch.Tensor) -> dict[str, float]:
+    """PSNR / SSIM of reconstruction against target amplitude, in amplitude, linear intensity and sRGB."""
+    lin_r, lin_t = recon.square().clamp(0, 1), target.square().clamp(0, 1)
+    srgb_r, srgb_t = linear_to_srgb(lin_r), linear_to_srgb(lin_t)
+    return {
+        "psnr_amplitude_db": float(psnr(recon, target, data_range=1.0).mean()),
+        "ssim_amplitude": float(ssim(recon, target, data_range=1.0).mean()),
+        "psnr_linear_db": float(psnr(lin_r, lin_t, data_range=1.0).mean()),
+        "psnr_srgb_db": float(psnr(srgb_r, srgb_t, data_range=1.0).mean()),
+        "ssim_srgb": float(ssim(srgb_r, srgb_t, data_range=1.0).mean()),
+    }
+
+
+def _merged_scores(merged_linear: torch.Tensor, target_roi: torch.Tensor) -> dict[str, float]:
+    """Scores of the merged colour image: PSNR over all planes at once, SSIM averaged over planes."""
+    h, w = merged_linear.shape[-2:]
+    lin_t = target_roi.square().clamp(0, 1)
+    srgb_r, srgb_t = linear_to_srgb(merged_linear), linear_to_srgb(lin_t)
+    return {
+        "psnr_linear_db": float(psnr(merged_linear.reshape(3 * h, w), lin_t.reshape(3 * h, w), data_range=1.0)),
+        "psnr_srgb_db": float(psnr(srgb_r.reshape(3 * h, w), srgb_t.reshape(3 * h, w), data_range=1.0)),
+        "ssim_srgb": float(ssim(srgb_r, srgb_t, data_range=1.0).mean()),
+    }
+
+
+def compute_scene(
+    target_amplitude: torch.Tensor,
+    profile: Profile,
+    method: str,
+    *,
+    iterations: int | None = None,
+    colours: list[str] | None = None,
+    seed: int = 0,
+    progress: Callable[[str], Callable[[int, int], None]] | None = None,
+) -> SceneResult:
+    """Generate, quantise, display (in simulation) and score a hologram for each requested, non-black colour.
+
+    `target_amplitude` is (3, H, W) on the SLM grid (see `benchctl.targets.prepare_target`). `progress`, if
+    given, is called with a label per colour and returns that colour's `(done, total)` callback.
+    """
+    generate = get_method(method)
+    grid, roi = profile.slm.shape, profile.optics.roi
+    if tuple(target_amplitude.shape) != (3, *grid):
+        raise BenchctlError(f"target is {tuple(target_amplitude.shape)}, the SLM grid needs (3, {grid[0]}, {grid[1]})")
+    present = active_channels(target_amplitude)
+    target_roi = crop_roi(target_amplitude, roi)
+    merged = torch.zeros_like(target_roi)
+    results = []
+    for channel in select_channels(profile, colours):
+        plane = target_plane(channel)
+        if not present[plane]:
+            results.append(ColourResult(channel.name, channel.wavelength_nm, skipped=True))
+            continue
+        setup = OpticalSetup.from_profile(profile, channel.name)
+        lut = PhaseLUT.linear(profile.slm.bit_depth)
+        start = time.perf_counter()
+        phase = generate(target_amplitude[plane], setup, iterations=iterations, seed=seed,
+                         progress=progress(f"{method} {channel.name}") if progress else None)
+        seconds = time.perf_counter() - start
+        gray = phase_to_gray(phase, lut)
+        recon = crop_roi(setup.reconstruct(gray_to_phase(gray, lut)), roi)
+        recon = recon * lsq_scale(recon, target_roi[plane])
+        merged[plane] = recon.square().clamp(0, 1)
+        results.append(ColourResult(channel.name, channel.wavelength_nm, skipped=False, seconds=seconds,
+                                    gray=gray, reconstruction=recon, scores=_scores(recon, target_roi[plane])))
+    return SceneResult(method, iterations, results, target_roi, merged, _merged_scores(merged, target_roi))

@@ -1,0 +1,183 @@
+"""Targets: bundled procedural test charts, image files, and preparing either as amplitude on the SLM grid.
+
+A target spec is `chart:<name>` (drawn at the requested size, deterministic, no files shipped) or the path
+of an image file. Targets are sRGB in [0, 1]; prepare_target turns them into what holograms aim for:
+linear intensity, resized to the ROI in linear light, square-rooted to amplitude, zero-padded to the grid.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from benchctl.errors import BenchctlError
+from benchctl.images import read_image
+from benchctl.optics.colour import srgb_to_linear
+from benchctl.optics.metrics import centred_slices
+
+CHART_PREFIX = "chart:"
+
+BLACK_INTENSITY = float(srgb_to_linear(torch.tensor(0.5 / 255, dtype=torch.float64)))
+"""Linear intensity of half an 8-bit sRGB step (about 1.5e-4): a channel whose brightest pixel is below it
+would display as 0 on an 8-bit screen, so it counts as black and is neither computed nor exposed."""
+
+
+def _centred_coords(h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel-centre coordinates relative to the image centre, as (H, 1) rows and (1, W) columns."""
+    return np.arange(h)[:, None] - (h - 1) / 2, np.arange(w)[None, :] - (w - 1) / 2
+
+
+def _smooth_stripes(wave: np.ndarray, pixels_per_radian: np.ndarray) -> np.ndarray:
+    """Black/white stripes at the zero crossings of sin(wave), antialiased over about one pixel.
+
+    sin(wave) times the local pixels-per-radian is the signed distance to the nearest edge in pixels; where
+    stripes get finer than the pixels the amplitude drops and they fade to gray instead of aliasing.
+    """
+    return np.clip(0.5 + np.sin(wave) * pixels_per_radian, 0.0, 1.0)
+
+
+def _siemens(h: int, w: int) -> np.ndarray:
+    """Siemens star: 36 alternating sectors in a disc on black."""
+    y, x = _centred_coords(h, w)
+    r = np.hypot(y, x)
+    cycles = 18
+    radius = 0.45 * min(h, w)
+    star = _smooth_stripes(cycles * np.arctan2(y, x), r / cycles)
+    return star * np.clip(radius - r + 0.5, 0.0, 1.0)
+
+
+def _wedge(h: int, w: int) -> np.ndarray:
+    """Converging lines: a fan whose period shrinks linearly from h/8 px at the left edge to 1.5 px at the right."""
+    y, x = _centred_coords(h, w)
+    coarse, fine = max(h / 8, 4.0), 1.5
+    focus = (w - 1) / 2 + (w - 1) * fine / (coarse - fine)  # x of the point the lines converge to
+    spacing = coarse / (focus + (w - 1) / 2)  # angular period (one white + one black line), radians
+    r = np.hypot(y, focus - x)
+    return _smooth_stripes(2 * np.pi * np.arctan2(y, focus - x) / spacing, r * spacing / (2 * np.pi))
+
+
+def _bars(h: int, w: int) -> np.ndarray:
+    """Colour bars white, yellow, cyan, green, magenta, red, blue, black over a gray ramp (bottom quarter)."""
+    colours = np.array(
+        [[1, 1, 1], [1, 1, 0], [0, 1, 1], [0, 1, 0], [1, 0, 1], [1, 0, 0], [0, 0, 1], [0, 0, 0]], dtype=float
+    )
+    edges = np.linspace(0, w, len(colours) + 1).round().astype(int)
+    image = np.empty((h, w, 3))
+    image[:] = colours[np.searchsorted(edges, np.arange(w), side="right") - 1][None]
+    ramp_top = h - h // 4
+    image[ramp_top:] = np.linspace(0.0, 1.0, w)[None, :, None]
+    return image
+
+
+_TEXT_LINES = ("HOLOGRAM", "benchctl 0123456789", "The quick brown fox jumps over the lazy dog")
+
+
+def _text(h: int, w: int) -> np.ndarray:
+    """White text on black in three lines of decreasing size, each as wide as the others (90 % of W)."""
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    unit = [cv2.getTextSize(line, font, 1.0, 1) for line in _TEXT_LINES]
+    # Line pitch 1.5 x text height; narrow the lines when their stack would not fit 90 % of H.
+    height_per_width = sum(1.5 * (th + baseline) / tw for (tw, th), baseline in unit)
+    width = min(0.9 * w, 0.9 * h / height_per_width)
+    layout = []
+    for line, ((tw, _), _) in zip(_TEXT_LINES, unit):
+        thickness = max(1, round(width / tw))
+        scale = width / tw
+        scale *= width / cv2.getTextSize(line, font, scale, thickness)[0][0]  # strokes widen the text
+        (tw, th), baseline = cv2.getTextSize(line, font, scale, thickness)
+        layout.append((line, scale, thickness, tw, 1.5 * (th + baseline)))
+    canvas = np.zeros((h, w), dtype=np.uint8)
+    bottom = (h - sum(pitch for *_, pitch in layout)) / 2
+    for line, scale, thickness, tw, pitch in layout:
+        bottom += pitch
+        origin = (round((w - tw) / 2), round(bottom - pitch / 4))
+        cv2.putText(canvas, line, origin, font, scale, 255, thickness, cv2.LINE_AA)
+    return canvas / 255.0
+
+
+def _grid(h: int, w: int) -> np.ndarray:
+    """Dot grid: white dots on black, centred, period min(H, W) / 12 (at least 8 px)."""
+    y, x = _centred_coords(h, w)
+    period = max(8.0, min(h, w) / 12)
+    radius = max(1.5, period / 8)  # at least 1.5 px: a dot between pixel centres still reaches 1
+    dy = (y + period / 2) % period - period / 2
+    dx = (x + period / 2) % period - period / 2
+    return np.clip(radius + 0.5 - np.hypot(dy, dx), 0.0, 1.0)
+
+
+def _uniform(colour: tuple[float, float, float], h: int, w: int) -> np.ndarray:
+    return np.broadcast_to(np.asarray(colour, dtype=float), (h, w, 3))
+
+
+_CHARTS: dict[str, tuple[Callable[[int, int], np.ndarray], str]] = {
+    "siemens": (_siemens, "Siemens star, 36 sectors (resolution in every direction)"),
+    "wedge": (_wedge, "converging lines, period h/8 down to 1.5 px (resolution limit)"),
+    "bars": (_bars, "colour bars incl. pure red/green/blue/white/black over a gray ramp"),
+    "text": (_text, "white text in three sizes on black (OpenCV's font: differs between OpenCV 4 and 5)"),
+    "grid": (_grid, "dot grid on black (sparse target, distortion)"),
+    "white": (functools.partial(_uniform, (1.0, 1.0, 1.0)), "uniform white"),
+    "red": (functools.partial(_uniform, (1.0, 0.0, 0.0)), "uniform pure red"),
+    "green": (functools.partial(_uniform, (0.0, 1.0, 0.0)), "uniform pure green"),
+    "blue": (functools.partial(_uniform, (0.0, 0.0, 1.0)), "uniform pure blue"),
+}
+
+
+def list_targets() -> dict[str, str]:
+    """Bundled chart specs (`chart:<name>`) with a one-line description each, for help texts."""
+    return {f"{CHART_PREFIX}{name}": doc for name, (_, doc) in _CHARTS.items()}
+
+
+def load_target(spec: str | Path, size: tuple[int, int]) -> np.ndarray:
+    """A target as float32 (H, W, 3) sRGB in [0, 1], from `chart:<name>` or an image file.
+
+    Charts are drawn at size = (H, W). Image files keep their own resolution: prepare_target resamples in
+    linear light, and resampling here too would blur twice. 8/16-bit integer images are scaled by their
+    maximum, float images clipped to [0, 1]; gray becomes three equal channels; alpha is dropped.
+    """
+    text = str(spec)
+    if text.startswith(CHART_PREFIX):
+        h, w = size
+        if h <= 0 or w <= 0:
+            raise ValueError(f"chart size must be positive, got {size!r}")
+        entry = _CHARTS.get(text[len(CHART_PREFIX):])
+        if entry is None:
+            raise BenchctlError(f"unknown chart {text!r}; known charts: {', '.join(list_targets())}")
+        image = entry[0](h, w)
+    else:
+        image = read_image(text)
+        if np.issubdtype(image.dtype, np.integer):
+            image = image / np.iinfo(image.dtype).max
+        image = np.clip(image, 0.0, 1.0)
+    if image.ndim == 2:
+        image = np.repeat(image[:, :, None], 3, axis=2)
+    return np.ascontiguousarray(image[:, :, :3], dtype=np.float32)
+
+
+def prepare_target(srgb: np.ndarray, grid_shape: tuple[int, int], roi: tuple[int, int]) -> torch.Tensor:
+    """Target amplitude float32 (3, H, W) on the grid: sRGB -> linear -> resized to the ROI -> sqrt -> padded.
+
+    The image is stretched to the ROI (aspect ratio not kept), with area averaging when shrinking, and
+    centred in a zero field of grid_shape, as the paper prepares its targets.
+    """
+    if srgb.ndim != 3 or srgb.shape[2] != 3:
+        raise ValueError(f"expected an (H, W, 3) sRGB image, got shape {srgb.shape}")
+    rows, cols = centred_slices(grid_shape, roi)
+    linear = srgb_to_linear(torch.tensor(srgb, dtype=torch.float32)).numpy()
+    if linear.shape[:2] != tuple(roi):
+        shrinking = roi[0] < linear.shape[0] or roi[1] < linear.shape[1]
+        interpolation = cv2.INTER_AREA if shrinking else cv2.INTER_LINEAR
+        linear = cv2.resize(linear, (roi[1], roi[0]), interpolation=interpolation)
+    amplitude = torch.zeros((3, *grid_shape), dtype=torch.float32)
+    amplitude[:, rows, cols] = torch.from_numpy(linear).permute(2, 0, 1).clamp(min=0.0).sqrt()
+    return amplitude
+
+
+def active_channels(amplitude: torch.Tensor, threshold: float = BLACK_INTENSITY) -> list[bool]:
+    """For each colour channel of (C, H, W) amplitude: True unless its peak intensity (amplitude^2) < threshold."""
+    peak = amplitude.detach().flatten(1).abs().amax(dim=1)
+    return [bool(p * p >= threshold) for p in peak]

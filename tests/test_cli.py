@@ -1,0 +1,142 @@
+"""End-to-end tests of the `benchctl` command line on a small simulated bench."""
+
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from benchctl.cli import main
+
+
+def _run(capsys, *argv: str) -> tuple[int, str, str]:
+    code = main(list(argv))
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def _png(path: Path) -> np.ndarray:
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    assert image is not None, path
+    return image
+
+
+def test_generate_writes_phase_pngs_reconstruction_and_metrics(capsys, tmp_path, small_profile_path):
+    out = tmp_path / "gen"
+    code, stdout, _ = _run(capsys, "generate", "chart:bars", "--profile", str(small_profile_path), "-o", str(out))
+    assert code == 0
+    for colour in ("red", "green", "blue"):
+        phase = _png(out / f"phase_{colour}.png")
+        assert phase.shape == (64, 96) and phase.dtype == np.uint8
+        assert len(np.unique(phase)) > 16  # a real phase pattern, not a constant
+    assert _png(out / "reconstruction.png").shape == (48, 80, 3)
+    assert _png(out / "target.png").shape == (48, 80, 3)
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["method"] == "dpac" and metrics["grid"] == [64, 96] and metrics["roi"] == [48, 80]
+    for colour in ("red", "green", "blue"):
+        entry = metrics["colours"][colour]
+        assert entry["skipped"] is False and entry["seconds"] > 0
+        assert 5.0 < entry["psnr_amplitude_db"] < 100.0
+        assert 0.0 < entry["ssim_amplitude"] <= 1.0
+    assert np.isfinite(metrics["merged"]["psnr_srgb_db"])
+    assert "merged: PSNR" in stdout
+
+
+def test_generate_skips_colours_black_in_target(capsys, tmp_path, small_profile_path):
+    image = np.zeros((40, 60, 3), np.uint8)
+    image[10:30, 15:45, 1] = 255  # pure green square (OpenCV order is BGR: index 1 is green either way)
+    target = tmp_path / "green.png"
+    cv2.imwrite(str(target), image)
+    out = tmp_path / "gen"
+    code, stdout, _ = _run(capsys, "generate", str(target), "-p", str(small_profile_path), "-o", str(out))
+    assert code == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["colours"]["red"] == {"wavelength_nm": 680, "skipped": True}
+    assert metrics["colours"]["blue"]["skipped"] is True
+    assert metrics["colours"]["green"]["skipped"] is False
+    assert sorted(p.name for p in out.glob("phase_*.png")) == ["phase_green.png"]
+    assert "red: skipped" in stdout
+
+
+def test_generate_is_deterministic_for_a_seed(capsys, tmp_path, small_profile_path):
+    outs = []
+    for name in ("a", "b", "c"):
+        seed = "7" if name != "c" else "8"
+        args = ["generate", "chart:siemens", "-m", "gs", "-n", "3", "--colours", "green", "--seed", seed,
+                "-p", str(small_profile_path), "-o", str(tmp_path / name)]
+        assert _run(capsys, *args)[0] == 0
+        outs.append((tmp_path / name / "phase_green.png").read_bytes())
+    assert outs[0] == outs[1]
+    assert outs[0] != outs[2]
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["generate", "missing.png", "-o", "{tmp}/o"], "missing.png"),
+        (["generate", "chart:nope", "-o", "{tmp}/o"], "chart:nope"),
+        (["generate", "chart:bars", "--colours", "purple", "-o", "{tmp}/o"], "purple"),
+        (["generate", "chart:bars", "-o", "{tmp}/afile/o"], "afile"),
+        (["generate", "chart:bars", "--profile", "{tmp}/nope.toml", "-o", "{tmp}/o"], "nope.toml"),
+        (["profile", "check", "{tmp}/bad.toml"], "slm.pitch_um"),
+    ],
+)
+def test_user_errors_are_one_line_and_exit_nonzero(capsys, tmp_path, small_profile_path, args, message):
+    (tmp_path / "afile").write_text("not a folder")
+    (tmp_path / "bad.toml").write_text(small_profile_path.read_text().replace("pitch_um = 8.0", "pitch_um = -1"))
+    argv = [a.replace("{tmp}", str(tmp_path)) for a in args]
+    if "--profile" not in argv and argv[0] == "generate":
+        argv += ["--profile", str(small_profile_path)]
+    code, _, err = _run(capsys, *argv)
+    assert code == 2
+    assert err.startswith("benchctl: error:") and err.count("\n") == 1
+    assert message in err
+
+
+def test_unknown_method_is_rejected_by_the_parser(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["generate", "chart:bars", "--method", "magic", "-o", "x"])
+    assert exc.value.code == 2
+    assert "magic" in capsys.readouterr().err
+
+
+def test_console_script_reports_errors_without_traceback(tmp_path):
+    result = subprocess.run([sys.executable, "-m", "benchctl", "generate", str(tmp_path / "none.png"), "-o",
+                             str(tmp_path / "o")], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2
+    assert "Traceback" not in result.stderr
+    assert "none.png" in result.stderr
+
+
+def test_profile_check_describes_the_default_profile(capsys):
+    code, stdout, _ = _run(capsys, "profile", "check", "simulated")
+    assert code == 0
+    assert "3.74" in stdout and "680" in stdout and "OK" in stdout
+
+
+def test_targets_lists_the_bundled_charts(capsys):
+    code, stdout, _ = _run(capsys, "targets")
+    assert code == 0
+    for name in ("chart:siemens", "chart:bars", "chart:wedge", "chart:text"):
+        assert name in stdout
+
+
+def test_bench_speed_vs_error_writes_a_row_per_method_budget_and_target(capsys, tmp_path, small_profile_path):
+    out = tmp_path / "bench"
+    code, stdout, _ = _run(capsys, "bench", "speed-vs-error", "--size", "32x48", "--methods", "dpac,gs",
+                           "--iterations", "2,4", "--targets", "chart:siemens", "chart:bars",
+                           "-p", str(small_profile_path), "-o", str(out))
+    assert code == 0
+    with open(out / "speed_vs_error.csv") as handle:
+        rows = list(csv.DictReader(handle))
+    assert [(r["method"], r["iterations"]) for r in rows] == [
+        ("dpac", ""), ("dpac", ""), ("gs", "2"), ("gs", "2"), ("gs", "4"), ("gs", "4")]
+    assert all(float(r["seconds_per_frame"]) > 0 and np.isfinite(float(r["psnr_srgb_db"])) for r in rows)
+    assert (out / "speed_vs_error.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "s/frame" in stdout

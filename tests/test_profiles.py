@@ -1,0 +1,153 @@
+"""Hardware profiles: the simulated bench loads exactly; every kind of mistake is a one-line BenchctlError."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+
+import benchctl
+from benchctl.errors import BenchctlError
+from benchctl.profiles import LaserChannel, load_profile
+
+REPO_PROFILES = Path(benchctl.__file__).resolve().parents[1] / "hardware_profiles"
+
+
+def edited(path: Path, old: str, new: str) -> Path:
+    """The profile at `path` with one piece of text replaced (which must be there)."""
+    text = path.read_text()
+    assert old in text, old
+    path.write_text(text.replace(old, new, 1))
+    return path
+
+
+def error_of(path: Path) -> str:
+    with pytest.raises(BenchctlError) as info:
+        load_profile(path)
+    message = str(info.value)
+    assert "\n" not in message
+    assert str(path) in message
+    return message
+
+
+def test_simulated_profile_has_the_papers_bench(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    monkeypatch.delenv("BENCHCTL_PROFILE", raising=False)
+    monkeypatch.chdir(tmp_path)  # no ./hardware_profiles here: falls back to the repository's folder
+    profile = load_profile()
+    assert profile.path == REPO_PROFILES / "simulated.toml"
+    assert profile.name == "simulated"
+    assert profile.optics.distance_mm == 70.0 and profile.optics.distance_m == pytest.approx(0.07)
+    assert profile.optics.roi == (880, 1600)
+    assert (profile.slm.width, profile.slm.height, profile.slm.bit_depth) == (1920, 1088, 8)
+    assert profile.slm.pitch_um == 3.74 and profile.slm.pitch_m == pytest.approx(3.74e-6)
+    assert profile.slm.shape == (1088, 1920)
+    assert profile.channels == (
+        LaserChannel("red", 1, 680.0, 40.0, 40.0),
+        LaserChannel("green", 2, 520.0, 40.0, 2.0),
+        LaserChannel("blue", 3, 450.0, 40.0, 2.0),
+    )
+    assert profile.channel("green").wavelength_m == pytest.approx(520e-9)
+    assert load_profile("simulated") == profile
+
+
+def test_lookup_order(monkeypatch: pytest.MonkeyPatch, tmp_path: Path, small_profile_path: Path) -> None:
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("BENCHCTL_PROFILE", str(small_profile_path))
+    assert load_profile().name == "small"
+    monkeypatch.delenv("BENCHCTL_PROFILE")
+    local = tmp_path / "hardware_profiles"
+    local.mkdir()
+    shutil.copy(small_profile_path, local / "simulated.toml")
+    assert load_profile().path == Path("hardware_profiles/simulated.toml")  # ./hardware_profiles first
+    shutil.copy(small_profile_path, local / "mybench.toml")
+    assert load_profile("mybench").name == "small"
+    monkeypatch.setenv("BENCHCTL_PROFILE", "mybench")
+    assert load_profile().path == Path("hardware_profiles/mybench.toml")
+
+
+def test_unknown_name_and_missing_file(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(BenchctlError, match="hardware profile 'nobench' not found \\(looked for hardware_profiles"):
+        load_profile("nobench")
+    monkeypatch.setenv("BENCHCTL_PROFILE", "nobench")
+    with pytest.raises(BenchctlError, match="from \\$BENCHCTL_PROFILE"):
+        load_profile()
+    assert "hardware profile not found" in error_of(tmp_path / "missing.toml")
+
+
+def test_describe_summarises_grid_and_channels() -> None:
+    text = load_profile(REPO_PROFILES / "simulated.toml").describe()
+    for fragment in ("1088 x 1920", "3.74 um", "70 mm", "880 x 1600", "green", "520 nm", "2 mW (5 %)",
+                     "40 mW (100 %)", "K = 1709 px"):
+        assert fragment in text, fragment
+
+
+def test_unknown_channel_lists_the_known_ones(small_profile_path: Path) -> None:
+    with pytest.raises(BenchctlError, match="no laser channel 'violet'; known channels: red, green, blue"):
+        load_profile(small_profile_path).channel("violet")
+
+
+def test_defaults_for_optional_keys(small_profile_path: Path) -> None:
+    text = small_profile_path.read_text()
+    for line in ('name = "small"', 'description = "scaled-down simulated bench for tests"', "index = 1", "index = 2",
+                 "index = 3"):
+        text = text.replace(line + "\n", "")
+    small_profile_path.write_text(text)
+    profile = load_profile(small_profile_path)
+    assert (profile.name, profile.description) == ("small", "")
+    assert [ch.index for ch in profile.channels] == [1, 2, 3]
+
+
+def test_toml_syntax_error_names_the_line(small_profile_path: Path) -> None:
+    message = error_of(edited(small_profile_path, "pitch_um = 8.0", "pitch_um = = 8.0"))
+    assert "TOML syntax error" in message and "line 11" in message
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "expected"),
+    [
+        ("pitch_um = 8.0", "pitch = 8.0",
+         "slm.pitch: unknown key (did you mean 'pitch_um'? known: width, height, pitch_um, bit_depth)"),
+        ("[slm]", "[camera]\nmodel = 'x'\n\n[slm]",
+         "camera: unknown section (known: name, description, optics, slm, laser)"),
+        ("wavelength_nm = 520", "wavelenght_nm = 520",
+         "laser.channels[1].wavelenght_nm: unknown key (did you mean 'wavelength_nm'?"),
+        ("pitch_um = 8.0\n", "", "slm.pitch_um: missing required key"),
+        ("[optics]\ndistance_mm = 20.0\nroi = [48, 80]\n", "", "optics: missing required section"),
+        ("width = 96", 'width = "96"', "slm.width: expected an integer, got '96' (str)"),
+        ("width = 96", "width = 96.0", "slm.width: expected an integer, got 96.0 (float)"),
+        ("distance_mm = 20.0", "distance_mm = true",
+         "optics.distance_mm: expected a finite number, got True (bool)"),
+        ("distance_mm = 20.0", "distance_mm = nan", "optics.distance_mm: expected a finite number, got nan (float)"),
+        ("roi = [48, 80]", "roi = [48]", "optics.roi: expected two integers [rows, cols], got [48] (list)"),
+        ("roi = [48, 80]", "roi = [48, 0]", "optics.roi[1]: must be > 0, got 0"),
+        ("pitch_um = 8.0", "pitch_um = 0", "slm.pitch_um: must be > 0, got 0.0"),
+        ("distance_mm = 20.0", "distance_mm = -20.0", "optics.distance_mm: must be > 0, got -20.0"),
+        ("bit_depth = 8", "bit_depth = 24", "slm.bit_depth: must be <= 16, got 24"),
+        ("wavelength_nm = 450", "wavelength_nm = -450",
+         "laser.channels[2].wavelength_nm: must be > 0, got -450.0"),
+        ("setpoint_mw = 2\n", "setpoint_mw = -1\n", "laser.channels[1].setpoint_mw: must be >= 0, got -1.0"),
+        ("roi = [48, 80]", "roi = [65, 80]",
+         "optics.roi: [65, 80] is larger than the SLM grid 64 x 96 (slm.height x slm.width)"),
+        ("setpoint_mw = 40", "setpoint_mw = 41",
+         "laser.channels[0].setpoint_mw: 41 mW is above max_power_mw 40 mW"),
+        ('name = "blue"', 'name = "red"',
+         "laser.channels[2].name: duplicate channel name 'red' (also laser.channels[0].name)"),
+        ("index = 3", "index = 1",
+         "laser.channels[2].index: duplicate channel index 1 (also laser.channels[0].index)"),
+        ('name = "green"', 'name = " "',
+         "laser.channels[1].name: channel name must not be empty, got ' '"),
+        ("[[laser.channels]]", "[[lasers.channels]]", "lasers: unknown section (did you mean 'laser'?"),
+    ],
+)
+def test_errors_name_file_key_and_value(small_profile_path: Path, old: str, new: str, expected: str) -> None:
+    assert expected in error_of(edited(small_profile_path, old, new))
+
+
+def test_no_channels(small_profile_path: Path) -> None:
+    text = small_profile_path.read_text()
+    small_profile_path.write_text(text[: text.index("[[laser.channels]]")] + "[laser]\nchannels = []\n")
+    assert "laser.channels: at least 1 entry required, got 0" in error_of(small_profile_path)
+    small_profile_path.write_text(text[: text.index("[[laser.channels]]")])
+    assert "laser: missing required section" in error_of(small_profile_path)
