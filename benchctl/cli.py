@@ -87,12 +87,16 @@ def _cmd_bench_speed(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_propagation(args: argparse.Namespace) -> int:
-    from benchctl.bench.propagation import run_propagation_bench
+    from benchctl.bench.propagation import PAPER_SIZES, run_propagation_bench
     from benchctl.files import ensure_dir, write_csv
     from benchctl.profiles import load_profile
 
     profile = load_profile(args.profile)
-    rows = run_propagation_bench(profile, sizes=args.size or None, repeats=args.repeats)
+    (h, w), (rh, rw) = profile.slm.shape, profile.optics.roi
+    rows = run_propagation_bench(sizes=args.size or PAPER_SIZES,
+                                 wavelengths=[(c.name, c.wavelength_m) for c in profile.channels],
+                                 distance_m=profile.optics.distance_m, pitch_m=profile.slm.pitch_m,
+                                 roi_fraction=(rh / h, rw / w), repeats=args.repeats)
     if args.out:
         print(f"wrote {write_csv(ensure_dir(Path(args.out)) / 'propagation.csv', rows)}")
     return 0

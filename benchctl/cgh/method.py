@@ -15,6 +15,7 @@ from typing import Callable, Optional
 import torch
 
 from benchctl.cgh.setup import OpticalSetup
+from benchctl.errors import BadValueError
 
 Progress = Callable[[int, int], None]
 """Called as progress(done, total) after each iteration of an iterative method."""
@@ -98,19 +99,19 @@ class Method:
         """
         target = check_target(target_amplitude, setup)
         if isinstance(seed, bool) or not isinstance(seed, Integral):
-            raise ValueError(f"seed must be an integer, got {seed!r}")
+            raise BadValueError(f"seed must be an integer, got {seed!r}")
         phase = self.algorithm(target, setup, self._iterations(iterations), int(seed), progress)
         return wrap_phase(phase)
 
     def _iterations(self, iterations: int | None) -> int | None:
         if self.default_iterations is None:
             if iterations is not None:
-                raise ValueError(f"method {self.name!r} is one-shot and takes no iteration count (got {iterations})")
+                raise BadValueError(f"method {self.name!r} is one-shot and takes no iteration count (got {iterations})")
             return None
         if iterations is None:
             return self.default_iterations
         if isinstance(iterations, bool) or not isinstance(iterations, Integral) or iterations < 0:
-            raise ValueError(f"iterations must be an integer >= 0, got {iterations!r}")
+            raise BadValueError(f"iterations must be an integer >= 0, got {iterations!r}")
         return int(iterations)
 
 
@@ -136,4 +137,4 @@ def get_method(name: str) -> Method:
     try:
         return METHODS[name]
     except (KeyError, TypeError):
-        raise ValueError(f"unknown hologram method {name!r}; known methods: {', '.join(method_names())}") from None
+        raise BadValueError(f"unknown hologram method {name!r}; known methods: {', '.join(method_names())}") from None

@@ -5,13 +5,15 @@ The transfer function is built in float64 on the exact FFT frequency grid with t
 removed, then cast to the field's precision; evanescent components are zeroed, so no NaN can appear.
 
 Padding. The discrete transfer function makes a circular convolution over the padded grid, so light that
-leaves the grid on one side comes back on the other unless a zero guard band absorbs it. Light from the
+leaves the grid on one side comes back on the other unless a guard band of zeros absorbs it. Light from the
 grid travels sideways by at most K = |z| tan(theta) pixels, theta the steepest angle the grid carries
-(sin theta = lambda / 2 pitch per axis, both axes at once in the corner of the spectrum); and because the
-Matsushima band limit cuts every ray that would travel further than half the padded grid, a guard band as
-wide as the grid is always enough for the geometric light. "auto" therefore pads each axis by
-min(K, N) + margin, the margin absorbing the ringing that the hard spectral edge puts beyond K (see
-`auto_margin`); "2x" pads every axis by N whatever the geometry; "none" wraps all light that leaves.
+(sin theta = lambda / 2 pitch per axis); the Matsushima band limit cuts every ray that would travel further
+than half the padded grid, so a guard band as wide as the grid always absorbs the geometric light. What
+no finite guard band absorbs are the edge-diffraction tails of the hard spectral edge, which fall off only
+as 1 / distance just beyond K. "auto" pads each axis by min(K, N) plus the margin that keeps the modelled
+wrapped tails within AUTO_TOLERANCE (see `wrapped_tail_power`), at most N, then rounds up to a fast FFT
+size; "2x" pads every axis by N, "<k>x" by (k - 1) N, an int by that many pixels on each side, and "none"
+wraps all light that leaves. docs/propagation.md has the measurements behind the rule.
 """
 
 from __future__ import annotations
@@ -100,29 +102,60 @@ def reach_pixels(distance_m: float, wavelength_m: float,
     return scale * sy / dy, scale * sx / dx
 
 
-def fresnel_pixels(distance_m: float, wavelength_m: float, pitch_m: float) -> float:
-    """Fresnel length sqrt(lambda |z|) in pixels: the width of the ringing beyond the reach K."""
-    return math.sqrt(wavelength_m * abs(distance_m)) / pitch_m
+AUTO_TOLERANCE = 3.5e-3
+"""Relative L2 error that "auto" allows the wrapped tails of a full-band field (both axes together, modelled).
+
+Chosen by measurement (docs/propagation.md): at the paper geometry (3.74 um, 70 mm, 1088 x 1920 and
+2160 x 3840, 680 / 520 / 450 nm) the ROI error of "auto" stays within 1.53x that of "2x" (goal: 2x), and
+at 2160 x 3840 it pads 66-82 % of the 2x area. The measured ROI error is about 1.5x the modelled figure.
+"""
 
 
-def auto_margin(fresnel_px: float) -> int:
-    """Pixels "auto" adds beyond the geometric reach: a few Fresnel lengths, to absorb edge-diffraction tails.
+def wrapped_tail_power(n: int, reach: float, guard: int) -> float:
+    """Mean power per pixel that a guard band of `guard` zeros lets wrap around an axis of `n` pixels.
 
-    A random-phase SLM field fills the spectrum up to Nyquist, so the transfer function ends on a hard edge;
-    the kernel then rings beyond K over about one Fresnel length sqrt(lambda z) and decays as 1 / distance
-    after that. Measured (docs/propagation.md): at the paper's geometry the error on the ROI depends only
-    weakly (about logarithmically) on the margin, because most wrapped light lands near the grid edge,
-    outside the ROI; MARGIN_FRESNEL Fresnel lengths keep "auto" within the error goal with room to spare.
+    The model: a full-band, unit-power, random-phase field (what a phase SLM shows). Its transfer function
+    ends on a hard edge at +-Nyquist (or at the band limit, which moves the reach to half the padded extent),
+    so beyond the reach K the impulse response is the two edges' diffraction tails,
+    |1 / (d - K) - 1 / (d + K)| / (2 pi) at a distance d: slow (1 / (d - K)) just past K, 2 K / d^2 far out.
+    Light from b pixels inside one edge lands a pixels inside the other after d = guard + 1 + a + b; the
+    powers of all such pairs add (random phase), averaged over the axis and counted for both edges.
     """
-    return int(math.ceil(MARGIN_FRESNEL * fresnel_px))
+    u = torch.arange(2 * n - 1, dtype=torch.float64)
+    pairs = torch.minimum(u + 1, 2 * n - 1 - u)  # how many (a, b) have a + b = u
+    d = guard + 1 + u
+    k = min(reach, (n + guard) / 2)
+    tail = (1 / (d - k) - 1 / (d + k)) / (2 * math.pi)
+    return float(2 * (pairs * tail.square()).sum() / n)
 
 
-MARGIN_FRESNEL = 1.0
+def _auto_guard(n: int, reach: float) -> int:
+    """The smallest guard band >= min(K, n) whose wrapped tails stay within AUTO_TOLERANCE; at most n.
+
+    Where even n zeros cannot meet the tolerance (small grids, K close to or beyond N), "auto" pads what
+    "2x" pads instead of growing past it.
+    """
+    budget = AUTO_TOLERANCE**2 / 2  # half for each axis
+    low, high = math.ceil(min(reach, n)), n
+    if low >= high or wrapped_tail_power(n, reach, low) <= budget:
+        return min(low, high)
+    if wrapped_tail_power(n, reach, high) > budget:
+        return high
+    while high - low > 1:  # invariant: low is too small, high is enough
+        mid = (low + high) // 2
+        if wrapped_tail_power(n, reach, mid) <= budget:
+            high = mid
+        else:
+            low = mid
+    return high
 
 
 def _fft_size(n: int) -> int:
-    """Smallest integer >= n whose prime factors are all 2, 3, 5 or 7 (fast sizes for pocketfft and cuFFT)."""
-    m = max(1, n)
+    """Smallest multiple of 4 >= n whose prime factors are all 2, 3, 5 or 7: fast for pocketfft and cuFFT.
+
+    (Sizes with a single factor 2, like 6250, measured up to 30 % slower than their neighbours on a CPU.)
+    """
+    m = max(4, n + (-n) % 4)
     while True:
         k = m
         for p in (2, 3, 5, 7):
@@ -130,10 +163,10 @@ def _fft_size(n: int) -> int:
                 k //= p
         if k == 1:
             return m
-        m += 1
+        m += 4
 
 
-def _guard(padding: Padding, n: int, reach: float, fresnel: float) -> int:
+def _guard(padding: Padding, n: int, reach: float) -> int:
     """Zeros to add along one axis of n samples (both sides together)."""
     if isinstance(padding, Integral) and not isinstance(padding, bool):
         if padding < 0:
@@ -146,8 +179,7 @@ def _guard(padding: Padding, n: int, reach: float, fresnel: float) -> int:
     if padding == "auto":
         if reach == 0:
             return 0
-        need = math.ceil(min(reach, float(n))) + auto_margin(fresnel)
-        return _fft_size(n + need) - n
+        return _fft_size(n + _auto_guard(n, reach)) - n
     raise ValueError(f"padding must be one of {PADDING_MODES}, '<k>x' or an int (pixels per side), got {padding!r}")
 
 
@@ -180,8 +212,7 @@ def plan_propagation(
     if not (dy > 0 and dx > 0 and math.isfinite(dy) and math.isfinite(dx)):
         raise ValueError(f"pitch_m must be positive, got {pitch_m}")
     ky, kx = reach_pixels(distance_m, wavelength_m, (dy, dx))
-    gy = _guard(padding, h, ky, fresnel_pixels(distance_m, wavelength_m, dy))
-    gx = _guard(padding, w, kx, fresnel_pixels(distance_m, wavelength_m, dx))
+    gy, gx = _guard(padding, h, ky), _guard(padding, w, kx)
     ph, pw = h + gy, w + gx
     fractions = []
     for m, d in ((ph, dy), (pw, dx)):
@@ -252,7 +283,11 @@ def _checked_field(field: torch.Tensor) -> torch.Tensor:
 
 
 class Propagator:
-    """Propagates fields of one shape over one distance at one wavelength; caches its transfer functions."""
+    """Propagates fields of one shape over one distance at one wavelength; caches its transfer functions.
+
+    Outside autograd it also keeps one zero-padded work buffer, reused from call to call: on a CPU a fresh
+    zeroed buffer of the padded size costs about a third of an FFT. Not safe to call from two threads at once.
+    """
 
     def __init__(
         self,
@@ -267,13 +302,31 @@ class Propagator:
         self.plan = plan_propagation(shape, distance_m, wavelength_m, pitch_m,
                                      padding=padding, band_limit=band_limit)
         self._kernels: dict[tuple[torch.dtype, torch.device], torch.Tensor] = {}
+        self._buffer: torch.Tensor | None = None
 
     def kernel(self, dtype: torch.dtype, device: torch.device | str) -> torch.Tensor:
         """The transfer function for this dtype and device, computed once and cached."""
         key = (dtype, torch.device(device))
         if key not in self._kernels:
-            self._kernels[key] = transfer_function(self.plan, dtype, device)
+            # A normal tensor even if first asked for under inference_mode, so later autograd can use it.
+            with torch.inference_mode(False):
+                self._kernels[key] = transfer_function(self.plan, dtype, device)
         return self._kernels[key]
+
+    def _padded(self, field: torch.Tensor) -> torch.Tensor:
+        """`field` followed by its guard band of zeros (the field sits in the top-left corner)."""
+        (h, w), (ph, pw) = self.plan.shape, self.plan.padded_shape
+        if (ph, pw) == (h, w):
+            return field
+        if torch.is_grad_enabled() and field.requires_grad:
+            return torch.nn.functional.pad(field, (0, pw - w, 0, ph - h))
+        shape = (*field.shape[:-2], ph, pw)
+        buffer = self._buffer
+        if buffer is None or buffer.shape != shape or buffer.dtype != field.dtype or buffer.device != field.device:
+            with torch.inference_mode(False):
+                buffer = self._buffer = field.new_zeros(shape)
+        buffer[..., :h, :w] = field  # the guard band is never written, so it stays zero
+        return buffer
 
     def __call__(self, field: torch.Tensor) -> torch.Tensor:
         """The field after propagation, same shape and complex dtype as `field`."""
@@ -282,15 +335,16 @@ class Propagator:
             raise ValueError(f"field is {tuple(field.shape[-2:])}, this propagator is for {self.plan.shape}")
         if self.plan.distance_m == 0:
             return field.clone()
-        (h, w), padded_shape = self.plan.shape, self.plan.padded_shape
-        spectrum = torch.fft.fft2(field, s=padded_shape)
+        spectrum = torch.fft.fft2(self._padded(field))
         # In place: the FFT's backward does not need its output, so autograd allows it.
         spectrum.mul_(self.kernel(spectrum.dtype, spectrum.device))
-        return torch.fft.ifft2(spectrum)[..., :h, :w]
+        h, w = self.plan.shape
+        # A copy, not a view: a view would keep the whole padded grid alive as long as the result lives.
+        return torch.fft.ifft2(spectrum)[..., :h, :w].contiguous()
 
 
 _CACHE: OrderedDict[tuple, Propagator] = OrderedDict()
-_CACHE_SIZE = 16
+_CACHE_SIZE = 8  # each entry holds its kernels (and a work buffer): keep it small
 
 
 def propagate(

@@ -1,0 +1,170 @@
+"""`benchctl bench propagation`: time and error of each padding mode, side by side with a bare FFT pair.
+
+For every grid size x colour x padding mode it prints the plan, the time of one complex64 propagation, its
+ratio to a bare `fft2` + `ifft2` of the same padded grid timed in the same run, and the relative L2 error on
+the centred ROI against a converged float64 propagation. The field is what a phase SLM shows: unit
+amplitude, uniformly random phase (seeded).
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+import time
+from typing import Any, Callable, Sequence
+
+import torch
+
+from benchctl.optics.propagation import Padding, Propagator
+
+PAPER_SIZES = ((1088, 1920), (2160, 3840))
+PAPER_WAVELENGTHS = (("red", 680e-9), ("green", 520e-9), ("blue", 450e-9))
+PAPER_ROI_FRACTION = (880 / 1088, 1600 / 1920)
+
+
+def _timer(device: torch.device) -> Callable[..., float]:
+    """Seconds one call of `fn(*args)` takes, with the device synchronised around it."""
+    def timed(fn: Callable[..., Any], *args: Any) -> float:
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        start = time.perf_counter()
+        fn(*args)
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        return time.perf_counter() - start
+    return timed
+
+
+def _roi(shape: tuple[int, int], fraction: tuple[float, float]) -> tuple[slice, slice]:
+    slices = []
+    for n, f in zip(shape, fraction):
+        r = max(1, min(n, round(n * f)))
+        slices.append(slice((n - r) // 2, (n - r) // 2 + r))
+    return slices[0], slices[1]
+
+
+def _fft_pair(x: torch.Tensor) -> torch.Tensor:
+    return torch.fft.ifft2(torch.fft.fft2(x))
+
+
+def _relative_l2(estimate: torch.Tensor, reference: torch.Tensor) -> float:
+    return float(torch.linalg.vector_norm(estimate.to(reference.dtype) - reference)
+                 / torch.linalg.vector_norm(reference))
+
+
+def run_propagation_bench(
+    sizes: Sequence[tuple[int, int]] = PAPER_SIZES,
+    wavelengths: Sequence[tuple[str, float]] = PAPER_WAVELENGTHS,
+    distance_m: float = 0.07,
+    pitch_m: float | tuple[float, float] = 3.74e-6,
+    *,
+    roi_fraction: tuple[float, float] = PAPER_ROI_FRACTION,
+    modes: Sequence[Padding] = ("none", "2x", "auto"),
+    repeats: int = 5,
+    reference_factor: int = 4,
+    seed: int = 0,
+    device: str | torch.device = "cpu",
+    out: Callable[[str], None] = print,
+) -> list[dict[str, Any]]:
+    """Benchmark every size x colour x padding mode; print aligned tables and return one dict per row.
+
+    Times are medians of `repeats` calls after one warm-up. Every mode and its bare FFT pair are timed in
+    turn within each round, and ratios (to the bare pair, and the speed-up over "2x") are medians of the
+    per-round ratios, so load from other processes that comes and goes cancels out. The reference pads
+    `reference_factor` x (>= 4) in float64. Rows also carry the error ratio over "2x" (error / error_2x)
+    when "2x" is among the modes.
+    """
+    if reference_factor < 4:
+        raise ValueError(f"reference_factor must be >= 4 for a converged reference, got {reference_factor}")
+    if repeats < 1:
+        raise ValueError(f"repeats must be >= 1, got {repeats}")
+    device = torch.device(device)
+    timed = _timer(device)
+    rows: list[dict[str, Any]] = []
+    for shape in sizes:
+        generator = torch.Generator().manual_seed(seed)
+        phase = (2.0 * torch.rand(tuple(shape), generator=generator, dtype=torch.float64) - 1.0) * math.pi
+        field64 = torch.polar(torch.ones_like(phase), phase).to(device)
+        field32 = field64.to(torch.complex64)
+        roi = _roi(tuple(shape), roi_fraction)
+        for colour, wavelength_m in wavelengths:
+            reference_prop = Propagator(shape, distance_m, wavelength_m, pitch_m, padding=f"{reference_factor}x")
+            reference = reference_prop(field64)[..., roi[0], roi[1]].clone()
+            del reference_prop
+            props = {mode: Propagator(shape, distance_m, wavelength_m, pitch_m, padding=mode) for mode in modes}
+            bare_inputs = {mode: torch.zeros(p.plan.padded_shape, dtype=torch.complex64, device=device)
+                           for mode, p in props.items()}
+            ky, kx = next(iter(props.values())).plan.spread_fraction
+            out("")
+            out(f"{shape[0]}x{shape[1]} {colour} ({wavelength_m * 1e9:g} nm): K/N rows {ky:.2f}, cols {kx:.2f}"
+                f" (K under half the grid: {_under_half(ky, kx)})")
+            for mode, p in props.items():
+                out(f"  plan {mode!s:>5}: {p.plan.describe()}")
+            for mode, p in props.items():
+                p(field32)
+                _fft_pair(bare_inputs[mode])
+            times: dict[Padding, list[float]] = {mode: [] for mode in modes}
+            bare: dict[Padding, list[float]] = {mode: [] for mode in modes}
+            for _ in range(repeats):
+                for mode, p in props.items():
+                    bare[mode].append(timed(_fft_pair, bare_inputs[mode]))
+                    times[mode].append(timed(p, field32))
+            block = []
+            for mode, p in props.items():
+                block.append({
+                    "size": f"{shape[0]}x{shape[1]}",
+                    "colour": colour,
+                    "wavelength_nm": round(wavelength_m * 1e9, 3),
+                    "mode": str(mode),
+                    "padded": f"{p.plan.padded_shape[0]}x{p.plan.padded_shape[1]}",
+                    "k_over_n_rows": round(ky, 4),
+                    "k_over_n_cols": round(kx, 4),
+                    "time_ms": statistics.median(times[mode]) * 1e3,
+                    "bare_fft_ms": statistics.median(bare[mode]) * 1e3,
+                    "ratio_to_bare": _median_ratio(times[mode], bare[mode]),
+                    "roi_rel_l2": _relative_l2(p(field32)[..., roi[0], roi[1]], reference),
+                    "plan": p.plan.describe(),
+                    "speedup_vs_2x": _median_ratio(times["2x"], times[mode]) if "2x" in times else None,
+                })
+            base = next((r for r in block if r["mode"] == "2x"), None)
+            for r in block:
+                r["error_vs_2x"] = r["roi_rel_l2"] / base["roi_rel_l2"] if base and base["roi_rel_l2"] else None
+            _print_table(block, out)
+            auto = next((r for r in block if r["mode"] == "auto"), None)
+            if auto and base:
+                out(f"  auto vs 2x: {auto['speedup_vs_2x']:.2f}x faster, error ratio {auto['error_vs_2x']:.2f}")
+            rows += block
+            del props, bare_inputs, reference
+    if rows:
+        out("")
+        out("Summary")
+        _print_table(rows, out, with_case=True)
+    return rows
+
+
+def _median_ratio(numerators: list[float], denominators: list[float]) -> float:
+    """Median over rounds of a / b: each pair was timed back to back, so load that drifts cancels out."""
+    return statistics.median(a / b for a, b in zip(numerators, denominators))
+
+
+def _under_half(ky: float, kx: float) -> str:
+    axes = [name for name, k in (("rows", ky), ("cols", kx)) if k < 0.5]
+    return " and ".join(axes) if axes else "neither axis"
+
+
+def _print_table(rows: list[dict[str, Any]], out: Callable[[str], None], with_case: bool = False) -> None:
+    """Aligned columns: one line per row."""
+    def fmt(value: Any, spec: str) -> str:
+        return "-" if value is None else format(value, spec)
+
+    header = (["size", "colour"] if with_case else []) + [
+        "mode", "padded", "K/N rows", "K/N cols", "ms", "bare FFT ms", "/bare", "ROI rel L2", "2x/this", "err/2x"]
+    lines = [header]
+    for r in rows:
+        lines.append(([r["size"], r["colour"]] if with_case else []) + [
+            r["mode"], r["padded"], fmt(r["k_over_n_rows"], ".2f"), fmt(r["k_over_n_cols"], ".2f"),
+            fmt(r["time_ms"], ".4g"), fmt(r["bare_fft_ms"], ".4g"), fmt(r["ratio_to_bare"], ".2f"),
+            fmt(r["roi_rel_l2"], ".2e"), fmt(r["speedup_vs_2x"], ".2f"), fmt(r["error_vs_2x"], ".2f")])
+    widths = [max(len(line[i]) for line in lines) for i in range(len(header))]
+    for line in lines:
+        out("  " + "  ".join(cell.rjust(width) for cell, width in zip(line, widths)))
