@@ -104,9 +104,11 @@ def _cmd_bench_propagation(args: argparse.Namespace) -> int:
 
 def _cmd_profile_check(args: argparse.Namespace) -> int:
     from benchctl.profiles import load_profile
+    from benchctl.runner.holograms import describe_propagation
 
     profile = load_profile(args.path)
     print(profile.describe())
+    print(describe_propagation(profile))
     print(f"{profile.path}: OK")
     return 0
 
@@ -159,7 +161,8 @@ def build_parser() -> argparse.ArgumentParser:
     speed.add_argument("--iterations", type=_int_list, metavar="LIST",
                        help="iteration budgets for iterative methods (default: 10,50,200)")
     speed.add_argument("--size", type=_size, metavar="HxW",
-                       help="SLM grid for the benchmark, ROI scaled to match (default: a quarter of the profile's)")
+                       help="SLM grid for the benchmark; ROI and distance scaled to keep the Fresnel number "
+                            "(default: a quarter of the profile's grid per axis)")
     speed.add_argument("--seed", type=int, default=0)
     speed.add_argument("--out", "-o", default="bench-out", metavar="DIR", help="output folder (default: bench-out)")
     _add_profile(speed)

@@ -58,6 +58,7 @@ SCHEMA: Mapping[str, Field] = {
     "optics": Field("table", fields={
         "distance_mm": Field("float", gt=0),
         "roi": Field("int_pair", gt=0),
+        "iris_fraction": Field("float", required=False, gt=0),
     }),
     "slm": Field("table", fields={
         "width": Field("int", gt=0),
@@ -77,6 +78,9 @@ class OpticsConfig:
 
     distance_mm: float
     roi: tuple[int, int]  # (rows, cols), centred in the SLM grid
+    # Fourier-plane iris of the relay: radius as a fraction of the SLM's Nyquist frequency (None: no iris).
+    # A physical iris of diameter D behind a lens of focal length f gives D * pitch / (wavelength * f).
+    iris_fraction: float | None = None
 
     @property
     def distance_m(self) -> float:
@@ -137,10 +141,7 @@ class Profile:
         raise BenchctlError(f"{self.path}: no laser channel {name!r}; known channels: {known}")
 
     def describe(self) -> str:
-        """Multi-line summary for people: grid, pitch, distance, ROI and every channel with its spread."""
-        # Imported here: loading a profile must not pull in torch.
-        from benchctl.optics.propagation import spread_pixels
-
+        """Multi-line summary for people: grid, pitch, distance, ROI and every laser channel."""
         slm, optics = self.slm, self.optics
         lines = [f"Hardware profile {self.name!r} ({self.path})"]
         if self.description:
@@ -150,15 +151,14 @@ class Profile:
             f"{slm.bit_depth} bit",
             f"  Distance      {optics.distance_mm:g} mm",
             f"  ROI           {optics.roi[0]} x {optics.roi[1]} px (rows x cols), centred",
-            "  Laser channels (K = lateral spread z tan(asin(lambda / 2 pitch)) in pixels):",
+            "  Laser channels:",
         ]
         width = max(len(ch.name) for ch in self.channels)
         for ch in self.channels:
             share = 100.0 * ch.setpoint_mw / ch.max_power_mw
-            spread = spread_pixels(slm.height, optics.distance_m, ch.wavelength_m, slm.pitch_m)
             lines.append(
                 f"    {ch.name:<{width}}  #{ch.index}  {ch.wavelength_nm:g} nm  max {ch.max_power_mw:g} mW  "
-                f"setpoint {ch.setpoint_mw:g} mW ({share:.0f} %)  K = {spread:.0f} px"
+                f"setpoint {ch.setpoint_mw:g} mW ({share:.0f} %)"
             )
         return "\n".join(lines)
 

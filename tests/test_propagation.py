@@ -330,3 +330,56 @@ def test_propagation_bench_returns_one_row_per_mode_with_ratios():
     rows = run_propagation_bench(sizes=[(16, 24)], wavelengths=[("red", 680e-9)], distance_m=1e-3, pitch_m=8e-6,
                                  modes=(3, "auto"), repeats=1, out=lines.append)
     assert [r["mode"] for r in rows] == ["3", "auto"] and rows[0]["speedup_vs_2x"] is None
+
+
+@pytest.mark.parametrize(
+    "shape, distance_m, expected",
+    [
+        # REFERENCE.md: 3.74 um, 2x padding, 1088 rows at 7 cm keeps 0.64 (680 nm) to 0.96 (450 nm) of the
+        # (2-D) frequencies; at 20 cm 0.09 to 0.20; a 2160-row grid at 7 cm keeps everything.
+        ((1088, 1920), 0.07, (0.64, 0.96)),
+        ((1088, 1920), 0.20, (0.09, 0.20)),
+        ((2160, 3840), 0.07, (1.00, 1.00)),
+    ],
+)
+def test_band_limit_fractions_match_published_figures(shape, distance_m, expected):
+    red = math.prod(plan_propagation(shape, distance_m, 680e-9, 3.74e-6, padding="2x").passed_fraction)
+    blue = math.prod(plan_propagation(shape, distance_m, 450e-9, 3.74e-6, padding="2x").passed_fraction)
+    assert red == pytest.approx(expected[0], abs=0.01)
+    assert blue == pytest.approx(expected[1], abs=0.01)
+
+
+def _plane_wave(shape, cycles):
+    rows, cols = torch.meshgrid(torch.arange(shape[0], dtype=torch.float64),
+                                torch.arange(shape[1], dtype=torch.float64), indexing="ij")
+    phase = 2 * math.pi * (cycles[0] * rows / shape[0] + cycles[1] * cols / shape[1])
+    return torch.polar(torch.ones(shape, dtype=torch.float64), phase)
+
+
+def test_aperture_passes_frequencies_inside_the_iris_and_blocks_those_outside():
+    shape, pitch, lam = (64, 64), 8e-6, 520e-9
+    # 8 cycles over 64 px is 0.25 of Nyquist, 24 cycles is 0.75 of Nyquist.
+    slow, fast = _plane_wave(shape, (8, 0)), _plane_wave(shape, (0, 24))
+    kw = dict(padding="none", aperture=0.5)
+    out_slow = propagate(slow, 1e-3, lam, pitch, **kw)
+    out_fast = propagate(fast, 1e-3, lam, pitch, **kw)
+    assert torch.allclose(out_slow.abs(), torch.ones(shape, dtype=torch.float64), atol=1e-9)
+    assert out_fast.abs().max() < 1e-9
+
+
+def test_aperture_wider_than_the_spectrum_changes_nothing():
+    field = torch.polar(torch.ones(48, 40), torch.rand(48, 40, generator=torch.Generator().manual_seed(3)) * 6)
+    # The spectrum's corner sits at sqrt(2) x Nyquist: an iris of 1.5 passes everything.
+    wide = propagate(field, 5e-3, 450e-9, 4e-6, aperture=1.5)
+    assert torch.equal(wide, propagate(field, 5e-3, 450e-9, 4e-6))
+
+
+def test_aperture_at_zero_distance_low_passes_instead_of_identity():
+    field = _plane_wave((32, 32), (0, 12)) + _plane_wave((32, 32), (2, 0))
+    out = Propagator((32, 32), 0.0, 520e-9, 8e-6, padding="none", aperture=0.5)(field)
+    assert torch.allclose(out, _plane_wave((32, 32), (2, 0)), atol=1e-9)
+
+
+def test_aperture_must_be_positive():
+    with pytest.raises(ValueError, match="aperture"):
+        plan_propagation((8, 8), 1e-3, 520e-9, 8e-6, aperture=0.0)

@@ -59,6 +59,7 @@ class OpticalSetup:
     shape: tuple[int, int]
     roi: tuple[int, int]
     padding: Padding = "auto"
+    aperture: float | None = None  # Fourier-plane iris radius in units of the SLM's Nyquist frequency
     _to_target: Propagator = field(init=False, repr=False, compare=False)
     _to_slm: Propagator = field(init=False, repr=False, compare=False)
 
@@ -89,10 +90,12 @@ class OpticalSetup:
         """The setup of one laser channel of a hardware profile (profile units converted to SI)."""
         laser = profile.channel(channel)
         return cls(wavelength_m=laser.wavelength_m, pitch_m=profile.slm.pitch_m, distance_m=profile.optics.distance_m,
-                   shape=profile.slm.shape, roi=profile.optics.roi, padding=padding)
+                   shape=profile.slm.shape, roi=profile.optics.roi, padding=padding,
+                   aperture=profile.optics.iris_fraction)
 
     def _propagator(self, distance_m: float) -> Propagator:
-        return Propagator(self.shape, distance_m, self.wavelength_m, self.pitch_m, padding=self.padding)
+        return Propagator(self.shape, distance_m, self.wavelength_m, self.pitch_m, padding=self.padding,
+                          aperture=self.aperture)
 
     def target_propagator(self) -> Propagator:
         """The cached propagator SLM -> target plane (+z)."""

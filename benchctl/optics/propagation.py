@@ -44,6 +44,7 @@ class PropagationPlan:
     band_limit: bool
     spread_px: tuple[float, float]  # K per axis in pixels (inf where the grid carries grazing light)
     passed_fraction: tuple[float, float]  # fraction of each axis' frequencies kept by the band limit
+    aperture: float | None = None  # Fourier-plane iris radius as a fraction of the grid's Nyquist frequency
 
     @property
     def spread_fraction(self) -> tuple[float, float]:
@@ -60,6 +61,7 @@ class PropagationPlan:
             f"{h}x{w} -> {ph}x{pw} (padding={self.padding!s}, guard {ph - h}+{pw - w} px), "
             f"z={self.distance_m * 1e3:g} mm, lambda={self.wavelength_m * 1e9:g} nm, "
             f"spread K={ky:.0f}/{kx:.0f} px (K/N {ry:.2f}/{rx:.2f}), band limit keeps {fy:.2f} x {fx:.2f}"
+            + (f", iris {self.aperture:g} x Nyquist" if self.aperture is not None else "")
         )
 
 
@@ -69,18 +71,6 @@ def _pair(value: float | tuple[float, float] | list[float]) -> tuple[float, floa
             raise ValueError(f"pitch_m must be a float or (dy, dx), got {value!r}")
         return float(value[0]), float(value[1])
     return float(value), float(value)
-
-
-def spread_pixels(n: int, distance_m: float, wavelength_m: float, pitch_m: float) -> float:
-    """Lateral reach |z| tan(theta) in pixels of light at one axis' Nyquist angle (sin theta = lambda / 2 pitch).
-
-    The one-axis figure shown in profiles; `n` is not used. Plans use `reach_pixels`, which also counts the
-    other axis' frequency (a ray in the corner of the spectrum is steeper and goes ~0.4 % further at 3.74 um).
-    """
-    s = wavelength_m / (2.0 * pitch_m)
-    if s >= 1.0:
-        return float("inf")
-    return abs(distance_m) * s / math.sqrt(1.0 - s * s) / pitch_m
 
 
 def reach_pixels(distance_m: float, wavelength_m: float,
@@ -197,6 +187,7 @@ def plan_propagation(
     *,
     padding: Padding = "auto",
     band_limit: bool = True,
+    aperture: float | None = None,
 ) -> PropagationPlan:
     """Decide padded grid and band limit for a field of `shape` (H, W) without computing anything big."""
     if len(shape) != 2:
@@ -211,6 +202,8 @@ def plan_propagation(
     dy, dx = _pair(pitch_m)
     if not (dy > 0 and dx > 0 and math.isfinite(dy) and math.isfinite(dx)):
         raise ValueError(f"pitch_m must be positive, got {pitch_m}")
+    if aperture is not None and not (0 < aperture and math.isfinite(aperture)):
+        raise ValueError(f"aperture must be a positive fraction of the Nyquist frequency, got {aperture}")
     ky, kx = reach_pixels(distance_m, wavelength_m, (dy, dx))
     gy, gx = _guard(padding, h, ky), _guard(padding, w, kx)
     ph, pw = h + gy, w + gx
@@ -233,12 +226,15 @@ def plan_propagation(
         band_limit=band_limit,
         spread_px=(ky, kx),
         passed_fraction=(fractions[0], fractions[1]),
+        aperture=None if aperture is None else float(aperture),
     )
 
 
 def transfer_function(plan: PropagationPlan, dtype: torch.dtype = torch.complex64,
                       device: torch.device | str | None = None) -> torch.Tensor:
     """The band-limited ASM transfer function on the padded FFT grid (unshifted), as complex `dtype`.
+
+    With `plan.aperture` it also holds the Fourier-plane iris of a 4f relay between SLM and propagation.
 
     exp(i 2 pi z (sqrt(1/lambda^2 - f^2) - 1/lambda)): the piston k z is left out (it only sets a global
     phase) so that the float64 phase stays small enough to survive the cast to complex64.
@@ -253,6 +249,9 @@ def transfer_function(plan: PropagationPlan, dtype: torch.dtype = torch.complex6
         keep_x = fx.abs() < _band_limit(m_x, dx, z, lam)
     f2 = fy[:, None].square() + fx[None, :].square()
     keep = (f2 < 1.0 / lam**2) & keep_y[:, None] & keep_x[None, :]
+    if plan.aperture is not None:
+        # The iris in the Fourier plane of the relay: a disc in frequency, radius given in Nyquist units.
+        keep &= (2 * dy * fy[:, None]).square() + (2 * dx * fx[None, :]).square() < plan.aperture**2
     # 2 pi z (sqrt(1/lam^2 - f^2) - 1/lam) rewritten as -2 pi z f^2 / (sqrt(1/lam^2 - f^2) + 1/lam): no
     # cancellation of two ~1e6 rad terms, and finite (then masked) where the root's argument is negative.
     root = f2.neg().add_(1.0 / lam**2).clamp_min_(0.0).sqrt_().add_(1.0 / lam)
@@ -298,9 +297,10 @@ class Propagator:
         *,
         padding: Padding = "auto",
         band_limit: bool = True,
+        aperture: float | None = None,
     ) -> None:
         self.plan = plan_propagation(shape, distance_m, wavelength_m, pitch_m,
-                                     padding=padding, band_limit=band_limit)
+                                     padding=padding, band_limit=band_limit, aperture=aperture)
         self._kernels: dict[tuple[torch.dtype, torch.device], torch.Tensor] = {}
         self._buffer: torch.Tensor | None = None
 
@@ -333,7 +333,7 @@ class Propagator:
         field = _checked_field(field)
         if tuple(field.shape[-2:]) != self.plan.shape:
             raise ValueError(f"field is {tuple(field.shape[-2:])}, this propagator is for {self.plan.shape}")
-        if self.plan.distance_m == 0:
+        if self.plan.distance_m == 0 and self.plan.aperture is None:
             return field.clone()
         spectrum = torch.fft.fft2(self._padded(field))
         # In place: the FFT's backward does not need its output, so autograd allows it.
@@ -355,13 +355,19 @@ def propagate(
     *,
     padding: Padding = "auto",
     band_limit: bool = True,
+    aperture: float | None = None,
 ) -> torch.Tensor:
-    """Propagate `field` (..., H, W) by `distance_m` (+z: SLM -> target) with a cached `Propagator`."""
+    """Propagate `field` (..., H, W) by `distance_m` (+z: SLM -> target) with a cached `Propagator`.
+
+    `aperture`, if given, is a Fourier-plane iris (radius as a fraction of the grid's Nyquist frequency).
+    """
     _check_shape(field)
-    key = (tuple(field.shape[-2:]), float(distance_m), float(wavelength_m), _pair(pitch_m), padding, band_limit)
+    key = (tuple(field.shape[-2:]), float(distance_m), float(wavelength_m), _pair(pitch_m), padding, band_limit,
+           aperture)
     prop = _CACHE.get(key)
     if prop is None:
-        prop = Propagator(key[0], distance_m, wavelength_m, pitch_m, padding=padding, band_limit=band_limit)
+        prop = Propagator(key[0], distance_m, wavelength_m, pitch_m, padding=padding, band_limit=band_limit,
+                          aperture=aperture)
         _CACHE[key] = prop
         if len(_CACHE) > _CACHE_SIZE:
             _CACHE.popitem(last=False)

@@ -63,6 +63,15 @@ def target_plane(channel: LaserChannel) -> int:
     return 1 if channel.wavelength_nm >= 490 else 2
 
 
+def describe_propagation(profile: Profile) -> str:
+    """Per laser channel, the propagation plan at the profile's geometry (spread K, padded grid, band limit)."""
+    lines = ["  Propagation SLM -> target (padding auto):"]
+    for channel in profile.channels:
+        plan = OpticalSetup.from_profile(profile, channel.name).target_propagator().plan
+        lines.append(f"    {channel.name}: {plan.describe()}")
+    return "\n".join(lines)
+
+
 def select_channels(profile: Profile, names: list[str] | None) -> list[LaserChannel]:
     """The profile's channels in profile order, or the named ones (unknown names are an error)."""
     if not names:
