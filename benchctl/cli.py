@@ -159,7 +159,7 @@ def build_parser() -> argparse.ArgumentParser:
                                                                      "chart:text)")
     speed.add_argument("--methods", type=_names, metavar="LIST", help="comma-separated methods (default: all)")
     speed.add_argument("--iterations", type=_int_list, metavar="LIST",
-                       help="iteration budgets for iterative methods (default: 10,50,200)")
+                       help="iteration budgets for iterative methods (default: 10,50,200,500)")
     speed.add_argument("--size", type=_size, metavar="HxW",
                        help="SLM grid for the benchmark; ROI and distance scaled to keep the Fresnel number "
                             "(default: a quarter of the profile's grid per axis)")

@@ -13,7 +13,7 @@ import math
 import os
 import sys
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -33,7 +33,7 @@ DEFAULT_PROFILE = "simulated"
 class Field:
     """One key of the schema: its kind, whether it is required, its default and its numeric bounds."""
 
-    kind: str  # "float", "int", "str", "int_pair", "table" (fields) or "tables" (array of tables)
+    kind: str  # "float", "int", "bool", "str", "int_pair", "str_map", "table" (fields) or "tables" (array)
     required: bool = True
     default: Any = None
     gt: float | None = None
@@ -41,6 +41,7 @@ class Field:
     le: float | None = None
     fields: Mapping[str, Field] | None = None
     min_items: int = 0
+    choices: tuple[str, ...] | None = None
 
 
 _CHANNEL = {
@@ -50,26 +51,65 @@ _CHANNEL = {
     "wavelength_nm": Field("float", gt=0),
     "max_power_mw": Field("float", gt=0),
     "setpoint_mw": Field("float", ge=0),
+    # Single-wavelength heads (cobolt, obis) have one serial port each; overrides laser.port.
+    "port": Field("str", required=False),
+}
+
+LASER_DRIVERS = ("template", "cobolt", "obis")
+SLM_DRIVERS = ("sim", "framebuffer")
+
+# The commands of a multi-channel laser unit with a simple line protocol ("template" driver). Placeholders:
+# {channel} the channel's index, {mw} / {w} the power in mW / W. Replies with a power are read in `power_unit`.
+_PROTOCOL = {
+    "line_ending": Field("str", required=False, default="\r\n"),
+    "set_power": Field("str"),
+    "get_power": Field("str"),
+    "enable": Field("str"),
+    "disable": Field("str"),
+    "get_measured": Field("str", required=False),
+    "get_emission": Field("str", required=False),
+    "get_status": Field("str", required=False),
+    "identify": Field("str", required=False),
+    "ok_reply": Field("str", required=False, default="OK"),
+    "error_prefix": Field("str", required=False, default="ERR"),
+    "echo": Field("bool", required=False, default=False),
+    "power_unit": Field("str", required=False, default="mW", choices=("mW", "W")),
 }
 
 SCHEMA: Mapping[str, Field] = {
     "name": Field("str", required=False),
     "description": Field("str", required=False, default=""),
-    "optics": Field("table", fields={
+    "optics": Field("table", required=False, fields={
         "distance_mm": Field("float", gt=0),
         "roi": Field("int_pair", gt=0),
         "iris_fraction": Field("float", required=False, gt=0),
     }),
-    "slm": Field("table", fields={
+    "slm": Field("table", required=False, fields={
+        "driver": Field("str", required=False, default="sim", choices=SLM_DRIVERS),
+        "device": Field("str", required=False),
         "width": Field("int", gt=0),
         "height": Field("int", gt=0),
         "pitch_um": Field("float", gt=0),
         "bit_depth": Field("int", ge=1, le=16),
+        "settle_ms": Field("float", required=False, default=100.0, ge=0),
+        "flip_x": Field("bool", required=False, default=False),
+        "flip_y": Field("bool", required=False, default=False),
+        "phase_offset_rad": Field("float", required=False, default=0.0),
+        "two_pi_gray": Field("float", required=False, gt=0),
+        "grating_period_px": Field("float_pair", required=False, default=(0.0, 0.0)),
+        "lut": Field("str_map", required=False, default={}),
     }),
-    "laser": Field("table", fields={
+    "laser": Field("table", required=False, fields={
+        "driver": Field("str", required=False, default="template", choices=LASER_DRIVERS),
+        "port": Field("str", required=False),
+        "baudrate": Field("int", required=False, default=115200, gt=0),
+        "timeout_s": Field("float", required=False, default=1.0, gt=0),
+        "write_delay_s": Field("float", required=False, default=0.0, ge=0),
+        "protocol": Field("table", required=False, fields=_PROTOCOL),
         "channels": Field("tables", fields=_CHANNEL, min_items=1),
     }),
 }
+SECTIONS = ("optics", "slm", "laser")
 
 
 @dataclass(frozen=True)
@@ -89,12 +129,21 @@ class OpticsConfig:
 
 @dataclass(frozen=True)
 class SLMConfig:
-    """Phase SLM: grid size, pixel pitch and gray-level bit depth."""
+    """Phase SLM: grid, pitch, bit depth, and how phases become the gray levels it displays."""
 
     width: int
     height: int
     pitch_um: float
     bit_depth: int
+    driver: str = "sim"
+    device: str | None = None  # framebuffer device, e.g. /dev/fb1
+    settle_ms: float = 100.0  # wait after showing a frame before the image is trusted
+    flip_x: bool = False
+    flip_y: bool = False
+    phase_offset_rad: float = 0.0
+    two_pi_gray: float | None = None  # gray level of 2 pi for the linear lookup table (default 2^bit_depth)
+    grating_period_px: tuple[float, float] = (0.0, 0.0)  # blazed carrier (rows, cols); 0 = none on that axis
+    lut: Mapping[str, Path] = field(default_factory=dict)  # channel name -> gray-to-phase table file
 
     @property
     def pitch_m(self) -> float:
@@ -115,10 +164,49 @@ class LaserChannel:
     wavelength_nm: float
     max_power_mw: float
     setpoint_mw: float
+    port: str | None = None
 
     @property
     def wavelength_m(self) -> float:
         return self.wavelength_nm * 1e-9
+
+
+@dataclass(frozen=True)
+class TemplateProtocol:
+    """Command templates of a multi-channel laser unit with a line protocol (see _PROTOCOL for the keys)."""
+
+    set_power: str
+    get_power: str
+    enable: str
+    disable: str
+    line_ending: str = "\r\n"
+    get_measured: str | None = None
+    get_emission: str | None = None
+    get_status: str | None = None
+    identify: str | None = None
+    ok_reply: str = "OK"
+    error_prefix: str = "ERR"
+    echo: bool = False
+    power_unit: str = "mW"
+
+
+@dataclass(frozen=True)
+class LaserConfig:
+    """The laser: which driver, where it is connected, and its channels."""
+
+    channels: tuple[LaserChannel, ...]
+    driver: str = "template"
+    port: str | None = None
+    baudrate: int = 115200
+    timeout_s: float = 1.0
+    write_delay_s: float = 0.0  # pause after each write (some USB-serial adapters need it)
+    protocol: TemplateProtocol | None = None
+
+    def port_of(self, channel: LaserChannel) -> str:
+        """The serial port (pyserial URL or device path) that reaches `channel`."""
+        port = channel.port or self.port
+        assert port is not None  # guaranteed by validation
+        return port
 
 
 @dataclass(frozen=True)
@@ -128,12 +216,25 @@ class Profile:
     path: Path
     name: str
     description: str
-    optics: OpticsConfig
-    slm: SLMConfig
-    channels: tuple[LaserChannel, ...]
+    optics: OpticsConfig | None
+    slm: SLMConfig | None
+    laser: LaserConfig | None
+
+    @property
+    def channels(self) -> tuple[LaserChannel, ...]:
+        """The laser channels (none if the profile has no [laser] section)."""
+        return self.laser.channels if self.laser else ()
+
+    def require(self, *sections: str) -> Profile:
+        """This profile, or a BenchctlError naming the first of `sections` it lacks."""
+        for section in sections:
+            if getattr(self, section) is None:
+                raise BenchctlError(f"{self.path}: this needs a [{section}] section, which the profile lacks")
+        return self
 
     def channel(self, name: str) -> LaserChannel:
         """The laser channel called `name`."""
+        self.require("laser")
         for ch in self.channels:
             if ch.name == name:
                 return ch
@@ -141,25 +242,38 @@ class Profile:
         raise BenchctlError(f"{self.path}: no laser channel {name!r}; known channels: {known}")
 
     def describe(self) -> str:
-        """Multi-line summary for people: grid, pitch, distance, ROI and every laser channel."""
-        slm, optics = self.slm, self.optics
+        """Multi-line summary for people: each device section with its settings."""
+        slm, optics, laser = self.slm, self.optics, self.laser
         lines = [f"Hardware profile {self.name!r} ({self.path})"]
         if self.description:
             lines.append(f"  {self.description}")
-        lines += [
-            f"  SLM grid      {slm.height} x {slm.width} px (rows x cols), pitch {slm.pitch_um:g} um, "
-            f"{slm.bit_depth} bit",
-            f"  Distance      {optics.distance_mm:g} mm",
-            f"  ROI           {optics.roi[0]} x {optics.roi[1]} px (rows x cols), centred",
-            "  Laser channels:",
-        ]
-        width = max(len(ch.name) for ch in self.channels)
-        for ch in self.channels:
-            share = 100.0 * ch.setpoint_mw / ch.max_power_mw
-            lines.append(
-                f"    {ch.name:<{width}}  #{ch.index}  {ch.wavelength_nm:g} nm  max {ch.max_power_mw:g} mW  "
-                f"setpoint {ch.setpoint_mw:g} mW ({share:.0f} %)"
-            )
+        if slm:
+            flips = [name for name, on in (("x", slm.flip_x), ("y", slm.flip_y)) if on]
+            lines += [
+                f"  SLM           {slm.driver}{' ' + slm.device if slm.device else ''}: {slm.height} x {slm.width} px "
+                f"(rows x cols), pitch {slm.pitch_um:g} um, {slm.bit_depth} bit, settle {slm.settle_ms:g} ms",
+                f"  SLM encoding  lookup tables: {', '.join(f'{k}={v}' for k, v in slm.lut.items()) or 'linear'}; "
+                f"flip {'/'.join(flips) or 'none'}; offset {slm.phase_offset_rad:g} rad; "
+                f"carrier period {slm.grating_period_px[0]:g} x {slm.grating_period_px[1]:g} px",
+            ]
+        if optics:
+            iris = f"{optics.iris_fraction:g} x Nyquist" if optics.iris_fraction is not None else "none"
+            lines += [
+                f"  Distance      {optics.distance_mm:g} mm",
+                f"  ROI           {optics.roi[0]} x {optics.roi[1]} px (rows x cols), centred",
+                f"  Iris          {iris}",
+            ]
+        if laser:
+            where = f" on {laser.port}" if laser.port else ""
+            lines.append(f"  Laser         {laser.driver}{where}, {laser.baudrate} baud, timeout {laser.timeout_s:g} s")
+            width = max(len(ch.name) for ch in laser.channels)
+            for ch in laser.channels:
+                share = 100.0 * ch.setpoint_mw / ch.max_power_mw
+                port = f"  port {ch.port}" if ch.port else ""
+                lines.append(
+                    f"    {ch.name:<{width}}  #{ch.index}  {ch.wavelength_nm:g} nm  max {ch.max_power_mw:g} mW  "
+                    f"setpoint {ch.setpoint_mw:g} mW ({share:.0f} %){port}"
+                )
         return "\n".join(lines)
 
 
@@ -250,7 +364,21 @@ def _check_value(value: Any, field: Field, key: str, path: Path) -> Any:
     if field.kind == "str":
         if not isinstance(value, str):
             raise wrong("a string")
+        if field.choices is not None and value not in field.choices:
+            raise _fail(path, key, f"unknown value {value!r} (choose from {', '.join(field.choices)})")
         return value
+    if field.kind == "bool":
+        if not isinstance(value, bool):
+            raise wrong("true or false")
+        return value
+    if field.kind == "str_map":
+        if not isinstance(value, dict) or not all(isinstance(v, str) for v in value.values()):
+            raise wrong("a table of strings")
+        return dict(value)
+    if field.kind == "float_pair":
+        if not (isinstance(value, list) and len(value) == 2 and all(_is_number(v) for v in value)):
+            raise wrong("two numbers [rows, cols]")
+        return tuple(float(v) for v in value)
     if field.kind == "int_pair":
         if not (isinstance(value, list) and len(value) == 2 and all(_is_int(v) for v in value)):
             raise wrong("two integers [rows, cols]")
@@ -259,9 +387,13 @@ def _check_value(value: Any, field: Field, key: str, path: Path) -> Any:
         if not _is_int(value):
             raise wrong("an integer")
         return _check_bounds(value, field, key, path)
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+    if not _is_number(value):
         raise wrong("a finite number")
     return _check_bounds(float(value), field, key, path)
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 def _is_int(value: Any) -> bool:
@@ -280,17 +412,39 @@ def _check_bounds(value: float, field: Field, key: str, path: Path) -> Any:
 
 def _build(path: Path, data: Mapping[str, Any]) -> Profile:
     """Cross-key checks the schema cannot express, then the dataclasses."""
-    optics = OpticsConfig(**data["optics"])
-    slm = SLMConfig(**data["slm"])
-    rows, cols = optics.roi
-    if rows > slm.height or cols > slm.width:
+    if not any(section in data for section in SECTIONS):
+        raise _fail(path, "(top level)", f"no device section: give at least one of {', '.join(SECTIONS)}")
+    slm = _build_slm(path, data["slm"]) if "slm" in data else None
+    optics = OpticsConfig(**data["optics"]) if "optics" in data else None
+    if optics and slm and (optics.roi[0] > slm.height or optics.roi[1] > slm.width):
         raise _fail(
             path, "optics.roi",
-            f"{[rows, cols]} is larger than the SLM grid {slm.height} x {slm.width} (slm.height x slm.width)",
+            f"{list(optics.roi)} is larger than the SLM grid {slm.height} x {slm.width} (slm.height x slm.width)",
         )
+    laser = _build_laser(path, data["laser"]) if "laser" in data else None
+    if slm and laser:
+        names = {ch.name for ch in laser.channels}
+        for name in slm.lut:
+            if name not in names:
+                raise _fail(path, f"slm.lut.{name}", f"no laser channel {name!r} (known: {', '.join(sorted(names))})")
+    return Profile(path=path, name=data.get("name", path.stem), description=data["description"],
+                   optics=optics, slm=slm, laser=laser)
+
+
+def _build_slm(path: Path, data: Mapping[str, Any]) -> SLMConfig:
+    """The SLM section: lookup-table paths are relative to the profile's folder."""
+    luts = {name: (path.parent / file).resolve() for name, file in data.get("lut", {}).items()}
+    slm = SLMConfig(**{**data, "lut": luts})
+    if slm.driver == "framebuffer" and not slm.device:
+        raise _fail(path, "slm.device", "the framebuffer driver needs a device, e.g. device = \"/dev/fb1\"")
+    return slm
+
+
+def _build_laser(path: Path, data: Mapping[str, Any]) -> LaserConfig:
+    """The laser section: channels unique by name and index, setpoints within limits, every channel reachable."""
     channels = []
     first_seen: dict[tuple[str, Any], str] = {}
-    for i, entry in enumerate(data["laser"]["channels"]):
+    for i, entry in enumerate(data["channels"]):
         key = f"laser.channels[{i}]"
         channel = LaserChannel(**{"index": i + 1, **entry})
         if not channel.name.strip():
@@ -306,12 +460,13 @@ def _build(path: Path, data: Mapping[str, Any]) -> Profile:
                 path, f"{key}.setpoint_mw",
                 f"{channel.setpoint_mw:g} mW is above max_power_mw {channel.max_power_mw:g} mW",
             )
+        if channel.port is None and "port" not in data:
+            raise _fail(path, f"{key}.port", "no serial port: set laser.port or a port for this channel")
         channels.append(channel)
-    return Profile(
-        path=path,
-        name=data.get("name", path.stem),
-        description=data["description"],
-        optics=optics,
-        slm=slm,
-        channels=tuple(channels),
-    )
+    protocol = data.get("protocol")
+    if data["driver"] == "template" and protocol is None:
+        raise _fail(path, "laser.protocol", "the template driver needs a [laser.protocol] section with its commands")
+    if data["driver"] != "template" and protocol is not None:
+        raise _fail(path, "laser.protocol", f"only the template driver uses [laser.protocol], not {data['driver']!r}")
+    fields = {k: v for k, v in data.items() if k not in ("channels", "protocol")}
+    return LaserConfig(channels=tuple(channels), protocol=TemplateProtocol(**protocol) if protocol else None, **fields)

@@ -20,6 +20,20 @@ height = 64
 pitch_um = 8.0
 bit_depth = 8
 
+[laser]
+driver = "template"
+port = "sim://rgb-laser"
+
+[laser.protocol]
+set_power = "CH{channel}:POW {mw:.2f}"
+get_power = "CH{channel}:POW?"
+get_measured = "CH{channel}:MEAS?"
+enable = "CH{channel}:EMIT 1"
+disable = "CH{channel}:EMIT 0"
+get_emission = "CH{channel}:EMIT?"
+get_status = "CH{channel}:STAT?"
+identify = "*IDN?"
+
 [[laser.channels]]
 name = "red"
 index = 1
@@ -49,3 +63,11 @@ def small_profile_path(tmp_path: Path) -> Path:
     path = tmp_path / "small.toml"
     path.write_text(SMALL_PROFILE)
     return path
+
+
+@pytest.fixture(autouse=True)
+def sim_state_dir(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """Each test gets its own simulated-bench state folder, so tests never see each other's (or a user's) state."""
+    folder = tmp_path_factory.mktemp("sim-state")
+    monkeypatch.setenv("BENCHCTL_SIM_DIR", str(folder))
+    return folder

@@ -108,13 +108,21 @@ def test_toml_syntax_error_names_the_line(small_profile_path: Path) -> None:
     ("old", "new", "expected"),
     [
         ("pitch_um = 8.0", "pitch = 8.0",
-         "slm.pitch: unknown key (did you mean 'pitch_um'? known: width, height, pitch_um, bit_depth)"),
+         "slm.pitch: unknown key (did you mean 'pitch_um'? known: driver, device, width, height, pitch_um"),
         ("[slm]", "[camera]\nmodel = 'x'\n\n[slm]",
          "camera: unknown section (known: name, description, optics, slm, laser)"),
         ("wavelength_nm = 520", "wavelenght_nm = 520",
          "laser.channels[1].wavelenght_nm: unknown key (did you mean 'wavelength_nm'?"),
         ("pitch_um = 8.0\n", "", "slm.pitch_um: missing required key"),
-        ("[optics]\ndistance_mm = 20.0\nroi = [48, 80]\n", "", "optics: missing required section"),
+        ('driver = "template"', 'driver = "coherent"',
+         "laser.driver: unknown value 'coherent' (choose from template, cobolt, obis)"),
+        ("[slm]", "[slm]\nflip_x = 1", "slm.flip_x: expected true or false, got 1 (int)"),
+        ("[slm]", "[slm]\ngrating_period_px = [8]", "slm.grating_period_px: expected two numbers [rows, cols]"),
+        ("[slm]", '[slm]\ndriver = "framebuffer"', "slm.device: the framebuffer driver needs a device"),
+        ('port = "sim://rgb-laser"\n', "", "laser.channels[0].port: no serial port: set laser.port"),
+        ("[laser.protocol]", "[laser.protocols]", "laser.protocols: unknown section (did you mean 'protocol'?"),
+        ('set_power = "CH{channel}:POW {mw:.2f}"\n', "", "laser.protocol.set_power: missing required key"),
+        ("[laser]", "[slm.lut]\nviolet = 'v.csv'\n\n[laser]", "slm.lut.violet: no laser channel 'violet'"),
         ("width = 96", 'width = "96"', "slm.width: expected an integer, got '96' (str)"),
         ("width = 96", "width = 96.0", "slm.width: expected an integer, got 96.0 (float)"),
         ("distance_mm = 20.0", "distance_mm = true",
@@ -147,7 +155,37 @@ def test_errors_name_file_key_and_value(small_profile_path: Path, old: str, new:
 
 def test_no_channels(small_profile_path: Path) -> None:
     text = small_profile_path.read_text()
-    small_profile_path.write_text(text[: text.index("[[laser.channels]]")] + "[laser]\nchannels = []\n")
+    head = text[: text.index("[[laser.channels]]")]
+    small_profile_path.write_text(head.replace("[laser]\n", "[laser]\nchannels = []\n"))
     assert "laser.channels: at least 1 entry required, got 0" in error_of(small_profile_path)
-    small_profile_path.write_text(text[: text.index("[[laser.channels]]")])
-    assert "laser: missing required section" in error_of(small_profile_path)
+
+
+def test_template_driver_needs_its_protocol(small_profile_path: Path) -> None:
+    text = small_profile_path.read_text()
+    start, end = text.index("[laser.protocol]"), text.index("[[laser.channels]]")
+    small_profile_path.write_text(text[:start] + text[end:])
+    assert "laser.protocol: the template driver needs a [laser.protocol] section" in error_of(small_profile_path)
+
+
+def test_a_profile_may_describe_only_some_devices(small_profile_path: Path) -> None:
+    text = small_profile_path.read_text()
+    small_profile_path.write_text(text[text.index("[laser]"):])  # laser only
+    profile = load_profile(small_profile_path)
+    assert profile.slm is None and profile.optics is None
+    assert [ch.name for ch in profile.channels] == ["red", "green", "blue"]
+    with pytest.raises(BenchctlError, match=r"needs a \[slm\] section, which the profile lacks"):
+        profile.require("laser", "slm")
+    small_profile_path.write_text('name = "empty"\n')
+    assert "no device section: give at least one of optics, slm, laser" in error_of(small_profile_path)
+
+
+def test_device_keys_take_documented_defaults_and_luts_resolve_beside_the_profile(small_profile_path: Path) -> None:
+    profile = load_profile(edited(small_profile_path, "[laser]", "[slm.lut]\ngreen = 'luts/g.csv'\n\n[laser]"))
+    slm, laser = profile.slm, profile.laser
+    assert (slm.driver, slm.device, slm.settle_ms, slm.flip_x, slm.flip_y) == ("sim", None, 100.0, False, False)
+    assert (slm.phase_offset_rad, slm.two_pi_gray, slm.grating_period_px) == (0.0, None, (0.0, 0.0))
+    assert slm.lut == {"green": (small_profile_path.parent / "luts" / "g.csv").resolve()}
+    assert (laser.driver, laser.baudrate, laser.timeout_s, laser.write_delay_s) == ("template", 115200, 1.0, 0.0)
+    assert laser.protocol.line_ending == "\r\n" and laser.protocol.ok_reply == "OK"
+    assert laser.protocol.power_unit == "mW" and laser.protocol.echo is False
+    assert laser.port_of(profile.channel("red")) == "sim://rgb-laser"

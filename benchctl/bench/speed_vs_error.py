@@ -14,7 +14,7 @@ from benchctl.runner.holograms import compute_scene
 from benchctl.targets import load_target, prepare_target
 
 DEFAULT_TARGETS = ("chart:siemens", "chart:bars", "chart:text")
-DEFAULT_BUDGETS = (10, 50, 200)
+DEFAULT_BUDGETS = (10, 50, 200, 500)
 
 
 def resized_profile(profile: Profile, size: tuple[int, int]) -> Profile:
