@@ -61,10 +61,15 @@ class PhaseLUT:
         return self.phases.numel()
 
     def _nearest_levels(self) -> torch.Tensor:
-        """For each bin centre of a fine grid over [0, 2 pi), the gray level nearest in phase modulo 2 pi."""
-        wrapped = torch.remainder(self.phases, TWO_PI)
-        order = torch.argsort(wrapped, stable=True)
-        ring = wrapped[order]
+        """For each bin centre of a fine grid over [0, 2 pi), the gray level nearest in phase modulo 2 pi.
+
+        Only the levels of the table's first 2 pi period are used: past it the table repeats phases, and
+        mixing levels from two periods would make neighbouring pixels of a smooth phase jump across the range.
+        """
+        candidates = torch.nonzero(self.phases < self.phases[0] + TWO_PI).flatten()
+        wrapped = torch.remainder(self.phases[candidates], TWO_PI)
+        by_phase = torch.argsort(wrapped, stable=True)
+        order, ring = candidates[by_phase], wrapped[by_phase]
         centres = (torch.arange(self.bins, dtype=torch.float64) + 0.5) * (TWO_PI / self.bins)
         above = torch.searchsorted(ring, centres)
         below = above - 1  # -1 wraps to the largest phase, one turn lower

@@ -60,7 +60,7 @@ def run_generate(
     files = []
     for c in scene.colours:
         if not c.skipped:
-            files.append(write_png(out_dir / f"phase_{c.channel}.png", c.gray.numpy()).name)
+            files.append(write_png(out_dir / f"phase_{c.channel}.png", c.gray).name)
     files.append(write_png(out_dir / "target.png", _srgb8(scene.target_roi.square())).name)
     files.append(write_png(out_dir / "reconstruction.png", _srgb8(scene.merged_linear)).name)
     metrics = {

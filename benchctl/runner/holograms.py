@@ -9,20 +9,13 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable
 
+import numpy as np
 import torch
 
 from benchctl.cgh import OpticalSetup, get_method
 from benchctl.errors import BenchctlError
-from benchctl.optics import (
-    PhaseLUT,
-    crop_roi,
-    gray_to_phase,
-    linear_to_srgb,
-    lsq_scale,
-    phase_to_gray,
-    psnr,
-    ssim,
-)
+from benchctl.devices.slm import slm_for
+from benchctl.optics import crop_roi, linear_to_srgb, lsq_scale, psnr, ssim
 from benchctl.profiles import LaserChannel, Profile
 from benchctl.targets import active_channels
 
@@ -37,7 +30,7 @@ class ColourResult:
     wavelength_nm: float
     skipped: bool
     seconds: float = 0.0
-    gray: torch.Tensor | None = None  # SLM values as displayed
+    gray: np.ndarray | None = None  # the SLM frame exactly as displayed (lookup table, offset, carrier, flips)
     reconstruction: torch.Tensor | None = None  # ROI amplitude, least-squares scaled to the target
     scores: dict[str, float] = field(default_factory=dict)
 
@@ -124,6 +117,7 @@ def compute_scene(
     if tuple(target_amplitude.shape) != (3, *grid):
         raise BenchctlError(f"target is {tuple(target_amplitude.shape)}, the SLM grid needs (3, {grid[0]}, {grid[1]})")
     present = active_channels(target_amplitude)
+    slm = slm_for(profile)
     target_roi = crop_roi(target_amplitude, roi)
     merged = torch.zeros_like(target_roi)
     results = []
@@ -133,13 +127,12 @@ def compute_scene(
             results.append(ColourResult(channel.name, channel.wavelength_nm, skipped=True))
             continue
         setup = OpticalSetup.from_profile(profile, channel.name)
-        lut = PhaseLUT.linear(profile.slm.bit_depth)
         start = time.perf_counter()
         phase = generate(target_amplitude[plane], setup, iterations=iterations, seed=seed,
                          progress=progress(f"{method} {channel.name}") if progress else None)
         seconds = time.perf_counter() - start
-        gray = phase_to_gray(phase, lut)
-        recon = crop_roi(setup.reconstruct(gray_to_phase(gray, lut)), roi)
+        gray = slm.encode(phase, channel.name)
+        recon = crop_roi(setup.reconstruct(slm.decode(gray, channel.name)), roi)
         recon = recon * lsq_scale(recon, target_roi[plane])
         merged[plane] = recon.square().clamp(0, 1)
         results.append(ColourResult(channel.name, channel.wavelength_nm, skipped=False, seconds=seconds,

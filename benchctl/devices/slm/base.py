@@ -1,0 +1,237 @@
+"""The SLM: a phase-only display. Public methods are fixed here; drivers implement three hooks.
+
+`show_phase` turns radians into the gray levels the panel shows, in one place for every driver: add the
+profile's phase offset and blazed grating carrier, encode through the channel's lookup table (the one
+phase -> gray mapping, benchctl.optics.phase_encoding), mirror as the optics require, display, wait the
+settle time. Drivers only open, close and put a finished gray frame on the panel (`_display`).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Sequence
+from typing import Any, ClassVar
+
+import numpy as np
+import torch
+
+from benchctl.devices.errors import DeviceError
+from benchctl.devices.slm.lut import lut_for
+from benchctl.errors import BadValueError
+from benchctl.optics.phase_encoding import PhaseLUT, gray_to_phase, phase_to_gray
+from benchctl.profiles import SLMConfig
+
+TWO_PI = 2.0 * math.pi
+
+
+class SLM(ABC):
+    """A phase SLM built from the profile's [slm] section; a context manager (open on enter, close on exit)."""
+
+    driver: ClassVar[str]
+
+    def __init__(self, config: SLMConfig, channels: Sequence[str] = ()) -> None:
+        """`channels`: the profile's laser channel names, the valid `channel` arguments (with any in slm.lut)."""
+        self.config = config
+        self.channels: tuple[str, ...] = tuple(dict.fromkeys([*channels, *config.lut]))
+        self.sleep: Callable[[float], None] = time.sleep  # the settle wait; tests replace it
+        self._luts: dict[str, PhaseLUT] = {}
+        self._current: np.ndarray | None = None
+        self._open_now = False
+
+    # -- hooks ------------------------------------------------------------------------------------------
+
+    @abstractmethod
+    def _open(self) -> None:
+        """Connect to the panel."""
+
+    @abstractmethod
+    def _close(self) -> None:
+        """Release the panel; what it shows stays (a display keeps its last frame)."""
+
+    @abstractmethod
+    def _display(self, gray: np.ndarray, channel: str | None) -> None:
+        """Put `gray` ((H, W), gray_dtype, read-only) on the panel; `channel` is None for raw gray frames."""
+
+    # -- description --------------------------------------------------------------------------------------
+
+    @property
+    def label(self) -> str:
+        """How messages name this SLM, e.g. "SLM (framebuffer /dev/fb1)"."""
+        where = f" {self.config.device}" if self.config.device else ""
+        return f"SLM ({self.driver}{where})"
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(H, W) = (rows, cols): the shape of phases and gray frames."""
+        return self.config.shape
+
+    @property
+    def resolution(self) -> tuple[int, int]:
+        """Same as `shape`, (H, W)."""
+        return self.shape
+
+    @property
+    def pitch_m(self) -> float:
+        """Pixel pitch in metres."""
+        return self.config.pitch_m
+
+    @property
+    def bit_depth(self) -> int:
+        """Bits per gray level; the panel shows 0 .. 2^bit_depth - 1."""
+        return self.config.bit_depth
+
+    @property
+    def gray_dtype(self) -> type[np.unsignedinteger]:
+        """dtype of gray frames: uint8 up to 8 bit, uint16 above."""
+        return np.uint8 if self.bit_depth <= 8 else np.uint16
+
+    @property
+    def settle_s(self) -> float:
+        """Wait after each new frame before the panel is trusted (liquid crystal response)."""
+        return self.config.settle_ms * 1e-3
+
+    @property
+    def is_open(self) -> bool:
+        """Whether frames can be shown now."""
+        return self._open_now
+
+    def info(self) -> dict[str, Any]:
+        """What this SLM is and how it encodes, for `benchctl slm info` and run records (JSON-ready)."""
+        linear = f"linear, 2 pi = gray {self.config.two_pi_gray or (1 << self.bit_depth):g}"
+        return {
+            "driver": self.driver,
+            "device": self.config.device,
+            "shape": list(self.shape),
+            "pitch_um": self.config.pitch_um,
+            "bit_depth": self.bit_depth,
+            "settle_ms": self.config.settle_ms,
+            "flip_x": self.config.flip_x,
+            "flip_y": self.config.flip_y,
+            "phase_offset_rad": self.config.phase_offset_rad,
+            "grating_period_px": list(self.config.grating_period_px),
+            "luts": {ch: str(self.config.lut[ch]) if ch in self.config.lut else linear for ch in self.channels},
+        }
+
+    def lut(self, channel: str) -> PhaseLUT:
+        """The gray -> phase table used for `channel` (loaded once)."""
+        if channel not in self._luts:
+            if channel not in self.channels:
+                known = ", ".join(self.channels) or "none (the profile has no [laser] channels or [slm.lut])"
+                raise BadValueError(f"{self.label}: no channel {channel!r}; known channels: {known}")
+            self._luts[channel] = lut_for(self.config, channel)
+        return self._luts[channel]
+
+    def current(self) -> np.ndarray | None:
+        """The last frame this object displayed (read-only), None before the first."""
+        return self._current
+
+    # -- lifecycle ------------------------------------------------------------------------------------------
+
+    def open(self) -> SLM:
+        """Connect to the panel (no-op if open); returns self."""
+        if not self._open_now:
+            self._open()
+            self._open_now = True
+        return self
+
+    def close(self) -> None:
+        """Disconnect (no-op if closed); the panel keeps showing the last frame."""
+        if self._open_now:
+            self._open_now = False
+            self._close()
+
+    def __enter__(self) -> SLM:
+        return self.open()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- showing ----------------------------------------------------------------------------------------------
+
+    def _added_phase(self, device: torch.device) -> torch.Tensor:
+        """Phase offset plus blazed carrier (float64, broadcastable to (H, W)) added before encoding."""
+        total = torch.full((1, 1), self.config.phase_offset_rad, dtype=torch.float64, device=device)
+        for axis, period in enumerate(self.config.grating_period_px):
+            if period:
+                ramp = torch.arange(self.shape[axis], dtype=torch.float64, device=device) * (TWO_PI / period)
+                total = total + (ramp[:, None] if axis == 0 else ramp)
+        return total
+
+    def _flips(self) -> list[int]:
+        return [dim for dim, on in ((0, self.config.flip_y), (1, self.config.flip_x)) if on]
+
+    def encode(self, phase: torch.Tensor | np.ndarray, channel: str) -> np.ndarray:
+        """The gray frame `show_phase` would display for `phase` ((H, W) radians), without displaying it."""
+        phase = self._checked_phase(phase)
+        gray = phase_to_gray(phase.to(torch.float64) + self._added_phase(phase.device), self.lut(channel))
+        if self._flips():
+            gray = torch.flip(gray, self._flips())
+        return gray.cpu().numpy().astype(self.gray_dtype, copy=False)
+
+    def decode(self, gray: np.ndarray, channel: str) -> torch.Tensor:
+        """The hologram phase a displayed frame carries: undo flips, look up `channel`'s table, remove the
+        offset and carrier (the optics compensate those). Float32 (H, W) radians in [-pi, pi)."""
+        frame = torch.as_tensor(np.ascontiguousarray(gray).astype(np.int64))
+        if self._flips():
+            frame = torch.flip(frame, self._flips())
+        phase = gray_to_phase(frame, self.lut(channel)).to(torch.float64) - self._added_phase(frame.device)
+        return (torch.remainder(phase + math.pi, TWO_PI) - math.pi).to(torch.float32)
+
+    def show_phase(self, phase: torch.Tensor | np.ndarray, channel: str) -> np.ndarray:
+        """Display `phase` ((H, W) radians) encoded for `channel`'s wavelength; returns the frame as displayed."""
+        return self._show(self.encode(phase, channel), channel)
+
+    def show_gray(self, gray: np.ndarray | torch.Tensor) -> np.ndarray:
+        """Display raw gray levels as they are (no offset, carrier, table or flip); returns the frame displayed."""
+        if isinstance(gray, torch.Tensor):
+            gray = gray.detach().cpu().numpy()
+        gray = np.asarray(gray)
+        if gray.shape != self.shape:
+            raise BadValueError(
+                f"{self.label}: gray frame has shape {gray.shape}, expected (H, W) = {self.shape} "
+                f"(profile slm.height x slm.width)"
+            )
+        expected = np.dtype(self.gray_dtype)
+        if gray.dtype != expected:
+            raise BadValueError(
+                f"{self.label}: gray frame has dtype {gray.dtype}, expected {expected} for a {self.bit_depth}-bit SLM"
+            )
+        top = int(gray.max())
+        if top >= 1 << self.bit_depth:
+            raise BadValueError(
+                f"{self.label}: gray level {top} out of range 0..{(1 << self.bit_depth) - 1} ({self.bit_depth}-bit SLM)"
+            )
+        return self._show(gray.copy(), None)
+
+    def blank(self) -> np.ndarray:
+        """Display gray 0 everywhere; returns the frame."""
+        return self.show_gray(np.zeros(self.shape, self.gray_dtype))
+
+    def _show(self, frame: np.ndarray, channel: str | None) -> np.ndarray:
+        if not self._open_now:
+            raise DeviceError(f"{self.label} is not open (use `with open_slm(profile) as slm:`)")
+        frame.flags.writeable = False
+        self._display(frame, channel)
+        self._current = frame
+        self.sleep(self.settle_s)
+        return frame
+
+    def _checked_phase(self, phase: torch.Tensor | np.ndarray) -> torch.Tensor:
+        """`phase` as a tensor, refused unless it is real floating point, (H, W) and finite."""
+        tensor = phase if isinstance(phase, torch.Tensor) else torch.as_tensor(np.ascontiguousarray(phase))
+        if tensor.is_complex() or not tensor.is_floating_point():
+            raise BadValueError(
+                f"{self.label}: phase must be real radians (float), got {tensor.dtype}; "
+                f"use show_gray for gray levels"
+            )
+        if tuple(tensor.shape) != self.shape:
+            raise BadValueError(
+                f"{self.label}: phase has shape {tuple(tensor.shape)}, expected (H, W) = {self.shape} "
+                f"(profile slm.height x slm.width)"
+            )
+        bad = int((~torch.isfinite(tensor)).sum())
+        if bad:
+            raise BadValueError(f"{self.label}: phase has {bad} NaN or infinite values of {tensor.numel()}")
+        return tensor

@@ -1,0 +1,77 @@
+"""The simulated SLM: keeps exactly what the panel would show, in the simulated bench's state folder.
+
+Each displayed frame becomes a PNG (8- or 16-bit, gray levels as shown) named by a frame counter, and the
+state file `slm.json` says which frame is current, its shape, bit depth, channel and time. Other programs
+(the simulated camera, `benchctl slm info`) read it with `read_displayed`. A display can be looked at by
+several programs, so unlike the other simulated devices the SLM takes no lock.
+"""
+
+from __future__ import annotations
+
+from datetime import datetime, timezone
+from typing import Any
+
+import numpy as np
+
+from benchctl.devices.errors import DeviceError
+from benchctl.devices.sim.state import device_file, load_state, save_state, state_dir
+from benchctl.devices.slm.base import SLM
+from benchctl.errors import BenchctlError
+from benchctl.files import ensure_dir
+from benchctl.images import read_image, write_png
+
+STATE_NAME = "slm"
+_READ_ATTEMPTS = 5
+
+
+def read_displayed() -> tuple[np.ndarray | None, dict[str, Any]]:
+    """The frame the simulated SLM shows now and its metadata; (None, {}) if it has shown nothing yet."""
+    for _ in range(_READ_ATTEMPTS):
+        state = load_state(STATE_NAME)
+        if not state:
+            return None, {}
+        if "file" not in state or "frame" not in state:
+            raise DeviceError(f"simulated SLM: state {state_dir()}/{STATE_NAME}.json is incomplete; "
+                              f"`benchctl sim reset` clears it")
+        try:
+            return read_image(state_dir() / state["file"]), state
+        except BenchctlError:
+            if load_state(STATE_NAME).get("frame") == state["frame"]:
+                raise
+            # A newer frame replaced this one while it was being read: read the new one.
+    raise DeviceError("simulated SLM: the frame changed on every attempt to read it")
+
+
+class SimSLM(SLM):
+    """An SLM whose panel is a PNG plus metadata in the simulated bench state (see module docstring)."""
+
+    driver = "sim"
+    read_displayed = staticmethod(read_displayed)
+
+    def _open(self) -> None:
+        """Nothing to connect to; fail now, not at the first frame, if the state folder is not writable."""
+        ensure_dir(state_dir())
+
+    def _close(self) -> None:
+        pass
+
+    def _display(self, gray: np.ndarray, channel: str | None) -> None:
+        """Write the frame file first, then the state naming it, then drop older frame files."""
+        frame = int(load_state(STATE_NAME).get("frame", 0)) + 1
+        name = f"{STATE_NAME}-{frame}.png"
+        write_png(device_file(name), gray)
+        save_state(STATE_NAME, {
+            "frame": frame,
+            "file": name,
+            "shape": list(gray.shape),
+            "bit_depth": self.bit_depth,
+            "channel": channel,
+            "time": datetime.now(timezone.utc).isoformat(timespec="milliseconds"),
+        })
+        for old in state_dir().glob(f"{STATE_NAME}-*.png"):
+            if old.name != name:
+                old.unlink(missing_ok=True)
+
+    def info(self) -> dict[str, Any]:
+        """The base description plus where the simulated panel lives and what it shows now."""
+        return {**super().info(), "device": str(state_dir()), "displayed": load_state(STATE_NAME)}
