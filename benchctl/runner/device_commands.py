@@ -1,0 +1,144 @@
+"""What `benchctl laser`, `benchctl slm` and `benchctl sim` do: open the profile's device, act, report.
+
+Every function returns the lines to print, so the command line stays a thin layer and tests can call these
+directly. Emission safety lives in the laser driver (off at connect and on close); this module only decides
+how long emission stays on.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from benchctl.devices.laser import ChannelStatus, open_laser
+from benchctl.devices.power import format_power
+from benchctl.devices.sim.state import list_states, load_state, reset_states, save_state, state_dir
+from benchctl.devices.slm import open_slm
+from benchctl.errors import BenchctlError
+from benchctl.images import read_image
+from benchctl.profiles import Profile
+
+_DURATION = re.compile(r"^\s*(\d+(?:\.\d*)?|\.\d+)\s*(ms|s|min|m|h)?\s*$")
+_SECONDS = {"ms": 1e-3, "s": 1.0, None: 1.0, "min": 60.0, "m": 60.0, "h": 3600.0}
+
+
+def parse_duration(text: str) -> float:
+    """'30s', '500ms', '2m', '1.5' (seconds) -> seconds."""
+    match = _DURATION.match(text)
+    if not match:
+        raise BenchctlError(f"duration {text!r} not understood; use e.g. 30s, 500ms, 2m")
+    return float(match.group(1)) * _SECONDS[match.group(2)]
+
+
+def _status_line(s: ChannelStatus) -> str:
+    measured = format_power(s.measured_w) if s.measured_w is not None else "n/a"
+    interlock = {True: "closed", False: "OPEN", None: "n/a"}[s.interlock_ok]
+    faults = ", ".join(s.faults) or "none"
+    return (f"{s.name:<8} {s.wavelength_nm:>6g} nm  setpoint {format_power(s.setpoint_w):>10}  measured "
+            f"{measured:>10}  emission {'ON' if s.emission else 'off':<3}  interlock {interlock:<6}  faults {faults}")
+
+
+def laser_status(profile: Profile) -> list[str]:
+    """Identity and one line per channel: wavelength, setpoint, measured power, emission, interlock, faults."""
+    with open_laser(profile.require("laser").laser, observe=True) as laser:
+        return [f"laser: {laser.identity()}"] + [_status_line(laser.status(name)) for name in laser.channel_names]
+
+
+def laser_set(profile: Profile, channel: str, power: str) -> list[str]:
+    """Change one channel's setpoint (emission stays off); the device's read-back value is reported."""
+    with open_laser(profile.require("laser").laser) as laser:
+        watts = laser.set_power(channel, power)
+        return [f"{channel}: setpoint {format_power(watts)} (read back)"]
+
+
+def laser_on(profile: Profile, channel: str, duration_s: float | None, leave_on: bool,
+             out: Callable[[str], None] = print, sleep: Callable[[float], None] = time.sleep) -> list[str]:
+    """Emission on `channel` for `duration_s` (None: until Ctrl-C), then off unless `leave_on`."""
+    try:
+        with open_laser(profile.require("laser").laser) as laser:
+            laser.set_emission(channel, True)
+            if leave_on:
+                laser.leave_on = True
+                return [f"{channel}: emission ON and LEFT ON after exit; `benchctl laser off {channel}` turns it off"]
+            out(f"{channel}: emission ON " + (f"for {duration_s:g} s" if duration_s is not None else "until Ctrl-C"))
+            while duration_s is None:
+                sleep(3600)
+            sleep(duration_s)
+            laser.set_emission(channel, False)
+    except KeyboardInterrupt:
+        out(f"{channel}: interrupted; emission off on every channel")  # close() has run by now
+        raise
+    return [f"{channel}: emission off"]
+
+
+def sim_fault(device: str, faults: list[str], clear: bool) -> list[str]:
+    """Set (or clear) the faults a simulated device shows from its next connection on."""
+    state = load_state(device)
+    state["faults"] = [] if clear else sorted(set(state.get("faults", [])) | set(faults))
+    save_state(device, state)
+    return [f"{device}: faults {', '.join(state['faults']) or 'none'}"]
+
+
+def laser_off(profile: Profile, channel: str) -> list[str]:
+    """Emission off on one channel or on all ('all'); connecting already turns every channel off."""
+    with open_laser(profile.require("laser").laser) as laser:
+        names = laser.channel_names if channel == "all" else [channel]
+        for name in names:
+            laser.set_emission(name, False)
+        return [f"{name}: emission off" for name in names]
+
+
+def slm_info(profile: Profile) -> list[str]:
+    """The SLM's driver, geometry, settle time and lookup tables."""
+    with open_slm(profile.require("slm")) as slm:
+        return [f"{key}: {value}" for key, value in slm.info().items()]
+
+
+def slm_show(profile: Profile, path: Path, channel: str | None) -> list[str]:
+    """Show an image file's gray levels as they are, or a .npy phase (radians) encoded for `channel`."""
+    path = Path(path)
+    with open_slm(profile.require("slm")) as slm:
+        if path.suffix.lower() == ".npy":
+            if channel is None:
+                raise BenchctlError(f"{path}: a phase in radians needs --channel to choose the lookup table")
+            try:
+                phase = np.load(path, allow_pickle=False)
+            except (OSError, ValueError) as exc:
+                raise BenchctlError(f"{path}: cannot read phase array: {exc}") from None
+            gray = slm.show_phase(phase, channel)
+            return [f"showing {path} as {channel} phase (gray {int(gray.min())}..{int(gray.max())})"]
+        if channel is not None:
+            raise BenchctlError(f"{path}: --channel applies to .npy phases; an image is shown as its gray levels")
+        image = read_image(path)
+        if image.ndim == 3:
+            raise BenchctlError(f"{path}: the SLM shows gray levels, this image has {image.shape[2]} channels")
+        slm.show_gray(image)
+        return [f"showing {path} ({image.shape[1]}x{image.shape[0]}, {image.dtype})"]
+
+
+def slm_blank(profile: Profile) -> list[str]:
+    """Show gray level 0 everywhere."""
+    with open_slm(profile.require("slm")) as slm:
+        slm.blank()
+    return ["SLM blank"]
+
+
+def sim_status() -> list[str]:
+    """Where the simulated bench keeps its state, and what each simulated device holds."""
+    states = list_states()
+    lines = [f"simulated bench state: {state_dir()}"]
+    if not states:
+        return lines + ["  (empty: every simulated device starts from its power-on state)"]
+    for name, state in states.items():
+        lines.append(f"  {name}: {state}")
+    return lines
+
+
+def sim_reset() -> list[str]:
+    """Forget every simulated device's state (as after a power cycle)."""
+    removed = reset_states()
+    return [f"removed {len(removed)} file(s) from {state_dir()}"]

@@ -1,0 +1,163 @@
+"""`benchctl laser`, `benchctl slm` and `benchctl sim` on the simulated bench, each call a separate command."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from benchctl.cli import main
+
+
+def _run(capsys, *argv: str) -> tuple[int, str, str]:
+    code = main(list(argv))
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def _line(stdout: str, channel: str) -> str:
+    return next(line for line in stdout.splitlines() if line.startswith(channel))
+
+
+def test_setpoint_persists_between_commands(capsys, small_profile_path):
+    p = str(small_profile_path)
+    code, out, _ = _run(capsys, "laser", "set", "red", "20mW", "-p", p)
+    assert code == 0 and "20 mW" in out
+    code, out, _ = _run(capsys, "laser", "set", "green", "5%", "-p", p)
+    assert code == 0 and "2 mW" in out  # 5 % of 40 mW
+    code, out, _ = _run(capsys, "laser", "status", "-p", p)
+    assert code == 0
+    assert "20 mW" in _line(out, "red") and "emission off" in _line(out, "red")
+    assert "2 mW" in _line(out, "green")
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["laser", "set", "red", "50mW"], "above"),
+        (["laser", "set", "red", "20"], "20"),
+        (["laser", "set", "purple", "1mW"], "purple"),
+        (["laser", "on", "purple"], "purple"),
+        (["laser", "on", "red", "--for", "soon"], "soon"),
+    ],
+)
+def test_laser_user_errors_are_one_line(capsys, small_profile_path, argv, message):
+    code, _, err = _run(capsys, *argv, "-p", str(small_profile_path))
+    assert code == 2
+    assert err.startswith("benchctl: error:") and err.count("\n") == 1 and message in err
+
+
+def test_on_for_a_time_then_off(capsys, small_profile_path):
+    p = str(small_profile_path)
+    code, out, _ = _run(capsys, "laser", "on", "blue", "--for", "50ms", "-p", p)
+    assert code == 0 and "blue: emission ON for 0.05 s" in out and "blue: emission off" in out
+    assert "emission off" in _line(_run(capsys, "laser", "status", "-p", p)[1], "blue")
+
+
+def test_leave_on_says_so_and_off_turns_it_off(capsys, small_profile_path):
+    p = str(small_profile_path)
+    code, out, _ = _run(capsys, "laser", "on", "red", "--leave-on", "-p", p)
+    assert code == 0 and "LEFT ON" in out
+    assert "emission ON" in _line(_run(capsys, "laser", "status", "-p", p)[1], "red")
+    code, out, _ = _run(capsys, "laser", "off", "-p", p)
+    assert code == 0 and "red: emission off" in out
+    assert "emission off" in _line(_run(capsys, "laser", "status", "-p", p)[1], "red")
+
+
+def test_interlock_open_refuses_emission(capsys, small_profile_path):
+    p = str(small_profile_path)
+    assert _run(capsys, "sim", "fault", "rgb-laser", "interlock_open")[0] == 0
+    code, _, err = _run(capsys, "laser", "on", "red", "--for", "10ms", "-p", p)
+    assert code == 2 and "interlock" in err.lower()
+    assert "emission off" in _line(_run(capsys, "laser", "status", "-p", p)[1], "red")
+    assert _run(capsys, "sim", "fault", "rgb-laser", "--clear")[0] == 0
+    assert _run(capsys, "laser", "on", "red", "--for", "10ms", "-p", p)[0] == 0
+
+
+def test_sim_reset_forgets_setpoints(capsys, small_profile_path, sim_state_dir):
+    p = str(small_profile_path)
+    _run(capsys, "laser", "set", "red", "10mW", "-p", p)
+    code, out, _ = _run(capsys, "sim", "status")
+    assert code == 0 and str(sim_state_dir) in out and "rgb-laser" in out
+    assert _run(capsys, "sim", "reset")[0] == 0
+    assert "10 mW" not in _line(_run(capsys, "laser", "status", "-p", p)[1], "red")
+
+
+def test_command_needing_a_missing_section_names_it(capsys, tmp_path, small_profile_path):
+    text = small_profile_path.read_text()
+    laser_only = tmp_path / "laser_only.toml"
+    laser_only.write_text(text[text.index("[laser]"):])
+    code, _, err = _run(capsys, "slm", "info", "-p", str(laser_only))
+    assert code == 2 and "[slm]" in err
+
+
+def test_sigterm_during_laser_on_turns_emission_off(tmp_path, small_profile_path, sim_state_dir):
+    env = {**os.environ, "BENCHCTL_SIM_DIR": str(sim_state_dir)}
+    cmd = [sys.executable, "-m", "benchctl"]
+    proc = subprocess.Popen([*cmd, "laser", "on", "green", "--for", "60s", "-p", str(small_profile_path)],
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    line = ""
+    while "emission ON" not in line and time.monotonic() < deadline:
+        line = proc.stdout.readline()
+    assert "emission ON" in line, proc.stderr.read()
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    status = subprocess.run([*cmd, "laser", "status", "-p", str(small_profile_path)], env=env,
+                            capture_output=True, text=True, timeout=60)
+    assert "emission off" in _line(status.stdout, "green")
+
+
+def test_slm_show_gray_image_then_blank(capsys, tmp_path, small_profile_path):
+    from benchctl.devices.slm.sim import read_displayed
+
+    gray = (np.arange(64 * 96).reshape(64, 96) % 256).astype(np.uint8)
+    cv2.imwrite(str(tmp_path / "frame.png"), gray)
+    p = str(small_profile_path)
+    code, out, _ = _run(capsys, "slm", "show", str(tmp_path / "frame.png"), "-p", p)
+    assert code == 0
+    shown, _ = read_displayed()
+    assert np.array_equal(shown, gray)
+    assert _run(capsys, "slm", "blank", "-p", p)[0] == 0
+    assert not read_displayed()[0].any()
+
+
+def test_slm_show_phase_encodes_for_the_channel(capsys, tmp_path, small_profile_path):
+    from benchctl.devices.slm.sim import read_displayed
+
+    np.save(tmp_path / "phase.npy", np.full((64, 96), np.pi / 2))
+    code, _, _ = _run(capsys, "slm", "show", str(tmp_path / "phase.npy"), "--channel", "red",
+                      "-p", str(small_profile_path))
+    assert code == 0
+    assert (read_displayed()[0] == 64).all()  # pi / 2 on the linear 8-bit table
+
+
+@pytest.mark.parametrize(
+    "name, content, extra, message",
+    [
+        ("small.png", np.zeros((10, 10), np.uint8), [], "10"),
+        ("colour.png", np.zeros((64, 96, 3), np.uint8), [], "channels"),
+        ("phase.npy", np.zeros((64, 96)), [], "--channel"),
+        ("phase.npy", np.zeros((64, 96)), ["--channel", "violet"], "violet"),
+        ("missing.png", None, [], "missing.png"),
+    ],
+)
+def test_slm_show_errors(capsys, tmp_path, small_profile_path, name, content, extra, message):
+    path = tmp_path / name
+    if content is not None:
+        np.save(path, content) if name.endswith(".npy") else cv2.imwrite(str(path), content)
+    code, _, err = _run(capsys, "slm", "show", str(path), *extra, "-p", str(small_profile_path))
+    assert code == 2 and err.count("\n") == 1 and message in err
+
+
+def test_slm_info(capsys, small_profile_path):
+    code, out, _ = _run(capsys, "slm", "info", "-p", str(small_profile_path))
+    assert code == 0 and "96" in out and "64" in out and "sim" in out
