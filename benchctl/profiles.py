@@ -57,6 +57,7 @@ _CHANNEL = {
 
 LASER_DRIVERS = ("template", "cobolt", "obis")
 SLM_DRIVERS = ("sim", "framebuffer")
+CAMERA_DRIVERS = ("sim", "ptp", "gphoto2")
 
 # The commands of a multi-channel laser unit with a simple line protocol ("template" driver). Placeholders:
 # {channel} the channel's index, {mw} / {w} the power in mW / W. Replies with a power are read in `power_unit`.
@@ -108,8 +109,20 @@ SCHEMA: Mapping[str, Field] = {
         "protocol": Field("table", required=False, fields=_PROTOCOL),
         "channels": Field("tables", fields=_CHANNEL, min_items=1),
     }),
+    "camera": Field("table", required=False, fields={
+        "driver": Field("str", required=False, default="sim", choices=CAMERA_DRIVERS),
+        "model": Field("str", required=False, default=""),
+        "usb_id": Field("str", required=False, default="04a9:32a0"),
+        "transport": Field("str", required=False, default="usb", choices=("usb", "sim")),
+        "exposure_s": Field("float", required=False, gt=0),
+        "iso": Field("int", required=False, gt=0),
+        "frames": Field("int", required=False, default=1, ge=1),
+        "write_properties": Field("bool", required=False, default=False),
+        "image_timeout_s": Field("float", required=False, default=90.0, gt=0),
+        "gphoto2_path": Field("str", required=False, default="gphoto2"),
+    }),
 }
-SECTIONS = ("optics", "slm", "laser")
+SECTIONS = ("optics", "slm", "laser", "camera")
 
 
 @dataclass(frozen=True)
@@ -210,6 +223,23 @@ class LaserConfig:
 
 
 @dataclass(frozen=True)
+class CameraConfig:
+    """The camera: driver, how to find it, and the capture settings benchctl may apply."""
+
+    driver: str = "sim"  # "sim" | "ptp" | "gphoto2"
+    model: str = ""
+    usb_id: str = "04a9:32a0"  # vendor:product the ptp driver looks for (Canon EOS M10)
+    transport: str = "usb"  # ptp: "usb" (pyusb) or "sim" (the simulated EOS body, for tests and demos)
+    exposure_s: float | None = None  # None: leave the camera's own setting
+    iso: int | None = None
+    frames: int = 1  # frames to average per capture
+    # Property writes (ISO, shutter, RAW format) freeze the EOS M10: set exposure on the body and leave this off.
+    write_properties: bool = False
+    image_timeout_s: float = 90.0  # longest wait for the image after the shutter
+    gphoto2_path: str = "gphoto2"
+
+
+@dataclass(frozen=True)
 class Profile:
     """A validated hardware profile."""
 
@@ -219,6 +249,7 @@ class Profile:
     optics: OpticsConfig | None
     slm: SLMConfig | None
     laser: LaserConfig | None
+    camera: CameraConfig | None = None
 
     @property
     def channels(self) -> tuple[LaserChannel, ...]:
@@ -274,6 +305,11 @@ class Profile:
                     f"    {ch.name:<{width}}  #{ch.index}  {ch.wavelength_nm:g} nm  max {ch.max_power_mw:g} mW  "
                     f"setpoint {ch.setpoint_mw:g} mW ({share:.0f} %){port}"
                 )
+        if self.camera:
+            cam = self.camera
+            exposure = f"{cam.exposure_s:g} s" if cam.exposure_s else "as set on the body"
+            lines.append(f"  Camera        {cam.driver} {cam.model}".rstrip() + f": exposure {exposure}, "
+                         f"ISO {cam.iso or 'as set on the body'}, {cam.frames} frame(s) per capture")
         return "\n".join(lines)
 
 
@@ -427,8 +463,9 @@ def _build(path: Path, data: Mapping[str, Any]) -> Profile:
         for name in slm.lut:
             if name not in names:
                 raise _fail(path, f"slm.lut.{name}", f"no laser channel {name!r} (known: {', '.join(sorted(names))})")
+    camera = CameraConfig(**data["camera"]) if "camera" in data else None
     return Profile(path=path, name=data.get("name", path.stem), description=data["description"],
-                   optics=optics, slm=slm, laser=laser)
+                   optics=optics, slm=slm, laser=laser, camera=camera)
 
 
 def _build_slm(path: Path, data: Mapping[str, Any]) -> SLMConfig:

@@ -109,8 +109,10 @@ def test_toml_syntax_error_names_the_line(small_profile_path: Path) -> None:
     [
         ("pitch_um = 8.0", "pitch = 8.0",
          "slm.pitch: unknown key (did you mean 'pitch_um'? known: driver, device, width, height, pitch_um"),
-        ("[slm]", "[camera]\nmodel = 'x'\n\n[slm]",
-         "camera: unknown section (known: name, description, optics, slm, laser)"),
+        ("[slm]", "[cameras]\nmodel = 'x'\n\n[slm]",
+         "cameras: unknown section (did you mean 'camera'? known: name, description, optics, slm, laser, camera"),
+        ("[slm]", "[camera]\ndriver = 'webcam'\n\n[slm]",
+         "camera.driver: unknown value 'webcam' (choose from sim, ptp, gphoto2)"),
         ("wavelength_nm = 520", "wavelenght_nm = 520",
          "laser.channels[1].wavelenght_nm: unknown key (did you mean 'wavelength_nm'?"),
         ("pitch_um = 8.0\n", "", "slm.pitch_um: missing required key"),
@@ -189,3 +191,13 @@ def test_device_keys_take_documented_defaults_and_luts_resolve_beside_the_profil
     assert laser.protocol.line_ending == "\r\n" and laser.protocol.ok_reply == "OK"
     assert laser.protocol.power_unit == "mW" and laser.protocol.echo is False
     assert laser.port_of(profile.channel("red")) == "sim://rgb-laser"
+
+
+def test_camera_section_defaults(small_profile_path: Path) -> None:
+    assert load_profile(small_profile_path).camera is None
+    with pytest.raises(BenchctlError, match=r"needs a \[camera\] section"):
+        load_profile(small_profile_path).require("camera")
+    profile = load_profile(edited(small_profile_path, "[slm]", "[camera]\ndriver = 'ptp'\n\n[slm]"))
+    cam = profile.camera
+    assert (cam.driver, cam.usb_id, cam.transport, cam.frames) == ("ptp", "04a9:32a0", "usb", 1)
+    assert (cam.exposure_s, cam.iso, cam.write_properties, cam.image_timeout_s) == (None, None, False, 90.0)

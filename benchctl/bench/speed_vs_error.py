@@ -4,10 +4,14 @@ from __future__ import annotations
 
 import dataclasses
 import io
+import statistics
+import time
 from pathlib import Path
 from typing import Any, Callable
 
-from benchctl.cgh import get_method, method_names
+import torch
+
+from benchctl.cgh import OpticalSetup, get_method, method_names
 from benchctl.files import atomic_write_bytes, ensure_dir, write_csv
 from benchctl.profiles import Profile
 from benchctl.runner.holograms import compute_scene
@@ -56,9 +60,13 @@ def run_speed_vs_error(
         get_method(name)
     grid, roi = profile.slm.shape, profile.optics.roi
     amplitudes = {t: prepare_target(load_target(t, size=roi), grid, roi) for t in targets}
+    unit = _propagation_seconds(profile)
     out(f"grid {grid[0]}x{grid[1]}, ROI {roi[0]}x{roi[1]}, distance {profile.optics.distance_mm:g} mm, "
         f"pitch {profile.slm.pitch_um:g} um, targets: {', '.join(targets)}")
-    header = f"{'method':<10} {'iters':>6} {'target':<16} {'s/frame':>9} {'PSNR amp':>9} {'SSIM amp':>9} {'PSNR sRGB':>10} {'SSIM sRGB':>10}"
+    out(f"one propagation ({profile.channels[0].name}, measured in this run): {unit * 1e3:.2f} ms; "
+        "'x prop' = seconds per frame / that")
+    header = (f"{'method':<10} {'iters':>6} {'target':<16} {'s/frame':>9} {'x prop':>8} {'PSNR amp':>9} "
+              f"{'SSIM amp':>9} {'PSNR sRGB':>10} {'SSIM sRGB':>10}")
     out(header)
     rows = []
     for method in methods:
@@ -72,6 +80,7 @@ def run_speed_vs_error(
                     "target": target,
                     "frames": len(done),
                     "seconds_per_frame": sum(c.seconds for c in done) / max(len(done), 1),
+                    "propagation_seconds": unit,
                     "psnr_amplitude_db": sum(c.scores["psnr_amplitude_db"] for c in done) / max(len(done), 1),
                     "ssim_amplitude": sum(c.scores["ssim_amplitude"] for c in done) / max(len(done), 1),
                     "psnr_srgb_db": scene.merged_scores["psnr_srgb_db"],
@@ -79,6 +88,7 @@ def run_speed_vs_error(
                 }
                 rows.append(row)
                 out(f"{method:<10} {row['iterations']!s:>6} {target:<16} {row['seconds_per_frame']:>9.3f} "
+                    f"{row['seconds_per_frame'] / unit:>8.1f} "
                     f"{row['psnr_amplitude_db']:>9.2f} {row['ssim_amplitude']:>9.3f} {row['psnr_srgb_db']:>10.2f} "
                     f"{row['ssim_srgb']:>10.3f}")
     if out_dir is not None:
@@ -87,6 +97,21 @@ def run_speed_vs_error(
         plot = _plot(rows, out_dir / "speed_vs_error.png")
         out(f"wrote {plot}" if plot else "no plot: install the 'plot' extra (matplotlib) for speed_vs_error.png")
     return rows
+
+
+def _propagation_seconds(profile: Profile, repeats: int = 5) -> float:
+    """Median time of one SLM -> target propagation of a random phase on this grid (after a warm-up)."""
+    setup = OpticalSetup.from_profile(profile, profile.channels[0].name)
+    generator = torch.Generator().manual_seed(0)
+    field = torch.polar(torch.ones(setup.shape), torch.rand(setup.shape, generator=generator) * 6.283)
+    propagate = setup.target_propagator()
+    propagate(field)
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        propagate(field)
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
 
 
 def _plot(rows: list[dict[str, Any]], path: Path) -> Path | None:

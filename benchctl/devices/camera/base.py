@@ -1,0 +1,118 @@
+"""The camera: captures RAW frames exactly as the camera delivers them. Public methods here; drivers do hooks.
+
+A captured file is written to its destination (atomically) before anything else touches it, so a crash
+after the shutter never loses a frame; decoding and averaging happen later, in `benchctl.capture`.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from benchctl.devices.errors import DeviceError
+from benchctl.errors import BadValueError
+from benchctl.files import atomic_write_bytes, ensure_dir
+from benchctl.profiles import CameraConfig
+
+RAW_FORMATS = {"dng": ".dng", "cr2": ".cr2", "cr3": ".cr3"}
+
+
+@dataclass(frozen=True)
+class RawFrame:
+    """One RAW file as the camera delivered it, never modified, plus what is known about the capture."""
+
+    data: bytes
+    format: str  # "dng" | "cr2" | "cr3"
+    file_name: str  # the camera's own name for it, e.g. IMG_0042.DNG
+    metadata: dict[str, Any] = field(default_factory=dict)  # exposure_s, iso, captured_at, camera, ...
+    path: Path | None = None  # where it was saved, once it was
+
+    @property
+    def suffix(self) -> str:
+        return RAW_FORMATS.get(self.format, ".raw")
+
+
+class Camera(ABC):
+    """A camera built from the profile's [camera] section; a context manager (open on enter, close on exit)."""
+
+    driver: str
+
+    def __init__(self, config: CameraConfig) -> None:
+        self.config = config
+        self._open_now = False
+
+    @abstractmethod
+    def _open(self) -> None:
+        """Connect (find the device, open a session)."""
+
+    @abstractmethod
+    def _close(self) -> None:
+        """Disconnect; must not raise for a device that is already gone."""
+
+    @abstractmethod
+    def _identity(self) -> dict[str, str]:
+        """Manufacturer, model, serial number, firmware as far as the camera tells."""
+
+    @abstractmethod
+    def _capture_one(self) -> RawFrame:
+        """Release the shutter once and return the RAW file the camera produced."""
+
+    def _apply_settings(self, exposure_s: float | None, iso: int | None) -> None:
+        """Write exposure time / ISO to the camera; drivers that can override this."""
+        raise BadValueError(f"the {self.driver} camera driver cannot set exposure or ISO; set them on the camera")
+
+    @property
+    def is_open(self) -> bool:
+        return self._open_now
+
+    def open(self) -> Camera:
+        """Connect (no-op if open); returns self. Applies exposure / ISO only where the profile allows it."""
+        if not self._open_now:
+            self._open()
+            self._open_now = True
+            wanted = (self.config.exposure_s, self.config.iso)
+            if self.config.write_properties and any(v is not None for v in wanted):
+                self._apply_settings(*wanted)
+        return self
+
+    def close(self) -> None:
+        if self._open_now:
+            self._open_now = False
+            self._close()
+
+    def __enter__(self) -> Camera:
+        return self.open()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def identity(self) -> dict[str, str]:
+        """What the camera says it is, plus the driver name."""
+        self._require_open()
+        return {"driver": self.driver, **self._identity()}
+
+    def capture(self, destination: Path | None = None, frames: int | None = None,
+                stem: str = "frame") -> list[RawFrame]:
+        """Capture `frames` RAW frames (default: the profile's `frames`), each saved to `destination` (a folder)
+        as `<stem>-<n>.<ext>` the moment it arrives, before the next shutter release."""
+        self._require_open()
+        count = self.config.frames if frames is None else frames
+        if count < 1:
+            raise BadValueError(f"frames must be >= 1, got {count}")
+        if destination is not None:
+            ensure_dir(Path(destination))
+        captured = []
+        for index in range(count):
+            frame = self._capture_one()
+            if destination is not None:
+                path = atomic_write_bytes(Path(destination) / f"{stem}-{index:03d}{frame.suffix}", frame.data)
+                frame = RawFrame(frame.data, frame.format, frame.file_name, frame.metadata, path)
+            captured.append(frame)
+        return captured
+
+    def _require_open(self) -> None:
+        if not self._open_now:
+            raise DeviceError(f"{self.driver} camera is not open")
+
