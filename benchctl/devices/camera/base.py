@@ -74,7 +74,11 @@ class Camera(ABC):
             self._open_now = True
             wanted = (self.config.exposure_s, self.config.iso)
             if self.config.write_properties and any(v is not None for v in wanted):
-                self._apply_settings(*wanted)
+                try:
+                    self._apply_settings(*wanted)
+                except BaseException:
+                    self.close()  # no `with` block owns the camera yet
+                    raise
         return self
 
     def close(self) -> None:
