@@ -124,6 +124,8 @@ def _cmd_device(args: argparse.Namespace) -> int:
     from benchctl.profiles import load_profile
     from benchctl.runner import device_commands as dc
 
+    if args.command == "devices":
+        return _print_lines(dc.devices_found())
     if args.command == "sim":
         if args.sim_command == "status":
             return _print_lines(dc.sim_status())
@@ -131,6 +133,10 @@ def _cmd_device(args: argparse.Namespace) -> int:
             return _print_lines(dc.sim_reset())
         return _print_lines(dc.sim_fault(args.device, args.faults, args.clear))
     profile = load_profile(args.profile)
+    if args.command == "camera":
+        if args.camera_command == "info":
+            return _print_lines(dc.camera_info(profile))
+        return _print_lines(dc.camera_capture(profile, Path(args.output), args.frames))
     action = args.laser_command if args.command == "laser" else args.slm_command
     if args.command == "laser":
         if action == "status":
@@ -181,6 +187,19 @@ def _add_device_commands(sub: argparse._SubParsersAction) -> None:
         _add_profile(parser)
         parser.set_defaults(func=_cmd_device)
 
+    camera = sub.add_parser("camera", help="camera: info, capture RAW frames").add_subparsers(
+        dest="camera_command", metavar="ACTION", required=True)
+    cinfo = camera.add_parser("info", help="what the camera says it is, and the capture settings")
+    capture = camera.add_parser("capture", help="capture RAW frames exactly as the camera delivers them")
+    capture.add_argument("--output", "-o", required=True, metavar="FILE",
+                         help="RAW file to write (several frames: FILE-000.dng, FILE-001.dng, ...)")
+    capture.add_argument("--frames", "-n", type=_positive_int, help="frames to capture (default: the profile's)")
+    for parser in (cinfo, capture):
+        _add_profile(parser)
+        parser.set_defaults(func=_cmd_device)
+    devices = sub.add_parser("devices", help="serial ports, PTP cameras and framebuffers on this machine")
+    devices.set_defaults(func=_cmd_device)
+
     sim = sub.add_parser("sim", help="the simulated bench's remembered state").add_subparsers(
         dest="sim_command", metavar="ACTION", required=True)
     sim.add_parser("status", help="where the state is kept and what each simulated device holds")
@@ -192,6 +211,15 @@ def _add_device_commands(sub: argparse._SubParsersAction) -> None:
     fault.add_argument("--clear", action="store_true", help="remove every fault")
     for parser in sim.choices.values():
         parser.set_defaults(func=_cmd_device)
+
+
+def _cmd_models(args: argparse.Namespace) -> int:
+    from benchctl.profiles import load_profile
+    from benchctl.runner.holograms import list_methods
+
+    shape = args.size or load_profile(args.profile).require("slm").slm.shape
+    print(f"hologram methods at {shape[0]}x{shape[1]}:")
+    return _print_lines(list_methods(shape))
 
 
 def _cmd_targets(args: argparse.Namespace) -> int:
@@ -265,6 +293,11 @@ def build_parser() -> argparse.ArgumentParser:
     check = profile.add_parser("check", help="validate a profile and print what it describes")
     check.add_argument("path", nargs="?", help="profile TOML path or name (default: simulated)")
     check.set_defaults(func=_cmd_profile_check)
+
+    models = sub.add_parser("models", help="hologram methods with family and parameter count at a grid size")
+    models.add_argument("--size", type=_size, metavar="HxW", help="grid (default: the profile's SLM)")
+    _add_profile(models)
+    models.set_defaults(func=_cmd_models)
 
     targets = sub.add_parser("targets", help="list the bundled targets")
     targets.set_defaults(func=_cmd_targets)

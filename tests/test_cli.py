@@ -140,3 +140,13 @@ def test_bench_speed_vs_error_writes_a_row_per_method_budget_and_target(capsys, 
     assert all(float(r["seconds_per_frame"]) > 0 and np.isfinite(float(r["psnr_srgb_db"])) for r in rows)
     assert (out / "speed_vs_error.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "s/frame" in stdout
+
+
+def test_models_lists_classical_and_learned_methods_with_parameter_counts(capsys):
+    code, stdout, _ = _run(capsys, "models", "--size", "1088x1920")
+    assert code == 0
+    rows = {line.split()[0]: line for line in stdout.splitlines()[2:]}
+    assert set(rows) == {"dpac", "gs", "sgd", "holonet", "holonet-dcm2", "holonet-dcm4", "holonet-pyramid",
+                         "ccnn", "ccnn-dcm4"}
+    assert "2,868,466" in rows["holonet"] and "3,111,952" in rows["holonet-dcm4"]
+    assert "yes" in rows["sgd"] and "no trained checkpoint" in rows["holonet"]

@@ -12,7 +12,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from benchctl.cgh import OpticalSetup, get_method
+from benchctl.cgh import OpticalSetup, get_method, method_names
 from benchctl.errors import BenchctlError
 from benchctl.devices.slm import slm_for
 from benchctl.optics import crop_roi, linear_to_srgb, lsq_scale, psnr, ssim
@@ -63,6 +63,23 @@ def describe_propagation(profile: Profile) -> str:
         plan = OpticalSetup.from_profile(profile, channel.name).target_propagator().plan
         lines.append(f"    {channel.name}: {plan.describe()}")
     return "\n".join(lines)
+
+
+def list_methods(shape: tuple[int, int]) -> list[str]:
+    """Every hologram method: family, trainable parameters at `shape`, and whether it can run now.
+
+    Learned methods need a trained checkpoint; until training lands there is none, and they are not
+    selectable in `benchctl generate`.
+    """
+    from benchctl.cgh.learned import LEARNED_METHODS, model_info
+
+    lines = [f"{'method':<16} {'family':<10} {'parameters':>11}  usable", ]
+    for name in method_names():
+        lines.append(f"{name:<16} {'classical':<10} {'-':>11}  yes ({get_method(name).description})")
+    for name in LEARNED_METHODS:
+        info = model_info(name, shape)
+        lines.append(f"{name:<16} {info['family']!s:<10} {info['parameters']:>11,}  no trained checkpoint yet")
+    return lines
 
 
 def select_channels(profile: Profile, names: list[str] | None) -> list[LaserChannel]:

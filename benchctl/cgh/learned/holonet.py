@@ -1,0 +1,34 @@
+"""HoloNet (Peng et al. 2020) and its DCM variants: two U-Nets around a full-definition propagation.
+
+The phase generator U-Net maps the target amplitude to the target-plane phase; the phase encoder U-Net maps
+(amplitude, phase) of the SLM field to the SLM phase. Divided by r, the generator sees r^2 amplitude
+sub-images and predicts r^2 phases; the encoder sees 2 r^2 channels (the r^2 amplitude sub-images, then the
+r^2 phase sub-images, the channel order of a pixel unshuffle of the 2-channel (amplitude, phase) image) and
+predicts r^2 sub-holograms. The U-Nets keep their widths (16-32-64-128): only their input and output
+channels change, as the paper states.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from benchctl.cgh.learned.dcm import Divided, divided_pair
+from benchctl.cgh.learned.unet import UNet
+
+
+class AmplitudePhase(nn.Module):
+    """Complex (B, C, h, w) -> real (B, 2C, h, w): the C amplitudes, then the C phases (in [-pi, pi])."""
+
+    def forward(self, field: torch.Tensor) -> torch.Tensor:
+        return torch.cat([field.abs(), field.angle()], dim=1)
+
+
+def holonet(factor: int = 1, merge: nn.Module | None = None) -> tuple[Divided, Divided]:
+    """HoloNet's phase generator and phase encoder, divided by `factor` (1: the original HoloNet).
+
+    `merge` merges the encoder's r^2 sub-holograms (an `LFMN` or `PyramidMerger`; PixelShuffle by default).
+    """
+    channels = factor * factor
+    return divided_pair(UNet(channels, channels), nn.Sequential(AmplitudePhase(), UNet(2 * channels, channels)),
+                        factor, merge)

@@ -1,0 +1,115 @@
+"""The catalogue of learned methods: names -> networks with the paper's settings for the grid size.
+
+Grid tiers by pixel count: up to 1088 x 1920 is "1080p", up to 2176 x 3840 "4k", above that "8k" (the
+paper's grids are 1088 x 1920, 2176 x 3840 and 4352 x 7680). LFMN blocks: 4 at 1080p, 2 above. LFMN dims:
+HoloNet x2 32 at 1080p / 24 above, x4 40 / 32, pyramid (stage 1, stage 2) (32, 40) / (24, 30);
+CCNN x4 24 at 4K, 28 at 8K. The paper trains CCNN only at 4K and 8K; at 1080p CCNN x4 takes the 4K dim (24)
+with the 1080p block count (4), an assumption.
+
+`model_info` counts trainable parameters from the networks alone, so it needs no optical setup and builds
+no propagation kernel (at 8K with 2x padding one kernel takes about 1 GiB).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from torch import nn
+
+from benchctl.cgh.learned.ccnn import ccnn
+from benchctl.cgh.learned.dcm import Divided, PhaseHologramNet
+from benchctl.cgh.learned.holonet import holonet
+from benchctl.cgh.learned.lfmn import LFMN, PyramidMerger
+from benchctl.cgh.setup import OpticalSetup
+
+TIERS = (("1080p", 1088 * 1920), ("4k", 2176 * 3840), ("8k", None))
+BLOCKS = {"1080p": 4, "4k": 2, "8k": 2}
+FAMILIES = {"holonet": holonet, "ccnn": ccnn}
+
+
+@dataclass(frozen=True)
+class Variant:
+    """One learned method: network family, DCM factor, how the encoder merges, LFMN dims per tier."""
+
+    family: str
+    factor: int = 1
+    merger: str = "pixel-shuffle"  # "pixel-shuffle" (also the classical r = 1), "lfmn" or "pyramid"
+    dims: dict[str, tuple[int, ...]] | None = None
+
+
+VARIANTS: dict[str, Variant] = {
+    "holonet": Variant("holonet"),
+    "holonet-dcm2": Variant("holonet", 2, "lfmn", {"1080p": (32,), "4k": (24,), "8k": (24,)}),
+    "holonet-dcm4": Variant("holonet", 4, "lfmn", {"1080p": (40,), "4k": (32,), "8k": (32,)}),
+    "holonet-pyramid": Variant("holonet", 4, "pyramid", {"1080p": (32, 40), "4k": (24, 30), "8k": (24, 30)}),
+    "ccnn": Variant("ccnn"),
+    "ccnn-dcm4": Variant("ccnn", 4, "lfmn", {"1080p": (24,), "4k": (24,), "8k": (28,)}),
+}
+LEARNED_METHODS = tuple(VARIANTS)
+
+PAPER_PARAMETERS: dict[str, tuple[tuple[int, int], float]] = {
+    "holonet": ((1088, 1920), 2.87e6),
+    "holonet-dcm2": ((1088, 1920), 3.01e6),
+    "holonet-dcm4": ((1088, 1920), 3.11e6),
+    "holonet-pyramid": ((1088, 1920), 3.17e6),
+    "ccnn": ((2176, 3840), 42.3e3),
+    "ccnn-dcm4": ((4352, 7680), 112.7e3),  # the 8K model's count: see benchctl.cgh.learned.ccnn
+}
+"""Published parameter counts and the grid whose settings reproduce them."""
+
+
+def tier(shape: tuple[int, int]) -> str:
+    """The paper's resolution tier ("1080p", "4k" or "8k") whose settings apply to an H x W grid."""
+    pixels = shape[0] * shape[1]
+    return next(name for name, limit in TIERS if limit is None or pixels <= limit)
+
+
+def _variant(name: str) -> Variant:
+    try:
+        return VARIANTS[name]
+    except KeyError:
+        raise ValueError(f"unknown learned method {name!r}; known: {', '.join(LEARNED_METHODS)}") from None
+
+
+def _merger(variant: Variant, grid_tier: str) -> nn.Module | None:
+    if variant.dims is None:
+        return None
+    dims, blocks = variant.dims[grid_tier], BLOCKS[grid_tier]
+    if variant.merger == "pyramid":
+        return PyramidMerger((dims[0], dims[1]), blocks)
+    return LFMN(variant.factor, dims[0], blocks)
+
+
+def build_networks(name: str, shape: tuple[int, int]) -> tuple[Divided, Divided]:
+    """The phase generator and phase encoder of method `name` with the settings for an H x W grid."""
+    variant = _variant(name)
+    return FAMILIES[variant.family](variant.factor, _merger(variant, tier(shape)))
+
+
+def build_model(name: str, setup: OpticalSetup) -> PhaseHologramNet:
+    """Method `name` for `setup`: target amplitude (B, 1, H, W) -> SLM phase (B, 1, H, W) in [-pi, pi]."""
+    return PhaseHologramNet(*build_networks(name, setup.shape), setup)
+
+
+def count_parameters(module: nn.Module) -> int:
+    """Trainable parameters (BatchNorm running statistics are buffers, not counted)."""
+    return sum(p.numel() for p in module.parameters() if p.requires_grad)
+
+
+def model_info(name: str, shape: tuple[int, int]) -> dict[str, object]:
+    """What method `name` is on an H x W grid: family, factor, merger, tier, LFMN settings, parameter counts."""
+    variant = _variant(name)
+    grid_tier = tier(shape)
+    generator, encoder = build_networks(name, shape)
+    return {
+        "name": name,
+        "family": variant.family,
+        "factor": variant.factor,
+        "merger": variant.merger,
+        "tier": grid_tier,
+        "lfmn_dims": variant.dims[grid_tier] if variant.dims else None,
+        "lfmn_blocks": BLOCKS[grid_tier] if variant.dims else None,
+        "generator_parameters": count_parameters(generator),
+        "encoder_parameters": count_parameters(encoder),
+        "parameters": count_parameters(generator) + count_parameters(encoder),
+    }
