@@ -14,6 +14,8 @@ from typing import Callable
 
 import numpy as np
 
+from benchctl.devices.camera import open_camera
+from benchctl.devices.discovery import discover
 from benchctl.devices.laser import ChannelStatus, open_laser
 from benchctl.devices.power import format_power
 from benchctl.devices.sim.state import list_states, load_state, reset_states, save_state, state_dir
@@ -125,6 +127,53 @@ def slm_blank(profile: Profile) -> list[str]:
     with open_slm(profile.require("slm")) as slm:
         slm.blank()
     return ["SLM blank"]
+
+
+def camera_info(profile: Profile) -> list[str]:
+    """What the camera says it is, and the capture settings the profile gives."""
+    config = profile.require("camera").camera
+    with open_camera(profile) as camera:
+        lines = [f"{key}: {value}" for key, value in camera.identity().items()]
+    exposure = f"{config.exposure_s:g} s" if config.exposure_s else "as set on the camera"
+    writes = "on" if config.write_properties else "off (set exposure, ISO and RAW on the body)"
+    return lines + [f"exposure: {exposure}", f"iso: {config.iso or 'as set on the camera'}",
+                    f"frames per capture: {config.frames}", f"property writes: {writes}"]
+
+
+def camera_capture(profile: Profile, output: Path, frames: int | None) -> list[str]:
+    """Capture RAW frames: one frame to `output`, several to `output`'s stem numbered -000, -001, ...
+    Each file is saved under its numbered name the moment it arrives and never modified."""
+    output = Path(output)
+    with open_camera(profile) as camera:
+        captured = camera.capture(output.parent, frames=frames, stem=output.stem)
+    if len(captured) == 1:
+        single = output if output.suffix else output.with_suffix(captured[0].suffix)
+        captured[0].path.replace(single)
+        targets = [single]
+    else:
+        targets = [frame.path for frame in captured]
+    return [f"captured {target} ({frame.format}, {len(frame.data)} bytes, camera name {frame.file_name})"
+            for target, frame in zip(targets, captured)]
+
+
+def devices_found() -> list[str]:
+    """Serial ports, PTP cameras (or why USB cannot be scanned) and framebuffers on this machine."""
+    found = discover()
+    lines = ["serial ports:"] + [f"  {p.device}  {p.description}  {p.hwid}" for p in found.serial_ports]
+    if not found.serial_ports:
+        lines.append("  none")
+    lines.append("PTP cameras:")
+    if found.usb_error:
+        lines.append(f"  cannot scan USB: {found.usb_error}")
+    lines += [f"  {c.usb_id}  bus {c.bus} address {c.address}  {c.manufacturer or '?'} {c.product or '?'}"
+              for c in found.cameras]
+    if not found.cameras and not found.usb_error:
+        lines.append("  none")
+    lines.append("framebuffers:")
+    lines += [f"  {f.device}  {f.name or '?'}  {f.width}x{f.height}  {f.bits_per_pixel} bpp" for f in found.framebuffers]
+    if not found.framebuffers:
+        lines.append("  none")
+    return lines
 
 
 def sim_status() -> list[str]:
