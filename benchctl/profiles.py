@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from benchctl.dng import CFA_LAYOUTS
 from benchctl.errors import BenchctlError
 
 if sys.version_info >= (3, 11):
@@ -33,7 +34,9 @@ DEFAULT_PROFILE = "simulated"
 class Field:
     """One key of the schema: its kind, whether it is required, its default and its numeric bounds."""
 
-    kind: str  # "float", "int", "bool", "str", "int_pair", "str_map", "table" (fields) or "tables" (array)
+    # "float", "int", "bool", "str", "int_pair", "float_pair", "str_map", "triple_map" (name -> three numbers),
+    # "table" (fields) or "tables" (array)
+    kind: str
     required: bool = True
     default: Any = None
     gt: float | None = None
@@ -75,6 +78,41 @@ _PROTOCOL = {
     "error_prefix": Field("str", required=False, default="ERR"),
     "echo": Field("bool", required=False, default=False),
     "power_unit": Field("str", required=False, default="mW", choices=("mW", "W")),
+}
+
+# The simulated bench's physics (docs/simulated_bench.md). Every key is optional; the defaults live in the Sim*Config
+# dataclasses below, the one place that states them (the [sim] block of hardware_profiles/simulated.toml lists them).
+_SIM = {
+    "seed": Field("int", required=False, ge=0),
+    "slm": Field("table", required=False, fields={
+        "two_pi_nm": Field("float", required=False, gt=0),
+        "gamma": Field("float", required=False, gt=0),
+        "zero_order": Field("float", required=False, ge=0, le=1),
+    }),
+    "beam": Field("table", required=False, fields={
+        "waist_mm": Field("float", required=False, ge=0),
+        "efficiency": Field("float", required=False, gt=0, le=1),
+    }),
+    "imaging": Field("table", required=False, fields={
+        "magnification": Field("float", required=False, gt=0),
+        "rotation_deg": Field("float", required=False),
+        "offset_px": Field("float_pair", required=False),
+    }),
+    "sensor": Field("table", required=False, fields={
+        "model": Field("str", required=False),
+        "shape": Field("int_pair", required=False, gt=0),
+        "margin": Field("int_pair", required=False, ge=0),
+        "pixel_um": Field("float", required=False, gt=0),
+        "cfa": Field("str", required=False, choices=tuple(CFA_LAYOUTS)),
+        "bit_depth": Field("int", required=False, ge=8, le=16),
+        "black_level": Field("int", required=False, ge=0),
+        "full_well_e": Field("float", required=False, gt=0),
+        "base_iso": Field("int", required=False, gt=0),
+        "read_noise_e": Field("float", required=False, ge=0),
+        "exposure_s": Field("float", required=False, gt=0),
+        "iso": Field("int", required=False, gt=0),
+        "response": Field("triple_map", required=False, ge=0),
+    }),
 }
 
 SCHEMA: Mapping[str, Field] = {
@@ -121,6 +159,7 @@ SCHEMA: Mapping[str, Field] = {
         "image_timeout_s": Field("float", required=False, default=90.0, gt=0),
         "gphoto2_path": Field("str", required=False, default="gphoto2"),
     }),
+    "sim": Field("table", required=False, fields=_SIM),
 }
 SECTIONS = ("optics", "slm", "laser", "camera")
 
@@ -240,6 +279,78 @@ class CameraConfig:
 
 
 @dataclass(frozen=True)
+class SimSLMConfig:
+    """The simulated SLM's own gray -> phase response, which calibration has to find (the profile's lookup
+    tables are only benchctl's belief): phase(g) = 2 pi (two_pi_nm / wavelength_nm) (g / 2^bit_depth)^gamma."""
+
+    two_pi_nm: float = 600.0  # wavelength at which the full gray range spans 2 pi; depth scales as 1 / wavelength
+    gamma: float = 1.05  # slight non-linearity of the liquid crystal
+    # Amplitude fraction of each pixel that is not modulated (inter-pixel gaps): field = (1 - f) e^(i phase) + f.
+    zero_order: float = 0.02
+
+
+@dataclass(frozen=True)
+class SimBeamConfig:
+    """The light arriving at the SLM."""
+
+    waist_mm: float = 0.0  # 1/e^2 intensity radius of a Gaussian beam centred on the panel; 0: uniform, fills it
+    # Fraction of the laser's photons that reach the sensor (fibre, beam splitter, ND filters, lenses).
+    efficiency: float = 1e-3
+
+
+@dataclass(frozen=True)
+class SimImagingConfig:
+    """How the target plane is imaged onto the sensor (the homography a registration has to recover)."""
+
+    magnification: float = 2.5  # optical, target plane -> sensor
+    rotation_deg: float = 0.4  # positive turns the image clockwise as displayed (rows down, columns right)
+    # [rows, cols] sensor pixels from the centre of the active area to the image of the SLM grid's centre.
+    offset_px: tuple[float, float] = (14.0, -22.0)
+
+
+@dataclass(frozen=True)
+class SimSensorConfig:
+    """The camera's sensor (defaults: a Canon EOS M10) and the body's own exposure settings."""
+
+    model: str = "Canon EOS M10 (benchctl simulation)"  # written as the DNG's camera model
+    shape: tuple[int, int] = (3528, 5280)  # [rows, cols] of the raw frame, masked margins included
+    margin: tuple[int, int] = (52, 72)  # [rows, cols] of masked (optical black) pixels at the top and left
+    pixel_um: float = 4.3
+    cfa: str = "RGGB"  # Bayer layout of the top-left 2 x 2 pixels
+    bit_depth: int = 14  # white level 2^bit_depth - 1
+    black_level: int = 2048
+    full_well_e: float = 26000.0  # electrons that reach the white level at base_iso (saturation capacity)
+    base_iso: int = 100
+    read_noise_e: float = 8.0  # Gaussian, input-referred
+    exposure_s: float = 0.01  # the body's settings, used where the capture does not give them
+    iso: int = 100
+    # Quantum efficiency [R, G, B] (electrons per photon in each filter colour) per laser channel name;
+    # channels not listed use a typical Bayer-sensor curve at their wavelength.
+    response: Mapping[str, tuple[float, float, float]] = field(default_factory=dict)
+
+    @property
+    def white_level(self) -> int:
+        return (1 << self.bit_depth) - 1
+
+    @property
+    def active_area(self) -> tuple[int, int, int, int]:
+        """(top, left, bottom, right) of the exposed pixels in the raw frame, as DNG's ActiveArea."""
+        return self.margin[0], self.margin[1], self.shape[0], self.shape[1]
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """The simulated bench's physics ([sim]; docs/simulated_bench.md). Every profile has one: the defaults
+    when the section is absent, so any profile can be rendered by the simulated camera."""
+
+    seed: int = 0  # frame n of a run is drawn from (seed, n): successive frames differ, runs repeat
+    slm: SimSLMConfig = field(default_factory=SimSLMConfig)
+    beam: SimBeamConfig = field(default_factory=SimBeamConfig)
+    imaging: SimImagingConfig = field(default_factory=SimImagingConfig)
+    sensor: SimSensorConfig = field(default_factory=SimSensorConfig)
+
+
+@dataclass(frozen=True)
 class Profile:
     """A validated hardware profile."""
 
@@ -250,6 +361,7 @@ class Profile:
     slm: SLMConfig | None
     laser: LaserConfig | None
     camera: CameraConfig | None = None
+    sim: SimConfig = field(default_factory=SimConfig)
 
     @property
     def channels(self) -> tuple[LaserChannel, ...]:
@@ -411,6 +523,16 @@ def _check_value(value: Any, field: Field, key: str, path: Path) -> Any:
         if not isinstance(value, dict) or not all(isinstance(v, str) for v in value.values()):
             raise wrong("a table of strings")
         return dict(value)
+    if field.kind == "triple_map":
+        if not isinstance(value, dict):
+            raise wrong("a table of [r, g, b] number triples")
+        triples = {}
+        for name, triple in value.items():
+            if not (isinstance(triple, list) and len(triple) == 3 and all(_is_number(v) for v in triple)):
+                raise _fail(path, f"{key}.{name}", f"expected three numbers [r, g, b], got {triple!r}")
+            triples[name] = tuple(_check_bounds(float(v), field, f"{key}.{name}[{i}]", path)
+                                  for i, v in enumerate(triple))
+        return triples
     if field.kind == "float_pair":
         if not (isinstance(value, list) and len(value) == 2 and all(_is_number(v) for v in value)):
             raise wrong("two numbers [rows, cols]")
@@ -464,8 +586,31 @@ def _build(path: Path, data: Mapping[str, Any]) -> Profile:
             if name not in names:
                 raise _fail(path, f"slm.lut.{name}", f"no laser channel {name!r} (known: {', '.join(sorted(names))})")
     camera = CameraConfig(**data["camera"]) if "camera" in data else None
+    sim = _build_sim(path, data.get("sim", {}), laser)
     return Profile(path=path, name=data.get("name", path.stem), description=data["description"],
-                   optics=optics, slm=slm, laser=laser, camera=camera)
+                   optics=optics, slm=slm, laser=laser, camera=camera, sim=sim)
+
+
+def _build_sim(path: Path, data: Mapping[str, Any], laser: LaserConfig | None) -> SimConfig:
+    """The [sim] section: masked margins inside the frame and even (the Bayer pattern starts on the exposed
+    area as on the frame), black below white, spectral responses only for known channels."""
+    sensor = SimSensorConfig(**data.get("sensor", {}))
+    for axis, name in enumerate(("rows", "cols")):
+        margin, size = sensor.margin[axis], sensor.shape[axis]
+        if margin % 2 or margin + 2 > size:
+            raise _fail(path, "sim.sensor.margin",
+                        f"{name} margin {margin} must be even and leave exposed pixels in {size} {name}")
+    if sensor.black_level >= sensor.white_level:
+        raise _fail(path, "sim.sensor.black_level", f"{sensor.black_level} is not below the white level "
+                    f"{sensor.white_level} of a {sensor.bit_depth}-bit sensor")
+    names = {ch.name for ch in laser.channels} if laser else set()
+    for name in sensor.response:
+        if name not in names:
+            raise _fail(path, f"sim.sensor.response.{name}",
+                        f"no laser channel {name!r} (known: {', '.join(sorted(names)) or 'none'})")
+    parts = {"slm": SimSLMConfig, "beam": SimBeamConfig, "imaging": SimImagingConfig}
+    built = {key: cls(**data[key]) for key, cls in parts.items() if key in data}
+    return SimConfig(**{**data, **built, "sensor": sensor})
 
 
 def _build_slm(path: Path, data: Mapping[str, Any]) -> SLMConfig:

@@ -161,3 +161,47 @@ def test_slm_show_errors(capsys, tmp_path, small_profile_path, name, content, ex
 def test_slm_info(capsys, small_profile_path):
     code, out, _ = _run(capsys, "slm", "info", "-p", str(small_profile_path))
     assert code == 0 and "96" in out and "64" in out and "sim" in out
+
+
+CAMERA = """
+[camera]
+driver = "{driver}"
+transport = "sim"
+
+[sim.imaging]
+magnification = 1.0
+
+[sim.sensor]
+shape = [160, 240]
+margin = [4, 6]
+"""
+
+
+@pytest.mark.parametrize("driver", ["sim", "ptp"])
+def test_camera_capture_writes_a_dng_rawpy_reads(capsys, tmp_path, small_profile_path, driver):
+    from benchctl.capture.raw import decode_raw
+
+    small_profile_path.write_text(small_profile_path.read_text() + CAMERA.format(driver=driver))
+    p = str(small_profile_path)
+    code, out, _ = _run(capsys, "camera", "info", "-p", p)
+    assert code == 0 and ("Canon EOS M10" in out if driver == "ptp" else "sim" in out)
+    code, out, _ = _run(capsys, "camera", "capture", "-o", str(tmp_path / "frame.dng"), "-p", p)
+    assert code == 0 and "frame.dng" in out
+    image = decode_raw(tmp_path / "frame.dng")
+    assert image.mosaic.shape == (156, 234)  # the active area: margins cropped
+    assert abs(float(image.mosaic.mean())) < 0.01  # lasers off: black level and read noise only
+    code, out, _ = _run(capsys, "camera", "capture", "-o", str(tmp_path / "series.dng"), "--frames", "2", "-p", p)
+    assert code == 0
+    assert sorted(f.name for f in tmp_path.glob("series*")) == ["series-000.dng", "series-001.dng"]
+    assert (tmp_path / "series-000.dng").read_bytes() != (tmp_path / "series-001.dng").read_bytes()
+
+
+def test_camera_without_a_camera_section_says_so(capsys, small_profile_path, tmp_path):
+    code, _, err = _run(capsys, "camera", "capture", "-o", str(tmp_path / "x.dng"), "-p", str(small_profile_path))
+    assert code == 2 and "[camera]" in err
+
+
+def test_devices_lists_what_this_machine_has(capsys):
+    code, out, _ = _run(capsys, "devices")
+    assert code == 0
+    assert "serial ports:" in out and "PTP cameras:" in out and "framebuffers:" in out

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import rawpy
 
-from benchctl.capture.dng import CFA_LAYOUTS, dng_bytes, write_dng
+from benchctl.dng import CFA_LAYOUTS, dng_bytes, write_dng
 from benchctl.errors import BadValueError
 
 SHAPE = (64, 96)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from test_dng import without_tag
 
-from benchctl.capture.dng import CFA_LAYOUTS, dng_bytes, write_dng
+from benchctl.dng import CFA_LAYOUTS, dng_bytes, write_dng
 from benchctl.capture.raw import RawImage, average_frames, decode_raw, linear_rgb, subtract_dark
 from benchctl.errors import BadValueError, BenchctlError
 

@@ -4,7 +4,6 @@ Methods register themselves when their module is imported; importing this packag
 Gerchberg-Saxton ("gs") and SGD ("sgd"). Imports only `benchctl.optics` from the rest of benchctl.
 """
 
-from benchctl.cgh.setup import OpticalSetup
 from benchctl.cgh.method import (
     METHODS,
     Algorithm,
@@ -19,6 +18,7 @@ from benchctl.cgh.method import (
 from benchctl.cgh.dpac import DPAC, double_phase
 from benchctl.cgh.gerchberg_saxton import GERCHBERG_SAXTON
 from benchctl.cgh.sgd import SGD, initial_scale, roi_loss
+from benchctl.optics.setup import OpticalSetup
 
 __all__ = [
     "DPAC",

@@ -7,7 +7,7 @@ from typing import Optional
 import torch
 
 from benchctl.cgh.method import Method, Progress, register
-from benchctl.cgh.setup import OpticalSetup
+from benchctl.optics.setup import OpticalSetup
 
 
 def double_phase(amplitude: torch.Tensor, phase: torch.Tensor) -> torch.Tensor:

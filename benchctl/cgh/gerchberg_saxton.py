@@ -21,7 +21,7 @@ from typing import Optional
 import torch
 
 from benchctl.cgh.method import Method, Progress, register
-from benchctl.cgh.setup import OpticalSetup
+from benchctl.optics.setup import OpticalSetup
 
 DEFAULT_ITERATIONS = 50
 

@@ -14,7 +14,7 @@ from typing import Callable, Optional
 
 import torch
 
-from benchctl.cgh.setup import OpticalSetup
+from benchctl.optics.setup import OpticalSetup
 from benchctl.errors import BadValueError
 
 Progress = Callable[[int, int], None]

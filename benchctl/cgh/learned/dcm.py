@@ -23,7 +23,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from benchctl.cgh.setup import OpticalSetup
+from benchctl.optics.setup import OpticalSetup
 
 
 def pad_to_multiple(x: torch.Tensor, multiple: int) -> torch.Tensor:

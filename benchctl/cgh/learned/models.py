@@ -20,7 +20,7 @@ from benchctl.cgh.learned.ccnn import ccnn
 from benchctl.cgh.learned.dcm import Divided, PhaseHologramNet
 from benchctl.cgh.learned.holonet import holonet
 from benchctl.cgh.learned.lfmn import LFMN, PyramidMerger
-from benchctl.cgh.setup import OpticalSetup
+from benchctl.optics.setup import OpticalSetup
 
 TIERS = (("1080p", 1088 * 1920), ("4k", 2176 * 3840), ("8k", None))
 BLOCKS = {"1080p": 4, "4k": 2, "8k": 2}

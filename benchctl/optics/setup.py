@@ -5,13 +5,15 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from numbers import Integral, Real
-from typing import Union
+from typing import TYPE_CHECKING, Union
 
 import torch
 
-from benchctl.optics import Propagator
 from benchctl.optics.metrics import centred_slices
-from benchctl.profiles import Profile
+from benchctl.optics.propagation import Propagator
+
+if TYPE_CHECKING:  # optics imports nothing else from benchctl at run time; a profile is only read here
+    from benchctl.profiles import Profile
 
 Padding = Union[str, int]
 

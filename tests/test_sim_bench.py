@@ -1,0 +1,449 @@
+"""The simulated bench's camera physics against references: photometry from P t lambda / (h c), the sensor
+model's noise and levels, the configured spectral response and camera geometry, a grating's deflection angle,
+determinism, work only for emitting channels, real DNG files, and a DPAC hologram seen as predicted."""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import rawpy
+import torch
+
+from benchctl.capture.raw import RawImage, decode_raw
+from benchctl.cgh import OpticalSetup, get_method
+from benchctl.devices.camera.sim import SimCamera
+from benchctl.devices.laser import open_laser
+from benchctl.devices.sim import bench
+from benchctl.devices.sim.state import reset_states
+from benchctl.devices.slm import open_slm
+from benchctl.errors import BenchctlError
+from benchctl.optics import PhaseLUT, propagation
+from benchctl.profiles import LaserConfig, Profile, SimConfig, load_profile
+
+H_PLANCK, C_LIGHT = 6.62607015e-34, 299792458.0
+
+# A 64 x 96 SLM imaged at 8 um / 4 um * 0.75 = 1.5 sensor pixels per SLM pixel, turned 10 degrees, onto a
+# 176 x 256 sensor with 4 / 10 masked rows / columns. Green sees its true response equal to the linear table.
+PROFILE = """\
+name = "sim-small"
+
+[optics]
+distance_mm = 20.0
+roi = [48, 80]
+
+[slm]
+width = 96
+height = 64
+pitch_um = 8.0
+bit_depth = 8
+settle_ms = 0
+
+[laser]
+driver = "template"
+port = "sim://rgb-laser"
+
+[laser.protocol]
+set_power = "CH{channel}:POW {mw:.2f}"
+get_power = "CH{channel}:POW?"
+enable = "CH{channel}:EMIT 1"
+disable = "CH{channel}:EMIT 0"
+get_emission = "CH{channel}:EMIT?"
+
+[[laser.channels]]
+name = "red"
+wavelength_nm = 680
+max_power_mw = 40
+setpoint_mw = 40
+
+[[laser.channels]]
+name = "green"
+wavelength_nm = 520
+max_power_mw = 40
+setpoint_mw = 2
+
+[[laser.channels]]
+name = "blue"
+wavelength_nm = 450
+max_power_mw = 40
+setpoint_mw = 2
+
+[camera]
+driver = "sim"
+exposure_s = 0.001
+iso = 100
+
+[sim]
+seed = 7
+
+[sim.beam]
+efficiency = 2e-5
+
+[sim.slm]
+two_pi_nm = 520.0
+gamma = 1.0
+zero_order = 0.0
+
+[sim.imaging]
+magnification = 0.75
+rotation_deg = 10.0
+offset_px = [6.0, -15.0]
+
+[sim.sensor]
+shape = [176, 256]
+margin = [4, 10]
+pixel_um = 4.0
+read_noise_e = 5.0
+
+[sim.sensor.response]
+green = [0.1, 0.5, 0.05]
+blue = [0.02, 0.1, 0.4]
+"""
+SCALE = 0.75 * 8.0 / 4.0  # sensor pixels per SLM pixel
+GAIN_ISO100 = (16383 - 2048) / 26000.0  # DN per electron: the full well reaches the white level at base ISO
+
+
+@pytest.fixture
+def profile(tmp_path: Path) -> Profile:
+    path = tmp_path / "sim-small.toml"
+    path.write_text(PROFILE)
+    return load_profile(path)
+
+
+def changed(profile: Profile, section: str, **values: object) -> Profile:
+    """`profile` with keys of one section replaced: "optics" or a [sim] part ("slm", "beam", "imaging", "sensor")."""
+    if section == "optics":
+        return dataclasses.replace(profile, optics=dataclasses.replace(profile.optics, **values))
+    part = dataclasses.replace(getattr(profile.sim, section), **values)
+    return dataclasses.replace(profile, sim=dataclasses.replace(profile.sim, **{section: part}))
+
+
+def capture(profile: Profile, gray: np.ndarray | None, powers_mw: dict[str, float], **settings: float) -> RawImage:
+    """Show `gray` on the simulated SLM, switch the lasers as given (others off), capture one DNG, decode it."""
+    with open_slm(profile) as slm, open_laser(profile) as laser:
+        if gray is not None:
+            slm.show_gray(gray)
+        for name, mw in powers_mw.items():
+            laser.set_power(name, mw * 1e-3)
+            laser.set_emission(name, True)
+        config = dataclasses.replace(profile.camera, **settings)
+        with SimCamera(config, profile) as camera:
+            return decode_raw(camera.capture()[0].data)
+
+
+def to_sensor(profile: Profile, x: float, y: float) -> np.ndarray:
+    """Where target-plane pixel (x = col, y = row) should land in the active area, from the documented geometry:
+    the grid centre at the active area's centre plus offset, scaled by SCALE, turned clockwise as displayed."""
+    sensor, imaging = profile.sim.sensor, profile.sim.imaging
+    rows, cols = sensor.shape[0] - sensor.margin[0], sensor.shape[1] - sensor.margin[1]
+    angle = math.radians(imaging.rotation_deg)
+    dx, dy = x - (profile.slm.width - 1) / 2, y - (profile.slm.height - 1) / 2
+    return np.array([(cols - 1) / 2 + imaging.offset_px[1] + SCALE * (dx * math.cos(angle) - dy * math.sin(angle)),
+                     (rows - 1) / 2 + imaging.offset_px[0] + SCALE * (dx * math.sin(angle) + dy * math.cos(angle))])
+
+
+def colour_mask(image: RawImage, colour: int) -> np.ndarray:
+    """Pixels of the visible mosaic whose filter is `colour` (0 R, 1 G, 2 B), from the file's CFA pattern."""
+    rows, cols = np.indices(image.mosaic.shape)
+    return image.cfa[rows % 2, cols % 2] == colour
+
+
+def central_region(profile: Profile, shape: tuple[int, int]) -> np.ndarray:
+    """Sensor pixels whose target-plane point lies in the central half of the SLM grid (both axes)."""
+    inverse = np.linalg.inv(bench.camera_homography(profile))
+    rows, cols = np.indices(shape)
+    x, y, _ = inverse @ np.stack([cols.ravel(), rows.ravel(), np.ones(rows.size)])
+    h, w = profile.slm.shape
+    inside = (abs(x - (w - 1) / 2) < w / 4) & (abs(y - (h - 1) / 2) < h / 4)
+    return inside.reshape(shape)
+
+
+def predicted_electrons(profile: Profile, channel: str, power_w: float, exposure_s: float) -> float:
+    """Mean photo-electrons per sensor pixel of a plane wave filling the SLM (before the filter's efficiency)."""
+    wavelength = profile.channel(channel).wavelength_m
+    photons = power_w * exposure_s * wavelength / (H_PLANCK * C_LIGHT) * profile.sim.beam.efficiency
+    return photons / (profile.slm.height * profile.slm.width) / SCALE**2
+
+
+# -- the sensor ----------------------------------------------------------------------------------------------
+
+
+def test_dark_frame_is_black_level_plus_read_noise(profile: Profile) -> None:
+    with SimCamera(profile.camera, profile) as camera:
+        frame = camera.capture()[0]
+    with rawpy.imread(io.BytesIO(frame.data)) as raw:
+        counts = raw.raw_image.astype(np.float64)  # the whole frame, masked margins included
+    gain = GAIN_ISO100
+    assert counts.shape == (176, 256)
+    expected_std = math.hypot(5.0 * gain, math.sqrt(1 / 12))  # read noise, plus rounding to whole counts
+    assert counts.mean() == pytest.approx(2048, abs=4 * expected_std / math.sqrt(counts.size))
+    assert counts.std() == pytest.approx(expected_std, rel=0.03)
+
+
+def test_iso_scales_the_read_noise_in_counts(profile: Profile) -> None:
+    image = capture(profile, None, {}, iso=800)
+    assert image.mosaic.std() * (16383 - 2048) == pytest.approx(5.0 * GAIN_ISO100 * 8, rel=0.03)
+
+
+@pytest.mark.parametrize("channel, colour, efficiency", [("green", 1, 0.5), ("blue", 2, 0.4)])
+def test_plane_wave_gives_the_predicted_uniform_signal(profile: Profile, channel: str, colour: int,
+                                                       efficiency: float) -> None:
+    """Gray 0 everywhere: a plane wave, so every target pixel receives P / (H W); the sensor pixels of the
+    channel's main colour then hold that many photons / SCALE^2 each, times their efficiency and the gain."""
+    profile = changed(profile, "optics", distance_mm=1.0)  # edge ringing stays near the grid's border
+    image = capture(profile, np.zeros((64, 96), np.uint8), {channel: 2.0})
+    electrons = predicted_electrons(profile, channel, 2e-3, 0.001) * efficiency
+    assert 2000 < electrons < 20000  # a well-exposed test: shot noise ~1 %, far above read noise
+    region = central_region(profile, image.mosaic.shape) & colour_mask(image, colour)
+    signal = image.mosaic[region] * (16383 - 2048) / GAIN_ISO100  # back to electrons
+    assert signal.mean() == pytest.approx(electrons, rel=0.005)  # measured within 0.07 %
+    assert signal.std() == pytest.approx(math.sqrt(electrons), rel=0.1)  # uniform: only shot noise
+
+
+def test_a_gaussian_beam_peaks_at_its_analytic_irradiance(profile: Profile) -> None:
+    """Waist w: the centre of the beam carries 2 / (pi w^2) of the power per unit area."""
+    profile = changed(changed(profile, "optics", distance_mm=1.0), "beam", waist_mm=0.2)
+    image = capture(profile, np.zeros((64, 96), np.uint8), {"green": 2.0})
+    fraction = 2 / (math.pi * 0.2e-3**2) * 8e-6**2  # of the beam's power on the central target pixel
+    electrons = predicted_electrons(profile, "green", 2e-3, 0.001) * 64 * 96 * fraction * 0.5
+    rows, cols = np.indices(image.mosaic.shape)
+    centre = to_sensor(profile, 47.5, 31.5)
+    near = (np.hypot(cols - centre[0], rows - centre[1]) < 1.5 * SCALE) & colour_mask(image, 1)
+    signal = image.mosaic[near] * (16383 - 2048) / GAIN_ISO100
+    assert signal.mean() == pytest.approx(electrons, rel=0.02)
+
+
+@pytest.mark.parametrize("cfa", ["RGGB", "GBRG"])
+def test_spectral_response_puts_the_configured_fractions_into_each_colour(profile: Profile, cfa: str) -> None:
+    profile = changed(changed(profile, "optics", distance_mm=1.0), "sensor", cfa=cfa)
+    image = capture(profile, np.zeros((64, 96), np.uint8), {"green": 2.0})
+    assert image.layout == cfa
+    region = central_region(profile, image.mosaic.shape)
+    means = [image.mosaic[region & colour_mask(image, colour)].mean() for colour in range(3)]
+    assert means[0] / means[1] == pytest.approx(0.1 / 0.5, rel=0.02)
+    assert means[2] / means[1] == pytest.approx(0.05 / 0.5, rel=0.03)
+
+
+def test_light_lands_only_on_the_image_of_the_slm_grid(profile: Profile) -> None:
+    profile = changed(profile, "optics", distance_mm=1.0)
+    image = capture(profile, np.zeros((64, 96), np.uint8), {"green": 2.0})
+    inverse = np.linalg.inv(bench.camera_homography(profile))
+    rows, cols = np.indices(image.mosaic.shape)
+    x, y, _ = inverse @ np.stack([cols.ravel(), rows.ravel(), np.ones(rows.size)])
+    outside = ((x < -3) | (x > 98) | (y < -3) | (y > 66)).reshape(rows.shape)
+    assert outside.mean() > 0.3
+    dark = image.mosaic[outside] * (16383 - 2048)
+    assert abs(dark.mean()) < 0.2 and dark.std() == pytest.approx(math.hypot(5 * GAIN_ISO100, 0.29), rel=0.05)
+
+
+def test_saturation_clips_at_the_white_level(profile: Profile) -> None:
+    profile = changed(profile, "optics", distance_mm=1.0)
+    image = capture(profile, np.zeros((64, 96), np.uint8), {"green": 2.0}, exposure_s=0.2)
+    lit = central_region(profile, image.mosaic.shape) & colour_mask(image, 1)
+    assert predicted_electrons(profile, "green", 2e-3, 0.2) * 0.5 > 10 * 26000
+    assert np.all(image.mosaic[lit] == 1.0) and np.all(image.saturated[lit])
+    assert image.mosaic.max() == 1.0
+
+
+# -- the geometry ----------------------------------------------------------------------------------------------
+
+
+def test_homography_maps_points_as_configured(profile: Profile) -> None:
+    homography = bench.camera_homography(profile)
+    for x, y in [(47.5, 31.5), (0, 0), (95, 0), (20, 50)]:
+        mapped = homography @ [x, y, 1]
+        assert mapped[:2] / mapped[2] == pytest.approx(to_sensor(profile, x, y), abs=1e-9)
+
+
+def spot_centroid(image: RawImage, around: np.ndarray, radius: float) -> np.ndarray:
+    """Intensity centroid (x, y) of the green pixels within `radius` of `around`."""
+    rows, cols = np.indices(image.mosaic.shape)
+    window = colour_mask(image, 1) & (np.hypot(cols - around[0], rows - around[1]) < radius)
+    weights = np.where(window, image.mosaic, 0.0)
+    return np.array([(weights * cols).sum(), (weights * rows).sum()]) / weights.sum()
+
+
+@pytest.mark.parametrize("period", [(0, 0), (0, 8), (16, 8), (-16, 0)])
+def test_a_blazed_grating_moves_the_spot_by_its_diffraction_angle(profile: Profile,
+                                                                  period: tuple[int, int]) -> None:
+    """A Gaussian spot on a blazed grating of period P pixels leaves at sin(theta) = lambda / (P pitch): at the
+    target plane it has moved by z tan(theta); the camera shows it where the configured geometry maps that."""
+    profile = changed(profile, "beam", waist_mm=0.064)
+    rows, cols = np.indices((64, 96))
+    ramp = sum((rows, cols)[axis] / p for axis, p in enumerate(period) if p)
+    gray = (np.floor(np.remainder(ramp, 1.0) * 256) if period != (0, 0) else np.zeros((64, 96))).astype(np.uint8)
+    image = capture(profile, gray, {"green": 2.0})
+    target = [(96 - 1) / 2, (64 - 1) / 2]  # (x, y): the beam's centre
+    for axis, p in ((1, period[1]), (0, period[0])):
+        if p:
+            sin_theta = 520e-9 / (p * 8e-6)
+            target[1 - axis] += 20e-3 * sin_theta / math.sqrt(1 - sin_theta**2) / 8e-6
+    expected = to_sensor(profile, *target)
+    assert spot_centroid(image, expected, radius=25) == pytest.approx(expected, abs=1.0)
+
+
+# -- what is computed ------------------------------------------------------------------------------------------
+
+
+def test_only_emitting_channels_are_propagated(profile: Profile, monkeypatch: pytest.MonkeyPatch) -> None:
+    calls = []
+    original = propagation.Propagator.__call__
+
+    def counted(self: propagation.Propagator, field: torch.Tensor) -> torch.Tensor:
+        calls.append(self.plan.wavelength_m)
+        return original(self, field)
+
+    monkeypatch.setattr(propagation.Propagator, "__call__", counted)
+    gray = np.zeros((64, 96), np.uint8)
+    dark = capture(profile, gray, {})
+    assert calls == []
+    assert abs(dark.mosaic.mean()) < 1e-3  # nothing but noise around black
+    capture(profile, gray, {"green": 2.0})
+    assert calls == [pytest.approx(520e-9)]
+    calls.clear()
+    capture(profile, gray, {"red": 1.0, "green": 2.0, "blue": 2.0})
+    assert sorted(calls) == pytest.approx([450e-9, 520e-9, 680e-9])
+
+
+def rgb_profile(profile: Profile, dialect: str) -> Profile:
+    """`profile` with its three channels on simulated units of `dialect`: one template unit, one head per port
+    (cobolt, obis), or an OBIS box with three heads on one port."""
+    channels = profile.channels
+    if dialect == "template":
+        return profile
+    if dialect == "obis-box":
+        laser = LaserConfig(channels=channels, driver="obis", port="sim://obis-box?dialect=obis&channels=3")
+    else:
+        laser = LaserConfig(channels=tuple(dataclasses.replace(ch, port=f"sim://{dialect}-{ch.name}?dialect={dialect}")
+                                           for ch in channels), driver=dialect)
+    return dataclasses.replace(profile, laser=laser)
+
+
+@pytest.mark.parametrize("dialect", ["template", "cobolt", "obis", "obis-box"])
+def test_emitting_channels_are_read_from_each_units_state(profile: Profile, dialect: str) -> None:
+    profile = rgb_profile(profile, dialect)
+    with open_laser(profile) as laser:
+        laser.set_power("green", 1e-3)
+        laser.set_power("blue", 3e-3)
+        laser.set_emission("blue", True)
+        assert bench.emitting_channels(profile) == {"blue": pytest.approx(3e-3)}
+    assert bench.emitting_channels(profile) == {}  # closing turned emission off
+
+
+def test_a_real_laser_port_is_refused(profile: Profile) -> None:
+    laser = dataclasses.replace(profile.laser, port="/dev/ttyUSB0")
+    with pytest.raises(BenchctlError, match=r"'red' is on /dev/ttyUSB0, not a sim:// port"):
+        bench.emitting_channels(dataclasses.replace(profile, laser=laser))
+
+
+def test_frames_repeat_for_a_seed_and_differ_from_frame_to_frame(profile: Profile) -> None:
+    gray = np.zeros((64, 96), np.uint8)
+    first = [capture(profile, gray, {"green": 2.0}).mosaic for _ in range(2)]
+    assert not np.array_equal(first[0], first[1])  # frame 1 and frame 2
+    reset_states()  # a fresh bench: the frame counter starts again
+    again = capture(profile, gray, {"green": 2.0}).mosaic
+    assert np.array_equal(again, first[0])
+    other_seed = dataclasses.replace(profile, sim=dataclasses.replace(profile.sim, seed=8))
+    reset_states()
+    assert not np.array_equal(capture(other_seed, gray, {"green": 2.0}).mosaic, first[0])
+
+
+# -- the files -------------------------------------------------------------------------------------------------
+
+
+def test_captures_are_dngs_rawpy_reads_with_the_settings(profile: Profile, tmp_path: Path) -> None:
+    config = dataclasses.replace(profile.camera, exposure_s=0.004, iso=400)
+    with SimCamera(config, profile) as camera:
+        assert camera.identity()["model"] == "Canon EOS M10 (benchctl simulation)"
+        frames = camera.capture(tmp_path, frames=2)
+    assert [f.file_name for f in frames] == ["IMG_0001.DNG", "IMG_0002.DNG"]
+    assert frames[1].metadata["frame"] == 2 and frames[1].metadata["seed"] == 7
+    assert frames[0].metadata["lasers_on_w"] == {} and frames[0].metadata["slm_frame"] is None
+    with rawpy.imread(str(frames[0].path)) as raw:
+        assert raw.raw_image.shape == (176, 256)
+        assert (raw.sizes.top_margin, raw.sizes.left_margin) == (4, 10)
+        assert raw.raw_image_visible.shape == (172, 246)
+        assert list(raw.black_level_per_channel) == [2048] * 4 and raw.white_level == 16383
+        assert raw.other.iso_speed == 400 and raw.other.shutter_speed == pytest.approx(0.004)
+
+
+def test_the_body_settings_apply_where_the_camera_section_gives_none(profile: Profile) -> None:
+    frame = bench.render_capture(profile)
+    assert (frame.metadata["exposure_s"], frame.metadata["iso"]) == (0.01, 100)
+
+
+# -- the SLM and the whole chain -------------------------------------------------------------------------------
+
+
+def test_true_response_is_linear_only_where_configured(profile: Profile) -> None:
+    assert torch.allclose(bench.true_lut(520e-9, 8, profile.sim.slm).phases, PhaseLUT.linear(8).phases, rtol=1e-12)
+    default = bench.true_lut(520e-9, 8, SimConfig().slm).phases
+    assert float(default[128]) == pytest.approx(2 * math.pi * 600 / 520 * 0.5**1.05)
+
+
+def test_a_dpac_hologram_is_seen_as_benchctl_predicts(profile: Profile) -> None:
+    """A DPAC hologram of a letter, displayed through the profile's table and lit in green: the camera's green
+    plane, registered with the known geometry, correlates with benchctl's own simulated reconstruction of the
+    displayed frame at 0.995 (measured; noise and the camera's resampling make the rest); the mirrored
+    prediction correlates at 0.53."""
+    profile = changed(profile, "optics", iris_fraction=0.5)
+    setup = OpticalSetup.from_profile(profile, "green")
+    letter = np.zeros(setup.shape, np.float32)  # an "F": no symmetry, so a mirrored image cannot match
+    letter[12:52, 30:38] = letter[12:20, 30:66] = letter[28:35, 30:58] = 1.0
+    target = torch.from_numpy(letter)
+    phase = get_method("dpac")(target, setup)
+    with open_slm(profile) as slm:
+        gray = slm.show_phase(phase, "green")
+        predicted = setup.reconstruct(slm.decode(gray, "green")).square().numpy()
+    with open_laser(profile) as laser:
+        laser.set_power("green", 2e-3)
+        laser.set_emission("green", True)
+        with SimCamera(dataclasses.replace(profile.camera, exposure_s=0.004), profile) as camera:
+            image = decode_raw(camera.capture()[0].data)
+    green = image.planes()[1]  # cell (i, j) is centred on visible pixel (2 i + 0.5, 2 j + 0.5)
+    to_plane = np.array([[0.5, 0, -0.25], [0, 0.5, -0.25], [0, 0, 1]]) @ bench.camera_homography(profile)
+    registered = cv2.warpAffine(green, to_plane[:2], (96, 64), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+    roi = setup.roi_slices
+
+    def correlation(a: np.ndarray, b: np.ndarray) -> float:
+        return float(np.corrcoef(a[roi].ravel(), b[roi].ravel())[0, 1])
+
+    assert registered[roi].max() < 0.8  # well exposed, nothing clipped
+    assert correlation(registered, predicted) > 0.98
+    assert correlation(registered, predicted[:, ::-1]) < 0.7
+
+
+# -- the [sim] section of a profile ----------------------------------------------------------------------------
+
+
+def test_simulated_profile_lists_the_defaults() -> None:
+    profile = load_profile("simulated")
+    assert profile.sim == SimConfig()
+    assert profile.camera.driver == "sim"
+
+
+def test_a_profile_without_sim_section_gets_the_defaults(small_profile_path: Path) -> None:
+    assert load_profile(small_profile_path).sim == SimConfig()
+
+
+@pytest.mark.parametrize("block, message", [
+    ("[sim.sensor]\nshape = [176, 256]\nmargin = [3, 10]\n", r"sim\.sensor\.margin: rows margin 3 must be even"),
+    ("[sim.sensor]\nblack_level = 20000\n", r"sim\.sensor\.black_level: 20000 is not below the white level 16383"),
+    ("[sim.sensor.response]\npurple = [0.1, 0.2, 0.3]\n", r"sim\.sensor\.response\.purple: no laser channel"),
+    ("[sim.sensor.response]\nred = [0.1, 0.2]\n", r"sim\.sensor\.response\.red: expected three numbers"),
+    ("[sim.sensor.response]\nred = [0.1, -0.2, 0.3]\n", r"sim\.sensor\.response\.red\[1\]: must be >= 0"),
+    ("[sim.sensor]\ncfa = \"RGBG\"\n", r"sim\.sensor\.cfa: unknown value 'RGBG'"),
+    ("[sim.imaging]\nmagnifcation = 2\n", r"sim\.imaging\.magnifcation: unknown key \(did you mean 'magnification'"),
+])
+def test_sim_section_errors_name_the_key(tmp_path: Path, block: str, message: str) -> None:
+    base = PROFILE.split("[sim]")[0]
+    path = tmp_path / "bad.toml"
+    path.write_text(base + "[sim]\n" + block)
+    with pytest.raises(BenchctlError, match=message) as info:
+        load_profile(path)
+    assert str(path) in str(info.value)
