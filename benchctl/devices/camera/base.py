@@ -6,11 +6,12 @@ after the shutter never loses a frame; decoding and averaging happen later, in `
 
 from __future__ import annotations
 
-from abc import ABC, abstractmethod
+from abc import abstractmethod
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from benchctl.devices.connection import Connection
 from benchctl.devices.errors import DeviceError
 from benchctl.errors import BadValueError
 from benchctl.files import atomic_write_bytes, ensure_dir
@@ -34,14 +35,13 @@ class RawFrame:
         return RAW_FORMATS.get(self.format, ".raw")
 
 
-class Camera(ABC):
+class Camera(Connection):
     """A camera built from the profile's [camera] section; a context manager (open on enter, close on exit)."""
 
     driver: str
 
     def __init__(self, config: CameraConfig) -> None:
         self.config = config
-        self._open_now = False
 
     @abstractmethod
     def _open(self) -> None:
@@ -63,34 +63,19 @@ class Camera(ABC):
         """Write exposure time / ISO to the camera; drivers that can override this."""
         raise BadValueError(f"the {self.driver} camera driver cannot set exposure or ISO; set them on the camera")
 
-    @property
-    def is_open(self) -> bool:
-        return self._open_now
-
     def open(self) -> Camera:
         """Connect (no-op if open); returns self. Applies exposure / ISO only where the profile allows it."""
-        if not self._open_now:
-            self._open()
-            self._open_now = True
-            wanted = (self.config.exposure_s, self.config.iso)
-            if self.config.write_properties and any(v is not None for v in wanted):
-                try:
-                    self._apply_settings(*wanted)
-                except BaseException:
-                    self.close()  # no `with` block owns the camera yet
-                    raise
+        if self.is_open:
+            return self
+        super().open()
+        wanted = (self.config.exposure_s, self.config.iso)
+        if self.config.write_properties and any(v is not None for v in wanted):
+            try:
+                self._apply_settings(*wanted)
+            except BaseException:
+                self.close()  # no `with` block owns the camera yet
+                raise
         return self
-
-    def close(self) -> None:
-        if self._open_now:
-            self._open_now = False
-            self._close()
-
-    def __enter__(self) -> Camera:
-        return self.open()
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
     def identity(self) -> dict[str, str]:
         """What the camera says it is, plus the driver name."""

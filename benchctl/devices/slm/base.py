@@ -10,13 +10,14 @@ from __future__ import annotations
 
 import math
 import time
-from abc import ABC, abstractmethod
+from abc import abstractmethod
 from collections.abc import Callable, Sequence
 from typing import Any, ClassVar
 
 import numpy as np
 import torch
 
+from benchctl.devices.connection import Connection
 from benchctl.devices.errors import DeviceError
 from benchctl.devices.slm.lut import lut_for
 from benchctl.errors import BadValueError
@@ -26,7 +27,7 @@ from benchctl.profiles import SLMConfig
 TWO_PI = 2.0 * math.pi
 
 
-class SLM(ABC):
+class SLM(Connection):
     """A phase SLM built from the profile's [slm] section; a context manager (open on enter, close on exit)."""
 
     driver: ClassVar[str]
@@ -38,7 +39,6 @@ class SLM(ABC):
         self.sleep: Callable[[float], None] = time.sleep  # the settle wait; tests replace it
         self._luts: dict[str, PhaseLUT] = {}
         self._current: np.ndarray | None = None
-        self._open_now = False
 
     # -- hooks ------------------------------------------------------------------------------------------
 
@@ -92,11 +92,6 @@ class SLM(ABC):
         """Wait after each new frame before the panel is trusted (liquid crystal response)."""
         return self.config.settle_ms * 1e-3
 
-    @property
-    def is_open(self) -> bool:
-        """Whether frames can be shown now."""
-        return self._open_now
-
     def info(self) -> dict[str, Any]:
         """What this SLM is and how it encodes, for `benchctl slm info` and run records (JSON-ready)."""
         linear = f"linear, 2 pi = gray {self.config.two_pi_gray or (1 << self.bit_depth):g}"
@@ -128,25 +123,6 @@ class SLM(ABC):
         return self._current
 
     # -- lifecycle ------------------------------------------------------------------------------------------
-
-    def open(self) -> SLM:
-        """Connect to the panel (no-op if open); returns self."""
-        if not self._open_now:
-            self._open()
-            self._open_now = True
-        return self
-
-    def close(self) -> None:
-        """Disconnect (no-op if closed); the panel keeps showing the last frame."""
-        if self._open_now:
-            self._open_now = False
-            self._close()
-
-    def __enter__(self) -> SLM:
-        return self.open()
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
     # -- showing ----------------------------------------------------------------------------------------------
 
