@@ -10,6 +10,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from benchctl.optics.colour import linear_to_srgb
+
 PSNR_MSE_FLOOR = 1e-10
 """MSE floor as a fraction of data_range**2: PSNR never exceeds 100 dB (identical images score exactly 100)."""
 
@@ -102,3 +104,29 @@ def ssim(pred: torch.Tensor, target: torch.Tensor, data_range: float) -> torch.T
     structure = (2 * cov + c2) / (var_x + var_y + c2)
     return (luminance * structure).mean(dim=(-3, -2, -1)).reshape(lead)
 
+
+def amplitude_scores(recon: torch.Tensor, target: torch.Tensor) -> dict[str, float]:
+    """PSNR / SSIM of an amplitude image against the target amplitude (same shape, already scaled), in amplitude,
+    linear intensity and sRGB: the one scoring of a colour, for simulated reconstructions and captures alike."""
+    lin_r, lin_t = recon.square().clamp(0, 1), target.square().clamp(0, 1)
+    srgb_r, srgb_t = linear_to_srgb(lin_r), linear_to_srgb(lin_t)
+    return {
+        "psnr_amplitude_db": float(psnr(recon, target, data_range=1.0).mean()),
+        "ssim_amplitude": float(ssim(recon, target, data_range=1.0).mean()),
+        "psnr_linear_db": float(psnr(lin_r, lin_t, data_range=1.0).mean()),
+        "psnr_srgb_db": float(psnr(srgb_r, srgb_t, data_range=1.0).mean()),
+        "ssim_srgb": float(ssim(srgb_r, srgb_t, data_range=1.0).mean()),
+    }
+
+
+def colour_scores(merged_linear: torch.Tensor, target_roi: torch.Tensor) -> dict[str, float]:
+    """Scores of a merged colour image (3, h, w) in linear intensity against the target amplitude (3, h, w): PSNR
+    over all planes at once, SSIM averaged over planes, in linear and sRGB."""
+    h, w = merged_linear.shape[-2:]
+    lin_t = target_roi.square().clamp(0, 1)
+    srgb_r, srgb_t = linear_to_srgb(merged_linear), linear_to_srgb(lin_t)
+    return {
+        "psnr_linear_db": float(psnr(merged_linear.reshape(3 * h, w), lin_t.reshape(3 * h, w), data_range=1.0)),
+        "psnr_srgb_db": float(psnr(srgb_r.reshape(3 * h, w), srgb_t.reshape(3 * h, w), data_range=1.0)),
+        "ssim_srgb": float(ssim(srgb_r, srgb_t, data_range=1.0).mean()),
+    }

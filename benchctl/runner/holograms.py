@@ -15,7 +15,7 @@ import torch
 from benchctl.cgh import OpticalSetup, get_method, method_names
 from benchctl.errors import BenchctlError
 from benchctl.devices.slm import slm_for
-from benchctl.optics import crop_roi, linear_to_srgb, lsq_scale, psnr, ssim
+from benchctl.optics import amplitude_scores, colour_scores, crop_roi, lsq_scale
 from benchctl.profiles import LaserChannel, Profile
 from benchctl.targets import active_channels
 
@@ -89,31 +89,6 @@ def select_channels(profile: Profile, names: list[str] | None) -> list[LaserChan
     return [profile.channel(name) for name in names]
 
 
-def _scores(recon: torch.Tensor, target: torch.Tensor) -> dict[str, float]:
-    """PSNR / SSIM of reconstruction against target amplitude, in amplitude, linear intensity and sRGB."""
-    lin_r, lin_t = recon.square().clamp(0, 1), target.square().clamp(0, 1)
-    srgb_r, srgb_t = linear_to_srgb(lin_r), linear_to_srgb(lin_t)
-    return {
-        "psnr_amplitude_db": float(psnr(recon, target, data_range=1.0).mean()),
-        "ssim_amplitude": float(ssim(recon, target, data_range=1.0).mean()),
-        "psnr_linear_db": float(psnr(lin_r, lin_t, data_range=1.0).mean()),
-        "psnr_srgb_db": float(psnr(srgb_r, srgb_t, data_range=1.0).mean()),
-        "ssim_srgb": float(ssim(srgb_r, srgb_t, data_range=1.0).mean()),
-    }
-
-
-def _merged_scores(merged_linear: torch.Tensor, target_roi: torch.Tensor) -> dict[str, float]:
-    """Scores of the merged colour image: PSNR over all planes at once, SSIM averaged over planes."""
-    h, w = merged_linear.shape[-2:]
-    lin_t = target_roi.square().clamp(0, 1)
-    srgb_r, srgb_t = linear_to_srgb(merged_linear), linear_to_srgb(lin_t)
-    return {
-        "psnr_linear_db": float(psnr(merged_linear.reshape(3 * h, w), lin_t.reshape(3 * h, w), data_range=1.0)),
-        "psnr_srgb_db": float(psnr(srgb_r.reshape(3 * h, w), srgb_t.reshape(3 * h, w), data_range=1.0)),
-        "ssim_srgb": float(ssim(srgb_r, srgb_t, data_range=1.0).mean()),
-    }
-
-
 def compute_scene(
     target_amplitude: torch.Tensor,
     profile: Profile,
@@ -153,5 +128,5 @@ def compute_scene(
         recon = recon * lsq_scale(recon, target_roi[plane])
         merged[plane] = recon.square().clamp(0, 1)
         results.append(ColourResult(channel.name, channel.wavelength_nm, skipped=False, seconds=seconds,
-                                    gray=gray, reconstruction=recon, scores=_scores(recon, target_roi[plane])))
-    return SceneResult(method, iterations, results, target_roi, merged, _merged_scores(merged, target_roi))
+                                    gray=gray, reconstruction=recon, scores=amplitude_scores(recon, target_roi[plane])))
+    return SceneResult(method, iterations, results, target_roi, merged, colour_scores(merged, target_roi))
