@@ -8,8 +8,6 @@ BenchctlError naming the file, the key path (`laser.channels[1].wavelength_nm`) 
 
 from __future__ import annotations
 
-import difflib
-import math
 import os
 import sys
 from collections.abc import Mapping
@@ -19,6 +17,7 @@ from typing import Any
 
 from benchctl.dng import CFA_LAYOUTS
 from benchctl.errors import BenchctlError
+from benchctl.schema import Field, check_table, fail
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -28,23 +27,6 @@ else:
 PROFILE_ENV = "BENCHCTL_PROFILE"
 PROFILE_DIR = "hardware_profiles"
 DEFAULT_PROFILE = "simulated"
-
-
-@dataclass(frozen=True)
-class Field:
-    """One key of the schema: its kind, whether it is required, its default and its numeric bounds."""
-
-    # "float", "int", "bool", "str", "int_pair", "float_pair", "str_map", "triple_map" (name -> three numbers),
-    # "table" (fields) or "tables" (array)
-    kind: str
-    required: bool = True
-    default: Any = None
-    gt: float | None = None
-    ge: float | None = None
-    le: float | None = None
-    fields: Mapping[str, Field] | None = None
-    min_items: int = 0
-    choices: tuple[str, ...] | None = None
 
 
 _CHANNEL = {
@@ -460,122 +442,17 @@ def load_profile(path_or_name: str | Path | None = None) -> Profile:
         raise BenchctlError(f"{path}: cannot read hardware profile: {exc.strerror or exc}") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise BenchctlError(f"{path}: TOML syntax error: {exc}") from None
-    return _build(path, _check_table(raw, SCHEMA, "", path))
-
-
-def _fail(path: Path, key: str, problem: str) -> BenchctlError:
-    return BenchctlError(f"{path}: {key}: {problem}")
-
-
-def _join(prefix: str, key: str) -> str:
-    return f"{prefix}.{key}" if prefix else key
-
-
-def _check_table(raw: Mapping[str, Any], fields: Mapping[str, Field], prefix: str, path: Path) -> dict[str, Any]:
-    """Check one table against its fields: no unknown keys, no missing required ones; fill defaults."""
-    for key, value in raw.items():
-        if key not in fields:
-            # Suggest sections for sections and keys for keys: `[camera]` is not a misspelt `name`.
-            is_table = isinstance(value, dict) or (isinstance(value, list) and value and isinstance(value[0], dict))
-            what = "section" if is_table else "key"
-            alike = [name for name, field in fields.items() if (field.kind in ("table", "tables")) == is_table]
-            close = difflib.get_close_matches(key, alike, n=1)
-            hint = f"did you mean {close[0]!r}? " if close else ""
-            raise _fail(path, _join(prefix, key), f"unknown {what} ({hint}known: {', '.join(fields)})")
-    checked: dict[str, Any] = {}
-    for key, field in fields.items():
-        if key in raw:
-            checked[key] = _check_value(raw[key], field, _join(prefix, key), path)
-        elif field.required:
-            what = "section" if field.kind == "table" else "key"
-            raise _fail(path, _join(prefix, key), f"missing required {what}")
-        elif field.default is not None:
-            checked[key] = field.default
-    return checked
-
-
-def _check_value(value: Any, field: Field, key: str, path: Path) -> Any:
-    """Check one value's type and bounds; return it in its Python form (float, int, tuple, dict, list)."""
-    def wrong(expected: str) -> BenchctlError:
-        return _fail(path, key, f"expected {expected}, got {value!r} ({type(value).__name__})")
-
-    if field.kind == "table":
-        if not isinstance(value, dict):
-            raise wrong("a [section] table")
-        return _check_table(value, field.fields or {}, key, path)
-    if field.kind == "tables":
-        if not isinstance(value, list) or not all(isinstance(item, dict) for item in value):
-            raise wrong(f"an array of tables ([[{key}]])")
-        if len(value) < field.min_items:
-            raise _fail(path, key, f"at least {field.min_items} entry required, got {len(value)}")
-        return [_check_table(item, field.fields or {}, f"{key}[{i}]", path) for i, item in enumerate(value)]
-    if field.kind == "str":
-        if not isinstance(value, str):
-            raise wrong("a string")
-        if field.choices is not None and value not in field.choices:
-            raise _fail(path, key, f"unknown value {value!r} (choose from {', '.join(field.choices)})")
-        return value
-    if field.kind == "bool":
-        if not isinstance(value, bool):
-            raise wrong("true or false")
-        return value
-    if field.kind == "str_map":
-        if not isinstance(value, dict) or not all(isinstance(v, str) for v in value.values()):
-            raise wrong("a table of strings")
-        return dict(value)
-    if field.kind == "triple_map":
-        if not isinstance(value, dict):
-            raise wrong("a table of [r, g, b] number triples")
-        triples = {}
-        for name, triple in value.items():
-            if not (isinstance(triple, list) and len(triple) == 3 and all(_is_number(v) for v in triple)):
-                raise _fail(path, f"{key}.{name}", f"expected three numbers [r, g, b], got {triple!r}")
-            triples[name] = tuple(_check_bounds(float(v), field, f"{key}.{name}[{i}]", path)
-                                  for i, v in enumerate(triple))
-        return triples
-    if field.kind == "float_pair":
-        if not (isinstance(value, list) and len(value) == 2 and all(_is_number(v) for v in value)):
-            raise wrong("two numbers [rows, cols]")
-        return tuple(float(v) for v in value)
-    if field.kind == "int_pair":
-        if not (isinstance(value, list) and len(value) == 2 and all(_is_int(v) for v in value)):
-            raise wrong("two integers [rows, cols]")
-        return tuple(_check_bounds(v, field, f"{key}[{i}]", path) for i, v in enumerate(value))
-    if field.kind == "int":
-        if not _is_int(value):
-            raise wrong("an integer")
-        return _check_bounds(value, field, key, path)
-    if not _is_number(value):
-        raise wrong("a finite number")
-    return _check_bounds(float(value), field, key, path)
-
-
-def _is_number(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-
-
-def _is_int(value: Any) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
-
-
-def _check_bounds(value: float, field: Field, key: str, path: Path) -> Any:
-    if field.gt is not None and not value > field.gt:
-        raise _fail(path, key, f"must be > {field.gt:g}, got {value!r}")
-    if field.ge is not None and not value >= field.ge:
-        raise _fail(path, key, f"must be >= {field.ge:g}, got {value!r}")
-    if field.le is not None and not value <= field.le:
-        raise _fail(path, key, f"must be <= {field.le:g}, got {value!r}")
-    return value
+    return _build(path, check_table(raw, SCHEMA, "", path))
 
 
 def _build(path: Path, data: Mapping[str, Any]) -> Profile:
     """Cross-key checks the schema cannot express, then the dataclasses."""
     if not any(section in data for section in SECTIONS):
-        raise _fail(path, "(top level)", f"no device section: give at least one of {', '.join(SECTIONS)}")
+        raise fail(path, "(top level)", f"no device section: give at least one of {', '.join(SECTIONS)}")
     slm = _build_slm(path, data["slm"]) if "slm" in data else None
     optics = OpticsConfig(**data["optics"]) if "optics" in data else None
     if optics and slm and (optics.roi[0] > slm.height or optics.roi[1] > slm.width):
-        raise _fail(
+        raise fail(
             path, "optics.roi",
             f"{list(optics.roi)} is larger than the SLM grid {slm.height} x {slm.width} (slm.height x slm.width)",
         )
@@ -584,7 +461,7 @@ def _build(path: Path, data: Mapping[str, Any]) -> Profile:
         names = {ch.name for ch in laser.channels}
         for name in slm.lut:
             if name not in names:
-                raise _fail(path, f"slm.lut.{name}", f"no laser channel {name!r} (known: {', '.join(sorted(names))})")
+                raise fail(path, f"slm.lut.{name}", f"no laser channel {name!r} (known: {', '.join(sorted(names))})")
     camera = CameraConfig(**data["camera"]) if "camera" in data else None
     sim = _build_sim(path, data.get("sim", {}), laser)
     return Profile(path=path, name=data.get("name", path.stem), description=data["description"],
@@ -598,15 +475,15 @@ def _build_sim(path: Path, data: Mapping[str, Any], laser: LaserConfig | None) -
     for axis, name in enumerate(("rows", "cols")):
         margin, size = sensor.margin[axis], sensor.shape[axis]
         if margin % 2 or margin + 2 > size:
-            raise _fail(path, "sim.sensor.margin",
+            raise fail(path, "sim.sensor.margin",
                         f"{name} margin {margin} must be even and leave exposed pixels in {size} {name}")
     if sensor.black_level >= sensor.white_level:
-        raise _fail(path, "sim.sensor.black_level", f"{sensor.black_level} is not below the white level "
+        raise fail(path, "sim.sensor.black_level", f"{sensor.black_level} is not below the white level "
                     f"{sensor.white_level} of a {sensor.bit_depth}-bit sensor")
     names = {ch.name for ch in laser.channels} if laser else set()
     for name in sensor.response:
         if name not in names:
-            raise _fail(path, f"sim.sensor.response.{name}",
+            raise fail(path, f"sim.sensor.response.{name}",
                         f"no laser channel {name!r} (known: {', '.join(sorted(names)) or 'none'})")
     parts = {"slm": SimSLMConfig, "beam": SimBeamConfig, "imaging": SimImagingConfig}
     built = {key: cls(**data[key]) for key, cls in parts.items() if key in data}
@@ -618,7 +495,7 @@ def _build_slm(path: Path, data: Mapping[str, Any]) -> SLMConfig:
     luts = {name: (path.parent / file).resolve() for name, file in data.get("lut", {}).items()}
     slm = SLMConfig(**{**data, "lut": luts})
     if slm.driver == "framebuffer" and not slm.device:
-        raise _fail(path, "slm.device", "the framebuffer driver needs a device, e.g. device = \"/dev/fb1\"")
+        raise fail(path, "slm.device", "the framebuffer driver needs a device, e.g. device = \"/dev/fb1\"")
     return slm
 
 
@@ -630,25 +507,25 @@ def _build_laser(path: Path, data: Mapping[str, Any]) -> LaserConfig:
         key = f"laser.channels[{i}]"
         channel = LaserChannel(**{"index": i + 1, **entry})
         if not channel.name.strip():
-            raise _fail(path, f"{key}.name", f"channel name must not be empty, got {channel.name!r}")
+            raise fail(path, f"{key}.name", f"channel name must not be empty, got {channel.name!r}")
         for attr in ("name", "index"):
             value = getattr(channel, attr)
             if (attr, value) in first_seen:
                 also = first_seen[attr, value]
-                raise _fail(path, f"{key}.{attr}", f"duplicate channel {attr} {value!r} (also {also})")
+                raise fail(path, f"{key}.{attr}", f"duplicate channel {attr} {value!r} (also {also})")
             first_seen[attr, value] = f"{key}.{attr}"
         if channel.setpoint_mw > channel.max_power_mw:
-            raise _fail(
+            raise fail(
                 path, f"{key}.setpoint_mw",
                 f"{channel.setpoint_mw:g} mW is above max_power_mw {channel.max_power_mw:g} mW",
             )
         if channel.port is None and "port" not in data:
-            raise _fail(path, f"{key}.port", "no serial port: set laser.port or a port for this channel")
+            raise fail(path, f"{key}.port", "no serial port: set laser.port or a port for this channel")
         channels.append(channel)
     protocol = data.get("protocol")
     if data["driver"] == "template" and protocol is None:
-        raise _fail(path, "laser.protocol", "the template driver needs a [laser.protocol] section with its commands")
+        raise fail(path, "laser.protocol", "the template driver needs a [laser.protocol] section with its commands")
     if data["driver"] != "template" and protocol is not None:
-        raise _fail(path, "laser.protocol", f"only the template driver uses [laser.protocol], not {data['driver']!r}")
+        raise fail(path, "laser.protocol", f"only the template driver uses [laser.protocol], not {data['driver']!r}")
     fields = {k: v for k, v in data.items() if k not in ("channels", "protocol")}
     return LaserConfig(channels=tuple(channels), protocol=TemplateProtocol(**protocol) if protocol else None, **fields)
