@@ -1,8 +1,11 @@
-"""`benchctl bench speed-vs-error`: seconds per frame against PSNR / SSIM for every method and iteration budget."""
+"""`benchctl bench speed-vs-error`: seconds per frame against PSNR / SSIM for every method and iteration budget.
+
+Learned methods take part where a trained checkpoint fits the benchmark's geometry (shipped for the profile,
+see `benchctl.cgh.learned.find_checkpoint`); they are one-shot, like DPAC.
+"""
 
 from __future__ import annotations
 
-import dataclasses
 import io
 import statistics
 import time
@@ -12,9 +15,11 @@ from typing import Any, Callable
 import torch
 
 from benchctl.cgh import OpticalSetup, get_method, method_names
+from benchctl.cgh.learned import LEARNED_METHODS, find_checkpoint, read_checkpoint
+from benchctl.cgh.learned.geometry import grid_profile
 from benchctl.files import atomic_write_bytes, ensure_dir, write_csv
 from benchctl.profiles import Profile
-from benchctl.runner.holograms import compute_scene
+from benchctl.runner.holograms import checkpoint_status, compute_scene, usable_learned_methods
 from benchctl.targets import load_target, prepare_target
 
 DEFAULT_TARGETS = ("chart:siemens", "chart:bars", "chart:text")
@@ -26,21 +31,30 @@ def resized_profile(profile: Profile, size: tuple[int, int]) -> Profile:
 
     Keeping the pitch and scaling the distance with the grid's area keeps the Fresnel number
     (N pitch)^2 / (lambda z), so the image's resolution relative to its size and the quality figures stay
-    comparable with the full bench, while the time per frame shrinks with the grid.
+    comparable with the full bench, while the time per frame shrinks with the grid. (Learned methods only
+    run where a checkpoint was trained for exactly this geometry, e.g. at the profile's own grid.)
     """
-    (h, w), (rh, rw) = profile.slm.shape, profile.optics.roi
-    roi = (max(1, round(rh * size[0] / h)), max(1, round(rw * size[1] / w)))
-    area_ratio = size[0] * size[1] / (h * w)
-    return dataclasses.replace(
-        profile,
-        slm=dataclasses.replace(profile.slm, height=size[0], width=size[1]),
-        optics=dataclasses.replace(profile.optics, roi=roi, distance_mm=profile.optics.distance_mm * area_ratio),
-    )
+    return grid_profile(profile, size, scale_distance=True)
 
 
 def budgets_for(method: str, budgets: tuple[int, ...]) -> list[int | None]:
-    """One-shot methods run once; iterative ones run at every budget."""
+    """One-shot methods (DPAC, trained networks) run once; iterative ones run at every budget."""
+    if method in LEARNED_METHODS:
+        return [None]
     return [None] if get_method(method).default_iterations is None else list(budgets)
+
+
+def default_methods(profile: Profile, out: Callable[[str], None] = print) -> tuple[str, ...]:
+    """Every classical method, plus each learned method with a checkpoint that fits this benchmark's geometry
+    (and a note for those whose checkpoint is for another geometry)."""
+    learned = usable_learned_methods(profile)
+    for name in LEARNED_METHODS:
+        path = find_checkpoint(name, profile)
+        if path is not None and name not in learned:
+            grid = next(iter(read_checkpoint(path).geometry.values()))["grid"]
+            out(f"not running {name}: {checkpoint_status(name, profile)} (--size {grid[0]}x{grid[1]} includes it "
+                "when the rest of the geometry is the profile's)")
+    return (*method_names(), *learned)
 
 
 def run_speed_vs_error(
@@ -55,9 +69,10 @@ def run_speed_vs_error(
     progress: Callable[[str], Callable[[int, int], None]] | None = None,
 ) -> list[dict[str, Any]]:
     """Run each method at each budget on each target; print a table, write CSV (+ PNG plot if matplotlib)."""
-    methods = tuple(methods or method_names())
+    methods = tuple(methods or default_methods(profile, out))
     for name in methods:
-        get_method(name)
+        if name not in LEARNED_METHODS:
+            get_method(name)
     grid, roi = profile.slm.shape, profile.optics.roi
     amplitudes = {t: prepare_target(load_target(t, size=roi), grid, roi) for t in targets}
     unit = _propagation_seconds(profile)
@@ -65,7 +80,7 @@ def run_speed_vs_error(
         f"pitch {profile.slm.pitch_um:g} um, targets: {', '.join(targets)}")
     out(f"one propagation ({profile.channels[0].name}, measured in this run): {unit * 1e3:.2f} ms; "
         "'x prop' = seconds per frame / that")
-    header = (f"{'method':<10} {'iters':>6} {'target':<16} {'s/frame':>9} {'x prop':>8} {'PSNR amp':>9} "
+    header = (f"{'method':<14} {'iters':>6} {'target':<16} {'s/frame':>9} {'x prop':>8} {'PSNR amp':>9} "
               f"{'SSIM amp':>9} {'PSNR sRGB':>10} {'SSIM sRGB':>10}")
     out(header)
     rows = []
@@ -87,7 +102,7 @@ def run_speed_vs_error(
                     "ssim_srgb": scene.merged_scores["ssim_srgb"],
                 }
                 rows.append(row)
-                out(f"{method:<10} {row['iterations']!s:>6} {target:<16} {row['seconds_per_frame']:>9.3f} "
+                out(f"{method:<14} {row['iterations']!s:>6} {target:<16} {row['seconds_per_frame']:>9.3f} "
                     f"{row['seconds_per_frame'] / unit:>8.1f} "
                     f"{row['psnr_amplitude_db']:>9.2f} {row['ssim_amplitude']:>9.3f} {row['psnr_srgb_db']:>10.2f} "
                     f"{row['ssim_srgb']:>10.3f}")

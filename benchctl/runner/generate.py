@@ -34,6 +34,7 @@ def scene_metrics(scene: SceneResult) -> dict[str, Any]:
     return {
         "method": scene.method,
         "iterations": scene.iterations,
+        "checkpoint": str(scene.checkpoint) if scene.checkpoint is not None else None,
         "colours": colours,
         "merged": {k: round(v, 4) for k, v in scene.merged_scores.items()},
     }
@@ -49,14 +50,18 @@ def run_generate(
     colours: list[str] | None = None,
     seed: int = 0,
     progress: Callable[[str], Callable[[int, int], None]] | None = None,
+    checkpoint: Path | None = None,
 ) -> dict[str, Any]:
-    """Generate one hologram per colour present in `target`, write PNGs and metrics.json to `out_dir`."""
+    """Generate one hologram per colour present in `target`, write PNGs and metrics.json to `out_dir`.
+
+    A learned method uses `checkpoint`, else the one shipped for the profile (see `compute_scene`).
+    """
     started = time.time()
     srgb = load_target(target, size=profile.optics.roi)
     amplitude = prepare_target(srgb, profile.slm.shape, profile.optics.roi)
     out_dir = ensure_dir(Path(out_dir))
     scene = compute_scene(amplitude, profile, method, iterations=iterations, colours=colours, seed=seed,
-                          progress=progress)
+                          progress=progress, checkpoint=checkpoint)
     files = []
     for c in scene.colours:
         if not c.skipped:

@@ -6,15 +6,17 @@ This is the in-memory core shared by `benchctl generate` and `benchctl bench spe
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
+from pathlib import Path
 
 import numpy as np
 import torch
 
 from benchctl.cgh import OpticalSetup, get_method, method_names
-from benchctl.errors import BenchctlError
+from benchctl.cgh.learned import LEARNED_METHODS, checkpoint_problem, find_checkpoint, model_info, resolve_method
 from benchctl.devices.slm import slm_for
+from benchctl.errors import BenchctlError
 from benchctl.optics import amplitude_scores, colour_scores, crop_roi, lsq_scale
 from benchctl.profiles import LaserChannel, Profile
 from benchctl.targets import active_channels
@@ -45,6 +47,7 @@ class SceneResult:
     target_roi: torch.Tensor  # (3, h, w) amplitude
     merged_linear: torch.Tensor  # (3, h, w) linear intensity
     merged_scores: dict[str, float]
+    checkpoint: Path | None = None  # the trained models a learned method used
 
 
 def target_plane(channel: LaserChannel) -> int:
@@ -65,20 +68,40 @@ def describe_propagation(profile: Profile) -> str:
     return "\n".join(lines)
 
 
-def list_methods(shape: tuple[int, int]) -> list[str]:
+def checkpoint_status(method: str, profile: Profile) -> str:
+    """Where the trained checkpoint of learned `method` for `profile` is, or why there is none it can use."""
+    path = find_checkpoint(method, profile)
+    if path is None:
+        return f"no trained checkpoint for profile {profile.name!r}"
+    problem = checkpoint_problem(path, profile)
+    return f"{path}" if problem is None else f"{path} does not fit: {problem}"
+
+
+def usable_learned_methods(profile: Profile) -> list[str]:
+    """Learned methods with a checkpoint found for `profile` that fits its geometry (what runs out of the box)."""
+    usable = []
+    for name in LEARNED_METHODS:
+        path = find_checkpoint(name, profile)
+        if path is not None and checkpoint_problem(path, profile) is None:
+            usable.append(name)
+    return usable
+
+
+def list_methods(shape: tuple[int, int], profile: Profile | None = None) -> list[str]:
     """Every hologram method: family, trainable parameters at `shape`, and whether it can run now.
 
-    Learned methods need a trained checkpoint; until training lands there is none, and they are not
-    selectable in `benchctl generate`.
+    Learned methods need a trained checkpoint that fits the profile's geometry; the last column says where it
+    is or why there is none (without a profile: that a checkpoint is needed).
     """
-    from benchctl.cgh.learned import LEARNED_METHODS, model_info
-
-    lines = [f"{'method':<16} {'family':<10} {'parameters':>11}  usable", ]
+    lines = [f"{'method':<16} {'family':<10} {'parameters':>11}  usable / checkpoint"]
     for name in method_names():
         lines.append(f"{name:<16} {'classical':<10} {'-':>11}  yes ({get_method(name).description})")
+    usable = usable_learned_methods(profile) if profile is not None else []
     for name in LEARNED_METHODS:
         info = model_info(name, shape)
-        lines.append(f"{name:<16} {info['family']!s:<10} {info['parameters']:>11,}  no trained checkpoint yet")
+        status = checkpoint_status(name, profile) if profile is not None else "needs a trained checkpoint"
+        state = "yes" if name in usable else "no"
+        lines.append(f"{name:<16} {info['family']!s:<10} {info['parameters']:>11,}  {state} ({status})")
     return lines
 
 
@@ -98,22 +121,28 @@ def compute_scene(
     colours: list[str] | None = None,
     seed: int = 0,
     progress: Callable[[str], Callable[[int, int], None]] | None = None,
+    checkpoint: Path | None = None,
 ) -> SceneResult:
     """Generate, quantise, display (in simulation) and score a hologram for each requested, non-black colour.
 
     `target_amplitude` is (3, H, W) on the SLM grid (see `benchctl.targets.prepare_target`). `progress`, if
-    given, is called with a label per colour and returns that colour's `(done, total)` callback.
+    given, is called with a label per colour and returns that colour's `(done, total)` callback. A learned
+    method uses `checkpoint`, else the checkpoint shipped for the profile (`find_checkpoint`); it is refused
+    (BenchctlError) when there is none or when it was trained for another geometry; a classical method given
+    a checkpoint is an error too.
     """
-    generate = get_method(method)
     grid, roi = profile.slm.shape, profile.optics.roi
     if tuple(target_amplitude.shape) != (3, *grid):
         raise BenchctlError(f"target is {tuple(target_amplitude.shape)}, the SLM grid needs (3, {grid[0]}, {grid[1]})")
     present = active_channels(target_amplitude)
+    channels = select_channels(profile, colours)
+    generate, used_checkpoint = resolve_method(method, profile, checkpoint,
+                                               [c.name for c in channels if present[target_plane(c)]])
     slm = slm_for(profile)
     target_roi = crop_roi(target_amplitude, roi)
     merged = torch.zeros_like(target_roi)
     results = []
-    for channel in select_channels(profile, colours):
+    for channel in channels:
         plane = target_plane(channel)
         if not present[plane]:
             results.append(ColourResult(channel.name, channel.wavelength_nm, skipped=True))
@@ -129,4 +158,5 @@ def compute_scene(
         merged[plane] = recon.square().clamp(0, 1)
         results.append(ColourResult(channel.name, channel.wavelength_nm, skipped=False, seconds=seconds,
                                     gray=gray, reconstruction=recon, scores=amplitude_scores(recon, target_roi[plane])))
-    return SceneResult(method, iterations, results, target_roi, merged, colour_scores(merged, target_roi))
+    return SceneResult(method, iterations, results, target_roi, merged, colour_scores(merged, target_roi),
+                       checkpoint=used_checkpoint)

@@ -1,0 +1,287 @@
+"""`benchctl bench learned`: the learned methods side by side: parameters, inference time, training memory, quality.
+
+Per method, in one run, on one grid (the profile's, or --size with pitch and distance kept and the ROI scaled,
+as for training):
+- trainable parameters;
+- inference seconds per frame: the full network (generator, full-definition propagation, encoder) on one
+  colour's target, median of `repeats` runs after one warm-up, under inference mode; on CUDA the device is
+  synchronised around every timed run;
+- peak memory of one training step (forward, propagation to the target plane, ROI loss, backward, Adam step,
+  batch 1), each model in its own fresh subprocess. CPU: the process's peak resident set (VmHWM) during the
+  step minus its resident set just before it (after imports, model, propagation kernels and input were set
+  up; the peak is reset there through /proc/self/clear_refs). Not `getrusage`: in a freshly exec'd child
+  Linux reports the parent's peak as ru_maxrss. CUDA: torch.cuda.max_memory_allocated during the step minus
+  the memory allocated before it;
+- PSNR / SSIM (amplitude, mean over colours and targets, displayed 8-bit phase, as `benchctl generate`
+  scores) where a trained checkpoint that fits the grid is given or shipped;
+- ratios against the family's baseline network (holonet, ccnn), measured in the same run:
+  speed-up = baseline seconds / seconds, memory reduction = 1 - peak / baseline peak.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import statistics
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from benchctl.cgh import OpticalSetup
+from benchctl.cgh.learned import (
+    LEARNED_METHODS,
+    build_model,
+    count_parameters,
+    find_checkpoint,
+    model_info,
+    read_checkpoint,
+    resolve_method,
+)
+from benchctl.cgh.learned.geometry import geometry_of, grid_profile, setup_from_geometry
+from benchctl.cgh.learned.models import VARIANTS
+from benchctl.errors import BadValueError, BenchctlError
+from benchctl.files import ensure_dir, write_csv
+from benchctl.profiles import Profile
+from benchctl.runner.holograms import compute_scene, target_plane, usable_learned_methods
+from benchctl.targets import load_target, prepare_target
+
+DEFAULT_TARGETS = ("chart:siemens", "chart:bars", "chart:text")
+BASELINES = {"holonet": "holonet", "ccnn": "ccnn"}
+"""The baseline network of each family, against which ratios are given."""
+
+
+def _device() -> torch.device:
+    return torch.device("cuda") if torch.cuda.is_available() else torch.device("cpu")
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def inference_seconds(model: torch.nn.Module, amplitude: torch.Tensor, repeats: int) -> float:
+    """Median seconds of one forward pass (after a warm-up), synchronised on CUDA."""
+    model.eval()
+    device = amplitude.device
+    times = []
+    with torch.inference_mode():
+        model(amplitude)
+        _sync(device)
+        for _ in range(repeats):
+            start = time.perf_counter()
+            model(amplitude)
+            _sync(device)
+            times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def _proc_status() -> dict[str, int] | None:
+    """VmRSS and VmHWM of this process in bytes (Linux), or None where /proc is missing."""
+    try:
+        lines = Path("/proc/self/status").read_text().splitlines()
+    except OSError:
+        return None
+    values = {}
+    for line in lines:
+        key, _, rest = line.partition(":")
+        if key in ("VmRSS", "VmHWM"):
+            values[key] = int(rest.split()[0]) * 1024
+    return values if len(values) == 2 else None
+
+
+def _reset_peak() -> bool:
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+        return True
+    except OSError:
+        return False
+
+
+def training_step_memory(method: str, geometry: dict[str, Any], device: str) -> dict[str, Any]:
+    """In this process: set up `method` for `geometry`, run one training step, return its peak memory.
+
+    Meant to run in a fresh subprocess (see `measure_training_step`), one per model.
+    """
+    from benchctl.cgh.learned.training import ReconstructionLoss, peak_normalised, training_step
+
+    dev = torch.device(device)
+    setup = setup_from_geometry(geometry)
+    torch.manual_seed(0)
+    model = build_model(method, setup).to(dev)
+    optimiser = torch.optim.Adam(model.parameters(), lr=5e-4)
+    amplitude = torch.zeros(1, 1, *setup.shape, device=dev)
+    amplitude[(..., *setup.roi_slices)] = torch.rand(setup.roi, device=dev)  # content does not change memory
+    amplitude = peak_normalised(amplitude)
+    for propagator in (setup.slm_propagator(), setup.target_propagator()):
+        propagator.kernel(torch.complex64, dev)
+    loss_fn = ReconstructionLoss().to(dev)
+    if dev.type == "cuda":
+        torch.cuda.synchronize(dev)
+        before = torch.cuda.memory_allocated(dev)
+        torch.cuda.reset_peak_memory_stats(dev)
+        start = time.perf_counter()
+        training_step(model, optimiser, setup, amplitude, loss_fn)
+        torch.cuda.synchronize(dev)
+        seconds = time.perf_counter() - start
+        peak = torch.cuda.max_memory_allocated(dev) - before
+        how = "torch.cuda.max_memory_allocated during the step minus memory allocated before it"
+    else:
+        status = _proc_status()
+        if status is None or not _reset_peak():
+            raise BenchctlError("peak resident memory needs Linux's /proc/self/status and /proc/self/clear_refs")
+        before = _proc_status()["VmRSS"]  # type: ignore[index]
+        start = time.perf_counter()
+        training_step(model, optimiser, setup, amplitude, loss_fn)
+        seconds = time.perf_counter() - start
+        peak = _proc_status()["VmHWM"] - before  # type: ignore[index]
+        how = "peak resident set (VmHWM, reset before the step) minus resident set before the step"
+    return {"peak_bytes": int(peak), "baseline_bytes": int(before), "step_seconds": seconds, "measure": how}
+
+
+def measure_training_step(method: str, setup: OpticalSetup, device: torch.device) -> dict[str, Any]:
+    """`training_step_memory` for `method` in a fresh Python subprocess; its JSON result."""
+    request = json.dumps({"method": method, "geometry": geometry_of(setup), "device": str(device)})
+    proc = subprocess.run([sys.executable, "-m", "benchctl.bench.learned", request], capture_output=True, text=True,
+                          env=os.environ.copy(), check=False)
+    if proc.returncode != 0:
+        tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
+        raise BenchctlError(f"training-step subprocess for {method} failed (exit {proc.returncode}): "
+                            + " | ".join(tail))
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def _checkpoints(paths: Sequence[Path], methods: list[str], bench: Profile) -> dict[str, Path]:
+    """Method -> checkpoint: the given files (each names its method), else shipped ones that fit the grid."""
+    chosen: dict[str, Path] = {}
+    for path in paths:
+        method = read_checkpoint(path).method
+        if method not in methods:
+            raise BadValueError(f"--checkpoint {path} holds {method}, which is not among --methods")
+        resolve_method(method, bench, path)  # refused here, naming the differences, unless it fits the grid
+        chosen[method] = Path(path)
+    for method in usable_learned_methods(bench):
+        if method in methods and method not in chosen:
+            found = find_checkpoint(method, bench)
+            assert found is not None
+            chosen[method] = found
+    return chosen
+
+
+def _scores(bench: Profile, method: str, checkpoint: Path, targets: Sequence[str]) -> dict[str, float]:
+    grid, roi = bench.slm.shape, bench.optics.roi  # type: ignore[union-attr]
+    psnrs, ssims = [], []
+    for target in targets:
+        scene = compute_scene(prepare_target(load_target(target, size=roi), grid, roi), bench, method,
+                              checkpoint=checkpoint)
+        for colour in scene.colours:
+            if not colour.skipped:
+                psnrs.append(colour.scores["psnr_amplitude_db"])
+                ssims.append(colour.scores["ssim_amplitude"])
+    return {"psnr_amplitude_db": statistics.mean(psnrs), "ssim_amplitude": statistics.mean(ssims)}
+
+
+def run_learned_bench(
+    profile: Profile,
+    *,
+    size: tuple[int, int] | None = None,
+    methods: Sequence[str] | None = None,
+    checkpoints: Sequence[Path] = (),
+    repeats: int = 3,
+    targets: Sequence[str] = DEFAULT_TARGETS,
+    training_memory: bool = True,
+    out_dir: Path | None = None,
+    out: Callable[[str], None] = print,
+) -> list[dict[str, Any]]:
+    """Measure each learned method side by side (see the module doc); print a table, write learned.csv."""
+    bench = grid_profile(profile, size) if size else profile.require("slm", "optics", "laser")
+    names = list(methods or LEARNED_METHODS)
+    for name in names:
+        if name not in LEARNED_METHODS:
+            raise BadValueError(f"unknown learned method {name!r}; known: {', '.join(LEARNED_METHODS)}")
+    baselines = [BASELINES[VARIANTS[n].family] for n in names if BASELINES[VARIANTS[n].family] not in names]
+    if baselines:
+        out(f"adding the baseline network(s) {', '.join(dict.fromkeys(baselines))} for the ratios")
+        names = list(dict.fromkeys(baselines)) + names
+    names = sorted(dict.fromkeys(names), key=LEARNED_METHODS.index)
+    chosen = _checkpoints(checkpoints, names, bench)
+    device = _device()
+    channel = bench.channels[0]
+    setup = OpticalSetup.from_profile(bench, channel.name)
+    grid, roi = setup.shape, setup.roi
+    plane = prepare_target(load_target(DEFAULT_TARGETS[0], size=roi), grid, roi)[target_plane(channel)]
+    amplitude = (plane / plane.max())[None, None].to(device)
+    out(f"grid {grid[0]}x{grid[1]}, ROI {roi[0]}x{roi[1]}, {channel.name} {channel.wavelength_nm:g} nm, pitch "
+        f"{bench.slm.pitch_um:g} um, distance {bench.optics.distance_mm:g} mm, on {device}"  # type: ignore[union-attr]
+        f" ({torch.get_num_threads()} threads); inference: median of {repeats} after a warm-up")
+    rows = []
+    for name in names:
+        torch.manual_seed(0)
+        path = chosen.get(name)
+        model = (read_checkpoint(path).model(channel.name, device) if path is not None
+                 else build_model(name, setup).to(device))
+        row: dict[str, Any] = {"method": name, "family": VARIANTS[name].family, "tier": model_info(name, grid)["tier"],
+                               "grid": f"{grid[0]}x{grid[1]}", "device": str(device),
+                               "parameters": count_parameters(model),
+                               "inference_seconds": inference_seconds(model, amplitude, repeats)}
+        del model
+        if training_memory:
+            memory = measure_training_step(name, setup, device)
+            row |= {"train_step_peak_mib": memory["peak_bytes"] / 2**20, "train_step_seconds": memory["step_seconds"],
+                    "memory_measure": memory["measure"]}
+        if path is not None:
+            row |= _scores(bench, name, path, targets) | {"checkpoint": str(path)}
+        rows.append(row)
+        out(f"  measured {name}")
+    _add_ratios(rows)
+    for line in format_table(rows):
+        out(line)
+    if training_memory and rows:
+        out(f"training memory: {rows[0]['memory_measure']}, one fresh subprocess per model")
+    if out_dir is not None:
+        out(f"wrote {write_csv(ensure_dir(Path(out_dir)) / 'learned.csv', rows)}")
+    return rows
+
+
+def _add_ratios(rows: list[dict[str, Any]]) -> None:
+    by_name = {r["method"]: r for r in rows}
+    for row in rows:
+        base = by_name.get(BASELINES[row["family"]])
+        if base is None:
+            continue
+        row["baseline"] = base["method"]
+        row["parameters_ratio"] = row["parameters"] / base["parameters"]
+        row["speedup"] = base["inference_seconds"] / row["inference_seconds"]
+        if "train_step_peak_mib" in row and base.get("train_step_peak_mib"):
+            row["memory_reduction_pct"] = 100.0 * (1.0 - row["train_step_peak_mib"] / base["train_step_peak_mib"])
+
+
+def format_table(rows: Sequence[dict[str, Any]]) -> list[str]:
+    """The printed table: one line per method, ratios against the family's baseline."""
+    def num(row: dict[str, Any], key: str, fmt: str) -> str:
+        return format(row[key], fmt) if key in row else "-"
+
+    header = (f"{'method':<16} {'params':>10} {'x params':>8} {'s/frame':>9} {'speed-up':>8} {'train MiB':>10} "
+              f"{'mem -%':>7} {'PSNR amp':>9} {'SSIM amp':>9}")
+    lines = [header]
+    for r in rows:
+        lines.append(f"{r['method']:<16} {r['parameters']:>10,} {num(r, 'parameters_ratio', '.2f'):>8} "
+                     f"{r['inference_seconds']:>9.4f} {num(r, 'speedup', '.2f'):>8} "
+                     f"{num(r, 'train_step_peak_mib', '.0f'):>10} {num(r, 'memory_reduction_pct', '.1f'):>7} "
+                     f"{num(r, 'psnr_amplitude_db', '.2f'):>9} {num(r, 'ssim_amplitude', '.3f'):>9}")
+    return lines
+
+
+def _child(argv: Sequence[str]) -> int:
+    request = json.loads(argv[0])
+    result = training_step_memory(request["method"], request["geometry"], request["device"])
+    print(json.dumps(result))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(_child(sys.argv[1:]))

@@ -1,0 +1,195 @@
+"""Training images for the learned methods: a folder of image files, or procedural images anyone may redistribute.
+
+`--data DIR` takes every image file in DIR (not its subfolders), sorted by name; point it at DIV2K (the
+paper's training set at 1080p) or your own pictures. `--data procedural:N` draws N images instead:
+"dead leaves" pictures (occluding discs, ellipses and polygons of random colour and size, with sizes drawn
+from a power law, so edges appear at every scale as in natural images) over a smooth colour gradient or a
+black background, some shapes striped, some lines of text. They are drawn deterministically from the image
+index alone, at whatever size is asked, so `procedural:N` means the same N pictures everywhere and needs no
+files; `python -m benchctl.cgh.learned.data OUTDIR --count N` writes them as PNGs to look at or to reuse.
+
+Images become targets exactly as `benchctl generate` prepares them (`benchctl.targets.prepare_target`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from benchctl.errors import BadValueError, BenchctlError
+from benchctl.targets import load_target
+
+PROCEDURAL_PREFIX = "procedural:"
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")
+PROCEDURAL_SEED = 20240607  # fixed: procedural image i is the same picture in every install and version
+
+
+@dataclass(frozen=True)
+class ImageSource:
+    """One training image: a file, or procedural image number `index`."""
+
+    name: str
+    path: Path | None = None
+    index: int | None = None
+
+    def load(self, size: tuple[int, int]) -> np.ndarray:
+        """The image as float32 (H, W, 3) sRGB in [0, 1]; files keep their resolution, procedural ones are
+        drawn at `size` (prepare_target resizes either to the ROI)."""
+        if self.path is not None:
+            return load_target(self.path, size)
+        assert self.index is not None
+        return procedural_image(self.index, size)
+
+
+def image_sources(spec: str) -> list[ImageSource]:
+    """The images `--data` names: `procedural:N` or a folder of image files (sorted by name)."""
+    if spec.startswith(PROCEDURAL_PREFIX):
+        count = spec[len(PROCEDURAL_PREFIX):]
+        if not count.isdigit() or int(count) < 1:
+            raise BadValueError(f"--data {spec!r}: expected procedural:N with N >= 1 images, e.g. procedural:64")
+        return [ImageSource(f"procedural-{i:05d}", index=i) for i in range(int(count))]
+    folder = Path(spec)
+    if not folder.is_dir():
+        raise BenchctlError(f"--data {spec}: no such folder (give a folder of images, or procedural:N)")
+    files = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    if not files:
+        raise BenchctlError(f"--data {spec}: no image files ({', '.join(IMAGE_SUFFIXES)}) in this folder")
+    return [ImageSource(p.name, path=p) for p in files]
+
+
+def split_sources(sources: Sequence[ImageSource], val_fraction: float,
+                  seed: int) -> tuple[list[ImageSource], list[ImageSource]]:
+    """(training, validation): a seeded random `val_fraction` of the images is held out for validation.
+
+    At least one image is held out when the fraction is > 0 and there are two or more images; at least one
+    is always left for training.
+    """
+    if not 0.0 <= val_fraction < 1.0:
+        raise BadValueError(f"--val-fraction must be in [0, 1), got {val_fraction}")
+    n = len(sources)
+    n_val = min(n - 1, max(1 if val_fraction > 0 else 0, round(n * val_fraction)))
+    order = np.random.default_rng(seed).permutation(n)
+    held_out = set(order[:n_val].tolist())
+    return ([s for i, s in enumerate(sources) if i not in held_out],
+            [s for i, s in enumerate(sources) if i in held_out])
+
+
+def describe_sources(spec: str, train: Sequence[ImageSource], val: Sequence[ImageSource]) -> dict[str, object]:
+    """What the data was, for a checkpoint: the spec, the counts, the held-out names and a digest of the
+    training names (enough to tell whether another run used the same images)."""
+    digest = hashlib.sha256("\n".join(s.name for s in train).encode()).hexdigest()[:16]
+    return {"spec": spec, "kind": "procedural" if spec.startswith(PROCEDURAL_PREFIX) else "folder",
+            "train_images": len(train), "val_images": len(val), "val_names": [s.name for s in val],
+            "train_names_sha256": digest}
+
+
+def _gradient(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
+    """A linear colour gradient between two random colours in a random direction."""
+    angle = rng.uniform(0, 2 * math.pi)
+    y, x = np.mgrid[0:h, 0:w].astype(np.float32)
+    t = (np.cos(angle) * x / max(w - 1, 1) + np.sin(angle) * y / max(h - 1, 1))
+    t = (t - t.min()) / max(float(t.max() - t.min()), 1e-6)
+    start, end = rng.uniform(0, 1, 3), rng.uniform(0, 1, 3)
+    return (start + t[..., None] * (end - start)).astype(np.float32)
+
+
+def _shape_mask(rng: np.random.Generator, h: int, w: int, radius: float) -> tuple[np.ndarray, tuple[slice, slice]]:
+    """An antialiased mask (float32 in [0, 1]) of a random disc, ellipse or polygon, cut to its bounding box."""
+    cy, cx = rng.uniform(-radius, h + radius), rng.uniform(-radius, w + radius)
+    top, left = max(0, int(cy - radius) - 2), max(0, int(cx - radius) - 2)
+    bottom, right = min(h, int(cy + radius) + 3), min(w, int(cx + radius) + 3)
+    if bottom <= top or right <= left:
+        return np.zeros((0, 0), np.float32), (slice(0, 0), slice(0, 0))
+    canvas = np.zeros((bottom - top, right - left), np.uint8)
+    shift = 4  # sub-pixel coordinates for cv2's antialiased drawing
+    centre = (round((cx - left) * 2**shift), round((cy - top) * 2**shift))
+    kind = rng.integers(3)
+    if kind == 0:
+        cv2.circle(canvas, centre, round(radius * 2**shift), 255, -1, cv2.LINE_AA, shift)
+    elif kind == 1:
+        axes = (round(radius * 2**shift), round(radius * rng.uniform(0.2, 1.0) * 2**shift))
+        cv2.ellipse(canvas, centre, axes, rng.uniform(0, 180), 0, 360, 255, -1, cv2.LINE_AA, shift)
+    else:
+        corners = int(rng.integers(3, 7))
+        angles = np.sort(rng.uniform(0, 2 * math.pi, corners))
+        radii = radius * rng.uniform(0.5, 1.0, corners)
+        points = np.stack([centre[0] + radii * np.cos(angles) * 2**shift,
+                           centre[1] + radii * np.sin(angles) * 2**shift], axis=1).round().astype(np.int32)
+        cv2.fillPoly(canvas, [points], 255, cv2.LINE_AA, shift)
+    return canvas.astype(np.float32) / 255.0, (slice(top, bottom), slice(left, right))
+
+
+def procedural_image(index: int, size: tuple[int, int]) -> np.ndarray:
+    """Procedural training image number `index` as float32 (H, W, 3) sRGB in [0, 1], drawn at `size`."""
+    h, w = size
+    if h < 1 or w < 1:
+        raise ValueError(f"image size must be positive, got {size!r}")
+    rng = np.random.default_rng([PROCEDURAL_SEED, index])
+    dark = rng.uniform() < 0.3
+    image = np.zeros((h, w, 3), np.float32) if dark else _gradient(rng, h, w)
+    scale = min(h, w)
+    r_min, r_max = max(1.0, 0.008 * scale), 0.3 * scale
+    count = int(rng.integers(40, 120) if dark else rng.integers(150, 400))
+    # Radii from a power law p(r) ~ r^-2 cut at r_max: as many leaves per octave of area as the image can
+    # hold, so edges come at every scale and the leaves still cover most of the picture.
+    radii = np.sort(np.minimum(r_max, r_min / (1 - rng.uniform(0, 1, count))))[::-1]
+    for radius in radii:  # large leaves first, so small ones land on top and stay visible
+        mask, (rows, cols) = _shape_mask(rng, h, w, float(radius))
+        if mask.size == 0:
+            continue
+        colour = rng.uniform(0, 1, 3).astype(np.float32)
+        fill = np.broadcast_to(colour, (*mask.shape, 3))
+        if rng.uniform() < 0.15:  # a striped leaf: fine periodic detail at a random angle
+            period = rng.uniform(2.5, 12.0)
+            angle = rng.uniform(0, math.pi)
+            y, x = np.mgrid[rows, cols].astype(np.float32)
+            stripes = 0.5 + 0.5 * np.sin(2 * math.pi * (x * math.cos(angle) + y * math.sin(angle)) / period)
+            fill = fill * stripes[..., None]
+        region = image[rows, cols]
+        region += mask[..., None] * (fill - region)
+    if rng.uniform() < 0.3:  # a line of text: thin strokes and sharp corners
+        text = "".join(rng.choice(list("ABCDEFGHJKLMNPQRSTUVWXYZ0123456789 "), int(rng.integers(6, 16))))
+        canvas = np.zeros((h, w), np.uint8)
+        font_scale = scale / 300 * rng.uniform(0.5, 1.5)
+        origin = (int(rng.uniform(0, 0.5) * w), int(rng.uniform(0.2, 0.9) * h))
+        cv2.putText(canvas, text, origin, cv2.FONT_HERSHEY_SIMPLEX, font_scale, 255,
+                    max(1, round(font_scale * 2)), cv2.LINE_AA)
+        alpha = canvas.astype(np.float32)[..., None] / 255.0
+        image += alpha * (rng.uniform(0, 1, 3).astype(np.float32) - image)
+    return np.clip(image, 0.0, 1.0)
+
+
+def write_procedural(out_dir: Path, count: int, size: tuple[int, int]) -> list[Path]:
+    """Write procedural images 0 .. count - 1 as 8-bit PNGs named like their `procedural:N` sources."""
+    from benchctl.files import ensure_dir
+    from benchctl.images import write_png
+
+    ensure_dir(out_dir)
+    return [write_png(out_dir / f"{source.name}.png", (procedural_image(source.index, size) * 255).round()
+                      .astype(np.uint8))
+            for source in image_sources(f"{PROCEDURAL_PREFIX}{count}") if source.index is not None]
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """`python -m benchctl.cgh.learned.data OUTDIR --count N --size HxW`: write the procedural images as PNGs."""
+    parser = argparse.ArgumentParser(prog="python -m benchctl.cgh.learned.data",
+                                     description="Write benchctl's procedural training images as PNG files.")
+    parser.add_argument("out_dir", type=Path)
+    parser.add_argument("--count", type=int, default=16)
+    parser.add_argument("--size", default="880x1600", help="rows x cols (default: the simulated bench's ROI)")
+    args = parser.parse_args(argv)
+    rows, cols = (int(v) for v in args.size.lower().split("x"))
+    for path in write_procedural(args.out_dir, args.count, (rows, cols)):
+        print(path)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

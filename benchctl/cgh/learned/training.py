@@ -1,0 +1,436 @@
+"""Training the learned hologram methods: one model per colour, Adam, loss on the ROI, optional DDP.
+
+What one step does, per colour (laser channel): the image's plane for that colour, prepared like every
+target (`prepare_target`: sRGB -> linear -> resized to the ROI -> amplitude -> zero-padded to the grid),
+scaled to peak 1 as `Method` scales targets at inference, goes through the network to an SLM phase; the
+phase is propagated to the target plane (`OpticalSetup.reconstruct`); the loss compares the reconstruction
+on the ROI, after the least-squares scale that every score here uses, with the target on the ROI:
+MSE, or MSE + 0.025 x the VGG19 perceptual term (`--loss l2-perceptual`, the paper's 1080p loss).
+Images are flipped horizontally and vertically at random (seeded per epoch and position, so a resumed run
+sees the same flips). All colours' models train side by side on the same images.
+
+Under `torchrun` (WORLD_SIZE > 1 in the environment) every process trains on its share of each batch and
+the models are wrapped in DistributedDataParallel (gloo on CPU, nccl on CUDA), so the gradients and hence
+the weights stay identical; only rank 0 validates, prints and writes checkpoints.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import shlex
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TextIO
+
+import numpy as np
+import torch
+import torch.distributed as dist
+import torch.nn.functional as F
+from torch import nn
+
+from benchctl.cgh.learned.checkpoint import RESUME_SUFFIX, WEIGHT_DTYPES, Checkpoint, read_checkpoint
+from benchctl.cgh.learned.data import ImageSource, describe_sources, image_sources, split_sources
+from benchctl.cgh.learned.geometry import geometry_of, grid_profile
+from benchctl.cgh.learned.models import LEARNED_METHODS, build_model
+from benchctl.cgh.learned.vgg import PERCEPTUAL_WEIGHT, PerceptualLoss, load_vgg19
+from benchctl.console import Progress
+from benchctl.errors import BadValueError, BenchctlError
+from benchctl.files import ensure_dir
+from benchctl.optics.metrics import amplitude_scores, crop_roi, lsq_scale, psnr
+from benchctl.optics.setup import OpticalSetup
+from benchctl.profiles import Profile
+from benchctl.targets import prepare_target
+
+LOSSES = ("mse", "l2-perceptual")
+
+
+@dataclass(frozen=True)
+class TrainSettings:
+    """What `benchctl train` was asked to do (everything but the profile, output folder and resume file)."""
+
+    method: str
+    data: str
+    size: tuple[int, int] | None = None
+    colours: tuple[str, ...] | None = None
+    epochs: int = 10
+    lr: float = 5e-4
+    loss: str = "mse"
+    vgg_weights: Path | None = None
+    batch_size: int = 1
+    seed: int = 42
+    val_fraction: float = 0.1
+    max_steps: int | None = None
+    weights_dtype: str = "float32"
+
+    def validate(self) -> None:
+        """BadValueError naming the flag for every setting a user can get wrong."""
+        if self.method not in LEARNED_METHODS:
+            raise BadValueError(f"--method {self.method!r} is not a learned method; known: {', '.join(LEARNED_METHODS)}")
+        if self.loss not in LOSSES:
+            raise BadValueError(f"--loss {self.loss!r}: expected one of {', '.join(LOSSES)}")
+        if self.loss == "l2-perceptual" and self.vgg_weights is None:
+            raise BadValueError("--loss l2-perceptual needs VGG19 weights: pass --vgg-weights FILE (a torchvision "
+                                "vgg19 state dict saved with torch.save); benchctl never downloads them")
+        for flag, value in (("--epochs", self.epochs), ("--batch-size", self.batch_size)):
+            if value < 1:
+                raise BadValueError(f"{flag} must be >= 1, got {value}")
+        if self.max_steps is not None and self.max_steps < 1:
+            raise BadValueError(f"--max-steps must be >= 1, got {self.max_steps}")
+        if not (math.isfinite(self.lr) and self.lr > 0):
+            raise BadValueError(f"--lr must be a positive number, got {self.lr}")
+        if self.weights_dtype not in WEIGHT_DTYPES:
+            raise BadValueError(f"--weights-dtype {self.weights_dtype!r}: expected one of {', '.join(WEIGHT_DTYPES)}")
+
+    def command(self, profile: Profile, out_dir: Path) -> str:
+        """The `benchctl train` command line that asks for exactly these settings."""
+        words = ["benchctl", "train", "--method", self.method, "--data", self.data, "--profile", profile.name,
+                 "--epochs", str(self.epochs), "--lr", f"{self.lr:g}", "--loss", self.loss,
+                 "--batch-size", str(self.batch_size), "--seed", str(self.seed),
+                 "--val-fraction", f"{self.val_fraction:g}"]
+        if self.size:
+            words += ["--size", f"{self.size[0]}x{self.size[1]}"]
+        if self.colours:
+            words += ["--colours", ",".join(self.colours)]
+        if self.vgg_weights:
+            words += ["--vgg-weights", str(self.vgg_weights)]
+        if self.max_steps:
+            words += ["--max-steps", str(self.max_steps)]
+        if self.weights_dtype != "float32":
+            words += ["--weights-dtype", self.weights_dtype]
+        return shlex.join(words + ["--out", str(out_dir)])
+
+
+@dataclass
+class TrainResult:
+    """What a training run produced (on every rank; `checkpoint` only on rank 0)."""
+
+    models: dict[str, nn.Module]  # colour -> trained network (unwrapped from DDP)
+    steps: int
+    epochs_done: int
+    metrics: dict[str, dict[str, float]]
+    checkpoint: Path | None = None
+    rank: int = 0
+    world_size: int = 1
+
+
+@dataclass
+class Distributed:
+    """This process's place in a torchrun job (rank 0 of 1 outside one) and the device it trains on."""
+
+    rank: int = 0
+    world_size: int = 1
+    device: torch.device = field(default_factory=lambda: torch.device("cpu"))
+    owns_group: bool = False
+
+    @classmethod
+    def from_env(cls) -> Distributed:
+        """Join the process group torchrun describes (RANK, WORLD_SIZE, LOCAL_RANK, MASTER_ADDR/PORT)."""
+        world = int(os.environ.get("WORLD_SIZE", "1"))
+        local_rank = int(os.environ.get("LOCAL_RANK", "0"))
+        cuda = torch.cuda.is_available()
+        device = torch.device("cuda", local_rank % torch.cuda.device_count()) if cuda else torch.device("cpu")
+        if world <= 1:
+            return cls(device=device)
+        owns = not dist.is_initialized()
+        if owns:
+            if cuda:
+                torch.cuda.set_device(device)
+            dist.init_process_group("nccl" if cuda else "gloo")
+        return cls(rank=dist.get_rank(), world_size=dist.get_world_size(), device=device, owns_group=owns)
+
+    @property
+    def main(self) -> bool:
+        return self.rank == 0
+
+    def wrap(self, model: nn.Module) -> nn.Module:
+        if self.world_size == 1:
+            return model
+        ids = [self.device.index] if self.device.type == "cuda" else None
+        return nn.parallel.DistributedDataParallel(model, device_ids=ids)
+
+    def mean(self, values: Sequence[float]) -> list[float]:
+        """The mean over all processes of each value (the values themselves outside a job)."""
+        if self.world_size == 1:
+            return list(values)
+        tensor = torch.tensor(list(values), dtype=torch.float64, device=self.device)
+        dist.all_reduce(tensor)
+        return (tensor / self.world_size).tolist()
+
+    def barrier(self) -> None:
+        if self.world_size > 1:
+            dist.barrier()
+
+    def close(self) -> None:
+        if self.owns_group and dist.is_initialized():
+            dist.destroy_process_group()
+
+
+class ReconstructionLoss(nn.Module):
+    """MSE between ROI amplitudes (+ PERCEPTUAL_WEIGHT x VGG19 perceptual term when given a perceptual loss)."""
+
+    def __init__(self, perceptual: PerceptualLoss | None = None) -> None:
+        super().__init__()
+        self.perceptual = perceptual
+
+    def forward(self, recon: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        loss = F.mse_loss(recon, target)
+        if self.perceptual is not None:
+            loss = loss + PERCEPTUAL_WEIGHT * self.perceptual(recon, target)
+        return loss
+
+
+def make_loss(kind: str, vgg_weights: Path | None = None) -> ReconstructionLoss:
+    """The loss `--loss kind` names; l2-perceptual loads VGG19 from `vgg_weights` (required)."""
+    if kind == "mse":
+        return ReconstructionLoss()
+    if kind == "l2-perceptual":
+        if vgg_weights is None:
+            raise BadValueError("--loss l2-perceptual needs VGG19 weights: pass --vgg-weights FILE")
+        return ReconstructionLoss(PerceptualLoss(load_vgg19(vgg_weights)))
+    raise BadValueError(f"--loss {kind!r}: expected one of {', '.join(LOSSES)}")
+
+
+def scaled_reconstruction(model: nn.Module, setup: OpticalSetup,
+                          amplitude: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(reconstruction, target) on the ROI, (B, 1, h, w), the reconstruction least-squares scaled to the target.
+
+    `amplitude` is the target on the SLM grid (B, 1, H, W). The scale stays in the graph: the loss is then the
+    error at the best brightness, which is what a phase-only hologram can be asked for.
+    """
+    recon = crop_roi(setup.reconstruct(model(amplitude)), setup.roi)
+    target = crop_roi(amplitude, setup.roi)
+    return recon * lsq_scale(recon, target), target
+
+
+def training_step(model: nn.Module, optimiser: torch.optim.Optimizer, setup: OpticalSetup,
+                  amplitude: torch.Tensor, loss_fn: nn.Module) -> tuple[float, float]:
+    """One Adam step on a batch of targets (B, 1, H, W); returns (loss, mean PSNR in dB of the amplitude)."""
+    model.train()
+    optimiser.zero_grad(set_to_none=True)
+    recon, target = scaled_reconstruction(model, setup, amplitude)
+    loss = loss_fn(recon, target)
+    loss.backward()
+    optimiser.step()
+    return float(loss.detach()), float(psnr(recon.detach(), target, data_range=1.0).mean())
+
+
+def peak_normalised(planes: torch.Tensor) -> torch.Tensor:
+    """Each image of (B, 1, H, W) scaled to peak 1 (all-zero images stay zero), as `Method` scales targets."""
+    peak = planes.amax(dim=(-2, -1), keepdim=True)
+    return planes / torch.where(peak > 0, peak, torch.ones_like(peak))
+
+
+def load_targets(sources: Sequence[ImageSource], grid: tuple[int, int], roi: tuple[int, int],
+                 flips: Sequence[tuple[bool, bool]] | None = None) -> torch.Tensor:
+    """Targets (B, 3, H, W) on the grid from images, each optionally flipped (horizontal, vertical) first."""
+    targets = []
+    for i, source in enumerate(sources):
+        srgb = source.load(roi)
+        if flips is not None:
+            horizontal, vertical = flips[i]
+            srgb = srgb[:, ::-1] if horizontal else srgb
+            srgb = srgb[::-1] if vertical else srgb
+        targets.append(prepare_target(np.ascontiguousarray(srgb), grid, roi))
+    return torch.stack(targets)
+
+
+def _flips(seed: int, epoch: int, positions: Sequence[int]) -> list[tuple[bool, bool]]:
+    """Random (horizontal, vertical) flips, fixed by (seed, epoch, position in the epoch)."""
+    return [tuple(bool(v) for v in np.random.default_rng([seed, epoch, p]).random(2) < 0.5)  # type: ignore[misc]
+            for p in positions]
+
+
+def _epoch_order(n: int, seed: int, epoch: int, length: int) -> np.ndarray:
+    """A seeded permutation of range(n), repeated from its start up to `length` entries (so ranks get equal
+    shares)."""
+    order = np.random.default_rng([seed, epoch, 7]).permutation(n)
+    return np.resize(order, length)
+
+
+def evaluate(models: Mapping[str, nn.Module], setups: Mapping[str, OpticalSetup], planes: Mapping[str, int],
+             sources: Sequence[ImageSource], loss_fn: nn.Module, device: torch.device) -> dict[str, dict[str, float]]:
+    """Per colour, the mean loss and amplitude scores (`amplitude_scores`) over `sources` (unquantised phase)."""
+    if not sources:
+        return {}
+    some = next(iter(setups.values()))
+    sums: dict[str, dict[str, float]] = {c: {} for c in models}
+    for source in sources:
+        targets = load_targets([source], some.shape, some.roi).to(device)
+        for colour, model in models.items():
+            model.eval()
+            amplitude = peak_normalised(targets[:, planes[colour]:planes[colour] + 1])
+            with torch.no_grad():
+                recon, target = scaled_reconstruction(model, setups[colour], amplitude)
+                scores = {"loss": float(loss_fn(recon, target))} | amplitude_scores(recon[0, 0].cpu(),
+                                                                                    target[0, 0].cpu())
+            for key, value in scores.items():
+                sums[colour][key] = sums[colour].get(key, 0.0) + value
+    return {c: {k: round(v / len(sources), 5) for k, v in s.items()} for c, s in sums.items()}
+
+
+def training_setups(profile: Profile, size: tuple[int, int] | None,
+                    colours: Sequence[str] | None) -> dict[str, OpticalSetup]:
+    """The setup per trained colour: the profile's geometry, on grid `size` if given (pitch and distance kept,
+    ROI scaled with the grid, as the paper trains at 1080p, 4K and 8K)."""
+    bench = grid_profile(profile, size) if size else profile.require("slm", "optics")
+    names = list(colours) if colours else [c.name for c in profile.require("laser").channels]
+    return {name: OpticalSetup.from_profile(bench, profile.channel(name).name) for name in names}
+
+
+def _geometry_note(profile: Profile, size: tuple[int, int] | None) -> str:
+    return f"profile {profile.name!r}" + (f" at --size {size[0]}x{size[1]}" if size else "")
+
+
+def train(profile: Profile, settings: TrainSettings, out_dir: Path, planes: Mapping[str, int], *,
+          resume: Path | None = None, out: Callable[[str], None] = print,
+          progress_stream: TextIO | None = None) -> TrainResult:
+    """Train `settings.method` for each colour of `profile` (or `settings.colours`); checkpoints go to
+    `out_dir/<method>.pt` (+ .json, + .resume.pt) after every epoch and at the end. `planes` maps each laser
+    channel to the RGB plane of the images it displays. Joins a torchrun job when the environment has one.
+    """
+    settings.validate()
+    loss_fn = make_loss(settings.loss, settings.vgg_weights)
+    setups = training_setups(profile, settings.size, settings.colours)
+    train_set, val_set = split_sources(image_sources(settings.data), settings.val_fraction, settings.seed)
+    job = Distributed.from_env()
+    try:
+        return _train(profile, settings, Path(out_dir), planes, setups, train_set, val_set, loss_fn, job, resume,
+                      out if job.main else (lambda _: None), progress_stream)
+    finally:
+        job.close()
+
+
+def _train(profile: Profile, settings: TrainSettings, out_dir: Path, planes: Mapping[str, int],
+           setups: dict[str, OpticalSetup], train_set: list[ImageSource], val_set: list[ImageSource],
+           loss_fn: ReconstructionLoss, job: Distributed, resume: Path | None, out: Callable[[str], None],
+           progress_stream: TextIO | None) -> TrainResult:
+    device = job.device
+    loss_fn = loss_fn.to(device)
+    if job.main:
+        ensure_dir(out_dir)
+    models: dict[str, nn.Module] = {}
+    for colour, setup in setups.items():
+        torch.manual_seed(settings.seed)  # every colour, and every process, starts from the same weights
+        models[colour] = build_model(settings.method, setup).to(device)
+    optimisers = {c: torch.optim.Adam(m.parameters(), lr=settings.lr, betas=(0.9, 0.999)) for c, m in models.items()}
+    position = {"epoch": 0, "batch": 0, "step": 0}
+    history: list[dict[str, Any]] = []
+    if resume is not None:
+        position, history = _resume(resume, settings, profile, setups, models, optimisers, out)
+    wrapped = {c: job.wrap(m) for c, m in models.items()}
+
+    per_step = settings.batch_size * job.world_size
+    steps_per_epoch = math.ceil(len(train_set) / per_step)
+    total = settings.epochs * steps_per_epoch
+    if settings.max_steps is not None:
+        total = min(total, settings.max_steps)
+    geometry = next(iter(setups.values()))
+    out(f"training {settings.method} for {', '.join(setups)} on {geometry.shape[0]}x{geometry.shape[1]} "
+        f"(ROI {geometry.roi[0]}x{geometry.roi[1]}), {len(train_set)} training / {len(val_set)} validation images "
+        f"from {settings.data}, {settings.epochs} epoch(s) of {steps_per_epoch} step(s) "
+        f"(batch {settings.batch_size} x {job.world_size} process(es)), {total} step(s) in all, on {device}")
+    meta = {
+        "loss": settings.loss, "lr": settings.lr, "epochs": settings.epochs, "batch_size": settings.batch_size,
+        "seed": settings.seed, "val_fraction": settings.val_fraction, "max_steps": settings.max_steps,
+        "processes": job.world_size, "device": str(device), "size": list(settings.size) if settings.size else None,
+        "profile": profile.name, "data": describe_sources(settings.data, train_set, val_set),
+        "command": settings.command(profile, out_dir), "resumed_from": str(resume) if resume else None,
+        "optimiser": "Adam(betas=(0.9, 0.999))", "flips": "random horizontal and vertical",
+        "loss_region": "ROI, least-squares scaled", "perceptual_weight": PERCEPTUAL_WEIGHT
+        if settings.loss == "l2-perceptual" else None,
+    }
+    progress = Progress(settings.method, stream=progress_stream) if job.main else None
+    started = time.perf_counter()
+    metrics: dict[str, dict[str, float]] = {}
+    saved: Path | None = None
+    step = position["step"]
+    epoch = position["epoch"]
+    while epoch < settings.epochs and step < total:
+        order = _epoch_order(len(train_set), settings.seed, epoch, steps_per_epoch * per_step)
+        sums = {c: [0.0, 0.0] for c in setups}
+        batches = 0
+        batch = position["batch"] if epoch == position["epoch"] else 0
+        while batch < steps_per_epoch and step < total:
+            first = batch * per_step + job.rank * settings.batch_size
+            positions = list(range(first, first + settings.batch_size))
+            targets = load_targets([train_set[order[p]] for p in positions], geometry.shape, geometry.roi,
+                                   _flips(settings.seed, epoch, positions)).to(device)
+            for colour, model in wrapped.items():
+                amplitude = peak_normalised(targets[:, planes[colour]:planes[colour] + 1])
+                loss, psnr_db = training_step(model, optimisers[colour], setups[colour], amplitude, loss_fn)
+                sums[colour][0] += loss
+                sums[colour][1] += psnr_db
+            batch += 1
+            batches += 1
+            step += 1
+            if progress is not None:
+                loss_now = sum(s[0] for s in sums.values()) / (len(sums) * batches)
+                psnr_now = sum(s[1] for s in sums.values()) / (len(sums) * batches)
+                progress.label = (f"{settings.method} epoch {epoch + 1}/{settings.epochs} loss {loss_now:.5f} "
+                                  f"PSNR {psnr_now:5.2f} dB")
+                progress(step, total)
+        epoch_done = batch >= steps_per_epoch
+        means = job.mean([v / max(batches, 1) for c in setups for v in sums[c]])
+        train_stats = {c: {"train_loss": round(means[2 * i], 6), "train_psnr_amplitude_db": round(means[2 * i + 1], 3)}
+                       for i, c in enumerate(setups)}
+        position = {"epoch": epoch + 1 if epoch_done else epoch, "batch": 0 if epoch_done else batch, "step": step}
+        if job.main:
+            scores = evaluate(models, setups, planes, val_set, loss_fn, device)
+            metrics = {c: train_stats[c] | {f"val_{k}": v for k, v in scores.get(c, {}).items()} for c in setups}
+            history.append({"epoch": epoch + 1, "step": step, "complete": epoch_done,
+                            "seconds": round(time.perf_counter() - started, 1), "metrics": metrics})
+            checkpoint = Checkpoint(
+                method=settings.method, geometry={c: geometry_of(s) for c, s in setups.items()},
+                weights={c: m.state_dict() for c, m in models.items()},
+                training=meta | {"steps": step, "epochs_done": position["epoch"], "history": history,
+                                 "seconds": round(time.perf_counter() - started, 1)},
+                metrics=metrics, weights_dtype=settings.weights_dtype,
+                optimisers={c: o.state_dict() for c, o in optimisers.items()}, position=position)
+            saved = checkpoint.save(out_dir / f"{settings.method}.pt", settings.weights_dtype)
+            checkpoint.save_resume(out_dir / f"{settings.method}{RESUME_SUFFIX}")
+            out(_epoch_line(epoch, settings.epochs, epoch_done, step, metrics, saved))
+        job.barrier()
+        epoch = position["epoch"]
+        if not epoch_done:
+            break
+    return TrainResult(models=models, steps=step, epochs_done=position["epoch"], metrics=metrics,
+                       checkpoint=saved, rank=job.rank, world_size=job.world_size)
+
+
+def _epoch_line(epoch: int, epochs: int, complete: bool, step: int, metrics: Mapping[str, Mapping[str, float]],
+                path: Path) -> str:
+    state = "" if complete else " (stopped by --max-steps)"
+    parts = []
+    for colour, m in metrics.items():
+        val = f", val PSNR {m['val_psnr_amplitude_db']:.2f} dB" if "val_psnr_amplitude_db" in m else ""
+        parts.append(f"{colour} loss {m['train_loss']:.5f}{val}")
+    return f"epoch {epoch + 1}/{epochs}{state}, step {step}: {'; '.join(parts)}; wrote {path}"
+
+
+def _resume(path: Path, settings: TrainSettings, profile: Profile, setups: Mapping[str, OpticalSetup],
+            models: Mapping[str, nn.Module], optimisers: Mapping[str, torch.optim.Optimizer],
+            out: Callable[[str], None]) -> tuple[dict[str, int], list[dict[str, Any]]]:
+    """Load weights (and, from a .resume.pt file, Adam's state and the position) into this run."""
+    checkpoint = read_checkpoint(path)
+    if checkpoint.method != settings.method:
+        raise BadValueError(f"--resume {path} holds a {checkpoint.method} model, not --method {settings.method}")
+    checkpoint.check(setups, _geometry_note(profile, settings.size))
+    extra = [c for c in checkpoint.colours if c not in setups]
+    if extra:
+        raise BenchctlError(f"--resume {path} also holds {', '.join(extra)}; train the same colours "
+                            f"({', '.join(checkpoint.colours)})")
+    for colour, model in models.items():
+        model.load_state_dict(checkpoint.weights[colour])
+    history = list(checkpoint.training.get("history", []))
+    if checkpoint.optimisers is None or checkpoint.position is None:
+        out(f"{path} holds weights only: continuing from them with a fresh Adam, from step 0 "
+            f"(resume from {path.with_suffix('').name}{RESUME_SUFFIX} to continue exactly)")
+        return {"epoch": 0, "batch": 0, "step": 0}, history
+    for colour, optimiser in optimisers.items():
+        optimiser.load_state_dict(checkpoint.optimisers[colour])
+    position = {k: int(v) for k, v in checkpoint.position.items()}
+    out(f"resuming from {path}: epoch {position['epoch'] + 1}, step {position['step']}")
+    return position, history
