@@ -16,7 +16,7 @@ $(BIN)/benchctl: pyproject.toml
 setup: $(BIN)/benchctl
 
 demo: setup
-	$(BIN)/benchctl generate chart:bars --out out/demo
+	$(BIN)/benchctl run procedures/colour_capture.toml
 
 test: setup
 	$(BIN)/python -m pytest -q

@@ -60,7 +60,9 @@ def _cmd_generate(args: argparse.Namespace) -> int:
 
     profile = load_profile(args.profile)
     metrics = run_generate(args.target, profile, Path(args.out), method=args.method, iterations=args.iterations,
-                           colours=args.colours, seed=args.seed, progress=Progress)
+                           colours=args.colours, seed=args.seed, progress=Progress, checkpoint=args.checkpoint)
+    if metrics["checkpoint"]:
+        print(f"{args.method}: trained models from {metrics['checkpoint']}")
     for name, colour in metrics["colours"].items():
         if colour["skipped"]:
             print(f"{name:>6}: skipped (black in the target)")
@@ -205,9 +207,10 @@ def _add_device_commands(sub: argparse._SubParsersAction) -> None:
     sim.add_parser("status", help="where the state is kept and what each simulated device holds")
     sim.add_parser("reset", help="forget all simulated device state (like a power cycle)")
     fault = sim.add_parser("fault", help="make a simulated device misbehave from its next connection on")
-    fault.add_argument("device", help="simulated device name, e.g. rgb-laser (from sim://rgb-laser)")
-    fault.add_argument("faults", nargs="*", help="no_reply, garbled, echo, slow, interlock_open, device_fault, "
-                                                 "clamp, drop_after=N")
+    fault.add_argument("device", help="simulated device name, e.g. rgb-laser (from sim://rgb-laser), or sim-camera")
+    fault.add_argument("faults", nargs="*", help="lasers: no_reply, garbled, echo, slow, interlock_open, device_fault, "
+                                                 "clamp, drop_after=N; sim-camera: unplug_at=N (cable pulled before "
+                                                 "frame N)")
     fault.add_argument("--clear", action="store_true", help="remove every fault")
     for parser in sim.choices.values():
         parser.set_defaults(func=_cmd_device)
@@ -217,9 +220,45 @@ def _cmd_models(args: argparse.Namespace) -> int:
     from benchctl.profiles import load_profile
     from benchctl.runner.holograms import list_methods
 
-    shape = args.size or load_profile(args.profile).require("slm").slm.shape
-    print(f"hologram methods at {shape[0]}x{shape[1]}:")
-    return _print_lines(list_methods(shape))
+    profile = load_profile(args.profile)
+    shape = args.size or profile.require("slm").slm.shape
+    print(f"hologram methods at {shape[0]}x{shape[1]} (checkpoints for profile {profile.name!r}):")
+    return _print_lines(list_methods(shape, profile))
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    from benchctl.cgh.learned.training import TrainSettings
+    from benchctl.profiles import load_profile
+    from benchctl.runner.training import run_train
+
+    settings = TrainSettings(method=args.method, data=args.data, size=args.size,
+                             colours=tuple(args.colours) if args.colours else None, epochs=args.epochs, lr=args.lr,
+                             loss=args.loss, vgg_weights=args.vgg_weights, batch_size=args.batch_size, seed=args.seed,
+                             val_fraction=args.val_fraction, max_steps=args.max_steps,
+                             weights_dtype=args.weights_dtype)
+    run_train(load_profile(args.profile), settings, args.out, resume=args.resume)
+    return 0
+
+
+def _cmd_bench_learned(args: argparse.Namespace) -> int:
+    from benchctl.bench.learned import run_learned_bench
+    from benchctl.profiles import load_profile
+
+    run_learned_bench(load_profile(args.profile), size=args.size, methods=args.methods, checkpoints=args.checkpoint,
+                      repeats=args.repeats, training_memory=not args.inference_only, out_dir=args.out)
+    return 0
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from benchctl.runner.engine import run_procedure
+
+    if args.procedure is None and args.resume is None:
+        raise BenchctlError("give a procedure file (e.g. procedures/colour_capture.toml) or --resume RUN_DIR")
+    if args.procedure is not None and args.resume is not None:
+        raise BenchctlError("give either a procedure file or --resume RUN_DIR, not both (a resumed run uses its own "
+                            "copy of the procedure)")
+    run_procedure(args.procedure, profile=args.profile, out=args.out, dry_run=args.dry_run, resume=args.resume)
+    return 0
 
 
 def _cmd_targets(args: argparse.Namespace) -> int:
@@ -233,6 +272,7 @@ def _cmd_targets(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     """The full argument parser (also used by the docs and tests)."""
     from benchctl.cgh import method_names
+    from benchctl.cgh.learned import LEARNED_METHODS
 
     parser = argparse.ArgumentParser(
         prog="benchctl",
@@ -249,7 +289,10 @@ def build_parser() -> argparse.ArgumentParser:
                                      "target are skipped.", epilog=EPILOG,
                          formatter_class=argparse.RawDescriptionHelpFormatter)
     gen.add_argument("target", help="chart name (e.g. chart:siemens) or image file")
-    gen.add_argument("--method", "-m", default="dpac", choices=method_names(), help="hologram method (default: dpac)")
+    gen.add_argument("--method", "-m", default="dpac", choices=[*method_names(), *LEARNED_METHODS],
+                     help="hologram method (default: dpac); learned ones need a trained checkpoint")
+    gen.add_argument("--checkpoint", type=Path, metavar="CKPT",
+                     help="trained models for a learned method (default: the one shipped for the profile)")
     gen.add_argument("--iterations", "-n", type=_positive_int, help="iterations for iterative methods "
                                                                    "(default: the method's own)")
     gen.add_argument("--colours", "--colors", type=_names, metavar="LIST",
@@ -266,7 +309,9 @@ def build_parser() -> argparse.ArgumentParser:
                                          "prints a table and writes speed_vs_error.csv (+ .png with matplotlib).")
     speed.add_argument("--targets", nargs="+", metavar="TARGET", help="targets (default: chart:siemens chart:bars "
                                                                      "chart:text)")
-    speed.add_argument("--methods", type=_names, metavar="LIST", help="comma-separated methods (default: all)")
+    speed.add_argument("--methods", type=_names, metavar="LIST",
+                       help="comma-separated methods (default: all classical ones, and learned ones whose "
+                            "shipped checkpoint fits the benchmark's grid)")
     speed.add_argument("--iterations", type=_int_list, metavar="LIST",
                        help="iteration budgets for iterative methods (default: 10,50,200,500)")
     speed.add_argument("--size", type=_size, metavar="HxW",
@@ -288,6 +333,61 @@ def build_parser() -> argparse.ArgumentParser:
     _add_profile(prop)
     prop.set_defaults(func=_cmd_bench_propagation)
 
+    learned = bench.add_parser("learned", help="learned methods side by side: parameters, inference time, training "
+                                               "memory, PSNR/SSIM, ratios to the baseline network",
+                               description="Per learned method, measured in one run: trainable parameters, inference "
+                                           "seconds per frame, peak memory of one training step (a fresh subprocess "
+                                           "per model on CPU; the allocator's peak on CUDA), PSNR/SSIM where a "
+                                           "checkpoint fits, and ratios against holonet / ccnn. Writes learned.csv.")
+    learned.add_argument("--size", type=_size, metavar="HxW",
+                         help="grid (default: the profile's); pitch and distance kept, ROI scaled, as for training")
+    learned.add_argument("--methods", type=_names, metavar="LIST",
+                         help="comma-separated learned methods (default: all; the family baselines are added)")
+    learned.add_argument("--checkpoint", type=Path, nargs="+", default=[], metavar="CKPT",
+                         help="trained checkpoints to score (default: the shipped ones that fit the grid)")
+    learned.add_argument("--repeats", type=_positive_int, default=3, help="timed inference runs (default: 3)")
+    learned.add_argument("--inference-only", action="store_true", help="skip the training-step memory subprocesses")
+    learned.add_argument("--out", "-o", default="bench-out", type=Path, metavar="DIR",
+                         help="output folder (default: bench-out)")
+    _add_profile(learned)
+    learned.set_defaults(func=_cmd_bench_learned)
+
+    train = sub.add_parser(
+        "train", help="train a learned hologram method (one model per laser colour)",
+        description="Train a learned method on a folder of images (or procedural:N generated images): targets "
+                    "prepared as for generate (sRGB -> linear -> ROI -> amplitude -> padded), random flips, Adam, "
+                    "loss on the ROI, one model per colour of the profile, validation on held-out images, a "
+                    "checkpoint OUT/<method>.pt (+ .json, + .resume.pt) after every epoch and at the end. Under "
+                    "`torchrun --nproc_per_node N -m benchctl train ...` it trains with DistributedDataParallel.",
+        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    train.add_argument("--method", "-m", required=True, choices=LEARNED_METHODS, help="learned method to train")
+    train.add_argument("--data", required=True, metavar="DIR",
+                       help="folder of training images (e.g. DIV2K), or procedural:N for N generated images")
+    _add_profile(train)
+    train.add_argument("--size", type=_size, metavar="HxW",
+                       help="train on this grid instead of the profile's (pitch and distance kept, ROI scaled)")
+    train.add_argument("--colours", "--colors", type=_names, metavar="LIST",
+                       help="comma-separated laser channels (default: all in the profile)")
+    train.add_argument("--epochs", type=_positive_int, default=10, help="passes over the training images (default: 10)")
+    train.add_argument("--max-steps", type=_positive_int, metavar="N", help="stop after N steps in all")
+    train.add_argument("--lr", type=float, default=5e-4, help="Adam learning rate (default: 5e-4, the paper's)")
+    train.add_argument("--loss", choices=("mse", "l2-perceptual"), default="mse",
+                       help="mse, or l2-perceptual (MSE + 0.025 VGG19 perceptual, the paper's 1080p loss; needs "
+                            "--vgg-weights) (default: mse)")
+    train.add_argument("--vgg-weights", type=Path, metavar="FILE",
+                       help="local torchvision-format VGG19 state dict for --loss l2-perceptual (never downloaded)")
+    train.add_argument("--batch-size", type=_positive_int, default=1, help="images per step and process (default: 1)")
+    train.add_argument("--seed", type=int, default=42, help="random seed (default: 42, the paper's)")
+    train.add_argument("--val-fraction", type=float, default=0.1,
+                       help="fraction of the images held out for validation (default: 0.1)")
+    train.add_argument("--weights-dtype", choices=("float32", "float16"), default="float32",
+                       help="how the checkpoint stores weights; float16 halves the file (default: float32)")
+    train.add_argument("--out", "-o", type=Path, default=Path("out/train"), metavar="DIR",
+                       help="folder for the checkpoints (default: out/train)")
+    train.add_argument("--resume", type=Path, metavar="CKPT",
+                       help="continue from OUT/<method>.resume.pt (exactly) or a checkpoint's weights")
+    train.set_defaults(func=_cmd_train)
+
     profile = sub.add_parser("profile", help="hardware profiles").add_subparsers(
         dest="profile_command", metavar="ACTION", required=True)
     check = profile.add_parser("check", help="validate a profile and print what it describes")
@@ -301,6 +401,22 @@ def build_parser() -> argparse.ArgumentParser:
 
     targets = sub.add_parser("targets", help="list the bundled targets")
     targets.set_defaults(func=_cmd_targets)
+    run = sub.add_parser(
+        "run", help="run a procedure (colour capture, registration, lookup-table calibration, power sweep)",
+        description="Run a procedure file on the bench the profile describes. Every run writes a new folder "
+                    "OUT/<timestamp>-<name>/ with the profile and procedure as used, versions, device identities, a "
+                    "step log, holograms as displayed, RAW frames as captured, images, metrics and report.html. An "
+                    "interrupted run leaves emission off and keeps what it captured; --resume finishes it.",
+        epilog="procedures: files in procedures/ (TOML, or a Python file with PARAMETERS and plan(); see README).")
+    run.add_argument("procedure", nargs="?", type=Path, help="procedure file (.toml or .py)")
+    _add_profile(run)
+    run.add_argument("--out", "-o", type=Path, default=Path("runs"), metavar="DIR",
+                     help="where run folders are created (default: runs/)")
+    run.add_argument("--dry-run", action="store_true",
+                     help="check the procedure and profile and print every step; touch no device, write nothing")
+    run.add_argument("--resume", type=Path, metavar="RUN_DIR",
+                     help="finish an interrupted run without repeating its finished steps")
+    run.set_defaults(func=_cmd_run)
     _add_device_commands(sub)
     return parser
 

@@ -93,6 +93,7 @@ _SIM = {
         "read_noise_e": Field("float", required=False, ge=0),
         "exposure_s": Field("float", required=False, gt=0),
         "iso": Field("int", required=False, gt=0),
+        "readout_s": Field("float", required=False, ge=0),
         "response": Field("triple_map", required=False, ge=0),
     }),
 }
@@ -306,6 +307,7 @@ class SimSensorConfig:
     read_noise_e: float = 8.0  # Gaussian, input-referred
     exposure_s: float = 0.01  # the body's settings, used where the capture does not give them
     iso: int = 100
+    readout_s: float = 0.0  # time from shutter release to the file being ready (an EOS M10 takes about 1 s)
     # Quantum efficiency [R, G, B] (electrons per photon in each filter colour) per laser channel name;
     # channels not listed use a typical Bayer-sensor curve at their wavelength.
     response: Mapping[str, tuple[float, float, float]] = field(default_factory=dict)

@@ -2,9 +2,28 @@
 
 from __future__ import annotations
 
+import copy
+import itertools
+import json
+import numbers
+import re
+import sys
+from collections.abc import Callable, Mapping
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 import pytest
+
+from benchctl.capture.raw import RawImage, decode_raw
+from benchctl.devices.sim import bench
+from benchctl.dng import dng_bytes
+from benchctl.profiles import Profile, load_profile
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:
+    import tomli as tomllib
 
 SMALL_PROFILE = """\
 name = "small"
@@ -57,6 +76,51 @@ setpoint_mw = 2
 """
 
 
+# A simulated bench big enough for a dot-grid registration, small enough that a full procedure takes seconds:
+# a 128 x 192 SLM imaged at 2 sensor pixels per SLM pixel, turned 1.5 degrees, onto a 300 x 440 sensor.
+BENCH_PROFILE = SMALL_PROFILE.replace('name = "small"', 'name = "bench"').replace("""[optics]
+distance_mm = 20.0
+roi = [48, 80]
+
+[slm]
+width = 96
+height = 64
+""", """[optics]
+distance_mm = 20.0
+roi = [96, 160]
+iris_fraction = 0.5
+
+[slm]
+width = 192
+height = 128
+settle_ms = 0
+""").replace('port = "sim://rgb-laser"', 'port = "sim://rgb-laser"\ntimeout_s = 0.3') + """
+[camera]
+driver = "sim"
+
+[sim.beam]
+efficiency = 4e-6
+
+[sim.imaging]
+magnification = 1.0
+rotation_deg = 1.5
+offset_px = [3.0, -5.0]
+
+[sim.sensor]
+shape = [300, 440]
+margin = [8, 12]
+pixel_um = 4.0
+"""
+
+
+@pytest.fixture
+def bench_profile_path(tmp_path: Path) -> Path:
+    """A complete simulated bench (laser, SLM, camera) for procedures: 128 x 192 SLM, ROI 96 x 160, 8 um, 20 mm."""
+    path = tmp_path / "bench.toml"
+    path.write_text(BENCH_PROFILE)
+    return path
+
+
 @pytest.fixture
 def small_profile_path(tmp_path: Path) -> Path:
     """A valid profile for a 64 x 96 SLM grid (ROI 48 x 80), 8 um pitch, 20 mm."""
@@ -65,9 +129,123 @@ def small_profile_path(tmp_path: Path) -> Path:
     return path
 
 
+# -- variants of the simulated bench -------------------------------------------------------------------------------
+
+# SMALL_PROFILE's 64 x 96 SLM grid (ROI 48 x 80, 8 um) on BENCH_PROFILE's simulated bench, a layer for
+# bench_profile_text: its image lands 6 rows below and 15 columns left of the centre of a 176 x 256 sensor with
+# 4 / 10 masked rows / columns; magnification and rotation stay BENCH_PROFILE's unless a test sets its own.
+SMALL_BENCH: dict[str, Any] = {
+    "optics": {"roi": [48, 80]},
+    "slm": {"width": 96, "height": 64},
+    "sim": {"beam": {"efficiency": 1e-5}, "imaging": {"offset_px": [6.0, -15.0]},
+            "sensor": {"shape": [176, 256], "margin": [4, 10]}},
+}
+
+
+def bench_profile_text(*layers: Mapping[str, Any], setpoints_mw: Mapping[str, float] | None = None,
+                       **overrides: Any) -> str:
+    """BENCH_PROFILE changed by each of `layers` (dicts such as SMALL_BENCH) in turn, then by `overrides`, as TOML.
+
+    A change names a top-level key or section ("name", "optics", "slm", "laser", "camera", "sim"): a dict is merged
+    into the section key by key, sub-sections included (sim={"imaging": {"rotation_deg": 3.0}} changes only that
+    key of [sim.imaging]); any other value replaces the key; None removes the key or section. `setpoints_mw` sets
+    laser channels' setpoints by channel name.
+    """
+    data = tomllib.loads(BENCH_PROFILE)
+    for layer in (*layers, overrides):
+        data = _merged(data, layer)
+    channels = {channel["name"]: channel for channel in data["laser"]["channels"]}
+    for name, mw in (setpoints_mw or {}).items():
+        channels[name]["setpoint_mw"] = mw
+    return _toml_table(data)
+
+
+@pytest.fixture
+def make_bench_profile(tmp_path: Path) -> Callable[..., Profile]:
+    """Factory: make_bench_profile(*layers, setpoints_mw=..., **overrides) writes bench_profile_text(...) to a new
+    file under tmp_path and returns it loaded."""
+    file_numbers = itertools.count(1)
+
+    def make(*layers: Mapping[str, Any], **changes: Any) -> Profile:
+        path = tmp_path / f"bench-{next(file_numbers)}.toml"
+        path.write_text(bench_profile_text(*layers, **changes))
+        return load_profile(path)
+
+    return make
+
+
+def sim_exposure(profile: Profile, gray: np.ndarray | None, powers_w: dict[str, float], frame: int = 1) -> RawImage:
+    """One simulated exposure (10 ms, ISO 100) of `gray` (None: the SLM shows nothing) lit by `powers_w`, written as
+    a DNG and decoded. Each frame number has its own noise."""
+    sensor = profile.sim.sensor
+    mosaic = bench.render_mosaic(profile, gray, powers_w, exposure_s=0.01, iso=100, frame=frame)
+    return decode_raw(dng_bytes(mosaic, cfa=sensor.cfa, black_level=sensor.black_level,
+                                white_level=sensor.white_level, active_area=sensor.active_area))
+
+
+def _merged(base: Mapping[str, Any], changes: Mapping[str, Any]) -> dict[str, Any]:
+    """`base` with `changes` merged in (see bench_profile_text); neither is modified."""
+    out = dict(base)
+    for key, value in changes.items():
+        if value is None:
+            if key not in out:
+                raise KeyError(f"cannot remove {key!r}: the profile has no such key (it has {', '.join(out)})")
+            del out[key]
+        elif isinstance(value, Mapping) and isinstance(out.get(key), Mapping):
+            out[key] = _merged(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+def _toml_table(table: Mapping[str, Any], where: str = "") -> str:
+    """The keys of `table` as TOML lines, then each sub-table and array of tables under its own header."""
+
+    def is_table_array(value: Any) -> bool:
+        return isinstance(value, list) and bool(value) and all(isinstance(item, Mapping) for item in value)
+
+    text = "".join(f"{_toml_key(key)} = {_toml_value(value)}\n" for key, value in table.items()
+                   if not isinstance(value, Mapping) and not is_table_array(value))
+    for key, value in table.items():
+        name = f"{where}.{_toml_key(key)}" if where else _toml_key(key)
+        if isinstance(value, Mapping):
+            text += f"\n[{name}]\n" + _toml_table(value, name)
+        elif is_table_array(value):
+            text += "".join(f"\n[[{name}]]\n" + _toml_table(item, name) for item in value)
+    return text
+
+
+def _toml_key(key: str) -> str:
+    return key if re.fullmatch(r"[A-Za-z0-9_-]+", key) else json.dumps(key)
+
+
+def _toml_value(value: Any) -> str:
+    """A TOML literal: JSON's escapes are valid in TOML's basic strings."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, numbers.Integral):
+        return str(int(value))
+    if isinstance(value, numbers.Real):
+        return repr(float(value))
+    if isinstance(value, (str, Path)):
+        return json.dumps(str(value))
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(item) for item in value) + "]"
+    raise TypeError(f"no TOML literal for {value!r} ({type(value).__name__})")
+
+
 @pytest.fixture(autouse=True)
 def sim_state_dir(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch) -> Path:
     """Each test gets its own simulated-bench state folder, so tests never see each other's (or a user's) state."""
     folder = tmp_path_factory.mktemp("sim-state")
     monkeypatch.setenv("BENCHCTL_SIM_DIR", str(folder))
+    return folder
+
+
+@pytest.fixture(autouse=True)
+def calibration_and_cache_dirs(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """Each test gets empty calibration and hologram-cache folders (never the user's)."""
+    folder = tmp_path_factory.mktemp("calibration")
+    monkeypatch.setenv("BENCHCTL_CALIBRATION_DIR", str(folder / "calibration"))
+    monkeypatch.setenv("BENCHCTL_CACHE_DIR", str(folder / "cache"))
     return folder

@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import io
 import math
+from collections.abc import Callable
 from pathlib import Path
 
 import cv2
@@ -14,6 +15,7 @@ import numpy as np
 import pytest
 import rawpy
 import torch
+from conftest import SMALL_BENCH, bench_profile_text
 
 from benchctl.capture.raw import RawImage, decode_raw
 from benchctl.cgh import OpticalSetup, get_method
@@ -28,91 +30,23 @@ from benchctl.profiles import LaserConfig, Profile, SimConfig, load_profile
 
 H_PLANCK, C_LIGHT = 6.62607015e-34, 299792458.0
 
-# A 64 x 96 SLM imaged at 8 um / 4 um * 0.75 = 1.5 sensor pixels per SLM pixel, turned 10 degrees, onto a
-# 176 x 256 sensor with 4 / 10 masked rows / columns. Green sees its true response equal to the linear table.
-PROFILE = """\
-name = "sim-small"
-
-[optics]
-distance_mm = 20.0
-roi = [48, 80]
-
-[slm]
-width = 96
-height = 64
-pitch_um = 8.0
-bit_depth = 8
-settle_ms = 0
-
-[laser]
-driver = "template"
-port = "sim://rgb-laser"
-
-[laser.protocol]
-set_power = "CH{channel}:POW {mw:.2f}"
-get_power = "CH{channel}:POW?"
-enable = "CH{channel}:EMIT 1"
-disable = "CH{channel}:EMIT 0"
-get_emission = "CH{channel}:EMIT?"
-
-[[laser.channels]]
-name = "red"
-wavelength_nm = 680
-max_power_mw = 40
-setpoint_mw = 40
-
-[[laser.channels]]
-name = "green"
-wavelength_nm = 520
-max_power_mw = 40
-setpoint_mw = 2
-
-[[laser.channels]]
-name = "blue"
-wavelength_nm = 450
-max_power_mw = 40
-setpoint_mw = 2
-
-[camera]
-driver = "sim"
-exposure_s = 0.001
-iso = 100
-
-[sim]
-seed = 7
-
-[sim.beam]
-efficiency = 2e-5
-
-[sim.slm]
-two_pi_nm = 520.0
-gamma = 1.0
-zero_order = 0.0
-
-[sim.imaging]
-magnification = 0.75
-rotation_deg = 10.0
-offset_px = [6.0, -15.0]
-
-[sim.sensor]
-shape = [176, 256]
-margin = [4, 10]
-pixel_um = 4.0
-read_noise_e = 5.0
-
-[sim.sensor.response]
-green = [0.1, 0.5, 0.05]
-blue = [0.02, 0.1, 0.4]
-"""
+# The conftest's SMALL_BENCH without the iris: a 64 x 96 SLM imaged at 8 um / 4 um * 0.75 = 1.5 sensor pixels per SLM
+# pixel, turned 10 degrees, onto a 176 x 256 sensor with 4 / 10 masked rows / columns. Green sees its true response
+# equal to the linear table.
+SIM_SMALL = {
+    "optics": {"iris_fraction": None},
+    "camera": {"exposure_s": 0.001, "iso": 100},
+    "sim": {"seed": 7, "beam": {"efficiency": 2e-5}, "slm": {"two_pi_nm": 520.0, "gamma": 1.0, "zero_order": 0.0},
+            "imaging": {"magnification": 0.75, "rotation_deg": 10.0},
+            "sensor": {"read_noise_e": 5.0, "response": {"green": [0.1, 0.5, 0.05], "blue": [0.02, 0.1, 0.4]}}},
+}
 SCALE = 0.75 * 8.0 / 4.0  # sensor pixels per SLM pixel
 GAIN_ISO100 = (16383 - 2048) / 26000.0  # DN per electron: the full well reaches the white level at base ISO
 
 
 @pytest.fixture
-def profile(tmp_path: Path) -> Profile:
-    path = tmp_path / "sim-small.toml"
-    path.write_text(PROFILE)
-    return load_profile(path)
+def profile(make_bench_profile: Callable[..., Profile]) -> Profile:
+    return make_bench_profile(SMALL_BENCH, SIM_SMALL)
 
 
 def changed(profile: Profile, section: str, **values: object) -> Profile:
@@ -441,9 +375,8 @@ def test_a_profile_without_sim_section_gets_the_defaults(small_profile_path: Pat
     ("[sim.imaging]\nmagnifcation = 2\n", r"sim\.imaging\.magnifcation: unknown key \(did you mean 'magnification'"),
 ])
 def test_sim_section_errors_name_the_key(tmp_path: Path, block: str, message: str) -> None:
-    base = PROFILE.split("[sim]")[0]
     path = tmp_path / "bad.toml"
-    path.write_text(base + "[sim]\n" + block)
+    path.write_text(bench_profile_text(SMALL_BENCH, SIM_SMALL, sim=None) + "[sim]\n" + block)
     with pytest.raises(BenchctlError, match=message) as info:
         load_profile(path)
     assert str(path) in str(info.value)

@@ -3,9 +3,12 @@ lasers produce (benchctl.devices.sim.bench) as a DNG."""
 
 from __future__ import annotations
 
+import time
+
 from benchctl.devices.camera.base import Camera, RawFrame
-from benchctl.devices.sim.bench import render_capture
-from benchctl.devices.sim.state import state_dir
+from benchctl.devices.errors import DeviceError
+from benchctl.devices.sim.bench import STATE_NAME, render_capture
+from benchctl.devices.sim.state import load_state, state_dir
 from benchctl.files import ensure_dir
 from benchctl.profiles import CameraConfig, Profile
 
@@ -30,8 +33,23 @@ class SimCamera(Camera):
     def _identity(self) -> dict[str, str]:
         return {"manufacturer": "benchctl", "model": self.profile.sim.sensor.model, "serial_number": "sim"}
 
+    def _check_cable(self) -> None:
+        """Fault `unplug_at=N` (benchctl sim fault sim-camera unplug_at=N): the cable is pulled just before
+        frame N, so that shutter release fails and the frame counter stays at N - 1."""
+        state = load_state(STATE_NAME)
+        for fault in state.get("faults", []):
+            name, _, value = fault.partition("=")
+            if name != "unplug_at" or not value.isdigit():
+                raise DeviceError(f"simulated camera: unknown fault {fault!r} (known: unplug_at=N)")
+            if int(state.get("frame", 0)) + 1 >= int(value):
+                raise DeviceError(f"simulated camera: USB cable pulled before frame {state.get('frame', 0) + 1}")
+
     def _apply_settings(self, exposure_s: float | None, iso: int | None) -> None:
         """Accepted: every capture already uses the profile's exposure and ISO."""
 
     def _capture_one(self) -> RawFrame:
-        return render_capture(self.profile, exposure_s=self.config.exposure_s, iso=self.config.iso)
+        """Render the frame, then wait the exposure and the body's readout time as a real camera would."""
+        self._check_cable()
+        frame = render_capture(self.profile, exposure_s=self.config.exposure_s, iso=self.config.iso)
+        time.sleep(frame.metadata["exposure_s"] + self.profile.sim.sensor.readout_s)
+        return frame

@@ -232,8 +232,9 @@ def render_capture(profile: Profile, exposure_s: float | None = None, iso: int |
     sensor = sim.sensor
     exposure_s = sensor.exposure_s if exposure_s is None else exposure_s
     iso = sensor.iso if iso is None else iso
-    number = int(load_state(STATE_NAME).get("frame", 0)) + 1
-    save_state(STATE_NAME, {"frame": number})
+    state = load_state(STATE_NAME)
+    number = int(state.get("frame", 0)) + 1
+    save_state(STATE_NAME, {**state, "frame": number})
     powers = emitting_channels(profile)
     gray, shown = read_displayed()
     mosaic = render_mosaic(profile, gray, powers, exposure_s=exposure_s, iso=iso, frame=number)

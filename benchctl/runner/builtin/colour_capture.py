@@ -1,0 +1,157 @@
+"""Colour capture, the paper's experiment: per target and per colour present in it, generate that colour's
+hologram, expose that colour alone, capture RAW frames and dark frames; then register each colour's CFA plane
+onto the target with the stored camera-SLM registration, merge the colours, balance them and score the merged
+capture against the target, next to the simulated reconstruction and the generation time per colour.
+
+On a profile without them, it first measures the SLM's lookup tables (lut_calibration = "auto") and registers
+the camera (registration = "auto"), with the same steps as those procedures; both are then stored for later runs.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from benchctl.capture.colour_planes import merge_capture, registered_plane, roi_saturation
+from benchctl.errors import BenchctlError
+from benchctl.optics import colour_scores, crop_roi
+from benchctl.profiles import LaserChannel
+from benchctl.runner.builtin import lut_calibration, registration
+from benchctl.runner.procedure import Context, Step
+from benchctl.runner.report import colour_capture_report
+from benchctl.runner.holograms import target_plane
+from benchctl.runner.steps import (
+    EXPOSURE_PARAMETERS,
+    METHOD_PARAMETERS,
+    channels,
+    displayed_frame,
+    exposure_step,
+    hologram_step,
+    load_exposure,
+    power_w,
+    prepared_target,
+    target_label,
+    unknown_setpoints,
+    write_linear16,
+)
+from benchctl.schema import Field
+from benchctl.targets import active_channels
+
+AUTO_LUT_GRAY_STEP = 16  # every 16th gray level: 17 exposures per colour, errors below 0.01 rad on the simulator
+DESCRIPTION = "holograms per colour, each colour exposed alone, RAW capture, registration, merge, scores"
+PARAMETERS = {
+    "targets": Field("str_list", required=False, default=["chart:bars"], min_items=1),
+    **METHOD_PARAMETERS,
+    **EXPOSURE_PARAMETERS,
+    "repeats": Field("int", required=False, default=1, ge=1),
+    # "auto": register first when no stored registration fits this profile; "stored": require one
+    "registration": Field("str", required=False, default="auto", choices=("auto", "stored")),
+    # "auto": measure the SLM's lookup table first for colours that have none; "skip": use what there is
+    "lut_calibration": Field("str", required=False, default="auto", choices=("auto", "skip")),
+}
+
+
+def plan(context: Context) -> list[Step]:
+    """Registration if needed, then per target: holograms, exposures (per repeat), processing; the report."""
+    params = context.params
+    unknown_setpoints(context)
+    used = channels(context)
+    steps: list[Step] = []
+    calibrated = {*context.calibration.lut_files(), *(context.profile.slm.lut if context.profile.slm else {})}
+    uncalibrated = [c for c in used if c.name not in calibrated]
+    if uncalibrated and params["lut_calibration"] == "auto":
+        steps += lut_calibration.lut_steps(context, uncalibrated, gray_step=AUTO_LUT_GRAY_STEP)
+    missing = [c for c in used if c.name not in context.calibration.registrations()]
+    if missing and params["registration"] == "stored":
+        raise BenchctlError(f"no stored camera-SLM registration for {', '.join(c.name for c in missing)} on profile "
+                            f"{context.profile.name!r}: run procedures/registration.toml first, or set "
+                            "registration = \"auto\"")
+    if missing:
+        steps += registration.registration_steps(context, missing)
+    options = {key: params.get(key) for key in METHOD_PARAMETERS}
+    labels: set[str] = set()
+    targets = []
+    for spec in params["targets"]:
+        label, target = target_label(spec, labels), prepared_target(context.profile, spec)
+        present = active_channels(target)
+        lit = [c for c in used if present[target_plane(c)]]
+        if not lit:
+            raise BenchctlError(f"parameters.targets: {spec!r} has none of the colours {[c.name for c in used]}")
+        targets.append((spec, label, lit))
+        steps += [hologram_step(f"hologram/{label}/{c.name}", label, target, c, options) for c in lit]
+        for repeat in _repeats(params["repeats"]):
+            for channel in lit:
+                steps.append(exposure_step(
+                    context, f"capture/{label}{repeat}/{channel.name}", (label + repeat, channel.name), channel,
+                    power_w(context, channel), _shown(f"hologram/{label}/{channel.name}"), f"expose {label}{repeat}"))
+            steps.append(Step(f"process/{label}{repeat}", f"register, merge and score {label}{repeat}",
+                              _processor(spec, label, repeat, lit, target)))
+    steps.append(Step("report", "metrics.json, metrics.csv and report.html", _reporter(targets, used)))
+    return steps
+
+
+def _repeats(count: int) -> list[str]:
+    return [""] if count == 1 else [f"-r{n}" for n in range(1, count + 1)]
+
+
+def _shown(hologram_key: str):
+    return lambda context: displayed_frame(context, hologram_key)
+
+
+def _processor(spec: str, label: str, repeat: str, lit: list[LaserChannel], target: torch.Tensor):
+    def action(context: Context) -> dict[str, Any]:
+        profile = context.profile
+        assert profile.slm is not None and profile.optics is not None
+        shape, roi = profile.slm.shape, profile.optics.roi
+        homographies = context.calibration.registrations()
+        target_roi = crop_roi(target, roi)
+        planes, saturation, simulated = {}, {}, torch.zeros_like(target_roi)
+        for channel in lit:
+            index = target_plane(channel)
+            image, _ = load_exposure(context, f"capture/{label}{repeat}/{channel.name}")
+            homography = np.asarray(homographies[channel.name]["homography"], dtype=np.float64)
+            planes[index] = registered_plane(image, index, homography, shape, roi)
+            saturation[index] = roi_saturation(image, index, homography, shape, roi)
+            sim = np.load(context.path(context.result(f"hologram/{label}/{channel.name}")["simulated"]))
+            simulated[index] = torch.from_numpy(sim).square().clamp(0, 1)
+        merged = merge_capture(planes, target_roi, saturation=saturation)
+        folder = ("images", label + repeat)
+        files = {
+            "target": write_linear16(context.path(*folder, "target.png"), target_roi.square(), srgb=True),
+            "capture": write_linear16(context.path(*folder, "capture.png"), merged.merged_linear, srgb=True),
+            "capture_linear": write_linear16(context.path(*folder, "capture-linear.png"), merged.merged_linear),
+            "simulated": write_linear16(context.path(*folder, "simulated.png"), simulated, srgb=True),
+        }
+        names = {target_plane(c): c.name for c in lit}
+        for index, plane in planes.items():
+            peak = float(max(plane.max(), 1e-12))
+            files[f"plane_{names[index]}"] = write_linear16(context.path(*folder, f"plane-{names[index]}.png"),
+                                                            np.clip(plane, 0, None) / peak)
+        per_colour = {}
+        for channel in lit:
+            index = target_plane(channel)
+            generated = context.result(f"hologram/{label}/{channel.name}")
+            per_colour[channel.name] = {
+                "capture": {k: round(v, 4) for k, v in merged.scores[index].items()},
+                "simulated": generated["scores"], "generation_s": generated["seconds"],
+                "cached": generated["cached"], "gain": merged.gains[index], "saturated_fraction": saturation[index],
+            }
+        return {
+            "target": spec, "label": label + repeat, "folder": "/".join(folder), "files": files,
+            "colours": per_colour, "warnings": list(merged.warnings),
+            "merged": {"capture": {k: round(v, 4) for k, v in merged.merged_scores.items()},
+                       "simulated": {k: round(v, 4) for k, v in colour_scores(simulated, target_roi).items()}},
+        }
+
+    return action
+
+
+def _reporter(targets: list[tuple[str, str, list[LaserChannel]]], used: list[LaserChannel]):
+    def action(context: Context) -> dict[str, Any]:
+        results = [context.result(f"process/{label}{repeat}")
+                   for _, label, _ in targets for repeat in _repeats(context.params["repeats"])]
+        return colour_capture_report(context, results, [c.name for c in used])
+
+    return action

@@ -1,0 +1,147 @@
+"""Laser power sweep: per colour, the camera signal against the laser setpoint, to check that the chain is linear
+and to find the exposure that uses the sensor's range without saturating at the colour's working setpoint.
+
+The signal is that colour's CFA plane, dark-subtracted, on the image of the ROI (through the stored
+registration; the whole active area without one): mean, peak (99.9th percentile) and saturated fraction, all
+as fractions of full scale. A straight line through the unsaturated points gives the linearity (R^2 and the
+largest deviation); the peak's line at the working setpoint gives the exposure that puts the peak at 80 %.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from benchctl.capture.colour_planes import registered_plane
+from benchctl.capture.raw import RawImage
+from benchctl.capture.registration import cfa_positions
+from benchctl.devices.power import parse_power
+from benchctl.errors import BenchctlError
+from benchctl.profiles import LaserChannel
+from benchctl.runner.holograms import target_plane
+from benchctl.runner.procedure import Context, Step
+from benchctl.runner.report import power_sweep_report
+from benchctl.runner.steps import (
+    EXPOSURE_PARAMETERS,
+    METHOD_PARAMETERS,
+    channels,
+    displayed_frame,
+    exposure_step,
+    hologram_step,
+    load_exposure,
+    power_w,
+    prepared_target,
+    unknown_setpoints,
+)
+from benchctl.schema import Field
+
+DESCRIPTION = "camera signal against laser setpoint per colour: linearity and the exposure that does not saturate"
+PARAMETERS = {
+    "target": Field("str", required=False, default="chart:white"),
+    "levels": Field("str_list", required=False, default=["10%", "25%", "50%", "75%", "100%"], min_items=2),
+    **METHOD_PARAMETERS,
+    **{**EXPOSURE_PARAMETERS, "frames": Field("int", required=False, default=1, ge=1)},
+}
+PEAK_GOAL = 0.8  # fraction of full scale the recommended exposure puts the peak at
+PEAK_PERCENTILE = 99.9
+
+
+def plan(context: Context) -> list[Step]:
+    unknown_setpoints(context)
+    target = prepared_target(context.profile, context.params["target"])
+    options = {key: context.params.get(key) for key in METHOD_PARAMETERS}
+    steps: list[Step] = []
+    used = channels(context)
+    for channel in used:
+        hologram_key = f"hologram/sweep/{channel.name}"
+        steps.append(hologram_step(hologram_key, "sweep", target, channel, options))
+        for number, watts in enumerate(_levels(context, channel)):
+            steps.append(exposure_step(context, f"sweep/{channel.name}/{number}", ("sweep", channel.name, str(number)),
+                                       channel, watts, lambda ctx, k=hologram_key: displayed_frame(ctx, k),
+                                       f"sweep level {number + 1}"))
+    steps.append(Step("report", "linearity fits, exposure advice, report", _reporter(used)))
+    return steps
+
+
+def _levels(context: Context, channel: LaserChannel) -> list[float]:
+    levels = []
+    for i, text in enumerate(context.params["levels"]):
+        watts = parse_power(text, channel.max_power_mw)
+        if watts > channel.max_power_mw * 1e-3 * (1 + 1e-9):
+            raise BenchctlError(f"parameters.levels[{i}]: {text} is above {channel.name}'s max_power_mw "
+                                f"{channel.max_power_mw:g} mW")
+        levels.append(watts)
+    return levels
+
+
+def signal_stats(context: Context, image: RawImage, channel: LaserChannel) -> dict[str, float]:
+    """Mean, peak and saturated fraction of `channel`'s CFA plane on the ROI's image (or the whole frame)."""
+    colour = target_plane(channel)
+    registration = context.calibration.registrations().get(channel.name)
+    positions = cfa_positions(image.cfa, colour)
+    saturated = float(np.mean([image.saturated[dy::2, dx::2].mean() for dy, dx in positions]))
+    if registration is not None:
+        profile = context.profile
+        assert profile.slm is not None and profile.optics is not None
+        values = registered_plane(image, colour, np.asarray(registration["homography"]), profile.slm.shape,
+                                  profile.optics.roi)
+    else:
+        values = np.concatenate([image.mosaic[dy::2, dx::2].ravel() for dy, dx in positions])
+    return {"mean": float(values.mean()), "peak": float(np.percentile(values, PEAK_PERCENTILE)),
+            "saturated_fraction": saturated}
+
+
+def linear_fit(x: np.ndarray, y: np.ndarray) -> dict[str, float]:
+    """Least-squares line y = slope x + offset, with R^2 and the largest deviation relative to the largest y."""
+    slope, offset = np.polyfit(x, y, 1)
+    fitted = slope * x + offset
+    spread = float(np.sum((y - y.mean()) ** 2))
+    r2 = 1.0 - float(np.sum((y - fitted) ** 2)) / spread if spread > 0 else 1.0
+    return {"slope": float(slope), "offset": float(offset), "r2": r2,
+            "max_deviation": float(np.max(np.abs(y - fitted)) / max(float(np.max(np.abs(y))), 1e-12))}
+
+
+def _analyse(context: Context, channel: LaserChannel, count: int) -> dict[str, Any]:
+    points = []
+    for number in range(count):
+        key = f"sweep/{channel.name}/{number}"
+        image, _ = load_exposure(context, key)
+        result = context.result(key)
+        points.append({"setpoint_w": result["setpoint_w"], "measured_w": result["measured_w"],
+                       **signal_stats(context, image, channel), "exposure_s": _exposure(context, result)})
+    usable = [p for p in points if p["saturated_fraction"] == 0.0]
+    analysis: dict[str, Any] = {"points": points, "saturated_levels": len(points) - len(usable)}
+    if len(usable) < 2:
+        analysis["warning"] = (f"{channel.name}: fewer than two unsaturated levels; shorten the exposure or lower "
+                               "the levels")
+        return analysis
+    x = np.array([p["setpoint_w"] for p in usable])
+    analysis["mean_fit"] = linear_fit(x, np.array([p["mean"] for p in usable]))
+    peak_fit = linear_fit(x, np.array([p["peak"] for p in usable]))
+    analysis["peak_fit"] = peak_fit
+    working = power_w(context, channel)
+    peak_at_working = peak_fit["slope"] * working + peak_fit["offset"]
+    exposure = usable[-1]["exposure_s"]
+    analysis["working_setpoint_w"] = working
+    analysis["peak_at_working"] = peak_at_working
+    if exposure and peak_at_working > 0:
+        analysis["recommended_exposure_s"] = exposure * PEAK_GOAL / peak_at_working
+    return analysis
+
+
+def _exposure(context: Context, result: dict[str, Any]) -> float | None:
+    shots = result.get("camera") or [{}]
+    value = shots[0].get("exposure_s")
+    if value is None and context.profile.camera is not None:
+        value = context.profile.camera.exposure_s
+    return value
+
+
+def _reporter(used: list[LaserChannel]):
+    def action(context: Context) -> dict[str, Any]:
+        count = len(context.params["levels"])
+        analyses = {c.name: _analyse(context, c, count) for c in used}
+        return power_sweep_report(context, analyses)
+
+    return action

@@ -1,0 +1,164 @@
+"""Calibration kept between runs, per hardware profile: the camera-SLM registration and the SLM lookup tables.
+
+    calibration/<profile name>/registration.json   per colour: homography (target-plane px -> camera active
+                                                    area px), reprojection error, when, for which geometry
+    calibration/<profile name>/lut-<colour>.csv    measured gray -> phase table (benchctl.devices.slm.lut format)
+    calibration/<profile name>/lut.json            when and for which geometry each table was measured
+
+The root is $BENCHCTL_CALIBRATION_DIR, else ./calibration. A calibration made for another geometry (SLM grid,
+pitch, distance, ROI, camera) is not used; one older than STALE_DAYS is used with a warning. Each run copies the
+calibration it uses into its own folder, so resuming it or reading its report later sees the same numbers.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import shutil
+from datetime import datetime, timedelta
+from pathlib import Path
+from typing import Any
+
+from benchctl.errors import BenchctlError
+from benchctl.files import ensure_dir, write_json
+from benchctl.profiles import Profile
+
+CALIBRATION_ENV = "BENCHCTL_CALIBRATION_DIR"
+REGISTRATION_FILE = "registration.json"
+LUT_INDEX = "lut.json"
+STALE_DAYS = 30
+
+
+def calibration_root() -> Path:
+    """Where calibrations are kept: $BENCHCTL_CALIBRATION_DIR, else ./calibration."""
+    return Path(os.environ.get(CALIBRATION_ENV) or "calibration")
+
+
+def geometry(profile: Profile) -> dict[str, Any]:
+    """What a calibration depends on: a stored one is valid only while all of this is unchanged."""
+    slm, optics = profile.require("slm", "optics").slm, profile.optics
+    assert slm is not None and optics is not None
+    camera = profile.camera
+    return {
+        "slm_grid": [slm.height, slm.width], "pitch_um": slm.pitch_um, "bit_depth": slm.bit_depth,
+        "flip": [slm.flip_y, slm.flip_x], "distance_mm": optics.distance_mm, "roi": list(optics.roi),
+        "camera": f"{camera.driver} {camera.model}".strip() if camera else None,
+    }
+
+
+def _read_json(path: Path) -> dict[str, Any] | None:
+    if not path.is_file():
+        return None
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise BenchctlError(f"{path}: cannot read calibration: {exc}") from None
+
+
+class Calibration:
+    """The calibration files of one profile in one folder (the shared store, or a run's own copy)."""
+
+    def __init__(self, folder: Path, profile: Profile) -> None:
+        self.folder = Path(folder)
+        self.profile = profile
+        self.geometry = geometry(profile)
+
+    @classmethod
+    def store(cls, profile: Profile) -> Calibration:
+        """The shared store for `profile`, keyed by its name."""
+        return cls(calibration_root() / profile.name, profile)
+
+    # -- registration ---------------------------------------------------------------------------------------------
+
+    def registrations(self) -> dict[str, dict[str, Any]]:
+        """Colour -> stored registration (a dict with "homography", "rms_px", ...) valid for this geometry."""
+        data = _read_json(self.folder / REGISTRATION_FILE)
+        if not data:
+            return {}
+        return {colour: entry for colour, entry in data.get("colours", {}).items()
+                if entry.get("geometry") == self.geometry}
+
+    def save_registration(self, colour: str, registration: dict[str, Any]) -> Path:
+        """Store one colour's registration (other colours' entries stay)."""
+        path = ensure_dir(self.folder) / REGISTRATION_FILE
+        data = _read_json(path) or {"profile": self.profile.name, "colours": {}}
+        data["colours"][colour] = {**registration, "geometry": self.geometry, "created": _now()}
+        return write_json(path, data)
+
+    # -- lookup tables ----------------------------------------------------------------------------------------------
+
+    def lut_files(self) -> dict[str, Path]:
+        """Colour -> measured lookup-table file valid for this geometry."""
+        index = _read_json(self.folder / LUT_INDEX) or {}
+        return {colour: self.folder / entry["file"] for colour, entry in index.items()
+                if entry.get("geometry") == self.geometry and (self.folder / entry["file"]).is_file()}
+
+    def lut_path(self, colour: str) -> Path:
+        """Where the lookup table of `colour` is written."""
+        return ensure_dir(self.folder) / f"lut-{colour}.csv"
+
+    def record_lut(self, colour: str, details: dict[str, Any]) -> None:
+        """Note in the index that lut-<colour>.csv was just measured (with `details` on how)."""
+        path = ensure_dir(self.folder) / LUT_INDEX
+        index = _read_json(path) or {}
+        index[colour] = {"file": self.lut_path(colour).name, "geometry": self.geometry, "created": _now(), **details}
+        write_json(path, index)
+
+    def lut_info(self) -> dict[str, dict[str, Any]]:
+        """The index entries of the valid tables."""
+        index = _read_json(self.folder / LUT_INDEX) or {}
+        return {colour: index[colour] for colour in self.lut_files()}
+
+    # -- use ----------------------------------------------------------------------------------------------------------
+
+    def copy_to(self, folder: Path) -> Calibration:
+        """Copy every calibration file into `folder` (a run's own copy) and return the copy."""
+        ensure_dir(folder)
+        if self.folder.is_dir():
+            for item in self.folder.iterdir():
+                if item.is_file():
+                    shutil.copy2(item, folder / item.name)
+        return Calibration(folder, self.profile)
+
+    def applied(self, profile: Profile) -> Profile:
+        """`profile` with the measured lookup tables for the channels whose table the profile does not name."""
+        files = self.lut_files()
+        slm = profile.slm
+        if slm is None or not files:
+            return profile
+        luts = {**{c: p.resolve() for c, p in files.items()}, **slm.lut}
+        return dataclasses.replace(profile, slm=dataclasses.replace(slm, lut=luts))
+
+    def state(self, colours: list[str]) -> tuple[list[dict[str, Any]], list[str]]:
+        """For the report: one row per colour (registration and lookup table in use) and warnings."""
+        rows, warnings = [], []
+        registrations, luts = self.registrations(), self.lut_info()
+        explicit = self.profile.slm.lut if self.profile.slm else {}
+        for colour in colours:
+            reg, lut = registrations.get(colour), luts.get(colour)
+            if colour in explicit:
+                lut_text = f"profile file {explicit[colour]}"
+            elif lut:
+                lut_text = f"measured {lut['created']}"
+            else:
+                lut_text = "none: linear (uncalibrated)"
+                warnings.append(f"{colour}: SLM lookup table not calibrated (linear); run the lut-calibration "
+                                "procedure")
+            reg_text = f"{reg['created']}, rms {reg['rms_px']:.2f} px" if reg else "none"
+            for label, entry in (("registration", reg), ("lookup table", lut)):
+                if entry and _age(entry["created"]) > timedelta(days=STALE_DAYS):
+                    warnings.append(f"{colour}: {label} is stale (made {entry['created']}, over {STALE_DAYS} days ago)")
+            rows.append({"colour": colour, "registration": reg_text, "lookup_table": lut_text})
+        return rows, warnings
+
+
+def _now() -> str:
+    return datetime.now().isoformat(timespec="seconds")
+
+
+def _age(created: str) -> timedelta:
+    try:
+        return datetime.now() - datetime.fromisoformat(created)
+    except ValueError:
+        return timedelta(0)

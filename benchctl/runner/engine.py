@@ -1,0 +1,147 @@
+"""`benchctl run`: plan a procedure, then run its steps into a new run folder (or finish an interrupted one).
+
+The plan is made before anything is touched, so `--dry-run` prints exactly the steps a run would take. A run
+logs each step as it starts and finishes; on any exit (error, Ctrl-C, SIGTERM) the bench closes with every
+laser channel off and the run's stop record says where it stopped. `--resume` reloads the run's own copy of
+the procedure and its calibration, checks the profile is unchanged, and runs only the steps not finished.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from benchctl.errors import BenchctlError
+from benchctl.files import write_json
+from benchctl.profiles import Profile, load_profile, resolve_profile_path
+from benchctl.runner.bench import Bench
+from benchctl.runner.calibration import Calibration
+from benchctl.runner.procedure import Context, Procedure, Step, load_procedure
+from benchctl.runner.record import RunRecord, create_run, open_run
+
+PROFILE_COPY = "profile.toml"
+CALIBRATION_COPY = "calibration"
+
+
+@dataclass
+class RunOutcome:
+    """What `run_procedure` did: the run folder (None for a dry run), steps run and skipped, the headline."""
+
+    folder: Path | None
+    ran: list[str]
+    skipped: list[str]
+    headline: list[str]
+
+
+def _describe(steps: list[Step], procedure: Procedure, profile: Profile) -> list[str]:
+    lines = [f"procedure {procedure.name!r} ({procedure.kind}) on profile {profile.name!r} ({profile.path}): "
+             f"{len(steps)} steps"]
+    for number, step in enumerate(steps, 1):
+        uses = f"  [{', '.join(step.devices)}]" if step.devices else ""
+        lines.append(f"  {number:>3}. {step.key}: {step.description}{uses}")
+    return lines
+
+
+def _resumed(folder: Path, profile_arg: str | None) -> tuple[RunRecord, Procedure, Profile]:
+    """Reopen a run: its procedure copy, and the profile it used (which must not have changed)."""
+    record = open_run(folder)
+    info = record.info()
+    procedure = load_procedure(record.folder / info["procedure_file"], copies=record.folder)
+    source = Path(info["profile_path"])
+    if profile_arg is not None and resolve_profile_path(profile_arg).resolve() != source.resolve():
+        raise BenchctlError(f"{folder}: this run used profile {source}; resume it with that profile (or none)")
+    try:
+        unchanged = source.read_bytes() == (record.folder / PROFILE_COPY).read_bytes()
+    except OSError as exc:
+        raise BenchctlError(f"{folder}: cannot read the run's profile {source}: {exc.strerror or exc}") from None
+    if not unchanged:
+        raise BenchctlError(f"{source} changed since run {record.name} started; a resumed run must use the profile "
+                            f"it started with (the original is kept as {record.folder / PROFILE_COPY})")
+    return record, procedure, load_profile(source)
+
+
+def run_procedure(path: Path | None, *, profile: str | None = None, out: Path = Path("runs"),
+                  dry_run: bool = False, resume: Path | None = None,
+                  say: Callable[[str], None] = print) -> RunOutcome:
+    """Run (or with `dry_run` only plan and print) a procedure file; `resume` finishes an earlier run instead."""
+    if resume is not None:
+        record, procedure, bench_profile = _resumed(Path(resume), profile)
+        calibration = Calibration(record.folder / CALIBRATION_COPY, bench_profile)
+    else:
+        if path is None:
+            raise BenchctlError("give a procedure file (or --resume RUN_DIR)")
+        procedure = load_procedure(path)
+        bench_profile = load_profile(profile)
+        calibration = Calibration.store(bench_profile)
+        record = None
+    with Bench(calibration.applied(bench_profile)) as bench:
+        context = Context(calibration.applied(bench_profile), procedure.params, calibration, bench, record, say)
+        steps = procedure.plan(context)
+        if dry_run:
+            for line in _describe(steps, procedure, bench_profile):
+                say(line)
+            say("dry run: nothing was touched")
+            return RunOutcome(None, [], [step.key for step in steps], [])
+        if record is None:
+            record = create_run(Path(out), procedure.name, {
+                "procedure": procedure.kind, "procedure_file": next(iter(procedure.files)),
+                "profile": bench_profile.name, "profile_path": str(bench_profile.path.resolve()),
+                "parameters": procedure.params, "plan": [step.key for step in steps],
+            }, {**procedure.files, PROFILE_COPY: bench_profile.path.read_bytes()})
+            calibration = Calibration.store(bench_profile).copy_to(record.folder / CALIBRATION_COPY)
+            context.calibration, context.record = calibration, record
+        say(f"run folder: {record.folder}")
+        return _execute(steps, context, record)
+
+
+def _execute(steps: list[Step], context: Context, record: RunRecord) -> RunOutcome:
+    """Run the unfinished steps in order; log each; write the stop record however it ends."""
+    ran, skipped = [], []
+    current = None
+    try:
+        for number, step in enumerate(steps, 1):
+            if record.is_done(step.key):
+                skipped.append(step.key)
+                continue
+            current = step.key
+            context.say(f"[{number}/{len(steps)}] {step.description}")
+            record.started(step.key)
+            start = time.perf_counter()
+            try:
+                result = step.action(context)
+            except BaseException as exc:
+                record.failed(step.key, time.perf_counter() - start, exc)
+                raise
+            record.finished(step.key, time.perf_counter() - start, result)
+            ran.append(step.key)
+        current = None
+    except BaseException as exc:
+        status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
+        _save_devices(context, record)
+        record.finish(status, step=current, error=f"{type(exc).__name__}: {exc}")
+        context.say(f"run {status} at step {current!r}; everything captured so far is in {record.folder}; "
+                    f"finish it with: benchctl run --resume {record.folder}")
+        raise
+    _save_devices(context, record)
+    record.finish("finished", ran=len(ran), skipped=len(skipped))
+    headline = list(record.done.get(steps[-1].key, {}).get("headline", [])) if steps else []
+    if skipped:
+        context.say(f"resumed: {len(skipped)} finished step(s) kept, {len(ran)} run now")
+    for line in headline:
+        context.say(line)
+    context.say(f"record: {record.folder}" + (f"  (report: {record.folder / 'report.html'})"
+                                              if (record.folder / "report.html").is_file() else ""))
+    return RunOutcome(record.folder, ran, skipped, headline)
+
+
+def _save_devices(context: Context, record: RunRecord) -> None:
+    """devices.json: identities of every device opened, in this and earlier attempts of the run."""
+    path = record.folder / "devices.json"
+    known: dict[str, Any] = {}
+    if path.is_file():
+        known = json.loads(path.read_text())
+    write_json(path, {**known, **context.bench.identities})

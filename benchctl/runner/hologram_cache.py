@@ -1,0 +1,96 @@
+"""Holograms computed once per target, method and geometry, and reused by later runs.
+
+The key is a hash of everything the displayed frame depends on: the target plane's amplitude, the method and
+its options (iterations, seed, checkpoint file contents), the optical geometry of the channel and the SLM
+encoding (bit depth, lookup table, offset, carrier, flips), plus the benchctl version. An entry holds the
+frame as displayed, the simulated reconstruction and its scores, and the seconds it took to compute.
+Entries live in $BENCHCTL_CACHE_DIR/holograms (default ~/.cache/benchctl/holograms); deleting them is safe.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+import benchctl
+from benchctl.cgh.learned import LEARNED_METHODS, find_checkpoint
+from benchctl.files import atomic_write_bytes, ensure_dir
+from benchctl.optics.setup import OpticalSetup
+from benchctl.profiles import Profile
+from benchctl.runner.holograms import compute_scene, target_plane
+
+CACHE_ENV = "BENCHCTL_CACHE_DIR"
+
+
+@dataclass(frozen=True)
+class Hologram:
+    """One colour's hologram: the frame as displayed, its simulated reconstruction (ROI amplitude, scaled to
+    the target), the scores of that reconstruction, and how long generating it took."""
+
+    gray: np.ndarray
+    reconstruction: np.ndarray
+    scores: dict[str, float]
+    seconds: float
+    cached: bool
+
+
+def cache_dir() -> Path:
+    root = os.environ.get(CACHE_ENV)
+    return Path(root) if root else Path.home() / ".cache" / "benchctl"
+
+
+def _key(profile: Profile, channel: str, plane: torch.Tensor, options: dict[str, Any]) -> str:
+    slm = profile.slm
+    assert slm is not None
+    setup = OpticalSetup.from_profile(profile, channel)
+    digest = hashlib.sha256()
+    description = {
+        "version": benchctl.__version__, "options": options, "wavelength_m": setup.wavelength_m,
+        "pitch_m": list(setup.pitch_m), "distance_m": setup.distance_m, "shape": list(setup.shape),
+        "roi": list(setup.roi), "aperture": setup.aperture, "bit_depth": slm.bit_depth,
+        "two_pi_gray": slm.two_pi_gray, "offset": slm.phase_offset_rad, "carrier": list(slm.grating_period_px),
+        "flips": [slm.flip_y, slm.flip_x],
+    }
+    digest.update(json.dumps(description, sort_keys=True, default=str).encode())
+    for path in (slm.lut.get(channel), options.get("checkpoint")):
+        if path:
+            digest.update(Path(path).read_bytes())
+    digest.update(plane.contiguous().numpy().tobytes())
+    return digest.hexdigest()[:32]
+
+
+def hologram(profile: Profile, target: torch.Tensor, channel: str, method: str, *, iterations: int | None,
+             seed: int, checkpoint: str | None,
+             progress: Callable[[str], Callable[[int, int], None]] | None = None) -> Hologram:
+    """The hologram of `channel` for `target` (3, H, W amplitude on the SLM grid): from the cache when this
+    exact computation was done before, else computed (compute_scene, one colour) and cached."""
+    if checkpoint is None and method in LEARNED_METHODS:
+        found = find_checkpoint(method, profile)  # what compute_scene will use: its bytes belong in the key
+        checkpoint = str(found) if found else None
+    options = {"method": method, "iterations": iterations, "seed": seed, "checkpoint": checkpoint}
+    plane = target[target_plane(profile.channel(channel))]
+    path = cache_dir() / "holograms" / f"{_key(profile, channel, plane, options)}.npz"
+    if path.is_file():
+        with np.load(path, allow_pickle=False) as data:
+            return Hologram(data["gray"], data["reconstruction"], json.loads(str(data["scores"])),
+                            float(data["seconds"]), cached=True)
+    extra = {"checkpoint": Path(checkpoint)} if checkpoint else {}
+    scene = compute_scene(target, profile, method, iterations=iterations, colours=[channel], seed=seed,
+                          progress=progress, **extra)
+    result = scene.colours[0]
+    assert not result.skipped and result.gray is not None and result.reconstruction is not None
+    entry = Hologram(result.gray, result.reconstruction.numpy(), result.scores, result.seconds, cached=False)
+    buffer = io.BytesIO()
+    np.savez(buffer, gray=entry.gray, reconstruction=entry.reconstruction, scores=json.dumps(entry.scores),
+             seconds=entry.seconds)
+    ensure_dir(path.parent)
+    atomic_write_bytes(path, buffer.getvalue())
+    return entry

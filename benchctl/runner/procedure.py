@@ -1,0 +1,174 @@
+"""Procedures: what a procedure file says, and the API every procedure (built-in or a user's Python file) uses.
+
+A procedure file is TOML:
+
+    name = "colour-capture"            # names the run folder
+    procedure = "colour-capture"       # a built-in (see BUILTINS) or a Python file, relative to this file
+    description = "..."                # optional
+    [parameters]                       # checked against the procedure's PARAMETERS schema
+    targets = ["chart:bars"]
+
+or a Python file given directly (its parameters then all take their defaults). A Python procedure defines
+
+    DESCRIPTION = "one line"
+    PARAMETERS = {"gray": Field("int", required=False, default=128)}   # benchctl.schema.Field
+    def plan(context: Context) -> list[Step]: ...
+
+`plan` validates and returns the steps without touching a device or writing a file (that is what --dry-run
+prints); each `Step.action(context)` does one resumable piece of work, writes its files through
+`context.record` and returns a JSON-ready result that later steps read with `context.result(key)`.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+from benchctl.console import Progress
+from benchctl.errors import BenchctlError
+from benchctl.profiles import Profile
+from benchctl.runner.bench import Bench
+from benchctl.runner.calibration import Calibration
+from benchctl.runner.record import RunRecord
+from benchctl.schema import Field, check_table, fail
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:
+    import tomli as tomllib
+
+BUILTINS = {
+    "colour-capture": "benchctl.runner.builtin.colour_capture",
+    "registration": "benchctl.runner.builtin.registration",
+    "lut-calibration": "benchctl.runner.builtin.lut_calibration",
+    "power-sweep": "benchctl.runner.builtin.power_sweep",
+}
+
+FILE_SCHEMA = {
+    "name": Field("str", required=False),
+    "procedure": Field("str"),
+    "description": Field("str", required=False, default=""),
+    "parameters": Field("table", required=False, fields=None),
+}
+
+
+@dataclass(frozen=True)
+class Step:
+    """One resumable piece of a run. `devices`: which of laser, slm, camera it uses (dry-run shows them)."""
+
+    key: str
+    description: str
+    action: Callable[[Context], dict[str, Any]]
+    devices: tuple[str, ...] = ()
+
+
+@dataclass
+class Context:
+    """What a step sees: the profile in effect, the parameters, the bench, the calibration, the run record."""
+
+    profile: Profile
+    params: dict[str, Any]
+    calibration: Calibration
+    bench: Bench
+    record: RunRecord | None = None  # None during a dry run
+    say: Callable[[str], None] = print
+
+    def recalibrated(self) -> None:
+        """Apply lookup tables measured during this run to the profile later steps use."""
+        self.profile = self.calibration.applied(self.calibration.profile)
+
+    def result(self, key: str) -> dict[str, Any]:
+        """The result a finished step recorded (this run, or the run being resumed)."""
+        if self.record is None:
+            raise BenchctlError(f"step {key!r}: no results during a dry run")
+        return self.record.result(key)
+
+    def path(self, *parts: str) -> Path:
+        """A file in the run folder."""
+        if self.record is None:
+            raise BenchctlError("no run folder during a dry run")
+        return self.record.path(*parts)
+
+    def progress(self, label: str) -> Progress:
+        return Progress(label)
+
+
+@dataclass(frozen=True)
+class Procedure:
+    """A loaded procedure: its module (built-in or user file), checked parameters and the files as read."""
+
+    name: str
+    kind: str
+    description: str
+    module: ModuleType
+    params: dict[str, Any]
+    files: dict[str, bytes]  # run-folder file name -> bytes, to keep as used
+
+    def plan(self, context: Context) -> list[Step]:
+        steps = self.module.plan(context)
+        keys = [step.key for step in steps]
+        repeated = {key for key in keys if keys.count(key) > 1}
+        if repeated:
+            raise BenchctlError(f"procedure {self.name!r} plans step(s) {sorted(repeated)} more than once")
+        return steps
+
+
+def _load_module(kind: str, base: Path, where: str, copies: Path | None = None) -> tuple[ModuleType, dict[str, bytes]]:
+    """The module for a built-in name or a Python file (relative to `base`; by file name in `copies`, a run
+    folder, when given), and the files to keep."""
+    if kind in BUILTINS:
+        return importlib.import_module(BUILTINS[kind]), {}
+    path = copies / Path(kind).name if copies else (base / kind if not Path(kind).is_absolute() else Path(kind))
+    if path.suffix != ".py":
+        raise BenchctlError(f"{where}: unknown procedure {kind!r} (built-ins: {', '.join(BUILTINS)}; or a .py file)")
+    if not path.is_file():
+        raise BenchctlError(f"{where}: procedure file {path} not found")
+    spec = importlib.util.spec_from_file_location(f"benchctl_procedure_{path.stem}", path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    try:
+        spec.loader.exec_module(module)
+    except Exception as exc:
+        raise BenchctlError(f"{path}: cannot load procedure: {type(exc).__name__}: {exc}") from exc
+    for attribute in ("PARAMETERS", "plan"):
+        if not hasattr(module, attribute):
+            raise BenchctlError(f"{path}: a Python procedure must define {attribute} (see benchctl.runner.procedure)")
+    return module, {path.name: path.read_bytes()}
+
+
+def load_procedure(path: str | Path, *, copies: Path | None = None) -> Procedure:
+    """Read and check a procedure file (.toml, or .py with default parameters). Errors name the file and key.
+
+    `copies`: a run folder whose copy of a Python procedure file is used (resuming a run).
+    """
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise BenchctlError(f"{path}: procedure file not found") from None
+    except OSError as exc:
+        raise BenchctlError(f"{path}: cannot read procedure: {exc.strerror or exc}") from None
+    if path.suffix == ".py":
+        module, files = _load_module(path.name, path.parent, str(path))
+        params = check_table({}, module.PARAMETERS, "parameters", path)
+        return Procedure(path.stem, path.name, getattr(module, "DESCRIPTION", ""), module, params, files)
+    try:
+        raw = tomllib.loads(data.decode("utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise BenchctlError(f"{path}: TOML syntax error: {exc}") from None
+    parameters = raw.pop("parameters", {})
+    top = check_table(raw, {k: v for k, v in FILE_SCHEMA.items() if k != "parameters"}, "", path)
+    if not isinstance(parameters, dict):
+        raise fail(path, "parameters", f"expected a [parameters] table, got {parameters!r}")
+    module, files = _load_module(top["procedure"], path.parent, f"{path}: procedure", copies)
+    params = check_table(parameters, module.PARAMETERS, "parameters", path)
+    name = top.get("name") or path.stem
+    files = {"procedure.toml": data, **files}
+    return Procedure(name, top["procedure"], top["description"] or getattr(module, "DESCRIPTION", ""), module,
+                     params, files)

@@ -1,0 +1,190 @@
+"""The run folder: the one place that knows its layout, its step log and how a run is resumed.
+
+    runs/<YYYYmmdd-HHMMSS>-<name>/
+      run.json          start record (procedure, versions, command) and, once it ends, the stop record
+      profile.toml      the hardware profile as used (bytes copied)
+      procedure.toml    the procedure as used (plus the .py file of a Python procedure)
+      calibration/      the camera-SLM registration and lookup tables the run used (copied at its start)
+      devices.json      identity of every device the run opened
+      steps.jsonl       one JSON line per event: a step started, finished (with its result) or failed
+      holograms/        SLM frames exactly as displayed (8-bit PNG)
+      raw/              RAW frames exactly as the camera delivered them, never modified
+      images/           decoded, registered and merged images (16-bit PNG)
+      metrics.json, metrics.csv, report.html
+
+Every file is written atomically. A folder is never reused for a new run; `open_run` reopens one to resume
+it, and a step recorded as finished is never run again.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import shutil
+import sys
+from dataclasses import dataclass, field
+from datetime import datetime
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+from benchctl.errors import BenchctlError
+from benchctl.files import atomic_write_bytes, ensure_dir, write_json
+
+RUN_FILE = "run.json"
+STEP_LOG = "steps.jsonl"
+PACKAGES = ("benchctl", "torch", "numpy", "pyserial", "pyusb", "opencv-contrib-python-headless", "rawpy")
+
+
+def package_versions() -> dict[str, str]:
+    """Versions of Python and of the packages a run's numbers depend on."""
+    versions = {"python": platform.python_version()}
+    for name in PACKAGES:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            versions[name] = "not installed"
+    return versions
+
+
+def _now() -> str:
+    return datetime.now().isoformat(timespec="milliseconds")
+
+
+@dataclass
+class RunRecord:
+    """An open run folder: paths inside it, the step log, the start and stop records."""
+
+    folder: Path
+    done: dict[str, dict[str, Any]] = field(default_factory=dict)  # finished step key -> its result
+    attempts: dict[str, int] = field(default_factory=dict)  # step key -> times it was started
+
+    @property
+    def name(self) -> str:
+        return self.folder.name
+
+    def path(self, *parts: str) -> Path:
+        """A path inside the run folder (parent folders are created)."""
+        target = self.folder.joinpath(*parts)
+        ensure_dir(target.parent)
+        return target
+
+    def info(self) -> dict[str, Any]:
+        """The start (and stop) record."""
+        return json.loads((self.folder / RUN_FILE).read_text())
+
+    def finish(self, status: str, **extra: Any) -> None:
+        """Write the stop record: "finished", "failed" or "interrupted", with when and anything else given."""
+        info = self.info()
+        info["stop"] = {"status": status, "time": _now(), **extra}
+        write_json(self.folder / RUN_FILE, info)
+
+    # -- the step log -----------------------------------------------------------------------------------------
+
+    def is_done(self, key: str) -> bool:
+        return key in self.done
+
+    def result(self, key: str) -> dict[str, Any]:
+        """The result a finished step recorded; an error if it has not finished."""
+        try:
+            return self.done[key]
+        except KeyError:
+            raise BenchctlError(f"{self.folder}: step {key!r} has not finished") from None
+
+    def started(self, key: str) -> int:
+        """Log that `key` starts; returns which attempt this is (1 for the first)."""
+        self.attempts[key] = self.attempts.get(key, 0) + 1
+        self._log({"event": "start", "step": key, "attempt": self.attempts[key]})
+        return self.attempts[key]
+
+    def finished(self, key: str, seconds: float, result: dict[str, Any]) -> None:
+        self.done[key] = result
+        self._log({"event": "done", "step": key, "seconds": round(seconds, 4), "result": result})
+
+    def failed(self, key: str, seconds: float, error: BaseException) -> None:
+        kind = "interrupted" if isinstance(error, KeyboardInterrupt) else "failed"
+        self._log({"event": kind, "step": key, "seconds": round(seconds, 4),
+                   "error": f"{type(error).__name__}: {error}"})
+
+    def events(self) -> list[dict[str, Any]]:
+        """Every logged event, in order."""
+        return _read_log(self.folder / STEP_LOG)
+
+    def _log(self, event: dict[str, Any]) -> None:
+        """Append one event line and flush it to disk: the log survives a crash right after the event."""
+        line = json.dumps({"time": _now(), **event}, default=str) + "\n"
+        with open(self.folder / STEP_LOG, "a", encoding="utf-8") as log:
+            log.write(line)
+            log.flush()
+            os.fsync(log.fileno())
+
+
+def _read_log(path: Path) -> list[dict[str, Any]]:
+    """The events of a step log; a last line cut short by a crash is ignored."""
+    if not path.is_file():
+        return []
+    events = []
+    lines = path.read_text(encoding="utf-8").splitlines()
+    for number, line in enumerate(lines, 1):
+        try:
+            events.append(json.loads(line))
+        except json.JSONDecodeError:
+            if number < len(lines):
+                raise BenchctlError(f"{path}: line {number} is not a JSON event; the step log is damaged") from None
+    return events
+
+
+def create_run(out: Path, name: str, start: dict[str, Any], files: dict[str, bytes]) -> RunRecord:
+    """A new run folder `out/<timestamp>-<name>` (a suffix -2, -3, ... if that exists; never reused) with the
+    start record and the given files (profile and procedure as used)."""
+    ensure_dir(out)
+    stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
+    safe = "".join(c if c.isalnum() or c in "-_." else "-" for c in name) or "run"
+    for suffix in range(1, 1000):
+        folder = out / (f"{stamp}-{safe}" + (f"-{suffix}" if suffix > 1 else ""))
+        try:
+            folder.mkdir()
+        except FileExistsError:
+            continue
+        break
+    else:
+        raise BenchctlError(f"{out}: cannot create a new run folder for {name!r}")
+    record = RunRecord(folder)
+    for file_name, data in files.items():
+        atomic_write_bytes(record.path(file_name), data)
+    write_json(folder / RUN_FILE, {
+        "name": name, "start": _now(), "command": sys.argv, "host": platform.node(),
+        "versions": package_versions(), "resumed": [], **start,
+    })
+    return record
+
+
+def open_run(folder: Path) -> RunRecord:
+    """Reopen a run folder to resume it: its finished steps and attempt counts come from the step log."""
+    folder = Path(folder)
+    if not (folder / RUN_FILE).is_file():
+        raise BenchctlError(f"{folder}: not a benchctl run folder (no {RUN_FILE})")
+    record = RunRecord(folder)
+    for event in record.events():
+        key = event.get("step")
+        if event.get("event") == "start":
+            record.attempts[key] = max(record.attempts.get(key, 0), int(event.get("attempt", 1)))
+        elif event.get("event") == "done":
+            record.done[key] = event.get("result", {})
+    info = record.info()
+    info.setdefault("resumed", []).append({"time": _now(), "command": sys.argv, "finished_steps": len(record.done)})
+    info.pop("stop", None)
+    write_json(folder / RUN_FILE, info)
+    return record
+
+
+def set_aside(folder: Path, attempt: int) -> Path | None:
+    """Move what an unfinished attempt left in `folder` to `<folder>.attempt-<n>` (kept, never deleted), so the
+    next attempt starts clean. Returns where it went, or None if there was nothing."""
+    if not folder.exists() or not any(folder.iterdir()):
+        return None
+    target = folder.with_name(f"{folder.name}.attempt-{attempt}")
+    shutil.move(str(folder), str(target))
+    return target
+

@@ -1,0 +1,272 @@
+"""Run reports: metrics.json, metrics.csv and a self-contained report.html (previews embedded as PNG data,
+full-resolution files linked beside it, plots as inline SVG), so a user understands a run from the report alone.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from benchctl.files import atomic_write_bytes, write_csv, write_json
+from benchctl.images import read_image
+from benchctl.runner.procedure import Context
+
+PREVIEW_WIDTH = 480
+PEAK_PERCENTILE_TEXT = "99.9th percentile"
+STYLE = """body{font-family:system-ui,sans-serif;margin:2em;max-width:1200px;color:#222}
+table{border-collapse:collapse;margin:.5em 0 1.5em}td,th{border:1px solid #ccc;padding:.25em .6em;text-align:right}
+th{background:#f3f3f3}td:first-child,th:first-child{text-align:left}figure{display:inline-block;margin:0 1em 1em 0}
+figcaption{font-size:.9em;color:#555}.warn{background:#fff4e0;border-left:4px solid #e69500;padding:.5em 1em}
+.ok{color:#2a7a2a}code{background:#f3f3f3;padding:0 .2em}"""
+
+
+def _esc(value: Any) -> str:
+    return html.escape(str(value))
+
+
+def table(rows: list[dict[str, Any]]) -> str:
+    """An HTML table of dict rows, columns in first-seen order; floats to 4 significant digits."""
+    if not rows:
+        return "<p>(none)</p>"
+    columns: list[str] = []
+    for row in rows:
+        columns.extend(key for key in row if key not in columns)
+
+    def cell(value: Any) -> str:
+        if isinstance(value, float):
+            return f"{value:.4g}"
+        return _esc("" if value is None else value)
+
+    head = "".join(f"<th>{_esc(c)}</th>" for c in columns)
+    body = "".join("<tr>" + "".join(f"<td>{cell(row.get(c))}</td>" for c in columns) + "</tr>" for row in rows)
+    return f"<table><tr>{head}</tr>{body}</table>"
+
+
+def figure(folder: Path, relative: str, caption: str) -> str:
+    """An embedded 8-bit preview of an image file of the run (linked to the full-resolution file)."""
+    image = read_image(folder / relative)
+    if image.dtype == np.uint16:
+        image = (image / 257).round().astype(np.uint8)
+    if image.shape[1] > PREVIEW_WIDTH:
+        height = max(1, round(image.shape[0] * PREVIEW_WIDTH / image.shape[1]))
+        image = cv2.resize(image, (PREVIEW_WIDTH, height), interpolation=cv2.INTER_AREA)
+    if image.ndim == 3:
+        image = image[:, :, ::-1]  # OpenCV encodes BGR
+    ok, png = cv2.imencode(".png", np.ascontiguousarray(image))
+    data = base64.b64encode(png.tobytes()).decode() if ok else ""
+    return (f'<figure><a href="{_esc(relative)}"><img src="data:image/png;base64,{data}" alt="{_esc(caption)}">'
+            f"</a><figcaption>{_esc(caption)}</figcaption></figure>")
+
+
+def line_plot(series: dict[str, tuple[list[float], list[float]]], xlabel: str, ylabel: str,
+              width: int = 520, height: int = 300) -> str:
+    """An inline SVG plot of named (x, y) series, with axis ranges and labels."""
+    colours = ["#d62728", "#2ca02c", "#1f77b4", "#9467bd", "#ff7f0e", "#8c564b"]
+    xs = [x for x_values, _ in series.values() for x in x_values]
+    ys = [y for _, y_values in series.values() for y in y_values]
+    if not xs:
+        return "<p>(no data)</p>"
+    x0, x1 = min(xs), max(xs) if max(xs) > min(xs) else min(xs) + 1
+    y0, y1 = min(0.0, min(ys)), max(ys) if max(ys) > min(0.0, min(ys)) else 1.0
+    left, bottom, pad = 60, 40, 10
+
+    def px(x: float, y: float) -> str:
+        return (f"{left + (x - x0) / (x1 - x0) * (width - left - pad):.1f},"
+                f"{height - bottom - (y - y0) / (y1 - y0) * (height - bottom - pad):.1f}")
+
+    parts = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" font-size="11">',
+             f'<rect x="{left}" y="{pad}" width="{width - left - pad}" height="{height - bottom - pad}" '
+             'fill="none" stroke="#999"/>',
+             f'<text x="{left}" y="{height - 22}">{x0:.4g}</text>',
+             f'<text x="{width - pad}" y="{height - 22}" text-anchor="end">{x1:.4g}</text>',
+             f'<text x="{left - 4}" y="{height - bottom}" text-anchor="end">{y0:.4g}</text>',
+             f'<text x="{left - 4}" y="{pad + 10}" text-anchor="end">{y1:.4g}</text>',
+             f'<text x="{(width + left) / 2}" y="{height - 6}" text-anchor="middle">{_esc(xlabel)}</text>',
+             f'<text x="12" y="{(height - bottom) / 2}" transform="rotate(-90 12 {(height - bottom) / 2})" '
+             f'text-anchor="middle">{_esc(ylabel)}</text>']
+    for n, (name, (x_values, y_values)) in enumerate(series.items()):
+        colour = colours[n % len(colours)]
+        points = " ".join(px(x, y) for x, y in zip(x_values, y_values))
+        parts.append(f'<polyline points="{points}" fill="none" stroke="{colour}" stroke-width="1.5"/>')
+        parts.append(f'<text x="{left + 8}" y="{pad + 14 + 13 * n}" fill="{colour}">{_esc(name)}</text>')
+    parts.append("</svg>")
+    return "".join(parts)
+
+
+def _run_section(context: Context, colours: list[str]) -> tuple[str, list[str]]:
+    """The header every report starts with: what ran where, versions, devices, calibration, step timings."""
+    record = context.record
+    assert record is not None
+    info = record.info()
+    rows, warnings = context.calibration.state(colours)
+    devices_path = record.folder / "devices.json"
+    devices = json.loads(devices_path.read_text()) if devices_path.is_file() else context.bench.identities
+    timings: dict[str, float] = {}
+    for event in record.events():
+        if event.get("event") == "done":
+            group = event["step"].split("/")[0]
+            timings[group] = timings.get(group, 0.0) + float(event.get("seconds", 0.0))
+    parts = [
+        f"<p>Run <code>{_esc(record.name)}</code>: procedure <b>{_esc(info.get('procedure'))}</b> on profile "
+        f"<b>{_esc(info.get('profile'))}</b>, started {_esc(info.get('start'))}"
+        + (f", resumed {len(info['resumed'])} time(s)" if info.get("resumed") else "") + ".</p>",
+        "<h2>Parameters</h2>" + table([{"parameter": k, "value": json.dumps(v)} for k, v in info["parameters"].items()]),
+        "<h2>Calibration used</h2>" + table(rows),
+        "<h2>Devices</h2>" + table([{"device": k, "identity": json.dumps(v, default=str)} for k, v in devices.items()]),
+        "<h2>Time per kind of step</h2>" + table([{"steps": k, "seconds": round(v, 3)} for k, v in timings.items()]),
+        "<h2>Versions</h2>" + table([{"package": k, "version": v} for k, v in info["versions"].items()]),
+    ]
+    return "".join(parts), warnings
+
+
+def write_report(context: Context, title: str, body: str, colours: list[str], warnings: list[str]) -> Path:
+    """report.html: title, warnings first, the procedure's own sections, then the run's details."""
+    record = context.record
+    assert record is not None
+    details, calibration_warnings = _run_section(context, colours)
+    warnings = list(dict.fromkeys(warnings + calibration_warnings))
+    box = ("<div class='warn'><b>Warnings</b><ul>" + "".join(f"<li>{_esc(w)}</li>" for w in warnings)
+           + "</ul></div>") if warnings else "<p class='ok'>No warnings.</p>"
+    page = (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{_esc(title)}</title><style>{STYLE}</style>"
+            f"</head><body><h1>{_esc(title)}</h1>{box}{body}{details}</body></html>")
+    return atomic_write_bytes(record.folder / "report.html", page.encode())
+
+
+def _flat(prefix: str, scores: dict[str, Any]) -> dict[str, Any]:
+    return {f"{prefix}{key}": value for key, value in scores.items()}
+
+
+def colour_capture_report(context: Context, results: list[dict[str, Any]], colours: list[str]) -> dict[str, Any]:
+    """Per target: target / simulation / capture side by side, per-colour and merged scores, generation time
+    against error; metrics.json and metrics.csv (one row per target and colour, plus the merged row)."""
+    record = context.record
+    assert record is not None
+    rows, body, warnings = [], [], []
+    for result in results:
+        label = result["label"]
+        for name, colour in result["colours"].items():
+            rows.append({"target": result["target"], "label": label, "colour": name,
+                         "generation_s": colour["generation_s"], "cached": colour["cached"], "gain": colour["gain"],
+                         "saturated_fraction": colour["saturated_fraction"],
+                         **_flat("simulated_", colour["simulated"]), **_flat("capture_", colour["capture"])})
+        rows.append({"target": result["target"], "label": label, "colour": "merged",
+                     **_flat("simulated_", result["merged"]["simulated"]),
+                     **_flat("capture_", result["merged"]["capture"])})
+        warnings += [f"{label}: {w}" for w in result["warnings"]]
+        folder = result["folder"]
+        pictures = "".join(figure(record.folder, f"{folder}/{result['files'][key]}", caption) for key, caption in (
+            ("target", "target (sRGB)"), ("simulated", "simulated reconstruction"), ("capture", "merged capture")))
+        score_rows = [{"colour": name, "generation s": c["generation_s"],
+                       "simulated PSNR dB (amplitude)": c["simulated"]["psnr_amplitude_db"],
+                       "capture PSNR dB (amplitude)": c["capture"]["psnr_amplitude_db"],
+                       "simulated SSIM (sRGB)": c["simulated"]["ssim_srgb"],
+                       "capture SSIM (sRGB)": c["capture"]["ssim_srgb"], "gain": c["gain"],
+                       "saturated": c["saturated_fraction"]} for name, c in result["colours"].items()]
+        merged = result["merged"]
+        score_rows.append({"colour": "merged", "simulated PSNR dB (amplitude)": None,
+                           "simulated SSIM (sRGB)": merged["simulated"]["ssim_srgb"],
+                           "capture SSIM (sRGB)": merged["capture"]["ssim_srgb"]})
+        merged_rows = [{"image": kind, "PSNR dB linear": s["psnr_linear_db"], "PSNR dB sRGB": s["psnr_srgb_db"],
+                        "SSIM sRGB": s["ssim_srgb"]} for kind, s in merged.items()]
+        body.append(f"<h2>Target {_esc(result['target'])} ({_esc(label)})</h2>{pictures}"
+                    f"<h3>Per colour (ROI, least-squares scaled)</h3>{table(score_rows[:-1])}"
+                    f"<h3>Merged colour image</h3>{table(merged_rows)}")
+    speed = [{"label": r["label"], "colour": r["colour"], "generation s": r["generation_s"],
+              "simulated PSNR dB": r.get("simulated_psnr_amplitude_db"),
+              "capture PSNR dB": r.get("capture_psnr_amplitude_db")} for r in rows if r["colour"] != "merged"]
+    method = context.params.get("method")
+    body.append(f"<h2>Generation time against error ({_esc(method)})</h2>{table(speed)}"
+                "<p>Generation time is the time it took to compute the hologram (for a cached hologram, when it was "
+                "computed). PSNR in amplitude on the ROI after least-squares scaling.</p>")
+    write_json(record.folder / "metrics.json", {"procedure": "colour-capture", "method": method, "targets": results})
+    write_csv(record.folder / "metrics.csv", rows)
+    write_report(context, f"Colour capture: {', '.join(r['label'] for r in results)}", "".join(body), colours,
+                 warnings)
+    headline = [f"{r['label']}: merged capture PSNR {r['merged']['capture']['psnr_srgb_db']:.2f} dB sRGB, SSIM "
+                f"{r['merged']['capture']['ssim_srgb']:.3f} (simulated {r['merged']['simulated']['psnr_srgb_db']:.2f} "
+                f"dB, {r['merged']['simulated']['ssim_srgb']:.3f}); generation "
+                + ", ".join(f"{n} {c['generation_s']:.2f} s" for n, c in r["colours"].items()) for r in results]
+    return {"headline": headline, "warnings": warnings}
+
+
+def registration_report(context: Context, fits: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """Per colour: dots used, reprojection error, scale, and (simulated bench) the error against the truth."""
+    record = context.record
+    assert record is not None
+    rows = [{"colour": name, "inliers": f["inliers"], "points": f["points"], "rms px": f["rms_px"],
+             "max px": f["max_px"], "sensor px per SLM px": f["scale"], "mirrored": f["mirrored"],
+             "ROI corners vs simulator, max px": (f["simulator"] or {}).get("corner_error_max_px")}
+            for name, f in fits.items()]
+    pictures = "".join(figure(record.folder, context.result(f"registration/hologram/{name}")["file"],
+                              f"dot-grid hologram {name}") for name in fits)
+    write_json(record.folder / "metrics.json", {"procedure": "registration", "colours": fits})
+    write_csv(record.folder / "metrics.csv", rows)
+    write_report(context, "Camera-SLM registration", f"<h2>Fits</h2>{table(rows)}{pictures}", list(fits), [])
+    return {"headline": [f"{r['colour']}: RMS {r['rms px']:.3f} px over {r['inliers']}/{r['points']} dots"
+                         for r in rows]}
+
+
+def power_sweep_report(context: Context, analyses: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """Signal against setpoint per colour (plot and table), linearity, and the exposure advice."""
+    record = context.record
+    assert record is not None
+    rows, summary, warnings = [], [], []
+    for name, analysis in analyses.items():
+        for point in analysis["points"]:
+            rows.append({"colour": name, "setpoint_mw": point["setpoint_w"] * 1e3,
+                         "measured_mw": None if point["measured_w"] is None else point["measured_w"] * 1e3,
+                         "mean": point["mean"], "peak": point["peak"], "saturated_fraction": point["saturated_fraction"],
+                         "exposure_s": point["exposure_s"]})
+        if "warning" in analysis:
+            warnings.append(analysis["warning"])
+            continue
+        fit = analysis["mean_fit"]
+        summary.append({"colour": name, "R^2": fit["r2"], "max deviation": fit["max_deviation"],
+                        "mean per mW": fit["slope"] * 1e-3, "offset": fit["offset"],
+                        "working setpoint mW": analysis["working_setpoint_w"] * 1e3,
+                        "peak at working setpoint": analysis["peak_at_working"],
+                        "recommended exposure s": analysis.get("recommended_exposure_s")})
+        if analysis["saturated_levels"]:
+            warnings.append(f"{name}: {analysis['saturated_levels']} level(s) saturated (left out of the fits)")
+        if analysis["peak_at_working"] >= 1.0:
+            warnings.append(f"{name}: the working setpoint saturates the sensor at this exposure")
+    series = {name: ([p["setpoint_w"] * 1e3 for p in a["points"]], [p["mean"] for p in a["points"]])
+              for name, a in analyses.items()}
+    body = (f"<h2>Signal against setpoint</h2>{line_plot(series, 'setpoint (mW)', 'mean signal (full scale = 1)')}"
+            f"<h2>Linearity and exposure</h2>{table(summary)}<p>Fits use the unsaturated levels. The recommended "
+            f"exposure puts the peak ({PEAK_PERCENTILE_TEXT}) at 80 % of full scale at the working setpoint.</p>"
+            f"<h2>Measurements</h2>{table(rows)}")
+    write_json(record.folder / "metrics.json", {"procedure": "power-sweep", "colours": analyses})
+    write_csv(record.folder / "metrics.csv", rows)
+    write_report(context, "Laser power sweep", body, list(analyses), warnings)
+    return {"headline": [f"{s['colour']}: R^2 {s['R^2']:.5f}, recommended exposure "
+                         + (f"{s['recommended exposure s']:.4g} s" if s["recommended exposure s"] else "n/a")
+                         for s in summary] + warnings}
+
+
+def lut_report(context: Context, fits: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """Measured gray -> phase per colour (plot), depth, and on the simulated bench the error against the truth."""
+    record = context.record
+    assert record is not None
+    series = {name: ([float(g) for g in fit["grays"]], fit["phases"]) for name, fit in fits.items()}
+    rows = [{"colour": name, "grays measured": len(fit["grays"]), "phase depth rad": fit["depth_rad"],
+             "RMS vs simulator rad": (fit.get("simulator") or {}).get("rms_rad"),
+             "max vs simulator rad": (fit.get("simulator") or {}).get("max_rad"), "table": fit["file"]}
+            for name, fit in fits.items()]
+    signals = {name: ([float(g) for g in fit["grays"]], fit["signals"]) for name, fit in fits.items()}
+    body = (f"<h2>Measured phase response</h2>{line_plot(series, 'gray level', 'phase - phase(0) (rad)')}"
+            f"<h2>Zero-order signal</h2>{line_plot(signals, 'gray level', 'signal (full scale = 1)')}"
+            f"<h2>Tables</h2>{table(rows)}<p>The tables are stored per profile and used by later runs for every "
+            "channel whose table the profile does not name ([slm.lut]).</p>")
+    write_json(record.folder / "metrics.json", {"procedure": "lut-calibration", "colours": fits})
+    write_csv(record.folder / "metrics.csv", rows)
+    write_report(context, "SLM lookup-table calibration", body, list(fits), [])
+    return {"headline": [f"{r['colour']}: depth {r['phase depth rad']:.3f} rad"
+                         + (f", RMS {r['RMS vs simulator rad']:.4f} rad vs the simulator"
+                            if r["RMS vs simulator rad"] is not None else "") for r in rows]}
