@@ -9,6 +9,7 @@ every channel off. Laser safety (off at connect, off on any exit, limits, read-b
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
@@ -48,29 +49,27 @@ class Bench:
             self._open.clear()
             self._stack.close()
 
+    def _device(self, name: str, opener: Callable[[], Any], identify: Callable[[Any], Any]) -> Any:
+        """The device called `name`, opened (and its identity noted) on first use."""
+        if name not in self._open:
+            device = opener()
+            if name != "laser":  # the laser is closed first, by close(), not by the stack
+                self._stack.enter_context(device)
+            self._open[name] = device
+            self.identities[name] = identify(device)
+        return self._open[name]
+
     @property
     def laser(self) -> Laser:
-        if "laser" not in self._open:
-            laser = open_laser(self.profile)
-            self._open["laser"] = laser
-            self.identities["laser"] = laser.identity()
-        return self._open["laser"]
+        return self._device("laser", lambda: open_laser(self.profile), lambda laser: laser.identity())
 
     @property
     def slm(self) -> SLM:
-        if "slm" not in self._open:
-            slm = self._stack.enter_context(open_slm(self.profile.require("slm")))
-            self._open["slm"] = slm
-            self.identities["slm"] = slm.info()
-        return self._open["slm"]
+        return self._device("slm", lambda: open_slm(self.profile.require("slm")), lambda slm: slm.info())
 
     @property
     def camera(self) -> Camera:
-        if "camera" not in self._open:
-            camera = self._stack.enter_context(open_camera(self.profile))
-            self._open["camera"] = camera
-            self.identities["camera"] = camera.identity()
-        return self._open["camera"]
+        return self._device("camera", lambda: open_camera(self.profile), lambda camera: camera.identity())
 
     def expose(self, folder: Path, channel: str, power_w: float, frame: np.ndarray, *, frames: int,
                dark_frames: int) -> dict[str, Any]:
