@@ -78,8 +78,9 @@ def run_procedure(path: Path | None, *, profile: str | None = None, out: Path = 
         bench_profile = load_profile(profile)
         calibration = Calibration.store(bench_profile)
         record = None
-    with Bench(calibration.applied(bench_profile)) as bench:
-        context = Context(calibration.applied(bench_profile), procedure.params, calibration, bench, record, say)
+    effective = calibration.applied(bench_profile)
+    with Bench(effective) as bench:
+        context = Context(effective, procedure.params, calibration, bench, record, say)
         steps = procedure.plan(context)
         if dry_run:
             for line in _describe(steps, procedure, bench_profile):

@@ -169,13 +169,10 @@ def colour_capture_report(context: Context, results: list[dict[str, Any]], colou
                        "capture SSIM (sRGB)": c["capture"]["ssim_srgb"], "gain": c["gain"],
                        "saturated": c["saturated_fraction"]} for name, c in result["colours"].items()]
         merged = result["merged"]
-        score_rows.append({"colour": "merged", "simulated PSNR dB (amplitude)": None,
-                           "simulated SSIM (sRGB)": merged["simulated"]["ssim_srgb"],
-                           "capture SSIM (sRGB)": merged["capture"]["ssim_srgb"]})
         merged_rows = [{"image": kind, "PSNR dB linear": s["psnr_linear_db"], "PSNR dB sRGB": s["psnr_srgb_db"],
                         "SSIM sRGB": s["ssim_srgb"]} for kind, s in merged.items()]
         body.append(f"<h2>Target {_esc(result['target'])} ({_esc(label)})</h2>{pictures}"
-                    f"<h3>Per colour (ROI, least-squares scaled)</h3>{table(score_rows[:-1])}"
+                    f"<h3>Per colour (ROI, least-squares scaled)</h3>{table(score_rows)}"
                     f"<h3>Merged colour image</h3>{table(merged_rows)}")
     speed = [{"label": r["label"], "colour": r["colour"], "generation s": r["generation_s"],
               "simulated PSNR dB": r.get("simulated_psnr_amplitude_db"),

@@ -15,7 +15,7 @@ import numpy as np
 
 from benchctl.capture.colour_planes import registered_plane
 from benchctl.capture.raw import RawImage
-from benchctl.capture.registration import cfa_positions
+from benchctl.capture.registration import cfa_planes
 from benchctl.devices.power import parse_power
 from benchctl.errors import BenchctlError
 from benchctl.profiles import LaserChannel
@@ -79,15 +79,14 @@ def signal_stats(context: Context, image: RawImage, channel: LaserChannel) -> di
     """Mean, peak and saturated fraction of `channel`'s CFA plane on the ROI's image (or the whole frame)."""
     colour = target_plane(channel)
     registration = context.calibration.registrations().get(channel.name)
-    positions = cfa_positions(image.cfa, colour)
-    saturated = float(np.mean([image.saturated[dy::2, dx::2].mean() for dy, dx in positions]))
+    saturated = float(np.mean([plane.mean() for plane, _ in cfa_planes(image.saturated, image.cfa, colour)]))
     if registration is not None:
         profile = context.profile
         assert profile.slm is not None and profile.optics is not None
         values = registered_plane(image, colour, np.asarray(registration["homography"]), profile.slm.shape,
                                   profile.optics.roi)
     else:
-        values = np.concatenate([image.mosaic[dy::2, dx::2].ravel() for dy, dx in positions])
+        values = np.concatenate([plane.ravel() for plane, _ in cfa_planes(image.mosaic, image.cfa, colour)])
     return {"mean": float(values.mean()), "peak": float(np.percentile(values, PEAK_PERCENTILE)),
             "saturated_fraction": saturated}
 
