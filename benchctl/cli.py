@@ -10,7 +10,8 @@ from typing import Sequence
 import benchctl
 from benchctl.errors import BenchctlError
 
-EPILOG = """targets: a bundled chart (see `benchctl targets`) such as chart:siemens, or an image file.
+EPILOG = """targets: a bundled chart or photo (see `benchctl targets`) such as chart:siemens or photo:coffee, or an
+image file.
 profiles: a path to a TOML file or a name in hardware_profiles/ (default: simulated, or $BENCHCTL_PROFILE)."""
 
 
@@ -288,7 +289,7 @@ def build_parser() -> argparse.ArgumentParser:
                                      "simulated reconstruction and metrics.json. Colours that are black in the "
                                      "target are skipped.", epilog=EPILOG,
                          formatter_class=argparse.RawDescriptionHelpFormatter)
-    gen.add_argument("target", help="chart name (e.g. chart:siemens) or image file")
+    gen.add_argument("target", help="chart or photo name (e.g. chart:siemens, photo:coffee) or image file")
     gen.add_argument("--method", "-m", default="dpac", choices=[*method_names(), *LEARNED_METHODS],
                      help="hologram method (default: dpac); learned ones need a trained checkpoint")
     gen.add_argument("--checkpoint", type=Path, metavar="CKPT",

@@ -1,14 +1,16 @@
 """Targets: bundled procedural test charts, image files, and preparing either as amplitude on the SLM grid.
 
-A target spec is `chart:<name>` (drawn at the requested size, deterministic, no files shipped) or the path
-of an image file. Targets are sRGB in [0, 1]; prepare_target turns them into what holograms aim for:
+A target spec is `chart:<name>` (drawn at the requested size, deterministic, no files shipped),
+`photo:<name>` (a photograph bundled inside scikit-image, the `photos` extra) or the path of an image file. Targets are sRGB in [0, 1]; prepare_target turns them into what holograms aim for:
 linear intensity, resized to the ROI in linear light, square-rooted to amplitude, zero-padded to the grid.
 """
 
 from __future__ import annotations
 
 import functools
+import importlib.util
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -21,6 +23,7 @@ from benchctl.optics.colour import srgb_to_linear
 from benchctl.optics.metrics import centred_slices
 
 CHART_PREFIX = "chart:"
+PHOTO_PREFIX = "photo:"
 
 BLACK_INTENSITY = float(srgb_to_linear(torch.tensor(0.5 / 255, dtype=torch.float64)))
 """Linear intensity of half an 8-bit sRGB step (about 1.5e-4): a channel whose brightest pixel is below it
@@ -127,15 +130,70 @@ _CHARTS: dict[str, tuple[Callable[[int, int], np.ndarray], str]] = {
 }
 
 
+@dataclass(frozen=True)
+class Photo:
+    """A photograph shipped inside the scikit-image wheel: its file there, its role here, and its licence."""
+
+    file: str
+    split: str  # "eval": held out, never trained on; "train": may be trained on
+    description: str
+    licence: str
+
+
+_PHOTOS: dict[str, Photo] = {
+    "astronaut": Photo("astronaut.png", "eval", "astronaut portrait, colour, 512x512", "NASA, public domain"),
+    "coffee": Photo("coffee.png", "eval", "cup of coffee, colour, 400x600", "Rachel Michetti, CC0"),
+    "chelsea": Photo("chelsea.png", "eval", "cat, colour, 300x451", "Stefan van der Walt, CC0"),
+    "rocket": Photo("rocket.jpg", "eval", "rocket on the pad, colour, 427x640", "SpaceX, public domain"),
+    "hubble": Photo("hubble_deep_field.jpg", "train", "Hubble deep field, colour, 872x1000", "NASA, public domain"),
+    "retina": Photo("retina.jpg", "train", "retina fundus, colour, 1411x1411", "Häggström et al., CC0"),
+    "ihc": Photo("ihc.png", "train", "immunohistochemistry stain, colour, 512x512",
+                 "no known copyright restrictions (scikit-image)"),
+    "camera": Photo("camera.png", "train", "cameraman, gray, 512x512", "Lav Varshney, CC0"),
+    "brick": Photo("brick.png", "train", "brick wall texture, gray, 512x512", "CC0Textures, CC0"),
+    "grass": Photo("grass.png", "train", "grass texture, gray, 512x512", "CC0Textures, CC0"),
+    "gravel": Photo("gravel.png", "train", "gravel texture, gray, 512x512", "CC0Textures, CC0"),
+    "clock": Photo("clock_motion.png", "train", "clock with motion blur, gray, 300x400",
+                   "Stefan van der Walt, public domain"),
+}
+
+
+def photo_specs(split: str) -> list[str]:
+    """`photo:<name>` specs of one split: "eval" (held out from training) or "train"."""
+    if split not in ("eval", "train"):
+        raise ValueError(f"photo split must be 'eval' or 'train', got {split!r}")
+    return [f"{PHOTO_PREFIX}{name}" for name, photo in _PHOTOS.items() if photo.split == split]
+
+
+def photo_path(spec: str) -> Path:
+    """The file behind `photo:<name>` inside the installed scikit-image package (nothing is downloaded)."""
+    name = spec[len(PHOTO_PREFIX):] if spec.startswith(PHOTO_PREFIX) else spec
+    photo = _PHOTOS.get(name)
+    if photo is None:
+        known = ", ".join(f"{PHOTO_PREFIX}{n}" for n in _PHOTOS)
+        raise BenchctlError(f"unknown photo {spec!r}; known photos: {known}")
+    package = importlib.util.find_spec("skimage")
+    if package is None or not package.submodule_search_locations:
+        raise BenchctlError(f"{spec}: photographs come from scikit-image's bundled images; "
+                            "install them with: pip install 'benchctl[photos]'")
+    path = Path(next(iter(package.submodule_search_locations))) / "data" / photo.file
+    if not path.is_file():
+        raise BenchctlError(f"{spec}: {path} is missing from the installed scikit-image")
+    return path
+
+
 def list_targets() -> dict[str, str]:
-    """Bundled chart specs (`chart:<name>`) with a one-line description each, for help texts."""
-    return {f"{CHART_PREFIX}{name}": doc for name, (_, doc) in _CHARTS.items()}
+    """Bundled chart and photo specs with a one-line description each, for help texts."""
+    charts = {f"{CHART_PREFIX}{name}": doc for name, (_, doc) in _CHARTS.items()}
+    photos = {f"{PHOTO_PREFIX}{name}": f"{p.description} ({'held out' if p.split == 'eval' else 'training'}"
+              f" photo; {p.licence})" for name, p in _PHOTOS.items()}
+    return charts | photos
 
 
 def load_target(spec: str | Path, size: tuple[int, int]) -> np.ndarray:
-    """A target as float32 (H, W, 3) sRGB in [0, 1], from `chart:<name>` or an image file.
+    """A target as float32 (H, W, 3) sRGB in [0, 1], from `chart:<name>`, `photo:<name>` or an image file.
 
-    Charts are drawn at size = (H, W). Image files keep their own resolution: prepare_target resamples in
+    Charts are drawn at size = (H, W). Photos and image files keep their own resolution: prepare_target resamples in
     linear light, and resampling here too would blur twice. 8/16-bit integer images are scaled by their
     maximum, float images clipped to [0, 1]; gray becomes three equal channels; alpha is dropped.
     """
@@ -149,7 +207,7 @@ def load_target(spec: str | Path, size: tuple[int, int]) -> np.ndarray:
             raise BenchctlError(f"unknown chart {text!r}; known charts: {', '.join(list_targets())}")
         image = entry[0](h, w)
     else:
-        image = read_image(text)
+        image = read_image(photo_path(text) if text.startswith(PHOTO_PREFIX) else text)
         if np.issubdtype(image.dtype, np.integer):
             image = image / np.iinfo(image.dtype).max
         image = np.clip(image, 0.0, 1.0)

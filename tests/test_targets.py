@@ -12,12 +12,13 @@ import torch
 from benchctl.errors import BenchctlError
 from benchctl.images import write_png
 from benchctl.optics.colour import srgb_to_linear
-from benchctl.targets import BLACK_INTENSITY, active_channels, list_targets, load_target, prepare_target
+from benchctl.targets import (BLACK_INTENSITY, PHOTO_PREFIX, active_channels, list_targets, load_target, photo_path,
+                              photo_specs, prepare_target)
 
 SIZE = (96, 160)
 
 
-@pytest.mark.parametrize("spec", list(list_targets()))
+@pytest.mark.parametrize("spec", [spec for spec in list_targets() if spec.startswith("chart:")])
 def test_charts_have_shape_range_and_are_deterministic(spec: str) -> None:
     image = load_target(spec, SIZE)
     assert image.shape == (*SIZE, 3) and image.dtype == np.float32
@@ -118,3 +119,38 @@ def test_active_channels() -> None:
     faint[0, 0] = [1 / 255, 0.4 / 255, 0.0]  # one 8-bit step is light; below half a step is black
     assert active_channels(prepare_target(faint, (4, 4), (4, 4))) == [True, False, False]
     assert BLACK_INTENSITY == pytest.approx(0.5 / 255 / 12.92)
+
+
+def test_photos_are_split_into_disjoint_held_out_and_training_sets() -> None:
+    held_out, training = photo_specs("eval"), photo_specs("train")
+    assert held_out == ["photo:astronaut", "photo:coffee", "photo:chelsea", "photo:rocket"]
+    assert len(training) == 8 and not set(held_out) & set(training)
+    assert set(held_out) | set(training) == {s for s in list_targets() if s.startswith(PHOTO_PREFIX)}
+    with pytest.raises(ValueError, match="'eval' or 'train'"):
+        photo_specs("test")
+
+
+def test_photos_load_at_their_own_resolution_from_the_installed_package() -> None:
+    coffee = load_target("photo:coffee", SIZE)
+    assert coffee.shape == (400, 600, 3) and coffee.dtype == np.float32
+    assert 0.0 <= coffee.min() < 0.05 and 0.95 < coffee.max() <= 1.0
+    assert not np.array_equal(coffee[:, :, 0], coffee[:, :, 2])  # a colour photograph, not gray
+    camera = load_target("photo:camera", SIZE)  # gray photos become three equal channels
+    assert camera.shape == (512, 512, 3) and np.array_equal(camera[:, :, 0], camera[:, :, 1])
+    assert photo_path("photo:coffee").name == "coffee.png"
+
+
+def test_unknown_photo_and_missing_scikit_image_are_one_line_errors(monkeypatch: pytest.MonkeyPatch) -> None:
+    with pytest.raises(BenchctlError, match="unknown photo 'photo:lena'; known photos: photo:astronaut"):
+        load_target("photo:lena", SIZE)
+    monkeypatch.setattr("benchctl.targets.importlib.util.find_spec", lambda name: None)
+    with pytest.raises(BenchctlError, match=r"photo:coffee: .*pip install 'benchctl\[photos\]'"):
+        load_target("photo:coffee", SIZE)
+
+
+def test_run_labels_strip_the_target_kind() -> None:
+    from benchctl.runner.steps import target_label
+
+    taken: set[str] = set()
+    labels = [target_label(s, taken) for s in ("chart:bars", "photo:coffee", "pics/coffee.png", "photo:coffee")]
+    assert labels == ["bars", "coffee", "coffee-2", "coffee-3"]

@@ -21,7 +21,7 @@ from benchctl.runner.hologram_cache import hologram
 from benchctl.runner.procedure import Context, Step
 from benchctl.runner.record import set_aside
 from benchctl.schema import Field
-from benchctl.targets import CHART_PREFIX, load_target, prepare_target
+from benchctl.targets import CHART_PREFIX, PHOTO_PREFIX, load_target, prepare_target
 
 EXPOSURE_PARAMETERS = {
     "colours": Field("str_list", required=False),  # default: every laser channel of the profile
@@ -66,8 +66,10 @@ def unknown_setpoints(context: Context) -> None:
 
 
 def target_label(spec: str, taken: set[str]) -> str:
-    """A short file-name label for a target: chart:bars -> bars, photos/cat.png -> cat (unique in `taken`)."""
-    base = spec[len(CHART_PREFIX):] if spec.startswith(CHART_PREFIX) else Path(spec).stem
+    """A short file-name label for a target: chart:bars -> bars, photo:coffee -> coffee, photos/cat.png -> cat
+    (unique in `taken`)."""
+    prefix = next((p for p in (CHART_PREFIX, PHOTO_PREFIX) if spec.startswith(p)), None)
+    base = spec[len(prefix):] if prefix else Path(spec).stem
     base = "".join(c if c.isalnum() or c in "-_" else "-" for c in base) or "target"
     label, n = base, 2
     while label in taken:
