@@ -1,3 +1,5 @@
 """benchctl: holographic-display experiments on an optical bench, real or simulated."""
 
-__version__ = "0.1.0"
+from benchctl.provenance import release_version
+
+__version__ = release_version()

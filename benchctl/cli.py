@@ -271,10 +271,11 @@ def _cmd_targets(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The full argument parser (also used by the docs and tests)."""
-    from benchctl.cgh import method_names
-    from benchctl.cgh.learned import LEARNED_METHODS
+    """The full argument parser (also used by the docs and tests).
 
+    Building it imports nothing heavy (no torch, no networks): `benchctl laser off` must start instantly.
+    Method names are therefore checked when a command runs, not by argparse `choices`.
+    """
     parser = argparse.ArgumentParser(
         prog="benchctl",
         description="Holographic-display experiments on an optical bench, real or simulated.",
@@ -290,8 +291,9 @@ def build_parser() -> argparse.ArgumentParser:
                                      "target are skipped.", epilog=EPILOG,
                          formatter_class=argparse.RawDescriptionHelpFormatter)
     gen.add_argument("target", help="chart or photo name (e.g. chart:siemens, photo:coffee) or image file")
-    gen.add_argument("--method", "-m", default="dpac", choices=[*method_names(), *LEARNED_METHODS],
-                     help="hologram method (default: dpac); learned ones need a trained checkpoint")
+    gen.add_argument("--method", "-m", default="dpac",
+                     help="hologram method (default: dpac; `benchctl models` lists them all); learned ones need a "
+                          "trained checkpoint")
     gen.add_argument("--checkpoint", type=Path, metavar="CKPT",
                      help="trained models for a learned method (default: the one shipped for the profile)")
     gen.add_argument("--iterations", "-n", type=_positive_int, help="iterations for iterative methods "
@@ -361,7 +363,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "checkpoint OUT/<method>.pt (+ .json, + .resume.pt) after every epoch and at the end. Under "
                     "`torchrun --nproc_per_node N -m benchctl train ...` it trains with DistributedDataParallel.",
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    train.add_argument("--method", "-m", required=True, choices=LEARNED_METHODS, help="learned method to train")
+    train.add_argument("--method", "-m", required=True,
+                       help="learned method to train (`benchctl models` lists them)")
     train.add_argument("--data", required=True, metavar="DIR",
                        help="folder of training images (e.g. DIV2K), or procedural:N for N generated images")
     _add_profile(train)

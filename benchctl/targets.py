@@ -1,8 +1,9 @@
-"""Targets: bundled procedural test charts, image files, and preparing either as amplitude on the SLM grid.
+"""Targets: bundled test charts, photographs and image files, prepared as amplitude on the SLM grid.
 
 A target spec is `chart:<name>` (drawn at the requested size, deterministic, no files shipped),
-`photo:<name>` (a photograph bundled inside scikit-image, the `photos` extra) or the path of an image file. Targets are sRGB in [0, 1]; prepare_target turns them into what holograms aim for:
-linear intensity, resized to the ROI in linear light, square-rooted to amplitude, zero-padded to the grid.
+`photo:<name>` (a photograph bundled inside scikit-image, the `photos` extra) or the path of an image file.
+Targets are sRGB in [0, 1]; prepare_target turns them into what holograms aim for: linear intensity, resized to
+the ROI in linear light, square-rooted to amplitude, zero-padded to the grid.
 """
 
 from __future__ import annotations

@@ -121,3 +121,21 @@ def test_crop_roi_is_centred() -> None:
     assert crop_roi(x, (8, 10)).equal(x)
     with pytest.raises(ValueError, match="ROI 9x10 does not fit in a 8x10 image"):
         crop_roi(x, (9, 10))
+
+
+@pytest.mark.parametrize("shape", [(64, 80), (31, 120)])
+def test_ssim_and_psnr_match_scikit_image(shape: tuple[int, int]) -> None:
+    """An independent oracle: scikit-image's structural_similarity with the paper's settings (Gaussian weights,
+    sigma 1.5, population statistics) and peak_signal_noise_ratio, on a photograph-like pair."""
+    from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+
+    rng = np.random.default_rng(7)
+    a = rng.random(shape)
+    b = np.clip(a + 0.3 * rng.standard_normal(shape), 0, 1) * 0.8
+    expected_ssim = structural_similarity(a, b, gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
+                                          data_range=1.0)
+    got = ssim(torch.tensor(b), torch.tensor(a), data_range=1.0).item()
+    assert got == pytest.approx(expected_ssim, abs=1e-9)
+    assert 0.1 < expected_ssim < 0.9  # a pair that exercises both terms, not a trivial 0 or 1
+    assert psnr(torch.tensor(b), torch.tensor(a), data_range=1.0).item() == pytest.approx(
+        peak_signal_noise_ratio(a, b, data_range=1.0), abs=1e-9)

@@ -14,6 +14,7 @@ from benchctl.files import ensure_dir, write_json
 from benchctl.images import write_png
 from benchctl.optics import linear_to_srgb
 from benchctl.profiles import Profile
+from benchctl.provenance import code_identity
 from benchctl.runner.holograms import SceneResult, compute_scene
 from benchctl.targets import load_target, prepare_target
 
@@ -70,6 +71,7 @@ def run_generate(
     files.append(write_png(out_dir / "reconstruction.png", _srgb8(scene.merged_linear)).name)
     metrics = {
         "benchctl_version": benchctl.__version__,
+        "benchctl_code": code_identity(),
         "target": target,
         "profile": str(profile.path),
         "grid": list(profile.slm.shape),

@@ -2,7 +2,8 @@
 
 The key is a hash of everything the displayed frame depends on: the target plane's amplitude, the method and
 its options (iterations, seed, checkpoint file contents), the optical geometry of the channel and the SLM
-encoding (bit depth, lookup table, offset, carrier, flips), plus the benchctl version. An entry holds the
+encoding (bit depth, lookup table, offset, carrier, flips), plus a hash of benchctl's source, so an edited
+method never reuses holograms the old code made. An entry holds the
 frame as displayed, the simulated reconstruction and its scores, and the seconds it took to compute.
 Entries live in $BENCHCTL_CACHE_DIR/holograms (default ~/.cache/benchctl/holograms); deleting them is safe.
 """
@@ -20,11 +21,11 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-import benchctl
 from benchctl.cgh.learned import LEARNED_METHODS, find_checkpoint
 from benchctl.files import atomic_write_bytes, ensure_dir
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import Profile
+from benchctl.provenance import source_hash
 from benchctl.runner.holograms import compute_scene, target_plane
 
 CACHE_ENV = "BENCHCTL_CACHE_DIR"
@@ -53,7 +54,7 @@ def _key(profile: Profile, channel: str, plane: torch.Tensor, options: dict[str,
     setup = OpticalSetup.from_profile(profile, channel)
     digest = hashlib.sha256()
     description = {
-        "version": benchctl.__version__, "options": options, "wavelength_m": setup.wavelength_m,
+        "code": source_hash(), "options": options, "wavelength_m": setup.wavelength_m,
         "pitch_m": list(setup.pitch_m), "distance_m": setup.distance_m, "shape": list(setup.shape),
         "roi": list(setup.roi), "aperture": setup.aperture, "bit_depth": slm.bit_depth,
         "two_pi_gray": slm.two_pi_gray, "offset": slm.phase_offset_rad, "carrier": list(slm.grating_period_px),

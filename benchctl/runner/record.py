@@ -31,15 +31,16 @@ from typing import Any
 
 from benchctl.errors import BenchctlError
 from benchctl.files import atomic_write_bytes, ensure_dir, write_json
+from benchctl.provenance import code_identity
 
 RUN_FILE = "run.json"
 STEP_LOG = "steps.jsonl"
 PACKAGES = ("benchctl", "torch", "numpy", "pyserial", "pyusb", "opencv-contrib-python-headless", "rawpy")
 
 
-def package_versions() -> dict[str, str]:
-    """Versions of Python and of the packages a run's numbers depend on."""
-    versions = {"python": platform.python_version()}
+def package_versions() -> dict[str, object]:
+    """Versions of Python and of the packages a run's numbers depend on, and which benchctl code ran."""
+    versions: dict[str, object] = {"python": platform.python_version(), "benchctl_code": code_identity()}
     for name in PACKAGES:
         try:
             versions[name] = metadata.version(name)
