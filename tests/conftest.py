@@ -249,3 +249,20 @@ def calibration_and_cache_dirs(tmp_path_factory: pytest.TempPathFactory, monkeyp
     monkeypatch.setenv("BENCHCTL_CALIBRATION_DIR", str(folder / "calibration"))
     monkeypatch.setenv("BENCHCTL_CACHE_DIR", str(folder / "cache"))
     return folder
+
+
+# Tests that take seconds to a minute each on two cores: whole procedure runs, training and DDP, subprocesses that
+# import torch. `pytest -m "not slow"` skips them for a quick loop; CI runs everything.
+SLOW_MODULES = {"test_procedures.py", "test_learned_ddp.py", "test_learned_training.py", "test_learned_usage.py"}
+SLOW_TESTS = {
+    "test_sgd_beats_its_initial_phase_and_gs",
+    "test_bench_speed_vs_error_writes_a_row_per_method_budget_and_target",
+    "test_sigterm_during_laser_on_turns_emission_off",
+    "test_console_script_reports_errors_without_traceback",
+}
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    for item in items:
+        if item.path.name in SLOW_MODULES or item.name.split("[")[0] in SLOW_TESTS:
+            item.add_marker(pytest.mark.slow)
