@@ -249,3 +249,11 @@ def calibration_and_cache_dirs(tmp_path_factory: pytest.TempPathFactory, monkeyp
     monkeypatch.setenv("BENCHCTL_CALIBRATION_DIR", str(folder / "calibration"))
     monkeypatch.setenv("BENCHCTL_CACHE_DIR", str(folder / "cache"))
     return folder
+
+
+@pytest.fixture(autouse=True)
+def lock_dir(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """Each test gets its own device-lock folder (never the user's locks)."""
+    folder = tmp_path_factory.mktemp("locks")
+    monkeypatch.setenv("BENCHCTL_LOCK_DIR", str(folder))
+    return folder

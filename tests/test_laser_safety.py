@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from test_laser_protocols import TEMPLATE_OFF, ok, per_head_config, template_config
 from test_laser_sim import DIALECTS, RGB, saved_channel, sim_config
 
-from benchctl.devices.errors import DeviceError, DeviceTimeout, SafetyError
+from benchctl.devices.errors import DeviceError, DeviceTimeout, EmissionNotOff, SafetyError
 from benchctl.devices.laser import CoboltLaser, Laser, ObisLaser, TemplateLaser, open_laser
 from benchctl.devices.sim.state import save_state
 from benchctl.errors import BadValueError, BenchctlError
@@ -133,7 +133,8 @@ def test_lost_reply_after_enabling_switches_the_channel_off_again() -> None:
 
 def test_emission_still_on_after_off_is_an_error() -> None:
     laser, port = template_on([ok("CH1:EMIT 0"), ok("CH1:EMIT?", "1"), ok("CH2:EMIT 0"), ok("CH2:EMIT?", "0")])
-    with pytest.raises(DeviceError, match="'red'.*emission still on after the off command"):
+    with pytest.raises(EmissionNotOff, match="'red'.*emission still ON after the off command: use the key switch / "
+                                             "interlock"):
         laser.open()
     port.check()
     assert port.closed

@@ -13,6 +13,7 @@ from typing import Any
 
 from benchctl.devices.connection import Connection
 from benchctl.devices.errors import DeviceError
+from benchctl.devices.lock import DeviceLock
 from benchctl.errors import BadValueError
 from benchctl.files import atomic_write_bytes, ensure_dir
 from benchctl.profiles import CameraConfig
@@ -42,6 +43,9 @@ class Camera(Connection):
 
     def __init__(self, config: CameraConfig) -> None:
         self.config = config
+
+    def _device_lock(self) -> DeviceLock:
+        return DeviceLock(f"camera:{self.driver}:{self.config.usb_id}", f"camera ({self.driver} {self.config.usb_id})")
 
     @abstractmethod
     def _open(self) -> None:
