@@ -7,6 +7,7 @@ how long emission stays on.
 
 from __future__ import annotations
 
+import glob
 import os
 import re
 import signal
@@ -176,13 +177,23 @@ def camera_info(profile: Profile) -> list[str]:
 
 def camera_capture(profile: Profile, output: Path, frames: int | None) -> list[str]:
     """Capture RAW frames: one frame to `output`, several to `output`'s stem numbered -000, -001, ...
-    Each file is saved under its numbered name the moment it arrives and never modified."""
+    Each file is saved under its numbered name the moment it arrives and never modified; an existing file is
+    never replaced (refused before the shutter when it exists already)."""
     output = Path(output)
+    numbered = sorted(output.parent.glob(f"{glob.escape(output.stem)}-[0-9][0-9][0-9].*"))
+    taken = [output] if output.exists() else numbered or sorted(output.parent.glob(f"{glob.escape(output.name)}.*"))
+    if taken:
+        raise BenchctlError(f"{taken[0]} exists; captured files never replace one (choose another --output)")
     with open_camera(profile) as camera:
         captured = camera.capture(output.parent, frames=frames, stem=output.stem)
     if len(captured) == 1:
         single = output if output.suffix else output.with_suffix(captured[0].suffix)
-        captured[0].path.replace(single)
+        try:
+            os.link(captured[0].path, single)  # never replaces, unlike a rename
+        except FileExistsError:
+            raise BenchctlError(f"{single} appeared during the capture and is kept; the frame is "
+                                f"{captured[0].path}") from None
+        captured[0].path.unlink()
         targets = [single]
     else:
         targets = [frame.path for frame in captured]

@@ -89,7 +89,8 @@ class Camera(Connection):
     def capture(self, destination: Path | None = None, frames: int | None = None,
                 stem: str = "frame") -> list[RawFrame]:
         """Capture `frames` RAW frames (default: the profile's `frames`), each saved to `destination` (a folder)
-        as `<stem>-<n>.<ext>` the moment it arrives, before the next shutter release."""
+        as `<stem>-<n>.<ext>` the moment it arrives, before the next shutter release. An existing file of that
+        name is never replaced (BenchctlError naming it)."""
         self._require_open()
         count = self.config.frames if frames is None else frames
         if count < 1:
@@ -100,7 +101,8 @@ class Camera(Connection):
         for index in range(count):
             frame = self._capture_one()
             if destination is not None:
-                path = atomic_write_bytes(Path(destination) / f"{stem}-{index:03d}{frame.suffix}", frame.data)
+                path = atomic_write_bytes(Path(destination) / f"{stem}-{index:03d}{frame.suffix}", frame.data,
+                                          overwrite=False)
                 frame = RawFrame(frame.data, frame.format, frame.file_name, frame.metadata, path)
             captured.append(frame)
         return captured
