@@ -28,8 +28,9 @@ DEVICES = ("laser", "slm", "camera")
 class Bench:
     """Lazily opened devices of one profile; use as a context manager."""
 
-    def __init__(self, profile: Profile) -> None:
+    def __init__(self, profile: Profile, say: Callable[[str], None] = print) -> None:
         self.profile = profile
+        self.say = say
         self._stack = ExitStack()
         self._open: dict[str, Any] = {}
         self.identities: dict[str, Any] = {}
@@ -62,7 +63,16 @@ class Bench:
 
     @property
     def laser(self) -> Laser:
-        return self._device("laser", lambda: open_laser(self.profile), lambda laser: laser.identity())
+        return self._device("laser", lambda: open_laser(self.profile), self._laser_identity)
+
+    def _laser_identity(self, laser: Laser) -> Any:
+        """The laser's identity; channels it found emitting at connect are said and recorded (devices.json)."""
+        found = laser.connect_report()
+        for line in found:
+            self.say(f"laser: {line}")
+        if found:
+            self.identities["laser_found_emitting"] = found
+        return laser.identity()
 
     @property
     def slm(self) -> SLM:

@@ -60,7 +60,7 @@ def laser_set(profile: Profile, channel: str, power: str) -> list[str]:
     """Change one channel's setpoint (emission stays off); the device's read-back value is reported."""
     with open_laser(profile.require("laser").laser) as laser:
         watts = laser.set_power(channel, power)
-        return [f"{channel}: setpoint {format_power(watts)} (read back)"]
+        return laser.connect_report() + [f"{channel}: setpoint {format_power(watts)} (read back)"]
 
 
 def laser_on(profile: Profile, channel: str, duration_s: float | None, leave_on: bool,
@@ -68,6 +68,8 @@ def laser_on(profile: Profile, channel: str, duration_s: float | None, leave_on:
     """Emission on `channel` for `duration_s` (None: until Ctrl-C), then off unless `leave_on`."""
     try:
         with open_laser(profile.require("laser").laser) as laser:
+            for line in laser.connect_report():
+                out(line)
             laser.set_emission(channel, True)
             if leave_on:
                 laser.leave_on = True
@@ -101,7 +103,7 @@ def laser_off(profile: Profile, channel: str, wait_s: float = HOLDER_EXIT_S) -> 
         names = laser.channel_names if channel == "all" else [channel]
         for name in names:
             laser.set_emission(name, False)
-        return lines + [f"{name}: emission off" for name in names]
+        return lines + laser.connect_report() + [f"{name}: emission off" for name in names]
 
 
 def stop_laser_holders(ports: list[str], wait_s: float) -> list[str]:

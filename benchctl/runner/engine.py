@@ -85,7 +85,7 @@ def run_procedure(path: Path | None, *, profile: str | None = None, out: Path = 
         calibration = Calibration.store(bench_profile)
         record = None
     effective = calibration.applied(bench_profile)
-    with Bench(effective) as bench:
+    with Bench(effective, say) as bench:
         context = Context(effective, procedure.params, calibration, bench, record, say)
         steps = procedure.plan(context)
         if dry_run:

@@ -2,7 +2,8 @@
 
 The public methods are fixed here and drivers implement small hooks (one command each, mostly), so the safety
 rules live in one place and cannot be skipped by a dialect:
-- connecting turns autostart off (where the dialect has it) and emission off on every channel, read back;
+- connecting turns autostart off (where the dialect has it) and emission off on every channel, read back, and
+  reports each channel it found emitting (`connect_report`);
 - a power above the channel's max_power_mw (or the head's own limit) is refused before anything is sent;
 - every setting is read back; a device that silently clamps or ignores a setting is an error;
 - emission is enabled only after the interlock and fault status were checked;
@@ -82,6 +83,7 @@ class Laser(ABC):
         self._holds: dict[str, DeviceLock] = {}
         self._limits_w: dict[str, float] = {}
         self._emission_commanded: dict[str, bool] = {}
+        self.found_emitting: dict[str, float] = {}  # channel -> setpoint (W) of channels emitting at connect
 
     # -- connection ------------------------------------------------------------------------------------------
 
@@ -154,13 +156,22 @@ class Laser(ABC):
     def _make_safe(self, channel: LaserChannel) -> None:
         try:
             self._prepare(channel)
+            was_on = self._read_emission(channel)
         finally:
             self._switch_off(channel)
+        if was_on:
+            self.found_emitting[channel.name] = self._read_setpoint(channel)
         limit = self._read_limit_w(channel)
         if limit is not None:
             self._limits_w[channel.name] = limit
 
     # -- public API --------------------------------------------------------------------------------------------
+
+    def connect_report(self) -> list[str]:
+        """One line per channel that was emitting when this connection switched it off (every command says it:
+        something left the light on)."""
+        return [f"{name} was emitting at {format_power(watts)}; switched off"
+                for name, watts in self.found_emitting.items()]
 
     def identity(self) -> str:
         """What the unit says it is (model, serial number), one entry per port for multi-port setups."""
