@@ -427,9 +427,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the `benchctl` console script; returns the process exit code."""
+    from benchctl.devices.lock import set_command
     from benchctl.devices.safety import TerminatedBySignal, signals_interrupt
 
     args = build_parser().parse_args(argv)
+    action = getattr(args, f"{args.command}_command", None) or getattr(args, args.command, None)
+    set_command(f"benchctl {args.command}" + (f" {action}" if isinstance(action, str) else ""))
     try:
         with signals_interrupt():
             return args.func(args)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import hashlib
 import io
 import json
 import os
@@ -27,8 +28,9 @@ def ensure_dir(path: Path) -> Path:
     return path
 
 
-def atomic_write_bytes(path: Path, data: bytes) -> Path:
-    """Write `data` to `path` atomically (readers see the old file or the new one, never a partial one)."""
+def atomic_write_bytes(path: Path, data: bytes, *, overwrite: bool = True) -> Path:
+    """Write `data` to `path` atomically (readers see the old file or the new one, never a partial one).
+    `overwrite=False`: an existing `path` is never replaced (BenchctlError naming it), even one created meanwhile."""
     path = Path(path)
     try:
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
@@ -40,7 +42,14 @@ def atomic_write_bytes(path: Path, data: bytes) -> Path:
             handle.flush()
             os.fsync(handle.fileno())
         os.chmod(tmp, 0o666 & ~_UMASK)
-        os.replace(tmp, path)
+        if overwrite:
+            os.replace(tmp, path)
+        else:
+            os.link(tmp, path)  # fails if `path` exists, unlike a rename
+            os.unlink(tmp)
+    except FileExistsError:
+        Path(tmp).unlink(missing_ok=True)
+        raise BenchctlError(f"{path} exists; it is kept as it is (choose another name)") from None
     except OSError as exc:
         Path(tmp).unlink(missing_ok=True)
         raise BenchctlError(f"cannot write {path}: {exc.strerror or exc}") from None
@@ -51,8 +60,21 @@ def atomic_write_bytes(path: Path, data: bytes) -> Path:
 
 
 def write_json(path: Path, data: Any) -> Path:
-    """Atomically write `data` as indented JSON."""
-    return atomic_write_bytes(path, (json.dumps(data, indent=2) + "\n").encode())
+    """Atomically write `data` as indented JSON (strict: a NaN or infinity is an error, never invalid JSON)."""
+    try:
+        text = json.dumps(data, indent=2, allow_nan=False)
+    except ValueError as exc:
+        raise BenchctlError(f"{path}: {exc} (a NaN or infinity cannot be written as JSON)") from None
+    return atomic_write_bytes(path, (text + "\n").encode())
+
+
+def file_sha256(path: Path) -> str:
+    """SHA-256 of a file's bytes, hex (what run records keep for every captured file)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 def write_csv(path: Path, rows: Iterable[Mapping[str, Any]]) -> Path:

@@ -251,6 +251,14 @@ def calibration_and_cache_dirs(tmp_path_factory: pytest.TempPathFactory, monkeyp
     return folder
 
 
+@pytest.fixture(autouse=True)
+def lock_dir(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """Each test gets its own device-lock folder (never the user's locks)."""
+    folder = tmp_path_factory.mktemp("locks")
+    monkeypatch.setenv("BENCHCTL_LOCK_DIR", str(folder))
+    return folder
+
+
 # Tests that take seconds to a minute each on two cores: whole procedure runs, training and DDP, subprocesses that
 # import torch. `pytest -m "not slow"` skips them for a quick loop; CI runs everything.
 SLOW_MODULES = {"test_procedures.py", "test_learned_ddp.py", "test_learned_training.py", "test_learned_usage.py"}

@@ -68,10 +68,12 @@ def obis(command: str, value: str | None = None) -> tuple[bytes, bytes | None]:
 # -- template ----------------------------------------------------------------------------------------------------
 
 TEMPLATE_OFF = [ok("CH1:EMIT 0"), ok("CH1:EMIT?", "0"), ok("CH2:EMIT 0"), ok("CH2:EMIT?", "0")]
+# Connecting asks each channel whether it emits before switching it off (to report one that did).
+TEMPLATE_CONNECT = [ok("CH1:EMIT?", "0"), *TEMPLATE_OFF[:2], ok("CH2:EMIT?", "0"), *TEMPLATE_OFF[2:]]
 
 
 def test_template_session_bytes() -> None:
-    script = TEMPLATE_OFF + [
+    script = TEMPLATE_CONNECT + [
         ok("*IDN?", "ACME RGB,SN 7"),
         ok("CH1:POW 20.00"), ok("CH1:POW?", "20.00"),
         ok("CH1:MEAS?", "19.90"),
@@ -100,7 +102,8 @@ def test_template_in_watts_with_echo_and_on_off_replies() -> None:
         return f"{command}\n".encode(), f"{command}\n{reply}\n".encode()
 
     off = [echoed("OFF1"), echoed("EM1?", "OFF"), echoed("OFF2"), echoed("EM2?", "OFF")]
-    script = off + [echoed("PW2 0.0050"), echoed("PW2?", "0.0050"), echoed("ON2"), echoed("EM2?", "ON"),
+    connect = [echoed("EM1?", "OFF"), *off[:2], echoed("EM2?", "OFF"), *off[2:]]
+    script = connect + [echoed("PW2 0.0050"), echoed("PW2?", "0.0050"), echoed("ON2"), echoed("EM2?", "ON"),
                     echoed("PW2?", "0.0050"), echoed("EM2?", "ON")] + off
     with scripted(TemplateLaser, template_config(protocol), {"script://rgb": script}) as laser:
         assert laser.set_power("green", 0.005) == pytest.approx(0.005)
@@ -111,14 +114,14 @@ def test_template_in_watts_with_echo_and_on_off_replies() -> None:
 
 
 def test_template_fault_text_blocks_emission() -> None:
-    script = TEMPLATE_OFF + [ok("CH1:STAT?", "FAULT 1 TEMPERATURE")] + TEMPLATE_OFF
+    script = TEMPLATE_CONNECT + [ok("CH1:STAT?", "FAULT 1 TEMPERATURE")] + TEMPLATE_OFF
     with scripted(TemplateLaser, template_config(), {"script://rgb": script}) as laser:
         with pytest.raises(SafetyError, match="FAULT 1 TEMPERATURE"):
             laser.set_emission("red", True)
 
 
 def test_template_error_reply_raises_with_the_devices_text() -> None:
-    script = TEMPLATE_OFF + [ok("CH2:POW 30.00", "ERR 2 OUT OF RANGE")] + TEMPLATE_OFF
+    script = TEMPLATE_CONNECT + [ok("CH2:POW 30.00", "ERR 2 OUT OF RANGE")] + TEMPLATE_OFF
     with scripted(TemplateLaser, template_config(), {"script://rgb": script}) as laser:
         with pytest.raises(DeviceError, match="'CH2:POW 30.00' refused: ERR 2 OUT OF RANGE"):
             laser.set_power("green", "30mW")
@@ -133,7 +136,7 @@ def test_template_with_a_bad_placeholder_fails_at_construction() -> None:
 # -- cobolt ------------------------------------------------------------------------------------------------------
 
 def cobolt_open() -> Pairs:
-    return [ok("@cobas 0"), ok("l0"), ok("l?", "0"), ok("gmlp?", "40.0")]
+    return [ok("@cobas 0"), ok("l?", "0"), ok("l0"), ok("l?", "0"), ok("gmlp?", "40.0")]
 
 
 COBOLT_CLOSE = [ok("l0"), ok("l?", "0")]
@@ -186,7 +189,7 @@ def test_cobolt_syntax_error_raises_with_the_devices_text() -> None:
 
 
 def test_cobolt_head_limit_refuses_before_sending() -> None:
-    red = [ok("@cobas 0"), ok("l0"), ok("l?", "0"), ok("gmlp?", "25.0")] + COBOLT_CLOSE
+    red = [ok("@cobas 0"), ok("l?", "0"), ok("l0"), ok("l?", "0"), ok("gmlp?", "25.0")] + COBOLT_CLOSE
     green = cobolt_open() + COBOLT_CLOSE
     with scripted(CoboltLaser, per_head_config("cobolt"), heads("cobolt", red, green)) as laser:
         with pytest.raises(DeviceError, match="above the head's own limit 25 mW; nothing was sent"):
@@ -203,7 +206,7 @@ def test_cobolt_refuses_channels_sharing_a_port() -> None:
 
 def obis_open(prefix: str = "SOURce", system: str = "SYSTem") -> Pairs:
     return [
-        obis(f"{system}:AUTostart OFF"), obis(f"{system}:CDRH OFF"),
+        obis(f"{system}:AUTostart OFF"), obis(f"{system}:CDRH OFF"), obis(f"{prefix}:AM:STATe?", "OFF"),
         obis(f"{prefix}:AM:STATe OFF"), obis(f"{prefix}:AM:STATe?", "OFF"),
         obis(f"{prefix}:POWer:LIMit:HIGH?", "0.0400"),
     ]
@@ -265,7 +268,7 @@ def test_obis_error_reply_and_missing_handshake() -> None:
 
 
 def test_open_laser_chooses_the_driver_by_name() -> None:
-    ports = {"script://rgb": ExpectedProtocol(TEMPLATE_OFF + TEMPLATE_OFF)}
+    ports = {"script://rgb": ExpectedProtocol(TEMPLATE_CONNECT + TEMPLATE_OFF)}
     with open_laser(template_config(), port_factory=ports.__getitem__) as laser:
         assert type(laser) is TemplateLaser and laser.is_open
     assert not laser.is_open

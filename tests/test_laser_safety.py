@@ -8,10 +8,10 @@ import pytest
 from expected_protocol import ExpectedProtocol
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from test_laser_protocols import TEMPLATE_OFF, ok, per_head_config, template_config
+from test_laser_protocols import TEMPLATE_CONNECT, TEMPLATE_OFF, ok, per_head_config, template_config
 from test_laser_sim import DIALECTS, RGB, saved_channel, sim_config
 
-from benchctl.devices.errors import DeviceError, DeviceTimeout, SafetyError
+from benchctl.devices.errors import DeviceError, DeviceTimeout, EmissionNotOff, SafetyError
 from benchctl.devices.laser import CoboltLaser, Laser, ObisLaser, TemplateLaser, open_laser
 from benchctl.devices.sim.state import save_state
 from benchctl.errors import BadValueError, BenchctlError
@@ -45,7 +45,7 @@ def test_connecting_turns_emission_off_on_every_channel(dialect: str) -> None:
 
 @pytest.mark.parametrize("power", ["41mW", "0.05W", "101%", 0.0401, 1, "1e9 W"])
 def test_power_above_the_limit_is_refused_before_any_byte(power: str | float) -> None:
-    laser, port = template_on(TEMPLATE_OFF + TEMPLATE_OFF)
+    laser, port = template_on(TEMPLATE_CONNECT + TEMPLATE_OFF)
     with laser:
         with pytest.raises(SafetyError, match="above the profile's limit 40 mW.*nothing was sent"):
             laser.set_power("red", power)
@@ -110,7 +110,7 @@ def test_leave_on_keeps_emission_after_a_plain_close_and_observe_sees_it() -> No
 
 
 def test_close_tries_every_channel_then_raises_the_first_error() -> None:
-    script = TEMPLATE_OFF + [ok("CH1:EMIT 0", "ERR 7 BUSY"), ok("CH2:EMIT 0"), ok("CH2:EMIT?", "0")]
+    script = TEMPLATE_CONNECT + [ok("CH1:EMIT 0", "ERR 7 BUSY"), ok("CH2:EMIT 0"), ok("CH2:EMIT?", "0")]
     laser, port = template_on(script)
     laser.open()
     with pytest.raises(DeviceError, match="ERR 7 BUSY"):
@@ -120,7 +120,7 @@ def test_close_tries_every_channel_then_raises_the_first_error() -> None:
 
 
 def test_lost_reply_after_enabling_switches_the_channel_off_again() -> None:
-    script = TEMPLATE_OFF + [
+    script = TEMPLATE_CONNECT + [
         ok("CH1:STAT?"), ok("CH1:EMIT 1"), (b"CH1:EMIT?\r\n", None),  # the read-back is lost
         ok("CH1:EMIT 0"), ok("CH1:EMIT?", "0"),  # switched off before the error is raised
     ] + TEMPLATE_OFF
@@ -132,8 +132,10 @@ def test_lost_reply_after_enabling_switches_the_channel_off_again() -> None:
 
 
 def test_emission_still_on_after_off_is_an_error() -> None:
-    laser, port = template_on([ok("CH1:EMIT 0"), ok("CH1:EMIT?", "1"), ok("CH2:EMIT 0"), ok("CH2:EMIT?", "0")])
-    with pytest.raises(DeviceError, match="'red'.*emission still on after the off command"):
+    laser, port = template_on([ok("CH1:EMIT?", "0"), ok("CH1:EMIT 0"), ok("CH1:EMIT?", "1"), ok("CH2:EMIT?", "0"),
+                               ok("CH2:EMIT 0"), ok("CH2:EMIT?", "0")])
+    with pytest.raises(EmissionNotOff, match="'red'.*emission still ON after the off command: use the key switch / "
+                                             "interlock"):
         laser.open()
     port.check()
     assert port.closed
@@ -207,3 +209,36 @@ def test_cobolt_fault_codes(code: int, ilk: str) -> None:
     assert status.interlock_ok is (ilk == "0" and code != 3)
     assert len(status.faults) == (0 if code in (0, 3) else 1)
     assert all(fault.endswith(f"(f? = {code})") for fault in status.faults)
+
+
+@pytest.mark.parametrize("dialect", DIALECTS)
+def test_a_channel_found_emitting_at_connect_is_reported(dialect: str) -> None:
+    leave_emitting(dialect)
+    with open_laser(sim_config(dialect)) as laser:
+        assert laser.connect_report() == [f"{name} was emitting at 10 mW; switched off" for name, _, _ in RGB]
+    with open_laser(sim_config(dialect)) as laser:
+        assert laser.connect_report() == []
+
+
+def test_every_laser_command_and_a_run_say_what_was_found_emitting(tmp_path, small_profile_path, bench_profile_path,
+                                                                   capsys) -> None:
+    import json
+
+    from benchctl.cli import main
+
+    def green_left_on() -> None:
+        save_state("rgb-laser", {"channels": {str(index): {"setpoint_w": 0.002, "emission": name == "green"}
+                                              for name, index, _ in RGB}})
+
+    for argv in (["laser", "off"], ["laser", "set", "red", "1mW"], ["laser", "on", "red", "--for", "0s"]):
+        green_left_on()
+        assert main([*argv, "-p", str(small_profile_path)]) == 0
+        assert "green was emitting at 2 mW; switched off" in capsys.readouterr().out.splitlines()
+    green_left_on()
+    procedure = tmp_path / "p.toml"
+    procedure.write_text('procedure = "power-sweep"\n[parameters]\ncolours = ["green"]\nlevels = ["1mW", "2mW"]\n')
+    assert main(["run", str(procedure), "-p", str(bench_profile_path), "-o", str(tmp_path / "runs")]) == 0
+    assert "laser: green was emitting at 2 mW; switched off" in capsys.readouterr().out.splitlines()
+    (folder,) = (tmp_path / "runs").iterdir()
+    devices = json.loads((folder / "devices.json").read_text())
+    assert devices["laser_found_emitting"] == ["green was emitting at 2 mW; switched off"]

@@ -7,7 +7,7 @@ import time
 
 import pytest
 
-from benchctl.devices.errors import DeviceBusy, DeviceError, DeviceTimeout, SafetyError
+from benchctl.devices.errors import DeviceBusy, DeviceError, DeviceTimeout, EmissionNotOff, SafetyError
 from benchctl.devices.laser import open_laser
 from benchctl.devices.sim.state import load_state, save_state
 from benchctl.profiles import LaserChannel, LaserConfig, TemplateProtocol, load_profile
@@ -105,8 +105,10 @@ def test_busy_port() -> None:
 
 def test_no_reply_is_a_timeout() -> None:
     started = time.monotonic()
-    with pytest.raises(DeviceTimeout, match="no reply to 'CH1:EMIT 0' within 0.2 s"):
+    with pytest.raises(EmissionNotOff, match="no reply to 'CH1:EMIT 0' within 0.2 s; .*: emission state UNKNOWN, "
+                                             "possibly ON: use the key switch / interlock") as info:
         open_laser(sim_config("template", "fault=no_reply", channels=1))
+    assert isinstance(info.value.__cause__, DeviceTimeout)
     assert time.monotonic() - started < 2.0  # one timeout, not a hang
 
 
@@ -129,7 +131,7 @@ def test_echo_handled_when_configured_and_reported_when_not() -> None:
 def test_slow_replies_within_the_timeout_work_and_beyond_it_time_out() -> None:
     with open_laser(sim_config("template", "fault=slow&reply_delay_s=0.02", channels=1, timeout_s=0.5)) as laser:
         assert laser.set_power("red", "1mW") == pytest.approx(0.001)
-    with pytest.raises(DeviceTimeout):
+    with pytest.raises(EmissionNotOff, match="no reply .*emission state UNKNOWN"):
         open_laser(sim_config("template", "fault=slow&reply_delay_s=0.3", channels=1, timeout_s=0.2))
 
 
@@ -168,9 +170,9 @@ def test_clamped_setpoint_is_detected_by_readback(dialect: str) -> None:
             laser.set_power("red", "30mW")
 
 
-def test_cable_pulled_mid_session_times_out_and_leaves_emission_off() -> None:
+def test_cable_pulled_mid_session_says_emission_is_unknown() -> None:
     # open: 3 x (EMIT 0, EMIT?) = 6 commands; set_power: 2; set_emission: STAT?, EMIT 1, EMIT? -> 11
-    with pytest.raises(DeviceTimeout):
+    with pytest.raises(EmissionNotOff, match="emission state UNKNOWN, possibly ON: use the key switch / interlock"):
         with open_laser(sim_config("template", "fault=drop_after=11")) as laser:
             laser.set_power("red", "20mW")
             laser.set_emission("red", True)

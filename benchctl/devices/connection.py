@@ -1,9 +1,12 @@
-"""Open / close bookkeeping shared by the SLM and the camera: idempotent, and a context manager."""
+"""Open / close bookkeeping shared by the SLM and the camera: idempotent, a context manager, and the device's
+lock held from open to close (one command at a time uses a device)."""
 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from typing import TypeVar
+
+from benchctl.devices.lock import DeviceLock
 
 T = TypeVar("T", bound="Connection")
 
@@ -12,6 +15,11 @@ class Connection(ABC):
     """A device that is opened once and closed once, however often open() and close() are called."""
 
     _open_now = False
+    _hold: DeviceLock | None = None
+
+    @abstractmethod
+    def _device_lock(self) -> DeviceLock:
+        """The lock that names this device (its port, device file or USB id)."""
 
     @abstractmethod
     def _open(self) -> None:
@@ -27,9 +35,15 @@ class Connection(ABC):
         return self._open_now
 
     def open(self: T) -> T:
-        """Connect (no-op if open); returns self."""
+        """Lock the device, then connect (no-op if open); returns self. Held by another command: DeviceHeld."""
         if not self._open_now:
-            self._open()
+            hold = self._device_lock().acquire()
+            try:
+                self._open()
+            except BaseException:
+                hold.release()
+                raise
+            self._hold = hold
             self._open_now = True
         return self
 
@@ -37,7 +51,12 @@ class Connection(ABC):
         """Disconnect (no-op if closed)."""
         if self._open_now:
             self._open_now = False
-            self._close()
+            try:
+                self._close()
+            finally:
+                if self._hold is not None:
+                    self._hold.release()
+                    self._hold = None
 
     def __enter__(self: T) -> T:
         return self.open()

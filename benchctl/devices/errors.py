@@ -18,3 +18,7 @@ class DeviceBusy(DeviceError):
 class SafetyError(DeviceError):
     """Refused before anything was sent: the request would break a safety rule (power above the limit,
     emission with the interlock open or a fault active)."""
+
+
+class EmissionNotOff(SafetyError):
+    """Switching a laser's emission off was not confirmed: its state is unknown (possibly on) or it is still on."""

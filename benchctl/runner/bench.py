@@ -16,7 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from benchctl.devices.camera import Camera, open_camera
+from benchctl.devices.camera import Camera, RawFrame, open_camera
+from benchctl.devices.errors import DeviceError
 from benchctl.devices.laser import Laser, open_laser
 from benchctl.devices.slm import SLM, open_slm
 from benchctl.profiles import Profile
@@ -27,8 +28,9 @@ DEVICES = ("laser", "slm", "camera")
 class Bench:
     """Lazily opened devices of one profile; use as a context manager."""
 
-    def __init__(self, profile: Profile) -> None:
+    def __init__(self, profile: Profile, say: Callable[[str], None] = print) -> None:
         self.profile = profile
+        self.say = say
         self._stack = ExitStack()
         self._open: dict[str, Any] = {}
         self.identities: dict[str, Any] = {}
@@ -61,7 +63,16 @@ class Bench:
 
     @property
     def laser(self) -> Laser:
-        return self._device("laser", lambda: open_laser(self.profile), lambda laser: laser.identity())
+        return self._device("laser", lambda: open_laser(self.profile), self._laser_identity)
+
+    def _laser_identity(self, laser: Laser) -> Any:
+        """The laser's identity; channels it found emitting at connect are said and recorded (devices.json)."""
+        found = laser.connect_report()
+        for line in found:
+            self.say(f"laser: {line}")
+        if found:
+            self.identities["laser_found_emitting"] = found
+        return laser.identity()
 
     @property
     def slm(self) -> SLM:
@@ -76,11 +87,13 @@ class Bench:
         """Show `frame` (gray levels as displayed), light it with `channel` alone at `power_w`, capture
         `frames` RAW frames into `folder` (frame-000...), then with emission off `dark_frames` (dark-000...).
 
-        Returns what happened: file names, the read-back setpoint, the measured power, timings.
+        Returns what happened: file names, the read-back setpoint, the measured power, timings, the SLM frame
+        shown and the one each lit frame saw; a lit frame that saw another SLM frame is a DeviceError.
         """
         laser, slm, camera = self.laser, self.slm, self.camera
         laser.all_off()
         slm.show_gray(frame)  # waits the settle time while dark
+        shown = slm.shown_frame
         setpoint = laser.set_power(channel, power_w)
         start = time.perf_counter()
         try:
@@ -90,10 +103,23 @@ class Bench:
         finally:
             laser.set_emission(channel, False)
         exposed_s = time.perf_counter() - start
+        seen = [_slm_frame_seen(frame_, slm) for frame_ in lit]
+        wrong = [(frame_, id_) for frame_, id_ in zip(lit, seen) if id_ != shown]
+        if wrong:
+            frame_, id_ = wrong[0]
+            raise DeviceError(f"{frame_.path or frame_.file_name}: captured while the SLM showed frame {id_}, not "
+                              f"frame {shown} that this step displayed (did another program change the SLM?)")
         darks = camera.capture(folder, dark_frames, stem="dark") if dark_frames else []
         return {
-            "channel": channel, "setpoint_w": setpoint, "measured_w": measured, "emission_s": round(exposed_s, 3),
+            "channel": channel, "slm_frame": shown, "slm_frames_seen": seen, "setpoint_w": setpoint, "measured_w": measured, "emission_s": round(exposed_s, 3),
             "frames": [frame_.path.name for frame_ in lit if frame_.path],
             "darks": [frame_.path.name for frame_ in darks if frame_.path],
             "camera": [frame_.metadata for frame_ in lit][:1],
         }
+
+
+def _slm_frame_seen(frame: RawFrame, slm: SLM) -> int | None:
+    """Which SLM frame a captured frame saw: what the camera reports where it can tell (the simulated one
+    does), else what the SLM reports it shows right after the capture."""
+    seen = frame.metadata.get("slm_frame")
+    return slm.displayed_frame() if seen is None else int(seen)

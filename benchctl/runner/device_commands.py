@@ -7,7 +7,10 @@ how long emission stays on.
 
 from __future__ import annotations
 
+import glob
+import os
 import re
+import signal
 import time
 from pathlib import Path
 from typing import Callable
@@ -16,7 +19,9 @@ import numpy as np
 
 from benchctl.devices.camera import open_camera
 from benchctl.devices.discovery import discover
+from benchctl.devices.errors import EmissionNotOff
 from benchctl.devices.laser import ChannelStatus, open_laser
+from benchctl.devices.laser.base import UNKNOWN_EMISSION, port_lock
 from benchctl.devices.power import format_power
 from benchctl.devices.sim.state import list_states, load_state, reset_states, save_state, state_dir
 from benchctl.devices.slm import open_slm
@@ -26,6 +31,7 @@ from benchctl.profiles import Profile
 
 _DURATION = re.compile(r"^\s*(\d+(?:\.\d*)?|\.\d+)\s*(ms|s|min|m|h)?\s*$")
 _SECONDS = {"ms": 1e-3, "s": 1.0, None: 1.0, "min": 60.0, "m": 60.0, "h": 3600.0}
+HOLDER_EXIT_S = 15.0  # how long `laser off` waits for a command holding the laser to switch it off and exit
 
 
 def parse_duration(text: str) -> float:
@@ -54,7 +60,7 @@ def laser_set(profile: Profile, channel: str, power: str) -> list[str]:
     """Change one channel's setpoint (emission stays off); the device's read-back value is reported."""
     with open_laser(profile.require("laser").laser) as laser:
         watts = laser.set_power(channel, power)
-        return [f"{channel}: setpoint {format_power(watts)} (read back)"]
+        return laser.connect_report() + [f"{channel}: setpoint {format_power(watts)} (read back)"]
 
 
 def laser_on(profile: Profile, channel: str, duration_s: float | None, leave_on: bool,
@@ -62,6 +68,8 @@ def laser_on(profile: Profile, channel: str, duration_s: float | None, leave_on:
     """Emission on `channel` for `duration_s` (None: until Ctrl-C), then off unless `leave_on`."""
     try:
         with open_laser(profile.require("laser").laser) as laser:
+            for line in laser.connect_report():
+                out(line)
             laser.set_emission(channel, True)
             if leave_on:
                 laser.leave_on = True
@@ -85,13 +93,42 @@ def sim_fault(device: str, faults: list[str], clear: bool) -> list[str]:
     return [f"{device}: faults {', '.join(state['faults']) or 'none'}"]
 
 
-def laser_off(profile: Profile, channel: str) -> list[str]:
-    """Emission off on one channel or on all ('all'); connecting already turns every channel off."""
-    with open_laser(profile.require("laser").laser) as laser:
+def laser_off(profile: Profile, channel: str, wait_s: float = HOLDER_EXIT_S) -> list[str]:
+    """Emission off on one channel or on all ('all'); connecting already turns every channel off. A command
+    holding the laser (a run, `laser on`) is sent SIGTERM first: it switches emission off and exits."""
+    config = profile.require("laser").laser
+    assert config is not None
+    lines = stop_laser_holders(sorted({config.port_of(ch) for ch in config.channels}), wait_s)
+    with open_laser(config) as laser:
         names = laser.channel_names if channel == "all" else [channel]
         for name in names:
             laser.set_emission(name, False)
-        return [f"{name}: emission off" for name in names]
+        return lines + laser.connect_report() + [f"{name}: emission off" for name in names]
+
+
+def stop_laser_holders(ports: list[str], wait_s: float) -> list[str]:
+    """SIGTERM to each other process that holds one of the laser `ports`, then wait for it to let go (its
+    signal handling switches emission off on the way out). One that does not let go: EmissionNotOff."""
+    lines = []
+    for url in ports:
+        lock = port_lock(url)
+        if lock.wait_free(0):
+            continue
+        holder = lock.holder()
+        if holder is None or holder.pid == os.getpid():
+            continue  # not (yet) told who holds it, or this process: opening the laser says so
+        try:
+            os.kill(holder.pid, signal.SIGTERM)
+        except ProcessLookupError:
+            pass  # it ended meanwhile, and with it its lock
+        except PermissionError:
+            raise EmissionNotOff(f"laser ({url}) is {holder}, a process of another user that this one may not "
+                                 f"stop; {UNKNOWN_EMISSION}") from None
+        lines.append(f"laser ({url}) was {holder}: sent it SIGTERM (it switches emission off and exits)")
+        if not lock.wait_free(wait_s):
+            raise EmissionNotOff(f"laser ({url}): `{holder.command}` (pid {holder.pid}) still holds it "
+                                 f"{wait_s:g} s after SIGTERM; {UNKNOWN_EMISSION}")
+    return lines
 
 
 def slm_info(profile: Profile) -> list[str]:
@@ -142,13 +179,23 @@ def camera_info(profile: Profile) -> list[str]:
 
 def camera_capture(profile: Profile, output: Path, frames: int | None) -> list[str]:
     """Capture RAW frames: one frame to `output`, several to `output`'s stem numbered -000, -001, ...
-    Each file is saved under its numbered name the moment it arrives and never modified."""
+    Each file is saved under its numbered name the moment it arrives and never modified; an existing file is
+    never replaced (refused before the shutter when it exists already)."""
     output = Path(output)
+    numbered = sorted(output.parent.glob(f"{glob.escape(output.stem)}-[0-9][0-9][0-9].*"))
+    taken = [output] if output.exists() else numbered or sorted(output.parent.glob(f"{glob.escape(output.name)}.*"))
+    if taken:
+        raise BenchctlError(f"{taken[0]} exists; captured files never replace one (choose another --output)")
     with open_camera(profile) as camera:
         captured = camera.capture(output.parent, frames=frames, stem=output.stem)
     if len(captured) == 1:
         single = output if output.suffix else output.with_suffix(captured[0].suffix)
-        captured[0].path.replace(single)
+        try:
+            os.link(captured[0].path, single)  # never replaces, unlike a rename
+        except FileExistsError:
+            raise BenchctlError(f"{single} appeared during the capture and is kept; the frame is "
+                                f"{captured[0].path}") from None
+        captured[0].path.unlink()
         targets = [single]
     else:
         targets = [frame.path for frame in captured]

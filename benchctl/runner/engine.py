@@ -8,6 +8,7 @@ the procedure and its calibration, checks the profile is unchanged, and runs onl
 
 from __future__ import annotations
 
+import hashlib
 import json
 import time
 from collections.abc import Callable
@@ -16,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from benchctl.errors import BenchctlError
-from benchctl.files import write_json
+from benchctl.files import file_sha256, write_json
 from benchctl.profiles import Profile, load_profile, resolve_profile_path
 from benchctl.runner.bench import Bench
 from benchctl.runner.calibration import Calibration
@@ -50,6 +51,11 @@ def _resumed(folder: Path, profile_arg: str | None) -> tuple[RunRecord, Procedur
     """Reopen a run: its procedure copy, and the profile it used (which must not have changed)."""
     record = open_run(folder)
     info = record.info()
+    for name, digest in info.get("procedure_sha256", {}).items():  # checked before any procedure code runs
+        copy = record.folder / name
+        if not copy.is_file() or file_sha256(copy) != digest:
+            raise BenchctlError(f"{copy} changed since run {record.name} started (or is missing); a resumed run "
+                                "runs only the procedure code it started with")
     procedure = load_procedure(record.folder / info["procedure_file"], copies=record.folder)
     source = Path(info["profile_path"])
     if profile_arg is not None and resolve_profile_path(profile_arg).resolve() != source.resolve():
@@ -79,7 +85,7 @@ def run_procedure(path: Path | None, *, profile: str | None = None, out: Path = 
         calibration = Calibration.store(bench_profile)
         record = None
     effective = calibration.applied(bench_profile)
-    with Bench(effective) as bench:
+    with Bench(effective, say) as bench:
         context = Context(effective, procedure.params, calibration, bench, record, say)
         steps = procedure.plan(context)
         if dry_run:
@@ -92,10 +98,13 @@ def run_procedure(path: Path | None, *, profile: str | None = None, out: Path = 
                 "procedure": procedure.kind, "procedure_file": next(iter(procedure.files)),
                 "profile": bench_profile.name, "profile_path": str(bench_profile.path.resolve()),
                 "parameters": procedure.params, "plan": [step.key for step in steps],
+                "procedure_sha256": {name: hashlib.sha256(data).hexdigest() for name, data in procedure.files.items()},
             }, {**procedure.files, PROFILE_COPY: bench_profile.path.read_bytes()})
             calibration = Calibration.store(bench_profile).copy_to(record.folder / CALIBRATION_COPY)
             context.calibration, context.record = calibration, record
         say(f"run folder: {record.folder}")
+        for reason in record.invalidated:
+            say(reason)
         return _execute(steps, context, record)
 
 
@@ -115,17 +124,21 @@ def _execute(steps: list[Step], context: Context, record: RunRecord) -> RunOutco
             try:
                 result = step.action(context)
             except BaseException as exc:
-                record.failed(step.key, time.perf_counter() - start, exc)
+                _best_effort(context, "log the failed step", lambda: record.failed(
+                    step.key, time.perf_counter() - start, exc))
                 raise
             record.finished(step.key, time.perf_counter() - start, result)
             ran.append(step.key)
         current = None
     except BaseException as exc:
         status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
-        _save_devices(context, record)
-        record.finish(status, step=current, error=f"{type(exc).__name__}: {exc}")
+        _best_effort(context, "save devices.json", lambda: _save_devices(context, record))
+        _best_effort(context, "write the stop record", lambda: record.finish(
+            status, step=current, error=f"{type(exc).__name__}: {exc}"))
         context.say(f"run {status} at step {current!r}; everything captured so far is in {record.folder}; "
                     f"finish it with: benchctl run --resume {record.folder}")
+        if isinstance(exc, OSError):  # the disk or a device file failed: one line, not a traceback
+            raise BenchctlError(f"step {current!r}: {exc}") from exc
         raise
     _save_devices(context, record)
     record.finish("finished", ran=len(ran), skipped=len(skipped))
@@ -137,6 +150,15 @@ def _execute(steps: list[Step], context: Context, record: RunRecord) -> RunOutco
     context.say(f"record: {record.folder}" + (f"  (report: {record.folder / 'report.html'})"
                                               if (record.folder / "report.html").is_file() else ""))
     return RunOutcome(record.folder, ran, skipped, headline)
+
+
+def _best_effort(context: Context, what: str, action: Callable[[], object]) -> None:
+    """Record-keeping after a failure (a full disk makes it fail too): a failure here is said, and the first
+    error stays the one raised."""
+    try:
+        action()
+    except Exception as exc:
+        context.say(f"(could not {what}: {exc}; what stopped the run is the error reported with it)")
 
 
 def _save_devices(context: Context, record: RunRecord) -> None:

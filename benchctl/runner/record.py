@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from benchctl.errors import BenchctlError
-from benchctl.files import atomic_write_bytes, ensure_dir, write_json
+from benchctl.files import atomic_write_bytes, ensure_dir, file_sha256, write_json
 from benchctl.provenance import code_identity
 
 RUN_FILE = "run.json"
@@ -60,6 +60,7 @@ class RunRecord:
     folder: Path
     done: dict[str, dict[str, Any]] = field(default_factory=dict)  # finished step key -> its result
     attempts: dict[str, int] = field(default_factory=dict)  # step key -> times it was started
+    invalidated: list[str] = field(default_factory=list)  # why finished steps must be re-done (open_run)
 
     @property
     def name(self) -> str:
@@ -108,6 +109,32 @@ class RunRecord:
         self._log({"event": kind, "step": key, "seconds": round(seconds, 4),
                    "error": f"{type(error).__name__}: {error}"})
 
+    def recheck_files(self) -> list[str]:
+        """Compare the files finished steps captured with the checksums they recorded (result "checksums":
+        run-relative path -> SHA-256). The first step with a missing or changed file, and every step that
+        finished after it (it may have used the file), is logged "invalid" and so re-done. Returns why."""
+        steps = list(self.done)
+        for index, key in enumerate(steps):
+            problem = self._damaged(self.done[key])
+            if problem:
+                reasons = [f"step {key!r}: {problem}; it is done again"]
+                reasons += [f"step {later!r} finished after it; it is done again" for later in steps[index + 1:]]
+                for later, reason in zip(steps[index:], reasons):
+                    del self.done[later]
+                    self._log({"event": "invalid", "step": later, "reason": reason})
+                return reasons
+        return []
+
+    def _damaged(self, result: dict[str, Any]) -> str | None:
+        for name, digest in result.get("checksums", {}).items():
+            try:
+                actual = file_sha256(self.folder / name)
+            except OSError as exc:
+                return f"{name}: {exc.strerror or exc}"
+            if actual != digest:
+                return f"{name} changed since it was captured (SHA-256 {actual[:12]}..., recorded {digest[:12]}...)"
+        return None
+
     def events(self) -> list[dict[str, Any]]:
         """Every logged event, in order."""
         return _read_log(self.folder / STEP_LOG)
@@ -119,6 +146,44 @@ class RunRecord:
             log.write(line)
             log.flush()
             os.fsync(log.fileno())
+
+
+def repair_log(path: Path) -> Path | None:
+    """Make a step log end at a line boundary again after a crash cut its last line: a complete event that only
+    lost its newline gets it back; a cut event is moved to `<log>.cut-<n>` (kept, never deleted) and removed from
+    the log. Returns where the cut part went (None if there was none)."""
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        return None
+    if not data or data.endswith(b"\n"):
+        return None
+    start = data.rfind(b"\n") + 1
+    tail = data[start:]
+    try:
+        complete = isinstance(json.loads(tail), dict)
+    except ValueError:  # a cut JSON text, or bytes cut inside a UTF-8 character
+        complete = False
+    with open(path, "r+b") as log:
+        if complete:
+            log.seek(0, os.SEEK_END)
+            log.write(b"\n")
+            aside = None
+        else:
+            aside = _unused(path.with_name(f"{path.name}.cut"))
+            atomic_write_bytes(aside, tail)
+            log.truncate(start)
+        log.flush()
+        os.fsync(log.fileno())
+    return aside
+
+
+def _unused(path: Path) -> Path:
+    """`path` with the first suffix -1, -2, ... that names no file yet."""
+    number = 1
+    while path.with_name(f"{path.name}-{number}").exists():
+        number += 1
+    return path.with_name(f"{path.name}-{number}")
 
 
 def _read_log(path: Path) -> list[dict[str, Any]]:
@@ -167,12 +232,17 @@ def open_run(folder: Path) -> RunRecord:
     if not (folder / RUN_FILE).is_file():
         raise BenchctlError(f"{folder}: not a benchctl run folder (no {RUN_FILE})")
     record = RunRecord(folder)
+    repair_log(folder / STEP_LOG)
     for event in record.events():
         key = event.get("step")
         if event.get("event") == "start":
             record.attempts[key] = max(record.attempts.get(key, 0), int(event.get("attempt", 1)))
         elif event.get("event") == "done":
+            record.done.pop(key, None)  # keeps `done` in the order steps last finished
             record.done[key] = event.get("result", {})
+        elif event.get("event") == "invalid":
+            record.done.pop(key, None)
+    record.invalidated = record.recheck_files()
     info = record.info()
     info.setdefault("resumed", []).append({"time": _now(), "command": sys.argv, "finished_steps": len(record.done)})
     info.pop("stop", None)

@@ -14,6 +14,7 @@ import torch
 from benchctl.capture.raw import RawImage, average_frames, decode_raw, subtract_dark
 from benchctl.devices.power import format_power, parse_power
 from benchctl.errors import BenchctlError
+from benchctl.files import file_sha256
 from benchctl.images import read_image, write_png
 from benchctl.optics import linear_to_srgb
 from benchctl.profiles import LaserChannel, Profile
@@ -115,7 +116,8 @@ def exposure_step(context: Context, key: str, folder: tuple[str, ...], channel: 
                   dark_frames: int | None = None) -> Step:
     """Show a frame, expose it with `channel` alone at `watts`, keep the RAW frames and the dark frames in
     raw/<folder>/ (counts: as given, else the procedure's `frames` / `dark_frames`). A retried step first moves
-    what its unfinished attempt left aside (kept, never deleted)."""
+    what its unfinished attempt left aside (kept, never deleted). The result records each file's checksum, which
+    a resumed run verifies before using it."""
     def action(context: Context) -> dict[str, Any]:
         where = context.path("raw", *folder)
         attempt = context.record.attempts.get(key, 1) if context.record else 1
@@ -123,7 +125,9 @@ def exposure_step(context: Context, key: str, folder: tuple[str, ...], channel: 
             set_aside(where, attempt - 1)
         result = context.bench.expose(where, channel.name, watts, frame(context), frames=frames,
                                       dark_frames=darks)
-        return {**result, "folder": str(Path("raw", *folder))}
+        checksums = {str(Path("raw", *folder, name)): file_sha256(where / name)
+                     for name in [*result["frames"], *result["darks"]]}
+        return {**result, "folder": str(Path("raw", *folder)), "checksums": checksums}
 
     frames = context.params["frames"] if frames is None else frames
     darks = context.params["dark_frames"] if dark_frames is None else dark_frames

@@ -13,6 +13,7 @@ from typing import Any
 
 from benchctl.devices.connection import Connection
 from benchctl.devices.errors import DeviceError
+from benchctl.devices.lock import DeviceLock
 from benchctl.errors import BadValueError
 from benchctl.files import atomic_write_bytes, ensure_dir
 from benchctl.profiles import CameraConfig
@@ -42,6 +43,9 @@ class Camera(Connection):
 
     def __init__(self, config: CameraConfig) -> None:
         self.config = config
+
+    def _device_lock(self) -> DeviceLock:
+        return DeviceLock(f"camera:{self.driver}:{self.config.usb_id}", f"camera ({self.driver} {self.config.usb_id})")
 
     @abstractmethod
     def _open(self) -> None:
@@ -85,7 +89,8 @@ class Camera(Connection):
     def capture(self, destination: Path | None = None, frames: int | None = None,
                 stem: str = "frame") -> list[RawFrame]:
         """Capture `frames` RAW frames (default: the profile's `frames`), each saved to `destination` (a folder)
-        as `<stem>-<n>.<ext>` the moment it arrives, before the next shutter release."""
+        as `<stem>-<n>.<ext>` the moment it arrives, before the next shutter release. An existing file of that
+        name is never replaced (BenchctlError naming it)."""
         self._require_open()
         count = self.config.frames if frames is None else frames
         if count < 1:
@@ -96,7 +101,8 @@ class Camera(Connection):
         for index in range(count):
             frame = self._capture_one()
             if destination is not None:
-                path = atomic_write_bytes(Path(destination) / f"{stem}-{index:03d}{frame.suffix}", frame.data)
+                path = atomic_write_bytes(Path(destination) / f"{stem}-{index:03d}{frame.suffix}", frame.data,
+                                          overwrite=False)
                 frame = RawFrame(frame.data, frame.format, frame.file_name, frame.metadata, path)
             captured.append(frame)
         return captured

@@ -8,7 +8,8 @@ import time
 from benchctl.devices.camera.base import Camera, RawFrame
 from benchctl.devices.errors import DeviceError
 from benchctl.devices.sim.bench import STATE_NAME, render_capture
-from benchctl.devices.sim.state import load_state, state_dir
+from benchctl.devices.lock import DeviceLock
+from benchctl.devices.sim.state import load_state, sim_lock, state_dir
 from benchctl.files import ensure_dir
 from benchctl.profiles import CameraConfig, Profile
 
@@ -22,6 +23,9 @@ class SimCamera(Camera):
     def __init__(self, config: CameraConfig, profile: Profile) -> None:
         super().__init__(config)
         self.profile = profile
+
+    def _device_lock(self) -> DeviceLock:
+        return sim_lock(STATE_NAME, "camera (sim)")
 
     def _open(self) -> None:
         """Nothing to connect to; fail now, not at the first frame, if the state folder is not writable."""

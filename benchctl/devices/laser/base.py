@@ -2,7 +2,8 @@
 
 The public methods are fixed here and drivers implement small hooks (one command each, mostly), so the safety
 rules live in one place and cannot be skipped by a dialect:
-- connecting turns autostart off (where the dialect has it) and emission off on every channel, read back;
+- connecting turns autostart off (where the dialect has it) and emission off on every channel, read back, and
+  reports each channel it found emitting (`connect_report`);
 - a power above the channel's max_power_mw (or the head's own limit) is refused before anything is sent;
 - every setting is read back; a device that silently clamps or ignores a setting is an error;
 - emission is enabled only after the interlock and fault status were checked;
@@ -20,7 +21,8 @@ from dataclasses import dataclass
 from types import TracebackType
 from typing import TypeVar
 
-from benchctl.devices.errors import DeviceError, SafetyError
+from benchctl.devices.errors import DeviceError, EmissionNotOff, SafetyError
+from benchctl.devices.lock import DeviceLock
 from benchctl.devices.power import format_power, parse_power
 from benchctl.devices.serial_link import SerialLink, SerialPort
 from benchctl.errors import BadValueError, BenchctlError
@@ -30,6 +32,8 @@ from benchctl.profiles import LaserChannel, LaserConfig
 # the larger of a relative share of the request and a share of the channel's full scale.
 SETPOINT_RELATIVE_TOLERANCE = 0.01
 SETPOINT_FULL_SCALE_TOLERANCE = 0.001
+
+UNKNOWN_EMISSION = "emission state UNKNOWN, possibly ON: use the key switch / interlock"
 
 PortFactory = Callable[[str], SerialPort]
 T = TypeVar("T")
@@ -76,8 +80,10 @@ class Laser(ABC):
         for channel in config.channels:
             self._ports.setdefault(config.port_of(channel), []).append(channel)
         self._links: dict[str, SerialLink] = {}
+        self._holds: dict[str, DeviceLock] = {}
         self._limits_w: dict[str, float] = {}
         self._emission_commanded: dict[str, bool] = {}
+        self.found_emitting: dict[str, float] = {}  # channel -> setpoint (W) of channels emitting at connect
 
     # -- connection ------------------------------------------------------------------------------------------
 
@@ -97,6 +103,7 @@ class Laser(ABC):
         failure: BaseException | None = None
         for url, channels in self._ports.items():
             try:
+                self._holds[url] = port_lock(url).acquire()
                 port = self._port_factory(url) if self._port_factory else None
                 self._links[url] = SerialLink(
                     url, baudrate=self.config.baudrate, timeout_s=self.config.timeout_s, line_ending=self.line_ending,
@@ -140,18 +147,31 @@ class Laser(ABC):
 
     def _close_links(self) -> None:
         links, self._links = self._links, {}
-        try_each(SerialLink.close, links.values())
+        holds, self._holds = self._holds, {}
+        try:
+            try_each(SerialLink.close, links.values())
+        finally:
+            try_each(DeviceLock.release, holds.values())
 
     def _make_safe(self, channel: LaserChannel) -> None:
         try:
             self._prepare(channel)
+            was_on = self._read_emission(channel)
         finally:
             self._switch_off(channel)
+        if was_on:
+            self.found_emitting[channel.name] = self._read_setpoint(channel)
         limit = self._read_limit_w(channel)
         if limit is not None:
             self._limits_w[channel.name] = limit
 
     # -- public API --------------------------------------------------------------------------------------------
+
+    def connect_report(self) -> list[str]:
+        """One line per channel that was emitting when this connection switched it off (every command says it:
+        something left the light on)."""
+        return [f"{name} was emitting at {format_power(watts)}; switched off"
+                for name, watts in self.found_emitting.items()]
 
     def identity(self) -> str:
         """What the unit says it is (model, serial number), one entry per port for multi-port setups."""
@@ -348,10 +368,21 @@ class Laser(ABC):
             )
 
     def _switch_off(self, channel: LaserChannel) -> None:
-        self._write_emission(channel, False)
-        self._emission_commanded[channel.name] = False
-        if self._read_emission(channel):
-            raise DeviceError(f"{self._where(channel)}: emission still on after the off command")
+        """Emission off, read back; EmissionNotOff unless the device confirms it (or cannot report emission)."""
+        try:
+            self._write_emission(channel, False)
+            self._emission_commanded[channel.name] = False
+            still_on = self._read_emission(channel)
+        except DeviceError as exc:
+            raise EmissionNotOff(f"{exc}; {self._where(channel)}: {UNKNOWN_EMISSION}") from exc
+        if still_on:
+            raise EmissionNotOff(f"{self._where(channel)}: emission still ON after the off command: use the key "
+                                 "switch / interlock")
+
+
+def port_lock(url: str) -> DeviceLock:
+    """The lock of the laser on port `url`: held while a Laser is connected through it."""
+    return DeviceLock(f"laser:{url}", f"laser ({url})")
 
 
 def try_each(action: Callable[[T], object], items: Iterable[T]) -> None:

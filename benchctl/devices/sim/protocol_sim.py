@@ -23,7 +23,8 @@ from serial.serialutil import PortNotOpenError, SerialBase, SerialException
 
 from benchctl.devices.errors import DeviceBusy
 from benchctl.devices.sim.laser_emulators import LaserEmulator, make_emulator
-from benchctl.devices.sim.state import DeviceLock
+from benchctl.devices.lock import DeviceLock
+from benchctl.devices.sim.state import sim_lock
 
 
 def parse_url(url: str) -> tuple[str, dict[str, str]]:
@@ -55,7 +56,7 @@ class Serial(SerialBase):
         if self._port is None:
             raise SerialException("Port must be configured before it can be used.")
         name, params = parse_url(self._port)
-        hold = DeviceLock(name)
+        hold = sim_lock(name)
         try:
             hold.acquire()
         except DeviceBusy as exc:

@@ -2,19 +2,19 @@
 
 One JSON file per simulated device in a folder a user can inspect (`benchctl sim status`) and clear
 (`benchctl sim reset`): $BENCHCTL_SIM_DIR, else $XDG_STATE_HOME/benchctl/sim, else ~/.local/state/benchctl/sim.
-A device that is open holds an exclusive lock, so a second program opening it sees "busy" as with a real port.
+A device that is open holds its lock (benchctl.devices.lock), so a second program opening it is told who holds it.
 """
 
 from __future__ import annotations
 
-import fcntl
 import json
 import os
 import re
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any
 
-from benchctl.devices.errors import DeviceBusy, DeviceError
+from benchctl.devices.errors import DeviceError
+from benchctl.devices.lock import DeviceLock
 from benchctl.files import atomic_write_bytes, ensure_dir
 
 STATE_ENV = "BENCHCTL_SIM_DIR"
@@ -57,35 +57,9 @@ def device_file(name: str) -> Path:
     return ensure_dir(state_dir()) / _checked(name)
 
 
-class DeviceLock:
-    """Exclusive hold on simulated device `name` while it is open; a second holder gets DeviceBusy."""
-
-    def __init__(self, name: str) -> None:
-        self.name = _checked(name)
-        self._handle: BinaryIO | None = None
-
-    def acquire(self) -> None:
-        path = ensure_dir(state_dir()) / f"{self.name}.lock"
-        handle = open(path, "ab")
-        try:
-            fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            handle.close()
-            raise DeviceBusy(f"simulated device {self.name!r} is busy (open in another program)") from None
-        self._handle = handle
-
-    def release(self) -> None:
-        if self._handle is not None:
-            fcntl.flock(self._handle.fileno(), fcntl.LOCK_UN)
-            self._handle.close()
-            self._handle = None
-
-    def __enter__(self) -> DeviceLock:
-        self.acquire()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.release()
+def sim_lock(name: str, label: str | None = None) -> DeviceLock:
+    """The lock of simulated device `name` (one per state folder: each folder is one simulated bench)."""
+    return DeviceLock(f"sim:{state_dir().resolve()}/{_checked(name)}", label or f"simulated device {name!r}")
 
 
 def list_states() -> dict[str, dict[str, Any]]:
@@ -97,12 +71,12 @@ def list_states() -> dict[str, dict[str, Any]]:
 
 
 def reset_states() -> list[Path]:
-    """Forget every simulated device's state (not the locks of devices open right now); returns what was removed."""
+    """Forget every simulated device's state; returns what was removed."""
     folder = state_dir()
     removed = []
     if folder.is_dir():
         for path in sorted(folder.iterdir()):
-            if path.suffix != ".lock" and path.is_file():
+            if path.is_file():
                 path.unlink()
                 removed.append(path)
     return removed

@@ -19,6 +19,7 @@ import torch
 
 from benchctl.devices.connection import Connection
 from benchctl.devices.errors import DeviceError
+from benchctl.devices.lock import DeviceLock
 from benchctl.devices.slm.lut import lut_for
 from benchctl.errors import BadValueError
 from benchctl.optics.phase_encoding import PhaseLUT, gray_to_phase, phase_to_gray
@@ -39,6 +40,8 @@ class SLM(Connection):
         self.sleep: Callable[[float], None] = time.sleep  # the settle wait; tests replace it
         self._luts: dict[str, PhaseLUT] = {}
         self._current: np.ndarray | None = None
+        self._frames_shown = 0
+        self.shown_frame: int | None = None  # displayed_frame() right after this object's last frame went up
 
     # -- hooks ------------------------------------------------------------------------------------------
 
@@ -53,6 +56,9 @@ class SLM(Connection):
     @abstractmethod
     def _display(self, gray: np.ndarray, channel: str | None) -> None:
         """Put `gray` ((H, W), gray_dtype, read-only) on the panel; `channel` is None for raw gray frames."""
+
+    def _device_lock(self) -> DeviceLock:
+        return DeviceLock(f"slm:{self.driver}:{self.config.device}", self.label)
 
     # -- description --------------------------------------------------------------------------------------
 
@@ -117,6 +123,11 @@ class SLM(Connection):
                 raise BadValueError(f"{self.label}: no channel {channel!r}; known channels: {known}")
             self._luts[channel] = lut_for(self.config, channel)
         return self._luts[channel]
+
+    def displayed_frame(self) -> int | None:
+        """Id of the frame the panel shows now, as the device reports it. Drivers whose panel cannot say
+        report the count of frames this object displayed (the device lock keeps other commands off the panel)."""
+        return self._frames_shown
 
     def current(self) -> np.ndarray | None:
         """The last frame this object displayed (read-only), None before the first."""
@@ -191,6 +202,8 @@ class SLM(Connection):
         frame.flags.writeable = False
         self._display(frame, channel)
         self._current = frame
+        self._frames_shown += 1
+        self.shown_frame = self.displayed_frame()
         self.sleep(self.settle_s)
         return frame
 

@@ -2,8 +2,7 @@
 
 Each displayed frame becomes a PNG (8- or 16-bit, gray levels as shown) named by a frame counter, and the
 state file `slm.json` says which frame is current, its shape, bit depth, channel and time. Other programs
-(the simulated camera, `benchctl slm info`) read it with `read_displayed`. A display can be looked at by
-several programs, so unlike the other simulated devices the SLM takes no lock.
+(the simulated camera) read it with `read_displayed`; like every device, the SLM is held by one command at a time.
 """
 
 from __future__ import annotations
@@ -14,7 +13,8 @@ from typing import Any
 import numpy as np
 
 from benchctl.devices.errors import DeviceError
-from benchctl.devices.sim.state import device_file, load_state, save_state, state_dir
+from benchctl.devices.lock import DeviceLock
+from benchctl.devices.sim.state import device_file, load_state, save_state, sim_lock, state_dir
 from benchctl.devices.slm.base import SLM
 from benchctl.errors import BenchctlError
 from benchctl.files import ensure_dir
@@ -48,6 +48,9 @@ class SimSLM(SLM):
     driver = "sim"
     read_displayed = staticmethod(read_displayed)
 
+    def _device_lock(self) -> DeviceLock:
+        return sim_lock(STATE_NAME, self.label)
+
     def _open(self) -> None:
         """Nothing to connect to; fail now, not at the first frame, if the state folder is not writable."""
         ensure_dir(state_dir())
@@ -71,6 +74,11 @@ class SimSLM(SLM):
         for old in state_dir().glob(f"{STATE_NAME}-*.png"):
             if old.name != name:
                 old.unlink(missing_ok=True)
+
+    def displayed_frame(self) -> int | None:
+        """The simulated panel's frame counter (None before its first frame)."""
+        frame = load_state(STATE_NAME).get("frame")
+        return None if frame is None else int(frame)
 
     def info(self) -> dict[str, Any]:
         """The base description plus where the simulated panel lives and what it shows now."""

@@ -1,0 +1,206 @@
+"""Run records that can be trusted: every captured frame saw the SLM frame its step displayed, the step log
+survives a crash at any byte, procedure code and captured files are checked before a resumed run reuses them."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from benchctl.devices.errors import DeviceError
+from benchctl.devices.sim.state import device_file, load_state, save_state
+from benchctl.images import write_png
+from benchctl.cli import main
+from benchctl.runner.engine import run_procedure
+
+# One exposure step: a fixed gray frame, green alone, three RAW frames and one dark.
+EXPOSE = """\
+import numpy as np
+
+from benchctl.runner.steps import EXPOSURE_PARAMETERS, channels, exposure_step, power_w
+
+PARAMETERS = {**EXPOSURE_PARAMETERS}
+
+
+def plan(context):
+    green = [channel for channel in channels(context) if channel.name == "green"][0]
+    frame = lambda context: np.full(context.profile.slm.shape, 100, np.uint8)
+    return [exposure_step(context, "expose", ("expose",), green, power_w(context, green), frame, "expose",
+                          frames=3, dark_frames=1)]
+"""
+
+
+@pytest.fixture
+def expose_procedure(tmp_path: Path) -> Path:
+    path = tmp_path / "expose.py"
+    path.write_text(EXPOSE)
+    return path
+
+
+def _events(folder: Path) -> list[dict]:
+    return [json.loads(line) for line in (folder / "steps.jsonl").read_text().splitlines()]
+
+
+def test_a_frame_that_saw_another_slm_frame_fails_the_step_and_resume_redoes_it(
+        tmp_path: Path, bench_profile_path: Path, expose_procedure: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from benchctl.devices.camera import sim as sim_camera
+
+    render = sim_camera.render_capture
+    calls = []
+
+    def render_then_change_the_slm(*args, **kwargs):
+        """The second lit frame is captured after another program put a blank frame on the SLM."""
+        calls.append(1)
+        if len(calls) == 2:
+            state = load_state("slm")
+            write_png(device_file(f"slm-{state['frame'] + 1}.png"), np.zeros(state["shape"], np.uint8))
+            save_state("slm", {**state, "frame": state["frame"] + 1, "file": f"slm-{state['frame'] + 1}.png"})
+        return render(*args, **kwargs)
+
+    monkeypatch.setattr(sim_camera, "render_capture", render_then_change_the_slm)
+    with pytest.raises(DeviceError, match=r"frame-001.dng: captured while the SLM showed frame 2, not frame 1 that "
+                                          r"this step displayed"):
+        run_procedure(expose_procedure, profile=str(bench_profile_path), out=tmp_path / "runs", say=lambda _: None)
+    (folder,) = (tmp_path / "runs").iterdir()
+    assert [e["event"] for e in _events(folder)] == ["start", "failed"]
+    assert not any(s.get("emission") for s in load_state("rgb-laser")["channels"].values())
+
+    monkeypatch.setattr(sim_camera, "render_capture", render)
+    outcome = run_procedure(None, resume=folder, say=lambda _: None)
+    assert outcome.ran == ["expose"]
+    done = _events(folder)[-1]
+    assert done["event"] == "done" and done["result"]["slm_frame"] == 3
+    assert done["result"]["slm_frames_seen"] == [3, 3, 3]
+
+
+def _finished_run(tmp_path: Path, procedure: Path, profile: Path) -> Path:
+    outcome = run_procedure(procedure, profile=str(profile), out=tmp_path / "runs", say=lambda _: None)
+    assert outcome.folder is not None
+    return outcome.folder
+
+
+def test_a_step_log_cut_at_any_byte_of_its_last_event_is_repaired_on_resume(tmp_path: Path) -> None:
+    from benchctl.runner.record import create_run, open_run
+
+    folder = create_run(tmp_path, "cut", {}, {}).folder
+    record = open_run(folder)
+    record.started("first")
+    record.finished("first", 0.5, {"checksums": {}, "text": "caf\u00e9 \u2713"})
+    log = (folder / "steps.jsonl").read_bytes()
+    last = log[log.rindex(b"\n", 0, len(log) - 1) + 1:]
+    head = log[:-len(last)]
+    for cut in range(len(last)):  # every cut of the last event, up to the whole event without its newline
+        (folder / "steps.jsonl").write_bytes(head + last[:cut])
+        for aside in folder.glob("steps.jsonl.cut-*"):
+            aside.unlink()
+        record = open_run(folder)
+        complete = cut == len(last) - 1
+        assert record.is_done("first") == complete, cut
+        record.started("next")  # the next event goes on its own line
+        events = record.events()
+        assert [e["event"] for e in events] == (["start", "done", "start"] if complete else ["start", "start"]), cut
+        assert (folder / "steps.jsonl").read_bytes().startswith(head + (last if complete else b"")), cut
+        cut_aside = sorted(folder.glob("steps.jsonl.cut-*"))
+        assert [p.read_bytes() for p in cut_aside] == ([] if complete or cut == 0 else [last[:cut]]), cut
+        assert open_run(folder).events() == events  # and every later resume reads it
+
+
+def test_resume_refuses_a_changed_python_procedure(tmp_path: Path, bench_profile_path: Path,
+                                                   expose_procedure: Path) -> None:
+    from benchctl.errors import BenchctlError
+
+    assert main(["sim", "fault", "sim-camera", "unplug_at=2"]) == 0
+    with pytest.raises(DeviceError):
+        run_procedure(expose_procedure, profile=str(bench_profile_path), out=tmp_path / "runs", say=lambda _: None)
+    (folder,) = (tmp_path / "runs").iterdir()
+    copy = folder / "expose.py"
+    copy.write_text(copy.read_text() + "\nraise SystemExit('procedure code ran')\n")
+    with pytest.raises(BenchctlError, match=r"expose.py changed since run .* started \(or is missing\); a resumed run "
+                                            r"runs only the procedure code it started with"):
+        run_procedure(None, resume=folder, say=lambda _: None)
+
+
+def test_a_corrupt_captured_frame_is_captured_again_on_resume_once(tmp_path: Path, bench_profile_path: Path,
+                                                                    expose_procedure: Path) -> None:
+    folder = _finished_run(tmp_path, expose_procedure, bench_profile_path)
+    done = _events(folder)[-1]["result"]
+    assert sorted(done["checksums"]) == ["raw/expose/dark-000.dng", "raw/expose/frame-000.dng",
+                                         "raw/expose/frame-001.dng", "raw/expose/frame-002.dng"]
+    frame = folder / "raw" / "expose" / "frame-001.dng"
+    damaged = bytearray(frame.read_bytes())
+    damaged[-100] ^= 0xFF  # one flipped byte in the image data
+    frame.write_bytes(bytes(damaged))
+
+    said: list[str] = []
+    outcome = run_procedure(None, resume=folder, say=said.append)
+    assert outcome.ran == ["expose"]
+    assert any("step 'expose': raw/expose/frame-001.dng changed since it was captured" in line for line in said)
+    assert (folder / "raw" / "expose.attempt-1" / "frame-001.dng").read_bytes() == bytes(damaged)  # kept aside
+    assert run_procedure(None, resume=folder, say=said.append).ran == []  # verified now: nothing to re-do
+
+
+def test_a_full_disk_shows_the_first_error_and_the_resume_hint(tmp_path: Path, bench_profile_path: Path,
+                                                               expose_procedure: Path, monkeypatch: pytest.MonkeyPatch,
+                                                               capsys: pytest.CaptureFixture[str]) -> None:
+    import errno
+    import os
+
+    from benchctl import files
+
+    real_fdopen = os.fdopen
+    full = []
+
+    def full_from_the_first_frame_on(fd, *args, **kwargs):
+        """Atomic writes into the run folder fail with ENOSPC from the first RAW frame on (devices.json and
+        run.json included)."""
+        handle = real_fdopen(fd, *args, **kwargs)
+        name = os.readlink(f"/proc/self/fd/{fd}")
+        if name.startswith(str(tmp_path / "runs")) and (".frame-000.dng." in name or full):
+            full.append(fd)
+
+            def write(data):
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            handle.write = write
+        return handle
+
+    monkeypatch.setattr(files.os, "fdopen", full_from_the_first_frame_on)
+    code = main(["run", str(expose_procedure), "-p", str(bench_profile_path), "-o", str(tmp_path / "runs")])
+    captured = capsys.readouterr()
+    assert code == 2
+    (error,) = captured.err.splitlines()
+    assert error.startswith("benchctl: error: cannot write ") and error.endswith(
+        "frame-000.dng: No space left on device"), error
+    (folder,) = (tmp_path / "runs").iterdir()
+    assert f"finish it with: benchctl run --resume {folder}" in captured.out
+    assert "could not save devices.json" in captured.out
+
+
+@pytest.mark.parametrize("frames, existing", [(1, "shot.dng"), (3, "shot-001.dng"), (1, "shot-000.dng")])
+def test_camera_capture_never_replaces_a_file(tmp_path: Path, bench_profile_path: Path,
+                                              capsys: pytest.CaptureFixture[str], frames: int, existing: str) -> None:
+    (tmp_path / existing).write_bytes(b"an earlier capture")
+    shutter = load_state("sim-camera").get("frame", 0)
+    code = main(["camera", "capture", "-o", str(tmp_path / "shot.dng"), "-n", str(frames),
+                 "-p", str(bench_profile_path)])
+    assert code == 2
+    assert capsys.readouterr().err == (f"benchctl: error: {tmp_path / existing} exists; captured files never replace "
+                                       "one (choose another --output)\n")
+    assert (tmp_path / existing).read_bytes() == b"an earlier capture"
+    assert load_state("sim-camera").get("frame", 0) == shutter  # refused before the shutter
+    assert sorted(p.name for p in tmp_path.iterdir() if p.suffix == ".dng") == [existing]
+
+
+def test_a_raw_file_is_never_replaced_by_the_camera(tmp_path: Path, bench_profile_path: Path) -> None:
+    from benchctl.devices.camera import open_camera
+    from benchctl.errors import BenchctlError
+    from benchctl.profiles import load_profile
+
+    (tmp_path / "frame-001.dng").write_bytes(b"kept")
+    with open_camera(load_profile(bench_profile_path)) as camera:
+        with pytest.raises(BenchctlError, match=r"frame-001.dng exists; it is kept as it is"):
+            camera.capture(tmp_path, frames=2)
+    assert (tmp_path / "frame-001.dng").read_bytes() == b"kept"
+    assert (tmp_path / "frame-000.dng").read_bytes()[:2] in (b"II", b"MM")
+    assert not list(tmp_path.glob(".*.tmp"))
