@@ -34,6 +34,7 @@ frames = 2
 dark_frames = 1
 registration = "auto"
 lut_calibration = "skip"
+exposure = "fixed"
 """
 
 
@@ -316,3 +317,31 @@ def test_run_needs_a_procedure_or_a_run_to_resume(tmp_path: Path, capsys: pytest
     assert f"{tmp_path}: not a benchctl run folder" in capsys.readouterr().err
     assert main(["run", str(tmp_path / "missing.toml"), "--dry-run"]) == 2
     assert "missing.toml: procedure file not found" in capsys.readouterr().err
+
+
+def test_auto_exposure_puts_every_colours_peak_near_the_goal(tmp_path: Path, bench_profile_path: Path,
+                                                              capture_procedure: Path) -> None:
+    """Setpoints far too low for blue and far too high for red: one probe frame per colour sets the power so the
+    registered peak lands near 70 % of full scale; the choice is in the step log, and no low-signal warning."""
+    write(capture_procedure, CAPTURE.replace('exposure = "fixed"', 'exposure = "auto"').replace(
+        'setpoints = { red = "100%", green = "100%", blue = "100%" }',
+        'setpoints = { red = "100%", green = "10%", blue = "1%" }'))
+    folder = run_ok(capture_procedure, bench_profile_path, tmp_path / "runs")
+    events = [json.loads(line) for line in (folder / "steps.jsonl").read_text().splitlines()]
+    done = {e["step"]: e["result"] for e in events if e["event"] == "done"}
+    metrics = json.loads((folder / "metrics.json").read_text())["targets"][0]
+    for colour, probe_mw in (("red", 40.0), ("green", 4.0), ("blue", 0.4)):
+        choice = done[f"probe/bars/{colour}"]["auto_exposure"]
+        assert choice["probe_w"] == pytest.approx(probe_mw * 1e-3) and choice["goal"] == 0.7
+        assert not choice["probe_saturated"]
+        assert done[f"capture/bars/{colour}"]["setpoint_w"] == pytest.approx(choice["power_w"], rel=1e-3)
+        assert metrics["colours"][colour]["power_w"] == pytest.approx(choice["power_w"], rel=1e-3)
+        peak = metrics["colours"][colour]["peak"]
+        if colour == "red":  # this bench's red peaks at about 15 % even at its 40 mW maximum
+            assert choice["limited_by_max"] and choice["power_w"] == pytest.approx(40e-3)
+            assert peak == pytest.approx(choice["probe_peak"], rel=0.1)
+        else:
+            assert not choice["limited_by_max"] and choice["power_w"] > 4 * choice["probe_w"]
+            assert peak == pytest.approx(0.7, abs=0.07), (colour, peak)
+    assert not [w for w in metrics["warnings"] if "low signal" in w]
+    assert (folder / "raw" / "bars" / "probe" / "blue" / "frame-000.dng").is_file()

@@ -153,7 +153,8 @@ def colour_capture_report(context: Context, results: list[dict[str, Any]], colou
         for name, colour in result["colours"].items():
             rows.append({"target": result["target"], "label": label, "colour": name,
                          "generation_s": colour["generation_s"], "cached": colour["cached"], "gain": colour["gain"],
-                         "saturated_fraction": colour["saturated_fraction"],
+                         "saturated_fraction": colour["saturated_fraction"], "power_w": colour["power_w"],
+                         "peak": colour["peak"],
                          **_flat("simulated_", colour["simulated"]), **_flat("capture_", colour["capture"])})
         rows.append({"target": result["target"], "label": label, "colour": "merged",
                      **_flat("simulated_", result["merged"]["simulated"]),
@@ -167,7 +168,8 @@ def colour_capture_report(context: Context, results: list[dict[str, Any]], colou
                        "capture PSNR dB (amplitude)": c["capture"]["psnr_amplitude_db"],
                        "simulated SSIM (sRGB)": c["simulated"]["ssim_srgb"],
                        "capture SSIM (sRGB)": c["capture"]["ssim_srgb"], "gain": c["gain"],
-                       "saturated": c["saturated_fraction"]} for name, c in result["colours"].items()]
+                       "laser mW": c["power_w"] * 1e3, "peak": c["peak"], "saturated": c["saturated_fraction"]}
+                      for name, c in result["colours"].items()]
         merged = result["merged"]
         merged_rows = [{"image": kind, "PSNR dB linear": s["psnr_linear_db"], "PSNR dB sRGB": s["psnr_srgb_db"],
                         "SSIM sRGB": s["ssim_srgb"]} for kind, s in merged.items()]

@@ -111,10 +111,11 @@ def displayed_frame(context: Context, hologram_key: str) -> np.ndarray:
     return read_image(context.path(context.result(hologram_key)["file"]))
 
 
-def exposure_step(context: Context, key: str, folder: tuple[str, ...], channel: LaserChannel, watts: float,
-                  frame: Callable[[Context], np.ndarray], description: str, *, frames: int | None = None,
-                  dark_frames: int | None = None) -> Step:
-    """Show a frame, expose it with `channel` alone at `watts`, keep the RAW frames and the dark frames in
+def exposure_step(context: Context, key: str, folder: tuple[str, ...], channel: LaserChannel,
+                  watts: float | Callable[[Context], float], frame: Callable[[Context], np.ndarray],
+                  description: str, *, frames: int | None = None, dark_frames: int | None = None) -> Step:
+    """Show a frame, expose it with `channel` alone at `watts` (a number, or a function of the context that
+    decides when the step runs, as automatic exposure does), keep the RAW frames and the dark frames in
     raw/<folder>/ (counts: as given, else the procedure's `frames` / `dark_frames`). A retried step first moves
     what its unfinished attempt left aside (kept, never deleted). The result records each file's checksum, which
     a resumed run verifies before using it."""
@@ -123,7 +124,8 @@ def exposure_step(context: Context, key: str, folder: tuple[str, ...], channel: 
         attempt = context.record.attempts.get(key, 1) if context.record else 1
         if attempt > 1:
             set_aside(where, attempt - 1)
-        result = context.bench.expose(where, channel.name, watts, frame(context), frames=frames,
+        power = watts(context) if callable(watts) else watts
+        result = context.bench.expose(where, channel.name, power, frame(context), frames=frames,
                                       dark_frames=darks)
         checksums = {str(Path("raw", *folder, name)): file_sha256(where / name)
                      for name in [*result["frames"], *result["darks"]]}
@@ -131,8 +133,9 @@ def exposure_step(context: Context, key: str, folder: tuple[str, ...], channel: 
 
     frames = context.params["frames"] if frames is None else frames
     darks = context.params["dark_frames"] if dark_frames is None else dark_frames
-    return Step(key, f"{description}: {channel.name} alone at {format_power(watts)}, {frames} frame(s) + {darks} "
-                     "dark", action, ("laser", "slm", "camera"))
+    power_text = "the power automatic exposure chooses" if callable(watts) else format_power(watts)
+    return Step(key, f"{description}: {channel.name} alone at {power_text}, {frames} frame(s) + {darks} dark",
+                action, ("laser", "slm", "camera"))
 
 
 def load_exposure(context: Context, key: str) -> tuple[RawImage, RawImage | None]:

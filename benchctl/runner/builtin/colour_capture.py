@@ -5,6 +5,10 @@ capture against the target, next to the simulated reconstruction and the generat
 
 On a profile without them, it first measures the SLM's lookup tables (lut_calibration = "auto") and registers
 the camera (registration = "auto"), with the same steps as those procedures; both are then stored for later runs.
+
+With exposure = "auto" (the default) each colour of each target is first probed with one frame at its working
+setpoint; the capture then uses the laser power that puts that colour's peak at `peak_goal` of full scale (never
+above the channel's max_power_mw), so no colour is lost in read noise or clipped. "fixed" keeps the setpoints.
 """
 
 from __future__ import annotations
@@ -14,11 +18,15 @@ from typing import Any
 import numpy as np
 import torch
 
-from benchctl.capture.colour_planes import merge_capture, registered_plane, roi_saturation
+from benchctl.capture.colour_planes import PEAK_PERCENTILE, merge_capture, registered_plane, roi_saturation
+from benchctl.capture.exposure import choose_power
+from benchctl.capture.raw import decode_raw
+from benchctl.devices.power import format_power
 from benchctl.errors import BenchctlError
 from benchctl.optics import colour_scores, crop_roi
 from benchctl.profiles import LaserChannel
 from benchctl.runner.builtin import lut_calibration, registration
+from benchctl.runner.builtin.power_sweep import signal_stats
 from benchctl.runner.procedure import Context, Step
 from benchctl.runner.report import colour_capture_report
 from benchctl.runner.holograms import target_plane
@@ -50,6 +58,9 @@ PARAMETERS = {
     "registration": Field("str", required=False, default="auto", choices=("auto", "stored")),
     # "auto": measure the SLM's lookup table first for colours that have none; "skip": use what there is
     "lut_calibration": Field("str", required=False, default="auto", choices=("auto", "skip")),
+    # "auto": a probe frame per colour sets the laser power so the peak lands at peak_goal; "fixed": setpoints
+    "exposure": Field("str", required=False, default="auto", choices=("auto", "fixed")),
+    "peak_goal": Field("float", required=False, default=0.7, gt=0.05, le=0.95),
 }
 
 
@@ -81,11 +92,16 @@ def plan(context: Context) -> list[Step]:
             raise BenchctlError(f"parameters.targets: {spec!r} has none of the colours {[c.name for c in used]}")
         targets.append((spec, label, lit))
         steps += [hologram_step(f"hologram/{label}/{c.name}", label, target, c, options) for c in lit]
+        powers = {c.name: power_w(context, c) for c in lit}
+        if params["exposure"] == "auto":
+            for channel in lit:
+                steps.append(_probe_step(context, label, channel))
+                powers[channel.name] = _probed_power(f"probe/{label}/{channel.name}")
         for repeat in _repeats(params["repeats"]):
             for channel in lit:
                 steps.append(exposure_step(
                     context, f"capture/{label}{repeat}/{channel.name}", (label + repeat, channel.name), channel,
-                    power_w(context, channel), _shown(f"hologram/{label}/{channel.name}"), f"expose {label}{repeat}"))
+                    powers[channel.name], _shown(f"hologram/{label}/{channel.name}"), f"expose {label}{repeat}"))
             steps.append(Step(f"process/{label}{repeat}", f"register, merge and score {label}{repeat}",
                               _processor(spec, label, repeat, lit, target)))
     steps.append(Step("report", "metrics.json, metrics.csv and report.html", _reporter(targets, used)))
@@ -98,6 +114,32 @@ def _repeats(count: int) -> list[str]:
 
 def _shown(hologram_key: str):
     return lambda context: displayed_frame(context, hologram_key)
+
+
+def _probe_step(context: Context, label: str, channel: LaserChannel) -> Step:
+    """One frame of `label`'s hologram at the working setpoint, no dark; its result says which power the
+    capture will use (kept in the step log, so a resumed run captures at the same power)."""
+    key = f"probe/{label}/{channel.name}"
+    exposure = exposure_step(context, key, (label, "probe", channel.name), channel, power_w(context, channel),
+                             _shown(f"hologram/{label}/{channel.name}"), f"probe exposure {label}", frames=1,
+                             dark_frames=0)
+
+    def action(context: Context) -> dict[str, Any]:
+        result = exposure.action(context)
+        image = decode_raw(context.path(result["folder"], result["frames"][0]))
+        stats = signal_stats(context, image, channel)
+        choice = choose_power(result["setpoint_w"], stats["peak"], stats["saturated_fraction"] > 0,
+                              context.params["peak_goal"], channel.max_power_mw * 1e-3)
+        limit = " (the channel's max_power_mw)" if choice.limited_by_max else ""
+        context.say(f"      auto exposure {channel.name}: peak {stats['peak']:.1%} at {format_power(choice.probe_w)}"
+                    f" -> {format_power(choice.power_w)}{limit}")
+        return {**result, "auto_exposure": choice.as_dict()}
+
+    return Step(key, exposure.description, action, exposure.devices)
+
+
+def _probed_power(probe_key: str):
+    return lambda context: context.result(probe_key)["auto_exposure"]["power_w"]
 
 
 def _processor(spec: str, label: str, repeat: str, lit: list[LaserChannel], target: torch.Tensor):
@@ -137,6 +179,8 @@ def _processor(spec: str, label: str, repeat: str, lit: list[LaserChannel], targ
                 "capture": {k: round(v, 4) for k, v in merged.scores[index].items()},
                 "simulated": generated["scores"], "generation_s": generated["seconds"],
                 "cached": generated["cached"], "gain": merged.gains[index], "saturated_fraction": saturation[index],
+                "power_w": context.result(f"capture/{label}{repeat}/{channel.name}")["setpoint_w"],
+                "peak": round(float(np.percentile(planes[index], PEAK_PERCENTILE)), 4),
             }
         return {
             "target": spec, "label": label + repeat, "folder": "/".join(folder), "files": files,
