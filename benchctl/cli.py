@@ -133,7 +133,7 @@ def _cmd_device(args: argparse.Namespace) -> int:
             return _print_lines(dc.sim_status())
         if args.sim_command == "reset":
             return _print_lines(dc.sim_reset())
-        return _print_lines(dc.sim_fault(args.device, args.faults, args.clear))
+        return _print_lines(dc.sim_fault(args.device, args.faults, args.clear, load_profile(args.profile)))
     profile = load_profile(args.profile)
     if args.command == "camera":
         if args.camera_command == "info":
@@ -212,6 +212,7 @@ def _add_device_commands(sub: argparse._SubParsersAction) -> None:
                                                  "clamp, drop_after=N; sim-camera: unplug_at=N (cable pulled before "
                                                  "frame N)")
     fault.add_argument("--clear", action="store_true", help="remove every fault")
+    _add_profile(fault)  # whose sim:// lasers are known devices
     for parser in sim.choices.values():
         parser.set_defaults(func=_cmd_device)
 
