@@ -408,13 +408,16 @@ def build_parser() -> argparse.ArgumentParser:
                     "OUT/<timestamp>-<name>/ with the profile and procedure as used, versions, device identities, a "
                     "step log, holograms as displayed, RAW frames as captured, images, metrics and report.html. An "
                     "interrupted run leaves emission off and keeps what it captured; --resume finishes it.",
-        epilog="procedures: files in procedures/ (TOML, or a Python file with PARAMETERS and plan(); see README).")
+        epilog="procedures: files in procedures/ (TOML, or a Python file with PARAMETERS and plan(); see README). "
+               "A .py procedure is code: running, dry-running or resuming it executes it with your rights; run "
+               "only procedure files you trust.")
     run.add_argument("procedure", nargs="?", type=Path, help="procedure file (.toml or .py)")
     _add_profile(run)
     run.add_argument("--out", "-o", type=Path, default=Path("runs"), metavar="DIR",
                      help="where run folders are created (default: runs/)")
     run.add_argument("--dry-run", action="store_true",
-                     help="check the procedure and profile and print every step; touch no device, write nothing")
+                     help="check the procedure and profile and print every step; benchctl touches no device and "
+                          "writes nothing (a .py procedure's own code still runs)")
     run.add_argument("--resume", type=Path, metavar="RUN_DIR",
                      help="finish an interrupted run without repeating its finished steps")
     run.set_defaults(func=_cmd_run)
