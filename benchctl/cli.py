@@ -79,7 +79,7 @@ def _cmd_bench_speed(args: argparse.Namespace) -> int:
     from benchctl.console import Progress
     from benchctl.profiles import load_profile
 
-    profile = load_profile(args.profile)
+    profile = load_profile(args.profile).require("slm", "optics", "laser")
     size = args.size or (profile.slm.height // 4, profile.slm.width // 4)
     run_speed_vs_error(resized_profile(profile, size), targets=tuple(args.targets or DEFAULT_TARGETS),
                        methods=tuple(args.methods) if args.methods else None,

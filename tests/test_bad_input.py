@@ -137,10 +137,14 @@ def test_partial_profiles(tmp_path: Path, small_profile_path: Path, capsys: pyte
     no_laser.write_text(text[:text.index("[laser]")])
     assert main(["profile", "check", str(laser_only)]) == 0
     assert "Propagation SLM -> target: not described (needs [slm], [optics] and [laser])" in capsys.readouterr().out
-    for profile, section in ((laser_only, "slm"), (no_laser, "laser")):
+    no_optics = tmp_path / "no_optics.toml"
+    no_optics.write_text(text[:text.index("[optics]")] + text[text.index("[slm]"):])
+    for profile, section in ((laser_only, "slm"), (no_laser, "laser"), (no_optics, "optics")):
         line = one_error_line(capsys, ["generate", "chart:bars", "-o", str(tmp_path / "g"), "-p", str(profile)])
         assert line == f"benchctl: error: {profile}: this needs a [{section}] section, which the profile lacks"
     assert not (tmp_path / "g").exists()
+    line = one_error_line(capsys, ["bench", "speed-vs-error", "-p", str(laser_only), "-o", str(tmp_path / "b")])
+    assert line == f"benchctl: error: {laser_only}: this needs a [slm] section, which the profile lacks"
 
 
 # -- procedures -------------------------------------------------------------------------------------------------------
