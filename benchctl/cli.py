@@ -80,7 +80,7 @@ def _cmd_bench_speed(args: argparse.Namespace) -> int:
     from benchctl.console import Progress
     from benchctl.profiles import load_profile
 
-    profile = load_profile(args.profile)
+    profile = load_profile(args.profile).require("slm", "optics", "laser")
     size = args.size or (profile.slm.height // 4, profile.slm.width // 4)
     run_speed_vs_error(resized_profile(profile, size), targets=tuple(args.targets or DEFAULT_TARGETS),
                        methods=tuple(args.methods) if args.methods else None,
@@ -134,7 +134,7 @@ def _cmd_device(args: argparse.Namespace) -> int:
             return _print_lines(dc.sim_status())
         if args.sim_command == "reset":
             return _print_lines(dc.sim_reset())
-        return _print_lines(dc.sim_fault(args.device, args.faults, args.clear))
+        return _print_lines(dc.sim_fault(args.device, args.faults, args.clear, load_profile(args.profile)))
     profile = load_profile(args.profile)
     if args.command == "camera":
         if args.camera_command == "info":
@@ -213,6 +213,7 @@ def _add_device_commands(sub: argparse._SubParsersAction) -> None:
                                                  "clamp, drop_after=N; sim-camera: unplug_at=N (cable pulled before "
                                                  "frame N)")
     fault.add_argument("--clear", action="store_true", help="remove every fault")
+    _add_profile(fault)  # whose sim:// lasers are known devices
     for parser in sim.choices.values():
         parser.set_defaults(func=_cmd_device)
 
@@ -411,13 +412,16 @@ def build_parser() -> argparse.ArgumentParser:
                     "OUT/<timestamp>-<name>/ with the profile and procedure as used, versions, device identities, a "
                     "step log, holograms as displayed, RAW frames as captured, images, metrics and report.html. An "
                     "interrupted run leaves emission off and keeps what it captured; --resume finishes it.",
-        epilog="procedures: files in procedures/ (TOML, or a Python file with PARAMETERS and plan(); see README).")
+        epilog="procedures: files in procedures/ (TOML, or a Python file with PARAMETERS and plan(); see README). "
+               "A .py procedure is code: running, dry-running or resuming it executes it with your rights; run "
+               "only procedure files you trust.")
     run.add_argument("procedure", nargs="?", type=Path, help="procedure file (.toml or .py)")
     _add_profile(run)
     run.add_argument("--out", "-o", type=Path, default=Path("runs"), metavar="DIR",
                      help="where run folders are created (default: runs/)")
     run.add_argument("--dry-run", action="store_true",
-                     help="check the procedure and profile and print every step; touch no device, write nothing")
+                     help="check the procedure and profile and print every step; benchctl touches no device and "
+                          "writes nothing (a .py procedure's own code still runs)")
     run.add_argument("--resume", type=Path, metavar="RUN_DIR",
                      help="finish an interrupted run without repeating its finished steps")
     run.set_defaults(func=_cmd_run)

@@ -14,6 +14,7 @@ import numpy as np
 
 from benchctl.errors import BenchctlError
 from benchctl.files import atomic_write_bytes
+from benchctl.limits import check_pixels
 
 _SWAP_RB = [2, 1, 0, 3]  # BGR(A) <-> RGB(A) channel order; the same permutation both ways
 
@@ -25,7 +26,14 @@ def read_image(path: str | Path) -> np.ndarray:
         data = path.read_bytes()
     except OSError as exc:
         raise BenchctlError(f"{path}: cannot read image: {exc.strerror or exc}") from None
+    if not data:
+        raise BenchctlError(f"{path}: empty file (0 bytes), not an image")
+    size = header_size(data)
+    if size is not None:
+        check_pixels(str(path), *size)
     image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    if image is not None:
+        check_pixels(str(path), *image.shape[:2])  # formats whose header is not read above
     if image is None:
         raise BenchctlError(f"{path}: not an image OpenCV can decode")
     if image.ndim == 3 and image.shape[2] == 1:
@@ -33,6 +41,23 @@ def read_image(path: str | Path) -> np.ndarray:
     if image.ndim == 3:
         image = image[:, :, _SWAP_RB[: image.shape[2]]]
     return image
+
+
+def header_size(data: bytes) -> tuple[int, int] | None:
+    """(height, width) from a PNG, JPEG or BMP header, read before decoding (None for other formats or a
+    header that does not parse: the decoder then judges the file)."""
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR" and len(data) >= 24:
+        return int.from_bytes(data[20:24], "big"), int.from_bytes(data[16:20], "big")
+    if data[:2] == b"BM" and len(data) >= 26:
+        return abs(int.from_bytes(data[22:26], "little", signed=True)), int.from_bytes(data[18:22], "little")
+    if data[:2] == b"\xff\xd8":
+        at = 2
+        while at + 9 <= len(data) and data[at] == 0xFF:
+            marker, length = data[at + 1], int.from_bytes(data[at + 2:at + 4], "big")
+            if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):  # start of frame: the image size
+                return int.from_bytes(data[at + 5:at + 7], "big"), int.from_bytes(data[at + 7:at + 9], "big")
+            at += 2 + length
+    return None
 
 
 def write_png(path: str | Path, array: np.ndarray) -> Path:

@@ -9,6 +9,7 @@ BenchctlError naming the file, the key path (`laser.channels[1].wavelength_nm`) 
 from __future__ import annotations
 
 import os
+import re
 import sys
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -17,6 +18,7 @@ from typing import Any
 
 from benchctl.dng import CFA_LAYOUTS
 from benchctl.errors import BenchctlError
+from benchctl.limits import check_pixels
 from benchctl.schema import Field, check_table, fail
 
 if sys.version_info >= (3, 11):
@@ -27,13 +29,14 @@ else:
 PROFILE_ENV = "BENCHCTL_PROFILE"
 PROFILE_DIR = "hardware_profiles"
 DEFAULT_PROFILE = "simulated"
+_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
 
 
 _CHANNEL = {
     "name": Field("str"),
     # The laser unit's own channel number, as drivers address it; defaults to the position in the list, from 1.
     "index": Field("int", required=False, ge=0),
-    "wavelength_nm": Field("float", gt=0),
+    "wavelength_nm": Field("float", ge=100, le=20000),  # the wavelengths optics.setup accepts (100 nm .. 20 um)
     "max_power_mw": Field("float", gt=0),
     "setpoint_mw": Field("float", ge=0),
     # Single-wavelength heads (cobolt, obis) have one serial port each; overrides laser.port.
@@ -111,7 +114,7 @@ SCHEMA: Mapping[str, Field] = {
         "device": Field("str", required=False),
         "width": Field("int", gt=0),
         "height": Field("int", gt=0),
-        "pitch_um": Field("float", gt=0),
+        "pitch_um": Field("float", ge=0.1, le=1000),  # the pitches optics.setup accepts (0.1 um .. 1 mm)
         "bit_depth": Field("int", ge=1, le=16),
         "settle_ms": Field("float", required=False, default=100.0, ge=0),
         "flip_x": Field("bool", required=False, default=False),
@@ -451,6 +454,10 @@ def _build(path: Path, data: Mapping[str, Any]) -> Profile:
     """Cross-key checks the schema cannot express, then the dataclasses."""
     if not any(section in data for section in SECTIONS):
         raise fail(path, "(top level)", f"no device section: give at least one of {', '.join(SECTIONS)}")
+    name = data.get("name", path.stem)
+    if not _NAME.fullmatch(name):
+        raise fail(path, "name", f"{name!r} must be letters, digits, '_', '-' or '.' and start with a letter or digit "
+                                 "(it names the profile's calibration folder)")
     slm = _build_slm(path, data["slm"]) if "slm" in data else None
     optics = OpticsConfig(**data["optics"]) if "optics" in data else None
     if optics and slm and (optics.roi[0] > slm.height or optics.roi[1] > slm.width):
@@ -466,7 +473,7 @@ def _build(path: Path, data: Mapping[str, Any]) -> Profile:
                 raise fail(path, f"slm.lut.{name}", f"no laser channel {name!r} (known: {', '.join(sorted(names))})")
     camera = CameraConfig(**data["camera"]) if "camera" in data else None
     sim = _build_sim(path, data.get("sim", {}), laser)
-    return Profile(path=path, name=data.get("name", path.stem), description=data["description"],
+    return Profile(path=path, name=name, description=data["description"],
                    optics=optics, slm=slm, laser=laser, camera=camera, sim=sim)
 
 
@@ -496,6 +503,7 @@ def _build_slm(path: Path, data: Mapping[str, Any]) -> SLMConfig:
     """The SLM section: lookup-table paths are relative to the profile's folder."""
     luts = {name: (path.parent / file).resolve() for name, file in data.get("lut", {}).items()}
     slm = SLMConfig(**{**data, "lut": luts})
+    check_pixels(f"{path}: slm.height x slm.width", slm.height, slm.width)
     if slm.driver == "framebuffer" and not slm.device:
         raise fail(path, "slm.device", "the framebuffer driver needs a device, e.g. device = \"/dev/fb1\"")
     return slm

@@ -209,6 +209,9 @@ def load_target(spec: str | Path, size: tuple[int, int]) -> np.ndarray:
         image = entry[0](h, w)
     else:
         image = read_image(photo_path(text) if text.startswith(PHOTO_PREFIX) else text)
+        if np.issubdtype(image.dtype, np.floating) and not np.isfinite(image).all():
+            bad = int((~np.isfinite(image)).sum())
+            raise BenchctlError(f"{text}: {bad} NaN or infinite value(s); a target image must be finite")
         if np.issubdtype(image.dtype, np.integer):
             image = image / np.iinfo(image.dtype).max
         image = np.clip(image, 0.0, 1.0)
@@ -226,7 +229,8 @@ def prepare_target(srgb: np.ndarray, grid_shape: tuple[int, int], roi: tuple[int
     if srgb.ndim != 3 or srgb.shape[2] != 3:
         raise ValueError(f"expected an (H, W, 3) sRGB image, got shape {srgb.shape}")
     rows, cols = centred_slices(grid_shape, roi)
-    linear = srgb_to_linear(torch.tensor(srgb, dtype=torch.float32)).numpy()
+    # A copy: a flip leaves negative strides, which a 1-pixel-high array keeps even through np.ascontiguousarray.
+    linear = srgb_to_linear(torch.tensor(srgb.copy(), dtype=torch.float32)).numpy()
     if linear.shape[:2] != tuple(roi):
         shrinking = roi[0] < linear.shape[0] or roi[1] < linear.shape[1]
         interpolation = cv2.INTER_AREA if shrinking else cv2.INTER_LINEAR

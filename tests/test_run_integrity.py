@@ -204,3 +204,19 @@ def test_a_raw_file_is_never_replaced_by_the_camera(tmp_path: Path, bench_profil
     assert (tmp_path / "frame-001.dng").read_bytes() == b"kept"
     assert (tmp_path / "frame-000.dng").read_bytes()[:2] in (b"II", b"MM")
     assert not list(tmp_path.glob(".*.tmp"))
+
+
+def test_a_dry_run_of_python_code_says_the_code_ran_and_help_says_procedures_are_code(
+        tmp_path: Path, bench_profile_path: Path, expose_procedure: Path, sim_state_dir: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    said: list[str] = []
+    run_procedure(expose_procedure, profile=str(bench_profile_path), out=tmp_path / "runs", dry_run=True,
+                  say=said.append)
+    assert said[-1] == ("dry run: benchctl opened no device and wrote nothing; the procedure's own code (expose.py) "
+                        "ran to plan these steps, with your rights")
+    assert not (tmp_path / "runs").exists() and list(sim_state_dir.iterdir()) == []
+    with pytest.raises(SystemExit):
+        main(["run", "--help"])
+    help_text = " ".join(capsys.readouterr().out.split())
+    assert "A .py procedure is code: running, dry-running or resuming it executes it with your rights" in help_text
+    assert "(a .py procedure's own code still runs)" in help_text

@@ -26,6 +26,7 @@ from benchctl.devices.errors import DeviceBusy, DeviceError, DeviceTimeout
 
 SIM_HANDLERS = "benchctl.devices.sim"  # holds protocol_sim.py, pyserial's handler for sim:// URLs
 MAX_REPLY_LINES = 64  # a multi-line reply longer than this means the framing is lost
+MAX_LINE_BYTES = 4096  # a reply line longer than this means the framing is lost (or a flood: socket:// ports)
 _BUSY = {errno.EBUSY, errno.EAGAIN, errno.EWOULDBLOCK}
 T = TypeVar("T")
 
@@ -225,6 +226,9 @@ class SerialLink:
                     f"{self.where}: connection lost waiting for the reply to {command!r}: {exc}"
                 ) from None
             self._rx += chunk
+            if len(self._rx) > MAX_LINE_BYTES and self._rx.find(self._terminator) < 0:
+                raise DeviceError(f"{self.where}: reply to {command!r} is over {MAX_LINE_BYTES} bytes without a "
+                                  f"{self.line_ending!r} (wrong line ending, or not the expected device?)")
             if not chunk or time.monotonic() > deadline:
                 if self._rx:
                     raise DeviceError(

@@ -13,6 +13,7 @@ import re
 import signal
 import time
 from pathlib import Path
+from urllib.parse import urlsplit
 from typing import Callable
 
 import numpy as np
@@ -23,6 +24,7 @@ from benchctl.devices.errors import EmissionNotOff
 from benchctl.devices.laser import ChannelStatus, open_laser
 from benchctl.devices.laser.base import UNKNOWN_EMISSION, port_lock
 from benchctl.devices.power import format_power
+from benchctl.devices.sim.laser_emulators import parse_faults
 from benchctl.devices.sim.state import list_states, load_state, reset_states, save_state, state_dir
 from benchctl.devices.slm import open_slm
 from benchctl.errors import BenchctlError
@@ -31,6 +33,7 @@ from benchctl.profiles import Profile
 
 _DURATION = re.compile(r"^\s*(\d+(?:\.\d*)?|\.\d+)\s*(ms|s|min|m|h)?\s*$")
 _SECONDS = {"ms": 1e-3, "s": 1.0, None: 1.0, "min": 60.0, "m": 60.0, "h": 3600.0}
+CAMERA = "sim-camera"  # the simulated camera's name in the simulated bench's state (devices.sim.bench)
 HOLDER_EXIT_S = 15.0  # how long `laser off` waits for a command holding the laser to switch it off and exit
 
 
@@ -85,8 +88,24 @@ def laser_on(profile: Profile, channel: str, duration_s: float | None, leave_on:
     return [f"{channel}: emission off"]
 
 
-def sim_fault(device: str, faults: list[str], clear: bool) -> list[str]:
-    """Set (or clear) the faults a simulated device shows from its next connection on."""
+def sim_fault(device: str, faults: list[str], clear: bool, profile: Profile) -> list[str]:
+    """Set (or clear) the faults a simulated device shows from its next connection on. The device is the
+    simulated camera, a sim:// laser of `profile` or one with saved state; unknown faults are refused."""
+    ports = [urlsplit(profile.laser.port_of(ch)) for ch in profile.laser.channels] if profile.laser else []
+    lasers = {port.netloc for port in ports if port.scheme == "sim"}
+    lasers |= {name for name, saved in list_states().items() if "channels" in saved}  # connected before
+    if device != CAMERA and device not in lasers:
+        raise BenchctlError(f"no simulated device {device!r} (known: {', '.join(sorted(lasers | {CAMERA}))})")
+    if device == CAMERA:
+        from benchctl.devices.camera.sim import unplug_frame
+
+        for fault in faults:
+            unplug_frame(fault)
+    else:
+        try:
+            parse_faults(faults)
+        except ValueError as exc:
+            raise BenchctlError(f"{device}: {exc}") from None
     state = load_state(device)
     state["faults"] = [] if clear else sorted(set(state.get("faults", [])) | set(faults))
     save_state(device, state)

@@ -91,7 +91,10 @@ def run_procedure(path: Path | None, *, profile: str | None = None, out: Path = 
         if dry_run:
             for line in _describe(steps, procedure, bench_profile):
                 say(line)
-            say("dry run: nothing was touched")
+            code = [name for name in procedure.files if name.endswith(".py")]
+            say("dry run: nothing was touched" if not code else
+                f"dry run: benchctl opened no device and wrote nothing; the procedure's own code ({', '.join(code)}) "
+                "ran to plan these steps, with your rights")
             return RunOutcome(None, [], [step.key for step in steps], [])
         if record is None:
             record = create_run(Path(out), procedure.name, {

@@ -58,6 +58,7 @@ def run_generate(
     A learned method uses `checkpoint`, else the one shipped for the profile (see `compute_scene`).
     """
     started = time.time()
+    profile.require("slm", "optics", "laser")  # the laser's channels are the colours generated
     srgb = load_target(target, size=profile.optics.roi)
     amplitude = prepare_target(srgb, profile.slm.shape, profile.optics.roi)
     out_dir = ensure_dir(Path(out_dir))

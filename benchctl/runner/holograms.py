@@ -61,6 +61,8 @@ def target_plane(channel: LaserChannel) -> int:
 
 def describe_propagation(profile: Profile) -> str:
     """Per laser channel, the propagation plan at the profile's geometry (spread K, padded grid, band limit)."""
+    if profile.slm is None or profile.optics is None or not profile.channels:
+        return "  Propagation SLM -> target: not described (needs [slm], [optics] and [laser])"
     lines = ["  Propagation SLM -> target (padding auto):"]
     for channel in profile.channels:
         plan = OpticalSetup.from_profile(profile, channel.name).target_propagator().plan

@@ -24,6 +24,7 @@ from __future__ import annotations
 import importlib
 import importlib.util
 import sys
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -49,6 +50,8 @@ BUILTINS = {
     "lut-calibration": "benchctl.runner.builtin.lut_calibration",
     "power-sweep": "benchctl.runner.builtin.power_sweep",
 }
+
+MAX_STEPS = 100_000  # a plan longer than this is a mistake (repeats = 1000000), not an experiment
 
 FILE_SCHEMA = {
     "name": Field("str", required=False),
@@ -112,8 +115,10 @@ class Procedure:
 
     def plan(self, context: Context) -> list[Step]:
         steps = self.module.plan(context)
-        keys = [step.key for step in steps]
-        repeated = {key for key in keys if keys.count(key) > 1}
+        if len(steps) > MAX_STEPS:
+            raise BenchctlError(f"procedure {self.name!r} plans {len(steps):,} steps, above the limit of {MAX_STEPS:,} "
+                                "(split it into several runs)")
+        repeated = {key for key, count in Counter(step.key for step in steps).items() if count > 1}
         if repeated:
             raise BenchctlError(f"procedure {self.name!r} plans step(s) {sorted(repeated)} more than once")
         return steps

@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from benchctl.capture.raw import RawImage, average_frames, decode_raw, subtract_dark
+from benchctl.cgh.learned import resolve_method
 from benchctl.devices.power import format_power, parse_power
 from benchctl.errors import BenchctlError
 from benchctl.files import file_sha256
@@ -37,6 +38,16 @@ METHOD_PARAMETERS = {
     "seed": Field("int", required=False, default=0, ge=0),
     "checkpoint": Field("str", required=False),  # a trained model for a learned method
 }
+
+
+def check_method(context: Context, used: list[LaserChannel]) -> None:
+    """The procedure's hologram method and checkpoint (its file and the geometry it was trained for), checked
+    when planning, so a dry run reports what the run would otherwise fail on at its first hologram."""
+    try:
+        resolve_method(context.params["method"], context.profile, context.params.get("checkpoint"),
+                       [channel.name for channel in used])
+    except BenchctlError as exc:
+        raise BenchctlError(f"parameters.method / checkpoint: {exc}") from None
 
 
 def channels(context: Context) -> list[LaserChannel]:

@@ -14,6 +14,14 @@ from benchctl.files import ensure_dir
 from benchctl.profiles import CameraConfig, Profile
 
 
+def unplug_frame(fault: str) -> int:
+    """N of the simulated camera's fault `unplug_at=N`; DeviceError for anything else."""
+    name, _, value = fault.partition("=")
+    if name != "unplug_at" or not value.isdigit():
+        raise DeviceError(f"simulated camera: unknown fault {fault!r} (known: unplug_at=N)")
+    return int(value)
+
+
 class SimCamera(Camera):
     """The simulated camera of `profile` (its [sim] physics); exposure and ISO come from the [camera] section,
     else from the simulated body's own settings ([sim.sensor])."""
@@ -42,10 +50,7 @@ class SimCamera(Camera):
         frame N, so that shutter release fails and the frame counter stays at N - 1."""
         state = load_state(STATE_NAME)
         for fault in state.get("faults", []):
-            name, _, value = fault.partition("=")
-            if name != "unplug_at" or not value.isdigit():
-                raise DeviceError(f"simulated camera: unknown fault {fault!r} (known: unplug_at=N)")
-            if int(state.get("frame", 0)) + 1 >= int(value):
+            if int(state.get("frame", 0)) + 1 >= unplug_frame(fault):
                 raise DeviceError(f"simulated camera: USB cable pulled before frame {state.get('frame', 0) + 1}")
 
     def _apply_settings(self, exposure_s: float | None, iso: int | None) -> None:

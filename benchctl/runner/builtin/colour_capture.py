@@ -34,6 +34,7 @@ from benchctl.runner.steps import (
     EXPOSURE_PARAMETERS,
     METHOD_PARAMETERS,
     channels,
+    check_method,
     displayed_frame,
     exposure_step,
     hologram_step,
@@ -53,7 +54,7 @@ PARAMETERS = {
     "targets": Field("str_list", required=False, default=["chart:bars"], min_items=1),
     **METHOD_PARAMETERS,
     **EXPOSURE_PARAMETERS,
-    "repeats": Field("int", required=False, default=1, ge=1),
+    "repeats": Field("int", required=False, default=1, ge=1, le=1000),
     # "auto": register first when no stored registration fits this profile; "stored": require one
     "registration": Field("str", required=False, default="auto", choices=("auto", "stored")),
     # "auto": measure the SLM's lookup table first for colours that have none; "skip": use what there is
@@ -70,6 +71,7 @@ def plan(context: Context) -> list[Step]:
     unknown_setpoints(context)
     used = channels(context)
     steps: list[Step] = []
+    check_method(context, used)
     calibrated = {*context.calibration.lut_files(), *(context.profile.slm.lut if context.profile.slm else {})}
     uncalibrated = [c for c in used if c.name not in calibrated]
     if uncalibrated and params["lut_calibration"] == "auto":

@@ -26,6 +26,7 @@ from benchctl.runner.steps import (
     EXPOSURE_PARAMETERS,
     METHOD_PARAMETERS,
     channels,
+    check_method,
     displayed_frame,
     exposure_step,
     hologram_step,
@@ -53,6 +54,7 @@ def plan(context: Context) -> list[Step]:
     options = {key: context.params.get(key) for key in METHOD_PARAMETERS}
     steps: list[Step] = []
     used = channels(context)
+    check_method(context, used)
     for channel in used:
         hologram_key = f"hologram/sweep/{channel.name}"
         steps.append(hologram_step(hologram_key, "sweep", target, channel, options))

@@ -8,6 +8,7 @@ pyusb errors from the transport become one-line DeviceErrors saying which operat
 from __future__ import annotations
 
 import contextlib
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -27,6 +28,9 @@ from benchctl.devices.errors import DeviceBusy, DeviceError
 
 SESSION_ID = 1
 _LAST_TRANSACTION_ID = 0xFFFFFFFE  # 0xFFFFFFFF is reserved; ids wrap to 1
+MAX_DATA_CONTAINERS = 4096  # data containers in one transaction (a camera sends one per object or property)
+MAX_DATA_BYTES = 512 << 20  # bytes of data in one transaction (the largest RAW files are ~100 MB)
+TRANSACTION_DEADLINE_S = 600.0  # one transaction, however its camera keeps answering
 _HINTS: dict[int, str] = {
     ResponseCode.SessionNotOpen: "the camera closed the session (asleep or reset?): reconnect",
     ResponseCode.OperationNotSupported: "this camera does not offer that operation",
@@ -111,16 +115,25 @@ class PtpSession:
             self.transport.send(Container(ContainerType.COMMAND, operation, transaction_id, params).pack())
             if data is not None:
                 self.transport.send(Container(ContainerType.DATA, operation, transaction_id, payload=data).pack())
-            received = b""
+            received = bytearray()  # appending to bytes would copy everything received so far, every time
+            containers = 0
+            deadline = time.monotonic() + TRANSACTION_DEADLINE_S
             while True:
+                if time.monotonic() > deadline:
+                    raise DeviceError(f"camera: {name} did not end within {TRANSACTION_DEADLINE_S:g} s; reconnect "
+                                      "the camera")
                 container = Container.unpack(self.transport.receive())
                 if container.transaction_id != transaction_id:
                     raise DeviceError(f"camera answered transaction {container.transaction_id} while {name} was "
                                       f"transaction {transaction_id}: out of step; reconnect the camera")
                 if container.type == ContainerType.DATA:
+                    containers += 1
+                    if containers > MAX_DATA_CONTAINERS or len(received) + len(container.payload) > MAX_DATA_BYTES:
+                        raise DeviceError(f"camera: {name} sent over {MAX_DATA_CONTAINERS} data containers or "
+                                          f"{MAX_DATA_BYTES:,} bytes without ending; reconnect the camera")
                     received += container.payload
                 elif container.type == ContainerType.RESPONSE:
-                    return Response(container.code, container.params, received)
+                    return Response(container.code, container.params, bytes(received))
                 else:
                     raise MalformedContainer(f"unexpected {container.type.name.lower()} container "
                                              f"{code_name(container.code)} on the bulk pipe during {name}")

@@ -27,6 +27,7 @@ from benchctl.errors import BadValueError
 
 PTP_INTERFACE_CLASS = 6  # USB Still Image class
 CHUNK_SIZE = 1 << 20  # bytes asked for per bulk-in read (a multiple of every wMaxPacketSize)
+MAX_CONTAINER_BYTES = 512 << 20  # a container longer than this is garbage: the largest RAW files are ~100 MB
 NO_BACKEND = "no libusb backend: install libusb-1.0 (Debian/Ubuntu: sudo apt install libusb-1.0-0)"
 _NO_DEVICE = -4  # LIBUSB_ERROR_NO_DEVICE
 
@@ -174,6 +175,9 @@ class UsbTransport(Transport):
         if len(data) < 4:
             return data  # too short to hold a length; the container parser reports it
         (length,) = struct.unpack_from("<I", data)
+        if length > MAX_CONTAINER_BYTES:
+            raise DeviceError(f"camera announced a PTP container of {length:,} bytes, above the limit of "
+                              f"{MAX_CONTAINER_BYTES:,}: garbled, or not a camera")
         buffer = bytearray(data)
         while len(buffer) < length:
             part = self._read(min(self.chunk_size, length - len(buffer)))
