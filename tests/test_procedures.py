@@ -297,7 +297,10 @@ def test_python_procedure_example_measures_the_grating_shift(tmp_path: Path, ben
     for row in rows:  # 20 mm, 32 px period, 8 um pitch: 6.64 / 5.08 / 4.39 px
         expected = 0.02 * {"red": 680e-9, "green": 520e-9, "blue": 450e-9}[row["colour"]] / (32 * 8e-6 ** 2)
         assert row["predicted_px"] == pytest.approx(expected)
-        assert abs(row["measured_px"] - expected) < 0.3 and abs(row["across_px"]) < 0.3, row
+        # 0.35 px: the iris clips the tilted spectrum on one side, which in a noiseless model alone moves red by
+        # +0.25 px more than the tilt; captures read +0.25 (OpenCV 4.14) to +0.31 px (OpenCV 5.0, whose RANSAC
+        # homography differs slightly).
+        assert abs(row["measured_px"] - expected) < 0.35 and abs(row["across_px"]) < 0.3, row
 
 
 def test_a_python_procedure_without_plan_is_refused(tmp_path: Path, bench_profile_path: Path) -> None:
