@@ -18,21 +18,18 @@ Choices, measured on the Fresnel-scaled simulated bench (272 x 480, ROI 220 x 40
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from typing import Optional, Union
 
 import torch
 
 from benchctl.cgh.dpac import DPAC
-from benchctl.cgh.method import Method, Progress, register
+from benchctl.cgh.method import TOLERANCE, Method, Progress, register, stopped_improving
 from benchctl.errors import BadValueError
 from benchctl.optics.metrics import lsq_scale
 from benchctl.optics.setup import OpticalSetup
 
 DEFAULT_ITERATIONS = 500
 PHASE_LR = 0.05
-TOLERANCE = 1e-3
-STOP_WINDOW = 20
 RANDOM_RANGE = 0.5  # init="random": phase uniform in [-RANDOM_RANGE, RANDOM_RANGE] rad (neural-holography's start)
 
 Init = Union[str, Method]
@@ -49,19 +46,6 @@ def roi_loss(phase: torch.Tensor, target: torch.Tensor, setup: OpticalSetup) -> 
     wanted = target[..., rows, cols]
     scale = lsq_scale(recon.detach(), wanted)
     return torch.nn.functional.mse_loss(scale * recon, wanted)
-
-
-def stopped_improving(losses: Sequence[float], tolerance: float, window: int = STOP_WINDOW) -> bool:
-    """True once the best of `losses` fell by less than `tolerance` (relative) over the last `window` entries.
-
-    `losses` is the loss history, one entry per iteration; a rising or flat tail counts as not improving,
-    a still-falling one keeps going. Needs more than `window` entries to decide.
-    """
-    if len(losses) <= window:
-        return False
-    best_before = min(losses[:-window])
-    best_now = min(best_before, min(losses[-window:]))
-    return best_before - best_now <= tolerance * best_before
 
 
 def _initial_phase(init: Init, target: torch.Tensor, setup: OpticalSetup, seed: int) -> torch.Tensor:
