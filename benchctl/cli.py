@@ -294,8 +294,9 @@ def build_parser() -> argparse.ArgumentParser:
                                      "target are skipped.", epilog=EPILOG,
                          formatter_class=argparse.RawDescriptionHelpFormatter)
     gen.add_argument("target", help="chart or photo name (e.g. chart:siemens, photo:coffee) or image file")
-    gen.add_argument("--method", "-m", default="dpac", choices=[*method_names(), *LEARNED_METHODS],
-                     help="hologram method (default: dpac); learned ones need a trained checkpoint")
+    gen.add_argument("--method", "-m", default="dpac",
+                     choices=[*method_names(), *LEARNED_METHODS, *(f"{m}+sgd" for m in LEARNED_METHODS)],
+                     help="hologram method (default: dpac); learned ones (alone or +sgd) need a trained checkpoint")
     gen.add_argument("--checkpoint", type=Path, metavar="CKPT",
                      help="trained models for a learned method (default: the one shipped for the profile)")
     gen.add_argument("--iterations", "-n", type=_positive_int, help="iterations for iterative methods "

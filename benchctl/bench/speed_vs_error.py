@@ -160,12 +160,13 @@ def run_speed_vs_error(
             get_method(name)
     amplitudes = _load_targets(targets, profile, out)
     grid, roi = profile.slm.shape, profile.optics.roi
-    unit = _propagation_seconds(profile)
+    unit = _propagation_seconds(profile, colours[0] if colours else profile.channels[0].name)
     # Warm-up: every colour's transfer functions are built here once, outside the timed frames.
     compute_scene(next(iter(amplitudes.values())), profile, "dpac", colours=colours)
     out(f"grid {grid[0]}x{grid[1]}, ROI {roi[0]}x{roi[1]}, distance {profile.optics.distance_mm:g} mm, "
         f"pitch {profile.slm.pitch_um:g} um, targets: {', '.join(amplitudes)}")
-    out(f"one propagation ({profile.channels[0].name}, measured in this run): {unit * 1e3:.2f} ms; "
+    out(f"one propagation ({colours[0] if colours else profile.channels[0].name}, measured in this run): "
+        f"{unit * 1e3:.2f} ms; "
         "'x prop' = seconds per frame / that")
     out(f"{'method':<18} {'iters':>6} {'run':>6} {'target':<16} {'s/frame':>9} {'x prop':>8} {'PSNR amp':>9} "
         f"{'SSIM amp':>9} {'PSNR sRGB':>10} {'SSIM sRGB':>10}")
@@ -215,9 +216,9 @@ def run_speed_vs_error(
     return front
 
 
-def _propagation_seconds(profile: Profile, repeats: int = 5) -> float:
+def _propagation_seconds(profile: Profile, channel: str, repeats: int = 5) -> float:
     """Median time of one SLM -> target propagation of a random phase on this grid (after a warm-up)."""
-    setup = OpticalSetup.from_profile(profile, profile.channels[0].name)
+    setup = OpticalSetup.from_profile(profile, channel)
     generator = torch.Generator().manual_seed(0)
     field = torch.polar(torch.ones(setup.shape), torch.rand(setup.shape, generator=generator) * 6.283)
     propagate = setup.target_propagator()
