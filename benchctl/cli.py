@@ -76,16 +76,20 @@ def _cmd_generate(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_speed(args: argparse.Namespace) -> int:
-    from benchctl.bench.speed_vs_error import DEFAULT_BUDGETS, DEFAULT_TARGETS, resized_profile, run_speed_vs_error
+    from benchctl.bench.speed_vs_error import (DEFAULT_BUDGETS, DEFAULT_TARGETS, FULL_BUDGETS, resized_profile,
+                                               run_speed_vs_error)
     from benchctl.console import Progress
+    from benchctl.errors import BadValueError
     from benchctl.profiles import load_profile
 
     profile = load_profile(args.profile).require("slm", "optics", "laser")
-    size = args.size or (profile.slm.height // 4, profile.slm.width // 4)
+    if args.full and args.size:
+        raise BadValueError("--full runs at the profile's own grid; leave out --size")
+    size = profile.slm.shape if args.full else args.size or (profile.slm.height // 4, profile.slm.width // 4)
     run_speed_vs_error(resized_profile(profile, size), targets=tuple(args.targets or DEFAULT_TARGETS),
                        methods=tuple(args.methods) if args.methods else None,
-                       budgets=args.iterations or DEFAULT_BUDGETS, seed=args.seed, out_dir=Path(args.out),
-                       progress=Progress)
+                       budgets=args.iterations or (FULL_BUDGETS if args.full else DEFAULT_BUDGETS),
+                       colours=args.colours, seed=args.seed, out_dir=Path(args.out), progress=Progress)
     return 0
 
 
@@ -293,8 +297,8 @@ def build_parser() -> argparse.ArgumentParser:
                          formatter_class=argparse.RawDescriptionHelpFormatter)
     gen.add_argument("target", help="chart or photo name (e.g. chart:siemens, photo:coffee) or image file")
     gen.add_argument("--method", "-m", default="dpac",
-                     help="hologram method (default: dpac; `benchctl models` lists them all); learned ones need a "
-                          "trained checkpoint")
+                     help="hologram method (default: dpac; `benchctl models` lists them all); learned ones, alone "
+                          "or refined as <learned>+sgd, need a trained checkpoint")
     gen.add_argument("--checkpoint", type=Path, metavar="CKPT",
                      help="trained models for a learned method (default: the one shipped for the profile)")
     gen.add_argument("--iterations", "-n", type=_positive_int, help="iterations for iterative methods "
@@ -312,15 +316,19 @@ def build_parser() -> argparse.ArgumentParser:
                              description="Runs every hologram method at several iteration budgets on the targets, "
                                          "prints a table and writes speed_vs_error.csv (+ .png with matplotlib).")
     speed.add_argument("--targets", nargs="+", metavar="TARGET", help="targets (default: chart:siemens chart:bars "
-                                                                     "chart:text)")
+                                                                     "chart:text and the held-out photographs)")
     speed.add_argument("--methods", type=_names, metavar="LIST",
                        help="comma-separated methods (default: all classical ones, and learned ones whose "
-                            "shipped checkpoint fits the benchmark's grid)")
+                            "shipped checkpoint fits the benchmark's grid, alone and refined: <name>+sgd)")
     speed.add_argument("--iterations", type=_int_list, metavar="LIST",
-                       help="iteration budgets for iterative methods (default: 10,50,200,500)")
+                       help="iteration budgets for iterative methods (default: 10,50,200,500; 10,50 with --full)")
     speed.add_argument("--size", type=_size, metavar="HxW",
                        help="SLM grid for the benchmark; ROI and distance scaled to keep the Fresnel number "
                             "(default: a quarter of the profile's grid per axis)")
+    speed.add_argument("--full", action="store_true",
+                       help="the profile's own geometry (the paper's 1088x1920 on the simulated profile): slow")
+    speed.add_argument("--colours", type=_names, metavar="LIST",
+                       help="comma-separated laser channels, e.g. green (default: all in the profile)")
     speed.add_argument("--seed", type=int, default=0)
     speed.add_argument("--out", "-o", default="bench-out", metavar="DIR", help="output folder (default: bench-out)")
     _add_profile(speed)

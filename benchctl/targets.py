@@ -205,7 +205,8 @@ def load_target(spec: str | Path, size: tuple[int, int]) -> np.ndarray:
             raise ValueError(f"chart size must be positive, got {size!r}")
         entry = _CHARTS.get(text[len(CHART_PREFIX):])
         if entry is None:
-            raise BenchctlError(f"unknown chart {text!r}; known charts: {', '.join(list_targets())}")
+            raise BenchctlError(f"unknown chart {text!r}; known charts: "
+                               f"{', '.join(CHART_PREFIX + name for name in _CHARTS)}")
         image = entry[0](h, w)
     else:
         image = read_image(photo_path(text) if text.startswith(PHOTO_PREFIX) else text)

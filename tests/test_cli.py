@@ -139,7 +139,13 @@ def test_bench_speed_vs_error_writes_a_row_per_method_budget_and_target(capsys, 
         ("dpac", ""), ("dpac", ""), ("gs", "2"), ("gs", "2"), ("gs", "4"), ("gs", "4")]
     assert all(float(r["seconds_per_frame"]) > 0 and np.isfinite(float(r["psnr_srgb_db"])) for r in rows)
     assert (out / "speed_vs_error.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert "s/frame" in stdout
+    assert "s/frame" in stdout and "Pareto front" in stdout
+    with open(out / "front.csv") as handle:
+        front = list(csv.DictReader(handle))
+    assert [(r["method"], r["iterations"]) for r in front] == [("dpac", ""), ("gs", "2"), ("gs", "4")]
+    assert front[0]["front"] == "True"  # the fastest method is always on the front
+    code, _, stderr = _run(capsys, "bench", "speed-vs-error", "--full", "--size", "32x48", "-p", str(small_profile_path))
+    assert code != 0 and "--full" in stderr and len(stderr.strip().splitlines()) == 1
 
 
 def test_models_lists_classical_and_learned_methods_with_parameter_counts(capsys):

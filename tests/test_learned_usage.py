@@ -129,7 +129,7 @@ def test_shipped_checkpoint_is_found_listed_and_used_by_default(capsys, tmp_path
     with open(out / "speed_vs_error.csv") as handle:
         rows = list(csv.DictReader(handle))
     assert [(r["method"], r["iterations"]) for r in rows] == [
-        ("dpac", ""), ("gs", "2"), ("sgd", "2"), ("ccnn-dcm4", "")]
+        ("dpac", ""), ("gs", "2"), ("sgd", "2"), ("ccnn-dcm4", ""), ("ccnn-dcm4+sgd", "2")]
     code, stdout, _ = _run(capsys, "bench", "speed-vs-error", "--size", "32x48", "--iterations", "2", "--methods",
                            "dpac", "--targets", "chart:siemens", "-p", str(profile_path), "-o", str(out))
     assert code == 0

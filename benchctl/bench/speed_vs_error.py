@@ -1,7 +1,10 @@
-"""`benchctl bench speed-vs-error`: seconds per frame against PSNR / SSIM for every method and iteration budget.
+"""`benchctl bench speed-vs-error`: one speed-against-error front for every hologram method and iteration budget.
 
-Learned methods take part where a trained checkpoint fits the benchmark's geometry (shipped for the profile,
-see `benchctl.cgh.learned.find_checkpoint`); they are one-shot, like DPAC.
+Every method runs in one process, side by side, on the bundled charts and the held-out photographs: DPAC, GS
+and SGD at each budget, each learned method whose checkpoint fits the benchmark's geometry (one-shot), and
+that network refined by SGD (`<name>+sgd`, at each budget). Learned methods without a fitting checkpoint are
+skipped with the reason printed. The per-target table is followed by the front: one row per method and
+budget, means over targets, and whether the row is on the Pareto front of time per frame against PSNR.
 """
 
 from __future__ import annotations
@@ -9,21 +12,34 @@ from __future__ import annotations
 import io
 import statistics
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Callable
 
 import torch
 
 from benchctl.cgh import OpticalSetup, get_method, method_names
-from benchctl.cgh.learned import LEARNED_METHODS, find_checkpoint, read_checkpoint
+from benchctl.cgh.learned import LEARNED_METHODS
 from benchctl.cgh.learned.geometry import grid_profile
+from benchctl.errors import BenchctlError
 from benchctl.files import atomic_write_bytes, ensure_dir, write_csv
 from benchctl.profiles import Profile
-from benchctl.runner.holograms import checkpoint_status, compute_scene, usable_learned_methods
-from benchctl.targets import load_target, prepare_target
+from benchctl.runner.holograms import (
+    REFINED_SUFFIX,
+    checkpoint_status,
+    compute_scene,
+    refined_base,
+    usable_learned_methods,
+)
+from benchctl.targets import load_target, photo_specs, prepare_target
 
-DEFAULT_TARGETS = ("chart:siemens", "chart:bars", "chart:text")
+CHART_TARGETS = ("chart:siemens", "chart:bars", "chart:text")
+DEFAULT_TARGETS = (*CHART_TARGETS, *photo_specs("eval"))
 DEFAULT_BUDGETS = (10, 50, 200, 500)
+FULL_BUDGETS = (10, 50)
+"""Budgets at the profile's full geometry, where one SGD iteration costs ~16x what it costs scaled."""
+
+Progress = Callable[[str], Callable[[int, int], None]]
 
 
 def resized_profile(profile: Profile, size: tuple[int, int]) -> Profile:
@@ -37,86 +53,172 @@ def resized_profile(profile: Profile, size: tuple[int, int]) -> Profile:
     return grid_profile(profile, size, scale_distance=True)
 
 
-def budgets_for(method: str, budgets: tuple[int, ...]) -> list[int | None]:
-    """One-shot methods (DPAC, trained networks) run once; iterative ones run at every budget."""
+def budgets_for(method: str, budgets: Sequence[int]) -> list[int | None]:
+    """One-shot methods (DPAC, trained networks) run once; iterative ones (refined networks too) at every budget."""
     if method in LEARNED_METHODS:
         return [None]
+    if refined_base(method) is not None:
+        return list(budgets)
     return [None] if get_method(method).default_iterations is None else list(budgets)
 
 
 def default_methods(profile: Profile, out: Callable[[str], None] = print) -> tuple[str, ...]:
     """Every classical method, plus each learned method with a checkpoint that fits this benchmark's geometry
-    (and a note for those whose checkpoint is for another geometry)."""
+    and that network refined by SGD; for each learned method left out, a line saying why."""
     learned = usable_learned_methods(profile)
     for name in LEARNED_METHODS:
-        path = find_checkpoint(name, profile)
-        if path is not None and name not in learned:
-            grid = next(iter(read_checkpoint(path).geometry.values()))["grid"]
-            out(f"not running {name}: {checkpoint_status(name, profile)} (--size {grid[0]}x{grid[1]} includes it "
-                "when the rest of the geometry is the profile's)")
-    return (*method_names(), *learned)
+        if name not in learned:
+            out(f"not running {name} (nor {name}{REFINED_SUFFIX}): {checkpoint_status(name, profile)}")
+    return (*method_names(), *learned, *(f"{name}{REFINED_SUFFIX}" for name in learned))
+
+
+def pareto_front(points: Sequence[tuple[float, float]]) -> list[bool]:
+    """For each (seconds, psnr) point, whether no other point is at least as fast and as good and better in one.
+
+    Ties (the same point twice) are both on the front.
+    """
+    return [not any(t2 <= t1 and p2 >= p1 and (t2 < t1 or p2 > p1) for t2, p2 in points) for t1, p1 in points]
+
+
+def _mean(values: Sequence[float]) -> float:
+    return sum(values) / len(values) if values else float("nan")
+
+
+def front_rows(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One row per method and budget from the per-target rows: means over targets (charts and photographs also
+    apart), and `front`: on the Pareto front of seconds per frame against mean amplitude PSNR."""
+    groups: dict[tuple[str, Any], list[dict[str, Any]]] = {}
+    for row in rows:
+        groups.setdefault((row["method"], row["iterations"]), []).append(row)
+    front = []
+    for (method, iterations), group in groups.items():
+        charts = [r["psnr_amplitude_db"] for r in group if r["target"].startswith("chart:")]
+        photos = [r["psnr_amplitude_db"] for r in group if not r["target"].startswith("chart:")]
+        front.append({
+            "method": method,
+            "iterations": iterations,
+            "iterations_run": _mean([r["iterations_run"] for r in group]) if iterations != "" else "",
+            "seconds_per_frame": _mean([r["seconds_per_frame"] for r in group]),
+            "x_propagation": _mean([r["seconds_per_frame"] / r["propagation_seconds"] for r in group]),
+            "psnr_amplitude_db": _mean([r["psnr_amplitude_db"] for r in group]),
+            "psnr_amplitude_charts_db": _mean(charts),
+            "psnr_amplitude_photos_db": _mean(photos),
+            "ssim_amplitude": _mean([r["ssim_amplitude"] for r in group]),
+            "psnr_srgb_db": _mean([r["psnr_srgb_db"] for r in group]),
+            "targets": len(group),
+        })
+    on_front = pareto_front([(r["seconds_per_frame"], r["psnr_amplitude_db"]) for r in front])
+    for row, on in zip(front, on_front):
+        row["front"] = on
+    return front
+
+
+def _load_targets(targets: Sequence[str], profile: Profile, out: Callable[[str], None]) -> dict[str, torch.Tensor]:
+    """Each target as (3, H, W) amplitude on the grid; one that cannot be loaded is skipped with the reason."""
+    grid, roi = profile.slm.shape, profile.optics.roi
+    amplitudes = {}
+    for spec in targets:
+        try:
+            amplitudes[spec] = prepare_target(load_target(spec, size=roi), grid, roi)
+        except BenchctlError as error:
+            out(f"not running target {spec}: {error}")
+    if not amplitudes:
+        raise BenchctlError("no target could be loaded")
+    return amplitudes
+
+
+def _recording(progress: Progress | None, last: dict[str, int]) -> Progress:
+    """A progress factory that remembers the last `done` per colour (the iterations an early stop ran)."""
+    def factory(label: str) -> Callable[[int, int], None]:
+        inner = progress(label) if progress is not None else None
+
+        def report(done: int, total: int) -> None:
+            last[label] = done
+            if inner is not None:
+                inner(done, total)
+        return report
+    return factory
 
 
 def run_speed_vs_error(
     profile: Profile,
     *,
-    targets: tuple[str, ...] = DEFAULT_TARGETS,
-    methods: tuple[str, ...] | None = None,
-    budgets: tuple[int, ...] = DEFAULT_BUDGETS,
+    targets: Sequence[str] = DEFAULT_TARGETS,
+    methods: Sequence[str] | None = None,
+    budgets: Sequence[int] = DEFAULT_BUDGETS,
+    colours: list[str] | None = None,
     seed: int = 0,
     out_dir: Path | None = None,
     out: Callable[[str], None] = print,
-    progress: Callable[[str], Callable[[int, int], None]] | None = None,
+    progress: Progress | None = None,
 ) -> list[dict[str, Any]]:
-    """Run each method at each budget on each target; print a table, write CSV (+ PNG plot if matplotlib)."""
+    """Run each method at each budget on each target; print the per-target table and the front, write CSVs
+    (+ a PNG plot with matplotlib). Returns the front's rows (one per method and budget)."""
     methods = tuple(methods or default_methods(profile, out))
     for name in methods:
-        if name not in LEARNED_METHODS:
+        if name not in LEARNED_METHODS and refined_base(name) is None:
             get_method(name)
+    amplitudes = _load_targets(targets, profile, out)
     grid, roi = profile.slm.shape, profile.optics.roi
-    amplitudes = {t: prepare_target(load_target(t, size=roi), grid, roi) for t in targets}
-    unit = _propagation_seconds(profile)
+    unit = _propagation_seconds(profile, colours[0] if colours else profile.channels[0].name)
+    # Warm-up: every colour's transfer functions are built here once, outside the timed frames.
+    compute_scene(next(iter(amplitudes.values())), profile, "dpac", colours=colours)
     out(f"grid {grid[0]}x{grid[1]}, ROI {roi[0]}x{roi[1]}, distance {profile.optics.distance_mm:g} mm, "
-        f"pitch {profile.slm.pitch_um:g} um, targets: {', '.join(targets)}")
-    out(f"one propagation ({profile.channels[0].name}, measured in this run): {unit * 1e3:.2f} ms; "
+        f"pitch {profile.slm.pitch_um:g} um, targets: {', '.join(amplitudes)}")
+    out(f"one propagation ({colours[0] if colours else profile.channels[0].name}, measured in this run): "
+        f"{unit * 1e3:.2f} ms; "
         "'x prop' = seconds per frame / that")
-    header = (f"{'method':<14} {'iters':>6} {'target':<16} {'s/frame':>9} {'x prop':>8} {'PSNR amp':>9} "
-              f"{'SSIM amp':>9} {'PSNR sRGB':>10} {'SSIM sRGB':>10}")
-    out(header)
+    out(f"{'method':<18} {'iters':>6} {'run':>6} {'target':<16} {'s/frame':>9} {'x prop':>8} {'PSNR amp':>9} "
+        f"{'SSIM amp':>9} {'PSNR sRGB':>10} {'SSIM sRGB':>10}")
     rows = []
     for method in methods:
         for iterations in budgets_for(method, budgets):
             for target, amplitude in amplitudes.items():
-                scene = compute_scene(amplitude, profile, method, iterations=iterations, seed=seed, progress=progress)
+                last: dict[str, int] = {}
+                scene = compute_scene(amplitude, profile, method, iterations=iterations, colours=colours, seed=seed,
+                                      progress=_recording(progress, last))
                 done = [c for c in scene.colours if not c.skipped]
                 row = {
                     "method": method,
                     "iterations": iterations if iterations is not None else "",
+                    "iterations_run": _mean(list(last.values())) if iterations is not None else "",
                     "target": target,
                     "frames": len(done),
-                    "seconds_per_frame": sum(c.seconds for c in done) / max(len(done), 1),
+                    "seconds_per_frame": _mean([c.seconds for c in done]),
                     "propagation_seconds": unit,
-                    "psnr_amplitude_db": sum(c.scores["psnr_amplitude_db"] for c in done) / max(len(done), 1),
-                    "ssim_amplitude": sum(c.scores["ssim_amplitude"] for c in done) / max(len(done), 1),
+                    "psnr_amplitude_db": _mean([c.scores["psnr_amplitude_db"] for c in done]),
+                    "ssim_amplitude": _mean([c.scores["ssim_amplitude"] for c in done]),
                     "psnr_srgb_db": scene.merged_scores["psnr_srgb_db"],
                     "ssim_srgb": scene.merged_scores["ssim_srgb"],
                 }
                 rows.append(row)
-                out(f"{method:<14} {row['iterations']!s:>6} {target:<16} {row['seconds_per_frame']:>9.3f} "
-                    f"{row['seconds_per_frame'] / unit:>8.1f} "
-                    f"{row['psnr_amplitude_db']:>9.2f} {row['ssim_amplitude']:>9.3f} {row['psnr_srgb_db']:>10.2f} "
-                    f"{row['ssim_srgb']:>10.3f}")
+                run = f"{row['iterations_run']:.0f}" if iterations is not None else ""
+                out(f"{method:<18} {row['iterations']!s:>6} {run:>6} {target:<16} {row['seconds_per_frame']:>9.3f} "
+                    f"{row['seconds_per_frame'] / unit:>8.1f} {row['psnr_amplitude_db']:>9.2f} "
+                    f"{row['ssim_amplitude']:>9.3f} {row['psnr_srgb_db']:>10.2f} {row['ssim_srgb']:>10.3f}")
+    front = front_rows(rows)
+    out("")
+    out("front: means over targets; amplitude PSNR on the ROI; * = on the Pareto front (time against PSNR amp)")
+    out(f"{'method':<18} {'iters':>6} {'run':>6} {'s/frame':>9} {'x prop':>8} {'PSNR amp':>9} {'charts':>7} "
+        f"{'photos':>7} {'SSIM amp':>9} {'PSNR sRGB':>10} front")
+    for row in front:
+        run = f"{row['iterations_run']:.0f}" if row["iterations"] != "" else ""
+        out(f"{row['method']:<18} {row['iterations']!s:>6} {run:>6} {row['seconds_per_frame']:>9.3f} "
+            f"{row['x_propagation']:>8.1f} {row['psnr_amplitude_db']:>9.2f} {row['psnr_amplitude_charts_db']:>7.2f} "
+            f"{row['psnr_amplitude_photos_db']:>7.2f} {row['ssim_amplitude']:>9.3f} {row['psnr_srgb_db']:>10.2f} "
+            f"{'*' if row['front'] else ''}")
     if out_dir is not None:
         out_dir = ensure_dir(Path(out_dir))
         out(f"wrote {write_csv(out_dir / 'speed_vs_error.csv', rows)}")
-        plot = _plot(rows, out_dir / "speed_vs_error.png")
+        out(f"wrote {write_csv(out_dir / 'front.csv', front)}")
+        plot = _plot(front, out_dir / "speed_vs_error.png", f"grid {grid[0]}x{grid[1]}")
         out(f"wrote {plot}" if plot else "no plot: install the 'plot' extra (matplotlib) for speed_vs_error.png")
-    return rows
+    return front
 
 
-def _propagation_seconds(profile: Profile, repeats: int = 5) -> float:
+def _propagation_seconds(profile: Profile, channel: str, repeats: int = 5) -> float:
     """Median time of one SLM -> target propagation of a random phase on this grid (after a warm-up)."""
-    setup = OpticalSetup.from_profile(profile, profile.channels[0].name)
+    setup = OpticalSetup.from_profile(profile, channel)
     generator = torch.Generator().manual_seed(0)
     field = torch.polar(torch.ones(setup.shape), torch.rand(setup.shape, generator=generator) * 6.283)
     propagate = setup.target_propagator()
@@ -129,8 +231,12 @@ def _propagation_seconds(profile: Profile, repeats: int = 5) -> float:
     return statistics.median(times)
 
 
-def _plot(rows: list[dict[str, Any]], path: Path) -> Path | None:
-    """Seconds per frame (log) against merged sRGB PSNR, one line per method; None without matplotlib."""
+_MARKERS = "osD^v<>phX*P"
+
+
+def _plot(front: list[dict[str, Any]], path: Path, title: str) -> Path | None:
+    """Seconds per frame (log) against mean amplitude PSNR: one marker per method, budgets annotated, the
+    Pareto front as a step line; None without matplotlib."""
     try:
         import matplotlib
 
@@ -138,23 +244,24 @@ def _plot(rows: list[dict[str, Any]], path: Path) -> Path | None:
         import matplotlib.pyplot as plt
     except ImportError:
         return None
-    fig, ax = plt.subplots(figsize=(7, 4.5))
-    for method in dict.fromkeys(r["method"] for r in rows):
-        points: dict[Any, list[dict[str, Any]]] = {}
-        for r in rows:
-            if r["method"] == method:
-                points.setdefault(r["iterations"], []).append(r)
-        xs = [sum(r["seconds_per_frame"] for r in rs) / len(rs) for rs in points.values()]
-        ys = [sum(r["psnr_srgb_db"] for r in rs) / len(rs) for rs in points.values()]
-        ax.plot(xs, ys, marker="o", label=method)
-        for x, y, iters in zip(xs, ys, points):
-            if iters != "":
-                ax.annotate(str(iters), (x, y), textcoords="offset points", xytext=(4, 4), fontsize=8)
+    fig, ax = plt.subplots(figsize=(8, 5))
+    for index, method in enumerate(dict.fromkeys(r["method"] for r in front)):
+        points = [r for r in front if r["method"] == method]
+        ax.plot([r["seconds_per_frame"] for r in points], [r["psnr_amplitude_db"] for r in points],
+                marker=_MARKERS[index % len(_MARKERS)], linestyle=":", label=method)
+        for r in points:
+            if r["iterations"] != "":
+                ax.annotate(str(r["iterations"]), (r["seconds_per_frame"], r["psnr_amplitude_db"]),
+                            textcoords="offset points", xytext=(4, 4), fontsize=7)
+    best = sorted((r for r in front if r["front"]), key=lambda r: r["seconds_per_frame"])
+    ax.step([r["seconds_per_frame"] for r in best], [r["psnr_amplitude_db"] for r in best], where="post",
+            color="black", linewidth=1.5, alpha=0.6, label="Pareto front")
     ax.set_xscale("log")
     ax.set_xlabel("seconds per frame (one colour)")
-    ax.set_ylabel("merged PSNR, sRGB (dB), mean over targets")
-    ax.grid(True, alpha=0.3)
-    ax.legend()
+    ax.set_ylabel("PSNR, amplitude on the ROI (dB), mean over targets")
+    ax.set_title(title)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
     fig.tight_layout()
     buffer = io.BytesIO()
     fig.savefig(buffer, format="png", dpi=120)

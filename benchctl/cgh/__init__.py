@@ -10,6 +10,7 @@ from benchctl.cgh.method import (
     Method,
     Progress,
     check_target,
+    stopped_improving,
     get_method,
     method_names,
     register,
@@ -17,7 +18,7 @@ from benchctl.cgh.method import (
 )
 from benchctl.cgh.dpac import DPAC, double_phase
 from benchctl.cgh.gerchberg_saxton import GERCHBERG_SAXTON
-from benchctl.cgh.sgd import SGD, initial_scale, roi_loss
+from benchctl.cgh.sgd import SGD, roi_loss, sgd_method
 from benchctl.optics.setup import OpticalSetup
 
 __all__ = [
@@ -32,9 +33,10 @@ __all__ = [
     "check_target",
     "double_phase",
     "get_method",
-    "initial_scale",
     "method_names",
     "register",
     "roi_loss",
+    "sgd_method",
+    "stopped_improving",
     "wrap_phase",
 ]

@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from numbers import Integral
+from collections.abc import Sequence
 from typing import Callable, Optional
 
 import torch
@@ -113,6 +114,24 @@ class Method:
         if isinstance(iterations, bool) or not isinstance(iterations, Integral) or iterations < 0:
             raise BadValueError(f"iterations must be an integer >= 0, got {iterations!r}")
         return int(iterations)
+
+
+TOLERANCE = 1e-3
+"""Default early stop of the iterative methods: relative fall of the best loss over STOP_WINDOW iterations."""
+STOP_WINDOW = 20
+
+
+def stopped_improving(losses: Sequence[float], tolerance: float, window: int = STOP_WINDOW) -> bool:
+    """True once the best of `losses` fell by less than `tolerance` (relative) over the last `window` entries.
+
+    `losses` is the loss history, one entry per iteration; a rising or flat tail counts as not improving,
+    a still-falling one keeps going. Needs more than `window` entries to decide.
+    """
+    if len(losses) <= window:
+        return False
+    best_before = min(losses[:-window])
+    best_now = min(best_before, min(losses[-window:]))
+    return best_before - best_now <= tolerance * best_before
 
 
 METHODS: dict[str, Method] = {}

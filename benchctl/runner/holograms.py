@@ -5,6 +5,7 @@ This is the in-memory core shared by `benchctl generate` and `benchctl bench spe
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -13,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchctl.cgh import OpticalSetup, get_method, method_names
+from benchctl.cgh import Method, OpticalSetup, get_method, method_names, sgd_method
 from benchctl.cgh.learned import LEARNED_METHODS, checkpoint_problem, find_checkpoint, model_info, resolve_method
 from benchctl.devices.slm import slm_for
 from benchctl.errors import BenchctlError
@@ -107,6 +108,33 @@ def list_methods(shape: tuple[int, int], profile: Profile | None = None) -> list
     return lines
 
 
+REFINED_SUFFIX = "+sgd"
+"""`<learned method>+sgd`: that network's hologram refined by SGD, an iterative method of its own."""
+
+
+def refined_base(method: str) -> str | None:
+    """The learned method that `method` refines ("ccnn-dcm4" for "ccnn-dcm4+sgd"), else None."""
+    base = method.removesuffix(REFINED_SUFFIX)
+    return base if base != method and base in LEARNED_METHODS else None
+
+
+def resolve_any(method: str, profile: Profile, checkpoint: Path | None = None,
+                channels: list[str] | None = None) -> tuple[Method, Path | None]:
+    """`resolve_method`, plus the refined learned methods (`REFINED_SUFFIX`): SGD started from the network's
+    hologram, with the network's checkpoint."""
+    base = refined_base(method)
+    if base is None:
+        return resolve_method(method, profile, checkpoint, channels)
+    start, path = resolve_method(base, profile, checkpoint, channels)
+    return sgd_method(method, init=start), path
+
+
+@functools.lru_cache(maxsize=3)
+def _shared(setup: OpticalSetup) -> OpticalSetup:
+    """The first setup equal to `setup`: its transfer functions are computed once, not in every frame's time."""
+    return setup
+
+
 def select_channels(profile: Profile, names: list[str] | None) -> list[LaserChannel]:
     """The profile's channels in profile order, or the named ones (unknown names are an error)."""
     if not names:
@@ -138,7 +166,7 @@ def compute_scene(
         raise BenchctlError(f"target is {tuple(target_amplitude.shape)}, the SLM grid needs (3, {grid[0]}, {grid[1]})")
     present = active_channels(target_amplitude)
     channels = select_channels(profile, colours)
-    generate, used_checkpoint = resolve_method(method, profile, checkpoint,
+    generate, used_checkpoint = resolve_any(method, profile, checkpoint,
                                                [c.name for c in channels if present[target_plane(c)]])
     slm = slm_for(profile)
     target_roi = crop_roi(target_amplitude, roi)
@@ -149,7 +177,7 @@ def compute_scene(
         if not present[plane]:
             results.append(ColourResult(channel.name, channel.wavelength_nm, skipped=True))
             continue
-        setup = OpticalSetup.from_profile(profile, channel.name)
+        setup = _shared(OpticalSetup.from_profile(profile, channel.name))
         start = time.perf_counter()
         phase = generate(target_amplitude[plane], setup, iterations=iterations, seed=seed,
                          progress=progress(f"{method} {channel.name}") if progress else None)
