@@ -255,6 +255,20 @@ def _cmd_bench_learned(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_reproduce(args: argparse.Namespace) -> int:
+    from benchctl.bench.reproduce import DEFAULT_METHODS, reproduce_command, run_reproduction
+    from benchctl.profiles import load_profile
+
+    methods = args.methods or list(DEFAULT_METHODS)
+    command = reproduce_command(args.profile, args.size, args.minutes, args.steps, methods, args.colour, args.data,
+                                args.evaluations, args.lr, args.seed, args.threads, args.out)
+    run_reproduction(load_profile(args.profile), size=args.size, cpu_seconds=None if args.minutes is None
+                     else args.minutes * 60, steps=args.steps, methods=methods, colour=args.colour, data=args.data,
+                     evaluations=args.evaluations, lr=args.lr, seed=args.seed, memory=not args.no_memory,
+                     threads=args.threads, out_dir=args.out, command=command)
+    return 0
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
     from benchctl.runner.engine import run_procedure
 
@@ -364,6 +378,35 @@ def build_parser() -> argparse.ArgumentParser:
     _add_profile(learned)
     learned.set_defaults(func=_cmd_bench_learned)
 
+    reproduce = bench.add_parser("reproduce", help="the paper's quality tables at a CPU-trainable scale: every learned "
+                                                   "method trained with the same data, seed and budget",
+                                 description="Trains each learned method on a Fresnel-scaled bench with the same "
+                                             "data, seed and budget, scores it on the held-out photographs (8-bit "
+                                             "displayed phase) at equal time and equal steps next to the paper's "
+                                             "figures; writes reproduction.md/.csv, curves.csv and PSNR plots.")
+    budget = reproduce.add_mutually_exclusive_group(required=True)
+    budget.add_argument("--minutes", type=float, metavar="M",
+                        help="training CPU time per method (this process's CPU time, so other users' load does not "
+                             "count)")
+    budget.add_argument("--steps", type=_positive_int, metavar="N", help="training steps per method")
+    reproduce.add_argument("--size", type=_size, default=(272, 480), metavar="HxW",
+                           help="SLM grid; ROI and distance scaled to keep the Fresnel number (default: 272x480)")
+    reproduce.add_argument("--methods", type=_names, metavar="LIST",
+                           help="comma-separated learned methods, slowest first (default: those of Tables 1, 2, 4)")
+    reproduce.add_argument("--colour", "--color", default="red", help="laser channel (default: red, as Table 4)")
+    reproduce.add_argument("--data", default="procedural:32+photos:train",
+                           help="training images, as for train --data (default: procedural:32+photos:train)")
+    reproduce.add_argument("--evaluations", type=_positive_int, default=6,
+                           help="evaluations on the held-out photos per method, evenly over the budget (default: 6)")
+    reproduce.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate (default: 1e-3)")
+    reproduce.add_argument("--seed", type=int, default=42)
+    reproduce.add_argument("--threads", type=_positive_int, metavar="N", help="torch threads (default: torch's)")
+    reproduce.add_argument("--no-memory", action="store_true", help="skip the training-step memory subprocesses")
+    reproduce.add_argument("--out", "-o", default="bench-out", type=Path, metavar="DIR",
+                           help="output folder (default: bench-out)")
+    _add_profile(reproduce)
+    reproduce.set_defaults(func=_cmd_bench_reproduce)
+
     train = sub.add_parser(
         "train", help="train a learned hologram method (one model per laser colour)",
         description="Train a learned method on a folder of images (or procedural:N generated images): targets "
@@ -375,7 +418,8 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--method", "-m", required=True,
                        help="learned method to train (`benchctl models` lists them)")
     train.add_argument("--data", required=True, metavar="DIR",
-                       help="folder of training images (e.g. DIV2K), or procedural:N for N generated images")
+                       help="folder of training images (e.g. DIV2K), procedural:N for N generated images, "
+                            "photos:train for the bundled training photographs; join with '+'")
     _add_profile(train)
     train.add_argument("--size", type=_size, metavar="HxW",
                        help="train on this grid instead of the profile's (pitch and distance kept, ROI scaled)")

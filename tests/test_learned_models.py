@@ -31,7 +31,10 @@ from benchctl.cgh.learned import (
 from benchctl.cgh.learned.lfmn import ECCM, LFM
 from benchctl.optics import Propagator
 
-FACTORS = {"holonet": 1, "holonet-dcm2": 2, "holonet-dcm4": 4, "holonet-pyramid": 4, "ccnn": 1, "ccnn-dcm4": 4}
+FACTORS = {"holonet": 1, "holonet-dcm2": 2, "holonet-dcm4": 4, "holonet-pyramid": 4, "ccnn": 1, "ccnn-dcm4": 4,
+           "holonet-ps2": 2, "holonet-ps4": 4, "holonet-lowdef2": 2, "holonet-dcm2-nolfm": 2,
+           "holonet-dcm2-noeccm": 2, "holonet-dcm2-nogrn": 2}
+MERGERS = {"holonet-pyramid": "pyramid", "holonet-ps2": "pixel-shuffle", "holonet-ps4": "pixel-shuffle"}
 
 
 def tiny_setup(shape: tuple[int, int] = (32, 64)) -> OpticalSetup:
@@ -43,7 +46,9 @@ def amplitude(shape: tuple[int, int], batch: int = 2) -> torch.Tensor:
 
 
 def test_catalogue_names() -> None:
-    assert LEARNED_METHODS == ("holonet", "holonet-dcm2", "holonet-dcm4", "holonet-pyramid", "ccnn", "ccnn-dcm4")
+    assert LEARNED_METHODS == ("holonet", "holonet-dcm2", "holonet-dcm4", "holonet-pyramid", "ccnn", "ccnn-dcm4",
+                               "holonet-ps2", "holonet-ps4", "holonet-lowdef2", "holonet-dcm2-nolfm",
+                               "holonet-dcm2-noeccm", "holonet-dcm2-nogrn")
     with pytest.raises(ValueError, match="unknown learned method"):
         model_info("holonet-dcm3", (32, 64))
 
@@ -73,7 +78,7 @@ def test_gradient_reaches_every_parameter(name: str) -> None:
         assert parameter.grad.abs().sum() > 0, key
 
 
-@pytest.mark.parametrize("name", LEARNED_METHODS)
+@pytest.mark.parametrize("name", [n for n in LEARNED_METHODS if n != "holonet-lowdef2"])
 def test_subnetworks_run_on_sub_images_and_propagation_on_the_full_grid(name: str, monkeypatch) -> None:
     shape, r = (64, 128), FACTORS[name]
     model = build_model(name, tiny_setup(shape))
@@ -187,10 +192,19 @@ EXACT_PARAMETERS = {
     ("holonet", (1088, 1920)): 2_868_466,
     ("holonet-dcm2", (1088, 1920)): 3_012_684,
     ("holonet-dcm4", (1088, 1920)): 3_111_952,
-    ("holonet-pyramid", (1088, 1920)): 3_244_488,  # published 3.17 M: see benchctl.cgh.learned.lfmn
+    ("holonet-pyramid", (1088, 1920)): 3_165_992,  # both stages dim 32 (ECCM hidden 40), as the paper's code
     ("ccnn", (2176, 3840)): 42_260,
-    ("ccnn-dcm4", (2176, 3840)): 97_476,  # dim 24; published 112.7 K is the dim-28 (8K) model
+    ("ccnn-dcm4", (1088, 1920)): 97_476,  # LFMN dim 24, 2 blocks at every size below 8K
+    ("ccnn-dcm4", (2176, 3840)): 97_476,  # published 112.7 K is the dim-28 (8K) model
     ("ccnn-dcm4", (4352, 7680)): 112_714,
+}
+
+# Sub-module counts at 1088 x 1920 (the paper's public code, layer by layer): generator U-Net, encoder U-Net,
+# encoder merger.
+SUBMODULE_PARAMETERS = {
+    "holonet-dcm2": (1_435_460, 1_436_036, 141_188),
+    "holonet-dcm4": (1_440_656, 1_442_960, 228_336),
+    "ccnn-dcm4": (25_696, 25_696, 46_084),
 }
 
 
@@ -206,13 +220,29 @@ def test_parameter_counts_exact(key: tuple[str, tuple[int, int]]) -> None:
     assert model_info(*key)["parameters"] == EXACT_PARAMETERS[key]
 
 
+@pytest.mark.parametrize("name", sorted(SUBMODULE_PARAMETERS))
+def test_submodule_counts(name: str) -> None:
+    generator, encoder = build_networks(name, (1088, 1920))
+    counted = (count_parameters(generator.subnet), count_parameters(encoder.subnet), count_parameters(encoder.merge))
+    assert counted == SUBMODULE_PARAMETERS[name]
+
+
+def test_pyramid_stage_two_counts() -> None:
+    stage2 = build_networks("holonet-pyramid", (1088, 1920))[1].merge.stage2
+    assert [count_parameters(m) for m in (stage2.head, stage2.grn, stage2.tail)] == [1_184, 64, 1_156]
+    assert sum(count_parameters(block.lfm) for block in stage2.body) == 46_336
+    assert sum(count_parameters(block.eccm) for block in stage2.body) == 92_448
+
+
 def test_tiers_choose_blocks_and_dims() -> None:
     assert [tier(s) for s in [(32, 64), (1080, 1920), (1088, 1920), (2160, 3840), (2176, 3840), (4352, 7680)]] \
         == ["1080p", "1080p", "1080p", "4k", "4k", "8k"]
     assert model_info("holonet-dcm4", (1088, 1920))["lfmn_blocks"] == 4
     assert model_info("holonet-dcm4", (2176, 3840))["lfmn_blocks"] == 2
-    assert model_info("holonet-pyramid", (1088, 1920))["lfmn_dims"] == (32, 40)
-    assert model_info("holonet-pyramid", (2176, 3840))["lfmn_dims"] == (24, 30)
+    assert model_info("holonet-pyramid", (1088, 1920))["lfmn_dims"] == (32, 32)
+    assert model_info("holonet-pyramid", (2176, 3840))["lfmn_dims"] == (24, 24)
+    assert model_info("ccnn-dcm4", (1088, 1920))["lfmn_blocks"] == 2
+    assert model_info("ccnn-dcm4", (1088, 1920))["lfmn_dims"] == (24,)
     assert model_info("ccnn-dcm4", (4352, 7680))["lfmn_dims"] == (28,)
     _, encoder = build_networks("holonet-dcm2", (2176, 3840))
     assert len(encoder.merge.body) == 2 and encoder.merge.grn.gamma.shape[1] == 24
@@ -228,7 +258,7 @@ def test_model_info(name: str, monkeypatch) -> None:
     assert info["name"] == name
     assert info["family"] == name.split("-")[0]
     assert info["factor"] == FACTORS[name]
-    assert info["merger"] == {"holonet-pyramid": "pyramid"}.get(name, "lfmn" if FACTORS[name] > 1 else "pixel-shuffle")
+    assert info["merger"] == MERGERS.get(name, "lfmn" if FACTORS[name] > 1 else "pixel-shuffle")
     assert info["parameters"] == info["generator_parameters"] + info["encoder_parameters"]
     assert info["parameters"] == count_parameters(build_model(name, tiny_setup()))
 
@@ -239,3 +269,72 @@ def test_model_rejects_inputs_off_the_slm_grid() -> None:
         model(torch.rand(1, 1, 32, 32))
     with pytest.raises(ValueError, match=r"\(B, 1, H, W\)"):
         model(torch.rand(1, 2, 32, 64))
+
+
+def test_dcm_encoder_output_reaches_lfmn_unclamped() -> None:
+    """The paper's code: the DCM encoder's U-Net has no Hardtanh; LFMN reads values beyond pi, clamps at its end."""
+    torch.manual_seed(0)
+    model = build_model("holonet-dcm2", tiny_setup()).eval()
+    with torch.no_grad():
+        model.encoder.subnet[1].out[1].bias.fill_(10.0)  # push the U-Net's output far above pi
+    seen: list[torch.Tensor] = []
+    model.encoder.merge.register_forward_pre_hook(lambda _m, args: seen.append(args[0]))
+    with torch.no_grad():
+        phase = model(amplitude((32, 64)))
+    assert seen[0].max() > math.pi + 1
+    assert phase.abs().max() <= math.pi
+    # Merged by a plain PixelShuffle ("SR -> None"), the encoder keeps its Hardtanh: the phase must be in range.
+    assert isinstance(build_model("holonet-ps2", tiny_setup()).encoder.subnet[1].out[-1], nn.Hardtanh)
+
+
+@pytest.mark.parametrize(("ablation", "part"), [("holonet-dcm2-nolfm", "lfm"), ("holonet-dcm2-noeccm", "eccm"),
+                                                 ("holonet-dcm2-nogrn", "grn")])
+def test_lfmn_ablations_remove_exactly_one_part(ablation: str, part: str) -> None:
+    full = build_networks("holonet-dcm2", (1088, 1920))[1].merge
+    reduced = build_networks(ablation, (1088, 1920))[1].merge
+    removed = (count_parameters(full.grn) if part == "grn"
+               else sum(count_parameters(getattr(block, part)) for block in full.body))
+    assert count_parameters(full) - count_parameters(reduced) == removed > 0
+    assert model_info("holonet-dcm2", (1088, 1920))["parameters"] - model_info(ablation, (1088, 1920))["parameters"] \
+        == removed
+    if part == "grn":
+        assert isinstance(reduced.grn, nn.Identity)
+    else:
+        assert all(getattr(block, part) is None for block in reduced.body)
+    with pytest.raises(ValueError, match="unknown LFMN part"):
+        LFMN(2, 8, 1, without=("safm",))
+
+
+@pytest.mark.parametrize(("name", "full"), [("holonet-ps2", "holonet-dcm2"), ("holonet-ps4", "holonet-dcm4")])
+def test_pixel_shuffle_ablation_is_dcm_without_lfmn(name: str, full: str) -> None:
+    merger = build_networks(full, (1088, 1920))[1].merge
+    assert isinstance(build_networks(name, (1088, 1920))[1].merge, nn.PixelShuffle)
+    assert model_info(full, (1088, 1920))["parameters"] - model_info(name, (1088, 1920))["parameters"] \
+        == count_parameters(merger)
+
+
+def test_low_definition_ablation_propagates_sub_images_at_pitch_times_r(monkeypatch) -> None:
+    shape = (32, 64)
+    setup = OpticalSetup(wavelength_m=520e-9, pitch_m=8e-6, distance_m=10e-3, shape=shape, roi=(24, 48),
+                         aperture=0.4)
+    model = build_model("holonet-lowdef2", setup).eval()
+    low = model.low_setup
+    assert low.pitch_m == (16e-6, 16e-6) and low.shape == (16, 32) and low.distance_m == setup.distance_m
+    assert low.wavelength_m == setup.wavelength_m and low.aperture == pytest.approx(0.8)  # same physical iris
+    assert model_info("holonet-lowdef2", shape)["parameters"] == model_info("holonet-dcm2", shape)["parameters"]
+    propagated = []
+    original_call = Propagator.__call__
+
+    def recording_call(self: Propagator, field: torch.Tensor) -> torch.Tensor:
+        propagated.append((tuple(field.shape), self.plan.pitch_m))
+        return original_call(self, field)
+
+    monkeypatch.setattr(Propagator, "__call__", recording_call)
+    x = amplitude(shape, batch=1)
+    with torch.no_grad():
+        phase = model(x)
+        sub = F.pixel_unshuffle(x, 2)
+        expected_fields = low.slm_propagator()(torch.polar(sub, model.generator.subnet(sub)))
+        expected = model.encoder.merge(model.encoder.subnet(expected_fields))
+    assert propagated[0] == ((1, 4, 16, 32), (16e-6, 16e-6))  # the r^2 sub-fields, each at low definition
+    torch.testing.assert_close(phase, expected)

@@ -7,6 +7,9 @@ from a power law, so edges appear at every scale as in natural images) over a sm
 black background, some shapes striped, some lines of text. They are drawn deterministically from the image
 index alone, at whatever size is asked, so `procedural:N` means the same N pictures everywhere and needs no
 files; `python -m benchctl.cgh.learned.data OUTDIR --count N` writes them as PNGs to look at or to reuse.
+`--data photos:train` takes the 8 training photographs bundled in scikit-image (`benchctl.targets.photo_specs`;
+`photos:eval` names the 4 held-out ones, meant for evaluation only). Specs join with "+", e.g.
+`procedural:64+photos:train`.
 
 Images become targets exactly as `benchctl generate` prepares them (`benchctl.targets.prepare_target`).
 """
@@ -24,19 +27,21 @@ import cv2
 import numpy as np
 
 from benchctl.errors import BadValueError, BenchctlError
-from benchctl.targets import load_target
+from benchctl.targets import load_target, photo_specs
 
 PROCEDURAL_PREFIX = "procedural:"
+PHOTOS_PREFIX = "photos:"
+JOIN = "+"
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")
 PROCEDURAL_SEED = 20240607  # fixed: procedural image i is the same picture in every install and version
 
 
 @dataclass(frozen=True)
 class ImageSource:
-    """One training image: a file, or procedural image number `index`."""
+    """One training image: a file (or a `photo:<name>` target), or procedural image number `index`."""
 
     name: str
-    path: Path | None = None
+    path: Path | str | None = None
     index: int | None = None
 
     def load(self, size: tuple[int, int]) -> np.ndarray:
@@ -49,7 +54,18 @@ class ImageSource:
 
 
 def image_sources(spec: str) -> list[ImageSource]:
-    """The images `--data` names: `procedural:N` or a folder of image files (sorted by name)."""
+    """The images `--data` names: `procedural:N`, `photos:train|eval`, a folder of image files (sorted by
+    name), or several of these joined with "+"."""
+    if JOIN in spec:
+        parts = spec.split(JOIN)
+        if not all(parts):
+            raise BadValueError(f"--data {spec!r}: an empty part between '+' (e.g. procedural:64+photos:train)")
+        return [source for part in parts for source in image_sources(part)]
+    if spec.startswith(PHOTOS_PREFIX):
+        split = spec[len(PHOTOS_PREFIX):]
+        if split not in ("train", "eval"):
+            raise BadValueError(f"--data {spec!r}: expected photos:train or photos:eval")
+        return [ImageSource(name, path=name) for name in photo_specs(split)]
     if spec.startswith(PROCEDURAL_PREFIX):
         count = spec[len(PROCEDURAL_PREFIX):]
         if not count.isdigit() or int(count) < 1:
@@ -85,7 +101,9 @@ def describe_sources(spec: str, train: Sequence[ImageSource], val: Sequence[Imag
     """What the data was, for a checkpoint: the spec, the counts, the held-out names and a digest of the
     training names (enough to tell whether another run used the same images)."""
     digest = hashlib.sha256("\n".join(s.name for s in train).encode()).hexdigest()[:16]
-    return {"spec": spec, "kind": "procedural" if spec.startswith(PROCEDURAL_PREFIX) else "folder",
+    kinds = ["procedural" if p.startswith(PROCEDURAL_PREFIX) else "photos" if p.startswith(PHOTOS_PREFIX)
+             else "folder" for p in spec.split(JOIN)]
+    return {"spec": spec, "kind": "+".join(dict.fromkeys(kinds)),
             "train_images": len(train), "val_images": len(val), "val_names": [s.name for s in val],
             "train_names_sha256": digest}
 

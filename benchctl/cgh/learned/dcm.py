@@ -10,8 +10,9 @@ and a merger puts the result back at full definition: PixelShuffle(r) for the ge
 super-resolution network (or the pyramid of LFMNs) for the encoder. With r = 1 and PixelShuffle(1) the same
 wrapper is the classical network, so baselines and DCM variants run one code path.
 
-Only the sub-networks see low definition: the propagation always runs on the full SLM grid (the paper's
-ablation: propagating sub-holograms at low definition drops PSNR to 16.6 dB).
+Only the sub-networks see low definition: the propagation runs on the full SLM grid. `LowDefinitionNet` is
+the paper's ablation that does not: each complex sub-hologram is propagated on its own at low definition,
+pitch p r (the paper: PSNR drops to 16.6 dB at x2).
 
 Sizes r does not divide are zero-padded at the bottom / right and cropped after the merge; padding at the
 far edges keeps pixel (0, 0) at sub-lattice offset (0, 0), so the sub-images mean the same on every grid.
@@ -76,16 +77,53 @@ class PhaseHologramNet(nn.Module):
         self.encoder = encoder
         self.setup = setup
 
-    def target_phase(self, amplitude: torch.Tensor) -> torch.Tensor:
-        """The generator's phase at the target plane (B, 1, H, W); exposed for losses and inspection."""
+    def check(self, amplitude: torch.Tensor) -> None:
+        """ValueError unless `amplitude` is a real (B, 1, H, W) tensor on the setup's SLM grid."""
         if amplitude.is_complex() or amplitude.dim() != 4 or amplitude.shape[1] != 1:
             raise ValueError(f"amplitude must be a real (B, 1, H, W) tensor, got {tuple(amplitude.shape)} "
                              f"{amplitude.dtype}")
         if tuple(amplitude.shape[-2:]) != self.setup.shape:
             raise ValueError(f"amplitude is {tuple(amplitude.shape[-2:])}, the SLM grid is {self.setup.shape}")
+
+    def target_phase(self, amplitude: torch.Tensor) -> torch.Tensor:
+        """The generator's phase at the target plane (B, 1, H, W); exposed for losses and inspection."""
+        self.check(amplitude)
         return self.generator(amplitude)
 
     def forward(self, amplitude: torch.Tensor) -> torch.Tensor:
         phase = self.target_phase(amplitude)
         slm_field = self.setup.slm_propagator()(torch.polar(amplitude, phase))
         return self.encoder(slm_field)
+
+
+def low_definition_setup(setup: OpticalSetup, factor: int) -> OpticalSetup:
+    """The setup one sub-image of a `factor` x `factor` unshuffle sees at low definition: grid and ROI divided
+    by r (rounded up), pitch multiplied by r (the image keeps its physical size), the same distance and
+    wavelength, and the iris at the same physical frequency (r times its fraction of the coarser Nyquist)."""
+    (h, w), (rh, rw) = setup.shape, setup.roi
+    return OpticalSetup(wavelength_m=setup.wavelength_m, pitch_m=(setup.pitch_m[0] * factor, setup.pitch_m[1] * factor),
+                        distance_m=setup.distance_m, shape=(-(-h // factor), -(-w // factor)),
+                        roi=(max(1, rh // factor), max(1, rw // factor)), padding=setup.padding,
+                        aperture=None if setup.aperture is None else setup.aperture * factor)
+
+
+class LowDefinitionNet(PhaseHologramNet):
+    """The paper's "ASM at low definition" ablation: the generator's r^2 complex sub-images are propagated to
+    the SLM one by one on the low-definition grid (pitch p r), not merged and propagated at full definition;
+    the encoder's sub-network reads those r^2 SLM sub-fields and its merger merges its r^2 outputs."""
+
+    def __init__(self, generator: Divided, encoder: Divided, setup: OpticalSetup) -> None:
+        super().__init__(generator, encoder, setup)
+        if generator.factor < 2 or encoder.factor != generator.factor:
+            raise ValueError(f"low-definition propagation needs one DCM factor >= 2 for both sub-networks, got "
+                             f"{generator.factor} and {encoder.factor}")
+        self.low_setup = low_definition_setup(setup, generator.factor)
+
+    def forward(self, amplitude: torch.Tensor) -> torch.Tensor:
+        self.check(amplitude)
+        r = self.generator.factor
+        sub_amplitudes = F.pixel_unshuffle(pad_to_multiple(amplitude, r), r)
+        sub_fields = torch.polar(sub_amplitudes, self.generator.subnet(sub_amplitudes))
+        slm_fields = self.low_setup.slm_propagator()(sub_fields)
+        h, w = amplitude.shape[-2:]
+        return self.encoder.merge(self.encoder.subnet(slm_fields))[..., :h, :w]

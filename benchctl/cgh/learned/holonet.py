@@ -5,7 +5,8 @@ The phase generator U-Net maps the target amplitude to the target-plane phase; t
 sub-images and predicts r^2 phases; the encoder sees 2 r^2 channels (the r^2 amplitude sub-images, then the
 r^2 phase sub-images, the channel order of a pixel unshuffle of the 2-channel (amplitude, phase) image) and
 predicts r^2 sub-holograms. The U-Nets keep their widths (16-32-64-128): only their input and output
-channels change, as the paper states.
+channels change, as the paper states. An encoder merged by LFMN (or the pyramid) returns its output unclamped,
+as in the paper's code: LFMN reads values beyond [-pi, pi] and clamps only its own output.
 """
 
 from __future__ import annotations
@@ -30,5 +31,5 @@ def holonet(factor: int = 1, merge: nn.Module | None = None) -> tuple[Divided, D
     `merge` merges the encoder's r^2 sub-holograms (an `LFMN` or `PyramidMerger`; PixelShuffle by default).
     """
     channels = factor * factor
-    return divided_pair(UNet(channels, channels), nn.Sequential(AmplitudePhase(), UNet(2 * channels, channels)),
-                        factor, merge)
+    encoder = UNet(2 * channels, channels, clamp=merge is None)
+    return divided_pair(UNet(channels, channels), nn.Sequential(AmplitudePhase(), encoder), factor, merge)

@@ -20,11 +20,11 @@ each the four channels of one 2x2 sub-lattice (`sublattice_groups`: 1-based [1,3
 group into one half-definition image, and those four images are exactly the 2x2 unshuffle of the full
 hologram, so a second, independent x2 LFMN merges them.
 
-Pyramid parameter count: with the dims given for it at 1080p, (stage 1, stage 2) = (32, 40) and N = 4,
-the pyramid HoloNet holds 3,244,488 parameters, 2.3 % above the published 3.17 M (the U-Nets and stage 1
-are the x4 and x2 parts whose counts match the paper to 0.1 %, so the gap is stage 2's). With stage 2 at
-dim 32, like stage 1, the count is 3,165,992, i.e. 3.17 M: the published figure was most likely counted with
-that setting. We keep the documented dims (32, 40) and record the gap here instead of bending the network.
+Both pyramid stages have the same dim (32 at 1080p, 24 above, ECCM hidden widths 40 and 30), as in the
+paper's code: the pyramid HoloNet then holds 3,165,992 parameters (published 3.17 M).
+
+Ablations (the paper's Table 4, "LFM / ECCM / GRN -> None"): `LFMN(..., without=("lfm",))` and so on drop
+that part, i.e. the block or the network goes on without it (no residual around a removed part).
 """
 
 from __future__ import annotations
@@ -80,29 +80,41 @@ class ECCM(nn.Sequential):
         super().__init__(_conv3x3(dim, hidden), nn.LeakyReLU(LEAKY_SLOPE), _conv3x3(hidden, dim))
 
 
-class LFMM(nn.Module):
-    """Local feature mixing module: x = LFM(x) + x, then x = ECCM(x) + x."""
+LFMN_PARTS = ("lfm", "eccm", "grn")
+"""The LFMN parts an ablation may remove."""
 
-    def __init__(self, dim: int) -> None:
+
+class LFMM(nn.Module):
+    """Local feature mixing module: x = LFM(x) + x, then x = ECCM(x) + x (a removed part is skipped)."""
+
+    def __init__(self, dim: int, lfm: bool = True, eccm: bool = True) -> None:
         super().__init__()
-        self.lfm = LFM(dim)
-        self.eccm = ECCM(dim)
+        self.lfm = LFM(dim) if lfm else None
+        self.eccm = ECCM(dim) if eccm else None
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        x = self.lfm(x) + x
-        return self.eccm(x) + x
+        if self.lfm is not None:
+            x = self.lfm(x) + x
+        return self.eccm(x) + x if self.eccm is not None else x
 
 
 class LFMN(nn.Module):
-    """(B, r^2, h, w) sub-holograms -> (B, 1, r h, r w) hologram (in [-pi, pi] when `hardtanh`)."""
+    """(B, r^2, h, w) sub-holograms -> (B, 1, r h, r w) hologram (in [-pi, pi] when `hardtanh`).
 
-    def __init__(self, factor: int, dim: int, blocks: int, hardtanh: bool = True) -> None:
+    `without` names parts removed for an ablation (any of `LFMN_PARTS`).
+    """
+
+    def __init__(self, factor: int, dim: int, blocks: int, hardtanh: bool = True,
+                 without: tuple[str, ...] = ()) -> None:
         super().__init__()
+        unknown = set(without) - set(LFMN_PARTS)
+        if unknown:
+            raise ValueError(f"unknown LFMN part(s) {sorted(unknown)}; parts: {', '.join(LFMN_PARTS)}")
         channels = factor * factor
         self.factor = factor
         self.head = _conv3x3(channels, dim)
-        self.grn = GRN(dim)
-        self.body = nn.Sequential(*(LFMM(dim) for _ in range(blocks)))
+        self.grn = GRN(dim) if "grn" not in without else nn.Identity()
+        self.body = nn.Sequential(*(LFMM(dim, "lfm" not in without, "eccm" not in without) for _ in range(blocks)))
         self.tail = _conv3x3(dim, channels)
         self.clamp = nn.Hardtanh(-math.pi, math.pi) if hardtanh else nn.Identity()
 

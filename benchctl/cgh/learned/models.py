@@ -1,10 +1,14 @@
 """The catalogue of learned methods: names -> networks with the paper's settings for the grid size.
 
 Grid tiers by pixel count: up to 1088 x 1920 is "1080p", up to 2176 x 3840 "4k", above that "8k" (the
-paper's grids are 1088 x 1920, 2176 x 3840 and 4352 x 7680). LFMN blocks: 4 at 1080p, 2 above. LFMN dims:
-HoloNet x2 32 at 1080p / 24 above, x4 40 / 32, pyramid (stage 1, stage 2) (32, 40) / (24, 30);
-CCNN x4 24 at 4K, 28 at 8K. The paper trains CCNN only at 4K and 8K; at 1080p CCNN x4 takes the 4K dim (24)
-with the 1080p block count (4), an assumption.
+paper's grids are 1088 x 1920, 2176 x 3840 and 4352 x 7680). LFMN blocks: 4 at 1080p, 2 above, and always 2
+for CCNN x4. LFMN dims: HoloNet x2 32 at 1080p / 24 above, x4 40 / 32, pyramid (both stages) 32 / 24;
+CCNN x4 24 below 8K, 28 at 8K. These are the paper's public code's settings.
+
+Ablations of the paper's Table 4 (HoloNet, 1080p settings): `holonet-ps2` / `-ps4` merge the encoder's
+sub-holograms with a plain PixelShuffle ("SR -> None"); `holonet-lowdef2` propagates the sub-images at low
+definition ("ASM at low definition", `dcm.LowDefinitionNet`); `holonet-dcm2-nolfm` / `-noeccm` / `-nogrn`
+drop one part of LFMN.
 
 `model_info` counts trainable parameters from the networks alone, so it needs no optical setup and builds
 no propagation kernel (at 8K with 2x padding one kernel takes about 1 GiB).
@@ -17,7 +21,7 @@ from dataclasses import dataclass
 from torch import nn
 
 from benchctl.cgh.learned.ccnn import ccnn
-from benchctl.cgh.learned.dcm import Divided, PhaseHologramNet
+from benchctl.cgh.learned.dcm import Divided, LowDefinitionNet, PhaseHologramNet
 from benchctl.cgh.learned.holonet import holonet
 from benchctl.cgh.learned.lfmn import LFMN, PyramidMerger
 from benchctl.optics.setup import OpticalSetup
@@ -29,21 +33,32 @@ FAMILIES = {"holonet": holonet, "ccnn": ccnn}
 
 @dataclass(frozen=True)
 class Variant:
-    """One learned method: network family, DCM factor, how the encoder merges, LFMN dims per tier."""
+    """One learned method: network family, DCM factor, how the encoder merges, LFMN dims (and blocks, when
+    not the tier's) per tier, LFMN parts removed, and whether the sub-images propagate at low definition."""
 
     family: str
     factor: int = 1
     merger: str = "pixel-shuffle"  # "pixel-shuffle" (also the classical r = 1), "lfmn" or "pyramid"
     dims: dict[str, tuple[int, ...]] | None = None
+    blocks: int | None = None
+    without: tuple[str, ...] = ()
+    low_definition: bool = False
 
 
+_X2_DIMS = {"1080p": (32,), "4k": (24,), "8k": (24,)}
 VARIANTS: dict[str, Variant] = {
     "holonet": Variant("holonet"),
-    "holonet-dcm2": Variant("holonet", 2, "lfmn", {"1080p": (32,), "4k": (24,), "8k": (24,)}),
+    "holonet-dcm2": Variant("holonet", 2, "lfmn", _X2_DIMS),
     "holonet-dcm4": Variant("holonet", 4, "lfmn", {"1080p": (40,), "4k": (32,), "8k": (32,)}),
-    "holonet-pyramid": Variant("holonet", 4, "pyramid", {"1080p": (32, 40), "4k": (24, 30), "8k": (24, 30)}),
+    "holonet-pyramid": Variant("holonet", 4, "pyramid", {"1080p": (32, 32), "4k": (24, 24), "8k": (24, 24)}),
     "ccnn": Variant("ccnn"),
-    "ccnn-dcm4": Variant("ccnn", 4, "lfmn", {"1080p": (24,), "4k": (24,), "8k": (28,)}),
+    "ccnn-dcm4": Variant("ccnn", 4, "lfmn", {"1080p": (24,), "4k": (24,), "8k": (28,)}, blocks=2),
+    "holonet-ps2": Variant("holonet", 2),
+    "holonet-ps4": Variant("holonet", 4),
+    "holonet-lowdef2": Variant("holonet", 2, "lfmn", _X2_DIMS, low_definition=True),
+    "holonet-dcm2-nolfm": Variant("holonet", 2, "lfmn", _X2_DIMS, without=("lfm",)),
+    "holonet-dcm2-noeccm": Variant("holonet", 2, "lfmn", _X2_DIMS, without=("eccm",)),
+    "holonet-dcm2-nogrn": Variant("holonet", 2, "lfmn", _X2_DIMS, without=("grn",)),
 }
 LEARNED_METHODS = tuple(VARIANTS)
 
@@ -74,10 +89,14 @@ def _variant(name: str) -> Variant:
 def _merger(variant: Variant, grid_tier: str) -> nn.Module | None:
     if variant.dims is None:
         return None
-    dims, blocks = variant.dims[grid_tier], BLOCKS[grid_tier]
+    dims, blocks = variant.dims[grid_tier], _blocks(variant, grid_tier)
     if variant.merger == "pyramid":
         return PyramidMerger((dims[0], dims[1]), blocks)
-    return LFMN(variant.factor, dims[0], blocks)
+    return LFMN(variant.factor, dims[0], blocks, without=variant.without)
+
+
+def _blocks(variant: Variant, grid_tier: str) -> int:
+    return variant.blocks or BLOCKS[grid_tier]
 
 
 def build_networks(name: str, shape: tuple[int, int]) -> tuple[Divided, Divided]:
@@ -88,7 +107,8 @@ def build_networks(name: str, shape: tuple[int, int]) -> tuple[Divided, Divided]
 
 def build_model(name: str, setup: OpticalSetup) -> PhaseHologramNet:
     """Method `name` for `setup`: target amplitude (B, 1, H, W) -> SLM phase (B, 1, H, W) in [-pi, pi]."""
-    return PhaseHologramNet(*build_networks(name, setup.shape), setup)
+    net = LowDefinitionNet if _variant(name).low_definition else PhaseHologramNet
+    return net(*build_networks(name, setup.shape), setup)
 
 
 def count_parameters(module: nn.Module) -> int:
@@ -108,7 +128,9 @@ def model_info(name: str, shape: tuple[int, int]) -> dict[str, object]:
         "merger": variant.merger,
         "tier": grid_tier,
         "lfmn_dims": variant.dims[grid_tier] if variant.dims else None,
-        "lfmn_blocks": BLOCKS[grid_tier] if variant.dims else None,
+        "lfmn_blocks": _blocks(variant, grid_tier) if variant.dims else None,
+        "lfmn_without": variant.without,
+        "low_definition": variant.low_definition,
         "generator_parameters": count_parameters(generator),
         "encoder_parameters": count_parameters(encoder),
         "parameters": count_parameters(generator) + count_parameters(encoder),

@@ -237,13 +237,13 @@ def load_targets(sources: Sequence[ImageSource], grid: tuple[int, int], roi: tup
     return torch.stack(targets)
 
 
-def _flips(seed: int, epoch: int, positions: Sequence[int]) -> list[tuple[bool, bool]]:
+def epoch_flips(seed: int, epoch: int, positions: Sequence[int]) -> list[tuple[bool, bool]]:
     """Random (horizontal, vertical) flips, fixed by (seed, epoch, position in the epoch)."""
     return [tuple(bool(v) for v in np.random.default_rng([seed, epoch, p]).random(2) < 0.5)  # type: ignore[misc]
             for p in positions]
 
 
-def _epoch_order(n: int, seed: int, epoch: int, length: int) -> np.ndarray:
+def epoch_order(n: int, seed: int, epoch: int, length: int) -> np.ndarray:
     """A seeded permutation of range(n), repeated from its start up to `length` entries (so ranks get equal
     shares)."""
     order = np.random.default_rng([seed, epoch, 7]).permutation(n)
@@ -349,7 +349,7 @@ def _train(profile: Profile, settings: TrainSettings, out_dir: Path, planes: Map
     step = position["step"]
     epoch = position["epoch"]
     while epoch < settings.epochs and step < total:
-        order = _epoch_order(len(train_set), settings.seed, epoch, steps_per_epoch * per_step)
+        order = epoch_order(len(train_set), settings.seed, epoch, steps_per_epoch * per_step)
         sums = {c: [0.0, 0.0] for c in setups}
         batches = 0
         batch = position["batch"] if epoch == position["epoch"] else 0
@@ -357,7 +357,7 @@ def _train(profile: Profile, settings: TrainSettings, out_dir: Path, planes: Map
             first = batch * per_step + job.rank * settings.batch_size
             positions = list(range(first, first + settings.batch_size))
             targets = load_targets([train_set[order[p]] for p in positions], geometry.shape, geometry.roi,
-                                   _flips(settings.seed, epoch, positions)).to(device)
+                                   epoch_flips(settings.seed, epoch, positions)).to(device)
             for colour, model in wrapped.items():
                 amplitude = peak_normalised(targets[:, planes[colour]:planes[colour] + 1])
                 loss, psnr_db = training_step(model, optimisers[colour], setups[colour], amplitude, loss_fn)

@@ -8,7 +8,8 @@ parameter count (2.87 M for both U-Nets) pins:
 - each level up: 4x4 stride-2 transposed conv -> BN -> ReLU, then 3x3 conv -> BN -> ReLU; the level's input
   is concatenated to its output (skip);
 - the innermost level works at 1/16 of the input size and has no BatchNorm (its convs carry biases instead);
-- out: linear 3x3 conv with bias -> Hardtanh(-pi, pi).
+- out: linear 3x3 conv with bias -> Hardtanh(-pi, pi); without the Hardtanh (`clamp=False`) when an LFMN
+  merges the output (the paper's code: the DCM encoder returns its raw output and LFMN clamps at its end).
 
 Every 3x3 and 4x4 conv uses reflection padding; convs followed by BatchNorm have no bias. Counted
 parameters are the trainable ones (BatchNorm's affine weights, not its running statistics). The extra 3x3
@@ -50,9 +51,10 @@ def _up(in_channels: int, outer: int, norm: bool) -> nn.Sequential:
 
 
 class UNet(nn.Module):
-    """(B, in_channels, H, W) -> (B, out_channels, H, W) phases in [-pi, pi]; HoloNet's U-Net."""
+    """(B, in_channels, H, W) -> (B, out_channels, H, W) phases, in [-pi, pi] when `clamp`; HoloNet's U-Net."""
 
-    def __init__(self, in_channels: int, out_channels: int, features: int = 16, levels: int = 4) -> None:
+    def __init__(self, in_channels: int, out_channels: int, features: int = 16, levels: int = 4,
+                 clamp: bool = True) -> None:
         super().__init__()
         if levels < 1:
             raise ValueError(f"a U-Net needs at least one level, got {levels}")
@@ -67,7 +69,7 @@ class UNet(nn.Module):
             _up(inner if i == levels - 1 else 2 * inner, outer, norm=i < levels - 1)
             for i, (outer, inner) in enumerate(zip(widths, inners)))
         self.out = nn.Sequential(nn.ReflectionPad2d(1), nn.Conv2d(2 * features, out_channels, 3),
-                                 nn.Hardtanh(-math.pi, math.pi))
+                                 nn.Hardtanh(-math.pi, math.pi) if clamp else nn.Identity())
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         h, w = x.shape[-2:]
