@@ -70,16 +70,24 @@ _SIM = {
         "two_pi_nm": Field("float", required=False, gt=0),
         "gamma": Field("float", required=False, gt=0),
         "zero_order": Field("float", required=False, ge=0, le=1),
+        "crosstalk_px": Field("float", required=False, ge=0),
     }),
     "beam": Field("table", required=False, fields={
         "waist_mm": Field("float", required=False, ge=0),
+        "offset_mm": Field("float_pair", required=False),
+        "tilt_mrad": Field("float_pair", required=False),
         "efficiency": Field("float", required=False, gt=0, le=1),
     }),
     "imaging": Field("table", required=False, fields={
         "magnification": Field("float", required=False, gt=0),
         "rotation_deg": Field("float", required=False),
         "offset_px": Field("float_pair", required=False),
+        "stray_light": Field("float", required=False, ge=0, le=1),
     }),
+    # Per laser channel: Zernike wavefront error at the SLM in waves (optics.aberration.ZERNIKE_TERMS' names).
+    "aberration": Field("table_map", required=False, fields={
+        name: Field("float", required=False) for name in ("astigmatism_oblique", "defocus", "astigmatism_vertical",
+                                                          "coma_vertical", "coma_horizontal", "spherical")}),
     "sensor": Field("table", required=False, fields={
         "model": Field("str", required=False),
         "shape": Field("int_pair", required=False, gt=0),
@@ -270,13 +278,17 @@ class SimSLMConfig:
     gamma: float = 1.05  # slight non-linearity of the liquid crystal
     # Amplitude fraction of each pixel that is not modulated (inter-pixel gaps): field = (1 - f) e^(i phase) + f.
     zero_order: float = 0.02
+    # Fringing fields: the driven phase is blurred by a Gaussian of this many pixels (sigma) before it modulates.
+    crosstalk_px: float = 0.0
 
 
 @dataclass(frozen=True)
 class SimBeamConfig:
-    """The light arriving at the SLM."""
+    """The light arriving at the SLM (one fibre-combined beam for every colour)."""
 
-    waist_mm: float = 0.0  # 1/e^2 intensity radius of a Gaussian beam centred on the panel; 0: uniform, fills it
+    waist_mm: float = 0.0  # 1/e^2 intensity radius of a Gaussian beam; 0: uniform, exactly filling the panel
+    offset_mm: tuple[float, float] = (0.0, 0.0)  # [rows, cols] from the panel's centre to the beam's centre
+    tilt_mrad: tuple[float, float] = (0.0, 0.0)  # [rows, cols] angle of incidence: moves the image z tan(angle)
     # Fraction of the laser's photons that reach the sensor (fibre, beam splitter, ND filters, lenses).
     efficiency: float = 1e-3
 
@@ -289,6 +301,8 @@ class SimImagingConfig:
     rotation_deg: float = 0.4  # positive turns the image clockwise as displayed (rows down, columns right)
     # [rows, cols] sensor pixels from the centre of the active area to the image of the SLM grid's centre.
     offset_px: tuple[float, float] = (14.0, -22.0)
+    # Fraction of the light at the target plane scattered evenly over the grid's image (veiling glare).
+    stray_light: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -332,6 +346,8 @@ class SimConfig:
     beam: SimBeamConfig = field(default_factory=SimBeamConfig)
     imaging: SimImagingConfig = field(default_factory=SimImagingConfig)
     sensor: SimSensorConfig = field(default_factory=SimSensorConfig)
+    # Laser channel -> Zernike term -> waves of wavefront error at the SLM (none: a perfect wavefront).
+    aberration: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -483,10 +499,11 @@ def _build_sim(path: Path, data: Mapping[str, Any], laser: LaserConfig | None) -
         raise fail(path, "sim.sensor.black_level", f"{sensor.black_level} is not below the white level "
                     f"{sensor.white_level} of a {sensor.bit_depth}-bit sensor")
     names = {ch.name for ch in laser.channels} if laser else set()
-    for name in sensor.response:
-        if name not in names:
-            raise fail(path, f"sim.sensor.response.{name}",
-                        f"no laser channel {name!r} (known: {', '.join(sorted(names)) or 'none'})")
+    for section, entries in (("sensor.response", sensor.response), ("aberration", data.get("aberration", {}))):
+        for name in entries:
+            if name not in names:
+                raise fail(path, f"sim.{section}.{name}",
+                            f"no laser channel {name!r} (known: {', '.join(sorted(names)) or 'none'})")
     parts = {"slm": SimSLMConfig, "beam": SimBeamConfig, "imaging": SimImagingConfig}
     built = {key: cls(**data[key]) for key, cls in parts.items() if key in data}
     return SimConfig(**{**data, **built, "sensor": sensor})
