@@ -113,6 +113,7 @@ SCHEMA: Mapping[str, Field] = {
         "distance_mm": Field("float", gt=0),
         "roi": Field("int_pair", gt=0),
         "iris_fraction": Field("float", required=False, gt=0),
+        "model": Field("str", required=False),
     }),
     "slm": Field("table", required=False, fields={
         "driver": Field("str", required=False, default="sim", choices=SLM_DRIVERS),
@@ -164,6 +165,9 @@ class OpticsConfig:
     # Fourier-plane iris of the relay: radius as a fraction of the SLM's Nyquist frequency (None: no iris).
     # A physical iris of diameter D behind a lens of focal length f gives D * pitch / (wavelength * f).
     iris_fraction: float | None = None
+    # A fitted optical model (optical-model.json of model calibration): None uses the ideal model. Calibration sets
+    # it from calibration/<profile>/ for runs when the profile names none.
+    model: Path | None = None
 
     @property
     def distance_m(self) -> float:
@@ -468,7 +472,10 @@ def _build(path: Path, data: Mapping[str, Any]) -> Profile:
     if not any(section in data for section in SECTIONS):
         raise fail(path, "(top level)", f"no device section: give at least one of {', '.join(SECTIONS)}")
     slm = _build_slm(path, data["slm"]) if "slm" in data else None
-    optics = OpticsConfig(**data["optics"]) if "optics" in data else None
+    optics = None
+    if "optics" in data:
+        model = data["optics"].get("model")
+        optics = OpticsConfig(**{**data["optics"], "model": (path.parent / model).resolve() if model else None})
     if optics and slm and (optics.roi[0] > slm.height or optics.roi[1] > slm.width):
         raise fail(
             path, "optics.roi",

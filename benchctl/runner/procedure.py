@@ -48,6 +48,7 @@ BUILTINS = {
     "registration": "benchctl.runner.builtin.registration",
     "lut-calibration": "benchctl.runner.builtin.lut_calibration",
     "power-sweep": "benchctl.runner.builtin.power_sweep",
+    "model-calibration": "benchctl.runner.builtin.model_calibration",
 }
 
 FILE_SCHEMA = {
