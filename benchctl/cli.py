@@ -64,6 +64,8 @@ def _cmd_generate(args: argparse.Namespace) -> int:
                            colours=args.colours, seed=args.seed, progress=Progress, checkpoint=args.checkpoint)
     if metrics["checkpoint"]:
         print(f"{args.method}: trained models from {metrics['checkpoint']}")
+    if metrics["optical_model"]:
+        print(f"fitted optical model: {metrics['optical_model']}")
     for name, colour in metrics["colours"].items():
         if colour["skipped"]:
             print(f"{name:>6}: skipped (black in the target)")

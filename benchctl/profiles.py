@@ -73,16 +73,24 @@ _SIM = {
         "two_pi_nm": Field("float", required=False, gt=0),
         "gamma": Field("float", required=False, gt=0),
         "zero_order": Field("float", required=False, ge=0, le=1),
+        "crosstalk_px": Field("float", required=False, ge=0),
     }),
     "beam": Field("table", required=False, fields={
         "waist_mm": Field("float", required=False, ge=0),
+        "offset_mm": Field("float_pair", required=False),
+        "tilt_mrad": Field("float_pair", required=False),
         "efficiency": Field("float", required=False, gt=0, le=1),
     }),
     "imaging": Field("table", required=False, fields={
         "magnification": Field("float", required=False, gt=0),
         "rotation_deg": Field("float", required=False),
         "offset_px": Field("float_pair", required=False),
+        "stray_light": Field("float", required=False, ge=0, le=1),
     }),
+    # Per laser channel: Zernike wavefront error at the SLM in waves (optics.aberration.ZERNIKE_TERMS' names).
+    "aberration": Field("table_map", required=False, fields={
+        name: Field("float", required=False) for name in ("astigmatism_oblique", "defocus", "astigmatism_vertical",
+                                                          "coma_vertical", "coma_horizontal", "spherical")}),
     "sensor": Field("table", required=False, fields={
         "model": Field("str", required=False),
         "shape": Field("int_pair", required=False, gt=0),
@@ -108,6 +116,7 @@ SCHEMA: Mapping[str, Field] = {
         "distance_mm": Field("float", gt=0),
         "roi": Field("int_pair", gt=0),
         "iris_fraction": Field("float", required=False, gt=0),
+        "model": Field("str", required=False),
     }),
     "slm": Field("table", required=False, fields={
         "driver": Field("str", required=False, default="sim", choices=SLM_DRIVERS),
@@ -159,6 +168,9 @@ class OpticsConfig:
     # Fourier-plane iris of the relay: radius as a fraction of the SLM's Nyquist frequency (None: no iris).
     # A physical iris of diameter D behind a lens of focal length f gives D * pitch / (wavelength * f).
     iris_fraction: float | None = None
+    # A fitted optical model (optical-model.json of model calibration): None uses the ideal model. Calibration sets
+    # it from calibration/<profile>/ for runs when the profile names none.
+    model: Path | None = None
 
     @property
     def distance_m(self) -> float:
@@ -273,13 +285,17 @@ class SimSLMConfig:
     gamma: float = 1.05  # slight non-linearity of the liquid crystal
     # Amplitude fraction of each pixel that is not modulated (inter-pixel gaps): field = (1 - f) e^(i phase) + f.
     zero_order: float = 0.02
+    # Fringing fields: the driven phase is blurred by a Gaussian of this many pixels (sigma) before it modulates.
+    crosstalk_px: float = 0.0
 
 
 @dataclass(frozen=True)
 class SimBeamConfig:
-    """The light arriving at the SLM."""
+    """The light arriving at the SLM (one fibre-combined beam for every colour)."""
 
-    waist_mm: float = 0.0  # 1/e^2 intensity radius of a Gaussian beam centred on the panel; 0: uniform, fills it
+    waist_mm: float = 0.0  # 1/e^2 intensity radius of a Gaussian beam; 0: uniform, exactly filling the panel
+    offset_mm: tuple[float, float] = (0.0, 0.0)  # [rows, cols] from the panel's centre to the beam's centre
+    tilt_mrad: tuple[float, float] = (0.0, 0.0)  # [rows, cols] angle of incidence: moves the image z tan(angle)
     # Fraction of the laser's photons that reach the sensor (fibre, beam splitter, ND filters, lenses).
     efficiency: float = 1e-3
 
@@ -292,6 +308,8 @@ class SimImagingConfig:
     rotation_deg: float = 0.4  # positive turns the image clockwise as displayed (rows down, columns right)
     # [rows, cols] sensor pixels from the centre of the active area to the image of the SLM grid's centre.
     offset_px: tuple[float, float] = (14.0, -22.0)
+    # Fraction of the light at the target plane scattered evenly over the grid's image (veiling glare).
+    stray_light: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -335,6 +353,8 @@ class SimConfig:
     beam: SimBeamConfig = field(default_factory=SimBeamConfig)
     imaging: SimImagingConfig = field(default_factory=SimImagingConfig)
     sensor: SimSensorConfig = field(default_factory=SimSensorConfig)
+    # Laser channel -> Zernike term -> waves of wavefront error at the SLM (none: a perfect wavefront).
+    aberration: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -459,7 +479,10 @@ def _build(path: Path, data: Mapping[str, Any]) -> Profile:
         raise fail(path, "name", f"{name!r} must be letters, digits, '_', '-' or '.' and start with a letter or digit "
                                  "(it names the profile's calibration folder)")
     slm = _build_slm(path, data["slm"]) if "slm" in data else None
-    optics = OpticsConfig(**data["optics"]) if "optics" in data else None
+    optics = None
+    if "optics" in data:
+        model = data["optics"].get("model")
+        optics = OpticsConfig(**{**data["optics"], "model": (path.parent / model).resolve() if model else None})
     if optics and slm and (optics.roi[0] > slm.height or optics.roi[1] > slm.width):
         raise fail(
             path, "optics.roi",
@@ -490,10 +513,11 @@ def _build_sim(path: Path, data: Mapping[str, Any], laser: LaserConfig | None) -
         raise fail(path, "sim.sensor.black_level", f"{sensor.black_level} is not below the white level "
                     f"{sensor.white_level} of a {sensor.bit_depth}-bit sensor")
     names = {ch.name for ch in laser.channels} if laser else set()
-    for name in sensor.response:
-        if name not in names:
-            raise fail(path, f"sim.sensor.response.{name}",
-                        f"no laser channel {name!r} (known: {', '.join(sorted(names)) or 'none'})")
+    for section, entries in (("sensor.response", sensor.response), ("aberration", data.get("aberration", {}))):
+        for name in entries:
+            if name not in names:
+                raise fail(path, f"sim.{section}.{name}",
+                            f"no laser channel {name!r} (known: {', '.join(sorted(names)) or 'none'})")
     parts = {"slm": SimSLMConfig, "beam": SimBeamConfig, "imaging": SimImagingConfig}
     built = {key: cls(**data[key]) for key, cls in parts.items() if key in data}
     return SimConfig(**{**data, **built, "sensor": sensor})

@@ -22,7 +22,7 @@ class Field:
     """One key of the schema: its kind, whether it is required, its default and its numeric bounds."""
 
     # "float", "int", "bool", "str", "str_list", "int_pair", "float_pair", "str_map", "triple_map" (name -> three numbers),
-    # "table" (fields) or "tables" (array)
+    # "table" (fields), "tables" (array) or "table_map" (name -> a table of `fields`, e.g. one per laser channel)
     kind: str
     required: bool = True
     default: Any = None
@@ -76,6 +76,10 @@ def _check_value(value: Any, field: Field, key: str, path: Path) -> Any:
         if not isinstance(value, dict):
             raise wrong("a [section] table")
         return check_table(value, field.fields or {}, key, path)
+    if field.kind == "table_map":
+        if not isinstance(value, dict) or not all(isinstance(item, dict) for item in value.values()):
+            raise wrong("a table of [section.<name>] tables")
+        return {name: check_table(item, field.fields or {}, f"{key}.{name}", path) for name, item in value.items()}
     if field.kind == "tables":
         if not isinstance(value, list) or not all(isinstance(item, dict) for item in value):
             raise wrong(f"an array of tables ([[{key}]])")

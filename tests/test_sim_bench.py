@@ -26,7 +26,9 @@ from benchctl.devices.sim.state import reset_states
 from benchctl.devices.slm import open_slm
 from benchctl.errors import BenchctlError
 from benchctl.optics import PhaseLUT, propagation
-from benchctl.profiles import LaserConfig, Profile, SimConfig, load_profile
+from benchctl.optics.aberration import ZERNIKE_TERMS, defocus_focal_length_m, zernike_basis
+from benchctl.profiles import _SIM, LaserConfig, Profile, SimConfig, load_profile
+from benchctl.runner.holograms import compute_scene
 
 H_PLANCK, C_LIGHT = 6.62607015e-34, 299792458.0
 
@@ -165,7 +167,8 @@ def test_spectral_response_puts_the_configured_fractions_into_each_colour(profil
 
 def test_light_lands_only_on_the_image_of_the_slm_grid(profile: Profile) -> None:
     profile = changed(profile, "optics", distance_mm=1.0)
-    image = capture(profile, np.zeros((64, 96), np.uint8), {"green": 2.0})
+    image = capture(profile, np.zeros((64, 96), np.uint8), {"green": 0.3})
+    assert not image.saturated.any()
     inverse = np.linalg.inv(bench.camera_homography(profile))
     rows, cols = np.indices(image.mosaic.shape)
     x, y, _ = inverse @ np.stack([cols.ravel(), rows.ravel(), np.ones(rows.size)])
@@ -380,3 +383,154 @@ def test_sim_section_errors_name_the_key(tmp_path: Path, block: str, message: st
     with pytest.raises(BenchctlError, match=message) as info:
         load_profile(path)
     assert str(path) in str(info.value)
+
+
+# -- optics that differ from the model ([sim.aberration], beam offset / tilt, crosstalk, stray light) -----------
+
+
+def irradiance(profile: Profile, gray: np.ndarray, channel: str = "green") -> np.ndarray:
+    """The simulator's target-plane irradiance (fraction of the beam's power per pixel) of `gray`, noiseless."""
+    return bench._target_irradiance(profile, profile.channel(channel), torch.from_numpy(gray.astype(np.int64))).numpy()
+
+
+def moments(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Centroid (row, col) and variance (rows, cols) of an irradiance image in pixels."""
+    rows, cols = np.indices(image.shape)
+    total = image.sum()
+    centre = np.array([(image * rows).sum(), (image * cols).sum()]) / total
+    variance = np.array([(image * (rows - centre[0]) ** 2).sum(), (image * (cols - centre[1]) ** 2).sum()]) / total
+    return centre, variance
+
+
+def test_zernike_terms_are_the_ansi_polynomials() -> None:
+    """The RMS-normalised ANSI/OSA terms against their closed forms at the pixel centres of a 3 x 4 panel (the unit
+    disc circumscribes the panel; theta from +x = columns towards +y = rows)."""
+    basis = dict(zip(ZERNIKE_TERMS, zernike_basis((3, 4), 1e-6).numpy()))
+    y, x = np.indices((3, 4)) - np.array([1.0, 1.5])[:, None, None]
+    rho, theta = np.hypot(y, x) / (np.hypot(3, 4) / 2), np.arctan2(y, x)
+    expected = {"astigmatism_oblique": math.sqrt(6) * rho**2 * np.sin(2 * theta),
+                "defocus": math.sqrt(3) * (2 * rho**2 - 1),
+                "astigmatism_vertical": math.sqrt(6) * rho**2 * np.cos(2 * theta),
+                "coma_vertical": math.sqrt(8) * (3 * rho**3 - 2 * rho) * np.sin(theta),
+                "coma_horizontal": math.sqrt(8) * (3 * rho**3 - 2 * rho) * np.cos(theta),
+                "spherical": math.sqrt(5) * (6 * rho**4 - 6 * rho**2 + 1)}
+    for name, values in expected.items():
+        assert basis[name] == pytest.approx(values, abs=1e-12), name
+
+
+@pytest.mark.parametrize("waves", [0.0, 0.5, -0.5])
+def test_defocus_moves_the_best_focus_as_its_thin_lens_predicts(profile: Profile, waves: float) -> None:
+    """A Gaussian beam (waist w0 = 0.12 mm) on a lens pattern of focal length 20 mm, plus `waves` of defocus: a
+    thin lens of focal length f = -R^2 / (4 sqrt(3) c lambda) in contact, so the lens is F = 1 / (1/20 mm + 1/f).
+    A Gaussian beam focused by F has its waist at d = F / (1 + (F / z_R)^2), z_R = pi w0^2 / lambda; the spot's
+    second moment w^2(z) is a parabola in z whose vertex is d. c = +-0.5 moves it from 19.00 mm to 22.36 / 16.47 mm."""
+    profile = changed(profile, "beam", waist_mm=0.12)
+    profile = dataclasses.replace(profile, sim=dataclasses.replace(profile.sim, aberration={"green": {"defocus": waves}}))
+    wavelength, pitch = 520e-9, 8e-6
+    y, x = (np.indices((64, 96)) - np.array([31.5, 47.5])[:, None, None]) * pitch
+    lens = np.remainder(-math.pi * (x**2 + y**2) / (wavelength * 20e-3), 2 * math.pi)
+    gray = np.floor(lens / (2 * math.pi) * 256 + 0.5).astype(np.int64) % 256
+    focal = 1 / (1 / 20e-3 + (1 / defocus_focal_length_m(waves, wavelength, (64, 96), pitch) if waves else 0.0))
+    rayleigh = math.pi * 0.12e-3**2 / wavelength
+    waist_at = focal / (1 + (focal / rayleigh) ** 2)
+    distances = waist_at + np.linspace(-4e-3, 4e-3, 9)
+    spot = [moments(irradiance(changed(profile, "optics", distance_mm=z * 1e3), gray))[1].sum() for z in distances]
+    a, b, _ = np.polyfit(distances, spot, 2)
+    assert -b / (2 * a) == pytest.approx(waist_at, abs=0.1e-3)
+    assert waist_at * 1e3 == pytest.approx({0.0: 19.0, 0.5: 22.36, -0.5: 16.47}[waves], abs=0.01)
+
+
+def test_a_tilted_beam_moves_the_image_by_z_tan_theta(profile: Profile) -> None:
+    """Tilt (2, -3) mrad over 20 mm: the beam's image moves 20 mm x tan(theta) / 8 um = (5.0, -7.5) pixels."""
+    profile = changed(profile, "beam", waist_mm=0.1)
+    flat = np.zeros((64, 96), np.int64)
+    before = moments(irradiance(profile, flat))[0]
+    after = moments(irradiance(changed(profile, "beam", waist_mm=0.1, tilt_mrad=(2.0, -3.0)), flat))[0]
+    expected = np.array([20e-3 * math.tan(2e-3), 20e-3 * math.tan(-3e-3)]) / 8e-6
+    assert after - before == pytest.approx(expected, abs=0.02)
+
+
+def test_a_gaussian_beam_is_captured_with_its_waist_and_offset(profile: Profile) -> None:
+    """1 mm from the SLM a flat phase shows the beam itself: captured, mapped back to the target plane through the
+    known geometry, its centroid is the offset and its per-axis standard deviation is w / 2 (I ~ exp(-2 r^2 / w^2))."""
+    profile = changed(changed(profile, "optics", distance_mm=1.0), "beam", waist_mm=0.1, offset_mm=(0.05, -0.08))
+    image = capture(profile, np.zeros((64, 96), np.uint8), {"green": 0.3})
+    assert not image.saturated.any()
+    inverse = np.linalg.inv(bench.camera_homography(profile))
+    rows, cols = np.indices(image.mosaic.shape)
+    x, y, _ = inverse @ np.stack([cols.ravel(), rows.ravel(), np.ones(rows.size)])
+    inside = (abs(x - 47.5) < 44) & (abs(y - 31.5) < 28)
+    weights = np.where(colour_mask(image, 1).ravel() & inside, image.mosaic.ravel(), 0.0)
+    centre = np.array([(weights * y).sum(), (weights * x).sum()]) / weights.sum()
+    sigma = np.sqrt([(weights * (y - centre[0]) ** 2).sum(), (weights * (x - centre[1]) ** 2).sum()] / weights.sum())
+    assert centre - [31.5, 47.5] == pytest.approx([0.05e-3 / 8e-6, -0.08e-3 / 8e-6], abs=0.1)
+    assert 2 * sigma * 8e-6 == pytest.approx([0.1e-3, 0.1e-3], rel=0.02)
+
+
+@pytest.mark.parametrize("sigma_px", [0.0, 0.6, 1.0])
+def test_crosstalk_lowers_a_fine_gratings_efficiency_as_predicted(profile: Profile, sigma_px: float) -> None:
+    """A period-4 sinusoidal phase grating pi + m sin(2 pi x / 4) (m = 2 pi 98 / 256, near J0's zero): blurred by
+    a Gaussian of sigma pixels its modulation becomes m' = m exp(-2 pi^2 sigma^2 / 16), and the zero order of the
+    four pixel phases (pi, pi + m', pi, pi - m') holds ((1 + cos m') / 2)^2 of the light. An iris at 0.3 x Nyquist
+    passes only the zero order (the first orders sit at 0.5), so the power reaching the target plane, relative to
+    a flat phase, is that fraction: 1.7 % sharp, 26 % at sigma = 0.6 px. (A Gaussian beam, so that no edge
+    diffraction of the first orders leaks through the iris.)"""
+    profile = changed(changed(profile, "optics", iris_fraction=0.3), "slm", crosstalk_px=sigma_px)
+    profile = changed(profile, "beam", waist_mm=0.1)
+    gray = np.broadcast_to(np.array([128, 226, 128, 30] * 24), (64, 96))
+    modulation = 2 * math.pi * 98 / 256 * math.exp(-2 * math.pi**2 * sigma_px**2 / 16)
+    zero_order = ((1 + math.cos(modulation)) / 2) ** 2
+    ratio = irradiance(profile, gray).sum() / irradiance(profile, np.zeros((64, 96), np.int64)).sum()
+    assert ratio == pytest.approx(zero_order, rel=0.01, abs=1e-4)
+
+
+def test_stray_light_spreads_its_fraction_evenly(profile: Profile) -> None:
+    flat = np.zeros((64, 96), np.int64)
+    clean = irradiance(changed(profile, "beam", waist_mm=0.1), flat)
+    glare = irradiance(changed(changed(profile, "beam", waist_mm=0.1), "imaging", stray_light=0.1), flat)
+    assert glare.sum() == pytest.approx(clean.sum(), rel=1e-9)
+    assert glare - 0.9 * clean == pytest.approx(np.full(clean.shape, 0.1 * clean.mean()), rel=1e-6)
+
+
+def test_generation_never_reads_the_hidden_optics(make_bench_profile: Callable[..., Profile]) -> None:
+    """The same hologram (SGD, the reconstruction and its scores too) with and without every hidden term: the
+    aberrations, beam, crosstalk and stray light live in [sim], which only the simulated camera reads."""
+    hidden = {"sim": {"aberration": {"green": {"defocus": 0.4, "coma_horizontal": -0.2}},
+                      "beam": {"waist_mm": 0.3, "offset_mm": [0.05, 0.0], "tilt_mrad": [0.1, 0.2]},
+                      "slm": {"crosstalk_px": 0.7}, "imaging": {"stray_light": 0.02}}}
+    target = torch.zeros(3, 64, 96)
+    target[1, 20:44, 30:66] = 1.0
+    results = [compute_scene(target, make_bench_profile(SMALL_BENCH, SIM_SMALL, *extra), "sgd", iterations=5,
+                             colours=["green"]) for extra in ((), (hidden,))]
+    plain, aberrated = ([c for c in result.colours if c.channel == "green"][0] for result in results)
+    assert plain.gray is not None and np.array_equal(plain.gray, aberrated.gray)
+    assert results[0].merged_scores == results[1].merged_scores
+
+
+def test_aberration_entries_name_laser_channels_and_terms(tmp_path: Path) -> None:
+    path = tmp_path / "bad.toml"
+    text = bench_profile_text(SMALL_BENCH, SIM_SMALL, sim=None) + "[sim.aberration.green]\ndefocus = 0.2\n"
+    path.write_text(text)
+    assert load_profile(path).sim.aberration == {"green": {"defocus": 0.2}}
+    for block, message in [("[sim.aberration.purple]\ndefocus = 0.1\n", r"sim\.aberration\.purple: no laser channel"),
+                           ("[sim.aberration.green]\ndefocuss = 0.1\n",
+                            r"sim\.aberration\.green\.defocuss: unknown key \(did you mean 'defocus'"),
+                           ("[sim.aberration.green]\ncoma_vertical = \"a\"\n",
+                            r"sim\.aberration\.green\.coma_vertical: expected a finite number")]:
+        path.write_text(bench_profile_text(SMALL_BENCH, SIM_SMALL, sim=None) + block)
+        with pytest.raises(BenchctlError, match=message):
+            load_profile(path)
+
+
+def test_schema_terms_are_the_optics_terms() -> None:
+    assert tuple(_SIM["aberration"].fields) == tuple(ZERNIKE_TERMS)
+
+
+def test_the_aberrated_profile_is_the_simulated_bench_with_hidden_optics() -> None:
+    plain, aberrated = load_profile("simulated"), load_profile("simulated-aberrated")
+    for section in ("optics", "slm", "laser", "camera"):
+        assert getattr(aberrated, section) == getattr(plain, section), section
+    assert plain.sim.aberration == {} and plain.sim.slm.crosstalk_px == 0 and plain.sim.beam.tilt_mrad == (0, 0)
+    assert {name: set(terms) for name, terms in aberrated.sim.aberration.items()} == {
+        name: set(ZERNIKE_TERMS) for name in ("red", "green", "blue")}
+    assert aberrated.sim.beam.waist_mm > 0 and aberrated.sim.slm.crosstalk_px > 0

@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING, Union
 
 import torch
 
+from benchctl.optics.fitted import FittedOptics
 from benchctl.optics.metrics import centred_slices
 from benchctl.optics.propagation import Propagator
 
@@ -62,6 +63,8 @@ class OpticalSetup:
     roi: tuple[int, int]
     padding: Padding = "auto"
     aperture: float | None = None  # Fourier-plane iris radius in units of the SLM's Nyquist frequency
+    # The bench as measured (model calibration): beam amplitude and wavefront error applied to every SLM field.
+    field_model: FittedOptics | None = None
     _to_target: Propagator = field(init=False, repr=False, compare=False)
     _to_slm: Propagator = field(init=False, repr=False, compare=False)
 
@@ -89,11 +92,13 @@ class OpticalSetup:
 
     @classmethod
     def from_profile(cls, profile: Profile, channel: str, padding: Padding = "auto") -> "OpticalSetup":
-        """The setup of one laser channel of a hardware profile (profile units converted to SI)."""
+        """The setup of one laser channel of a hardware profile (profile units converted to SI), with the channel's
+        fitted optical model if the profile names one (`optics.model`, set from calibration/<profile>/)."""
         laser = profile.channel(channel)
+        model = FittedOptics.load(profile.optics.model, channel) if profile.optics.model else None
         return cls(wavelength_m=laser.wavelength_m, pitch_m=profile.slm.pitch_m, distance_m=profile.optics.distance_m,
                    shape=profile.slm.shape, roi=profile.optics.roi, padding=padding,
-                   aperture=profile.optics.iris_fraction)
+                   aperture=profile.optics.iris_fraction, field_model=model)
 
     def _propagator(self, distance_m: float) -> Propagator:
         return Propagator(self.shape, distance_m, self.wavelength_m, self.pitch_m, padding=self.padding,
@@ -113,9 +118,22 @@ class OpticalSetup:
         return centred_slices(self.shape, self.roi)
 
     def reconstruct(self, phase: torch.Tensor) -> torch.Tensor:
-        """Amplitude at the target plane of a phase-only hologram lit by a unit plane wave: |P_{+z}(exp(i phase))|.
+        """Amplitude at the target plane of a phase-only hologram lit by a unit plane wave: |P_{+z}(exp(i phase))|;
+        with a fitted model, lit by its beam through its wavefront error: |P_{+z}(A e^(i W) exp(i phase))|.
 
         The one simulation of a hologram everyone uses; differentiable, and its gradient stays finite where the
         amplitude is exactly zero (complex abs, not a square root of the intensity).
         """
-        return self.target_propagator()(torch.polar(torch.ones_like(phase), phase)).abs()
+        field = torch.polar(torch.ones_like(phase), phase)
+        if self.field_model is not None:
+            field = field * self.slm_factor().to(field.device)
+        return self.target_propagator()(field).abs()
+
+    def slm_factor(self) -> torch.Tensor:
+        """The fitted model's A e^(i W) on the SLM grid (complex64), computed once; ones without a model."""
+        factor = self.__dict__.get("_slm_factor")
+        if factor is None:
+            factor = (self.field_model.slm_factor(self.shape, self.pitch_m) if self.field_model is not None
+                      else torch.ones(self.shape, dtype=torch.complex64))
+            object.__setattr__(self, "_slm_factor", factor)
+        return factor

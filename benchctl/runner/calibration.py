@@ -4,6 +4,8 @@
                                                     area px), reprojection error, when, for which geometry
     calibration/<profile name>/lut-<colour>.csv    measured gray -> phase table (benchctl.devices.slm.lut format)
     calibration/<profile name>/lut.json            when and for which geometry each table was measured
+    calibration/<profile name>/optical-model.json  per colour: fitted wavefront error (Zernike waves) and beam,
+                                                    residual, when, for which geometry (model calibration)
 
 The root is $BENCHCTL_CALIBRATION_DIR, else ./calibration. A calibration made for another geometry (SLM grid,
 pitch, distance, ROI, camera) is not used; one older than STALE_DAYS is used with a warning. Each run copies the
@@ -27,6 +29,7 @@ from benchctl.profiles import Profile
 CALIBRATION_ENV = "BENCHCTL_CALIBRATION_DIR"
 REGISTRATION_FILE = "registration.json"
 LUT_INDEX = "lut.json"
+MODEL_FILE = "optical-model.json"
 STALE_DAYS = 30
 
 
@@ -110,6 +113,21 @@ class Calibration:
         index = _read_json(self.folder / LUT_INDEX) or {}
         return {colour: index[colour] for colour in self.lut_files()}
 
+    # -- fitted optical model -------------------------------------------------------------------------------------
+
+    def models(self) -> dict[str, dict[str, Any]]:
+        """Colour -> fitted optical model entry (FittedOptics.to_dict() plus residual, created) for this geometry."""
+        data = _read_json(self.folder / MODEL_FILE) or {}
+        return {colour: entry for colour, entry in data.get("colours", {}).items()
+                if entry.get("geometry") == self.geometry}
+
+    def save_model(self, colour: str, entry: dict[str, Any]) -> Path:
+        """Store one colour's fitted model; entries fitted for another geometry are dropped (they no longer apply)."""
+        path = ensure_dir(self.folder) / MODEL_FILE
+        data = {"profile": self.profile.name, "colours": self.models()}
+        data["colours"][colour] = {**entry, "geometry": self.geometry, "created": _now()}
+        return write_json(path, data)
+
     # -- use ----------------------------------------------------------------------------------------------------------
 
     def copy_to(self, folder: Path) -> Calibration:
@@ -122,18 +140,26 @@ class Calibration:
         return Calibration(folder, self.profile)
 
     def applied(self, profile: Profile) -> Profile:
-        """`profile` with the measured lookup tables for the channels whose table the profile does not name."""
+        """`profile` with the measured lookup tables for the channels whose table the profile does not name, and
+        the fitted optical model unless the profile names one."""
         files = self.lut_files()
         slm = profile.slm
-        if slm is None or not files:
+        if slm is not None and files:
+            luts = {**{c: p.resolve() for c, p in files.items()}, **slm.lut}
+            profile = dataclasses.replace(profile, slm=dataclasses.replace(slm, lut=luts))
+        return self.with_model(profile)
+
+    def with_model(self, profile: Profile) -> Profile:
+        """`profile` with this calibration's fitted optical model, unless the profile names one or none is stored."""
+        if profile.optics is None or profile.optics.model is not None or not self.models():
             return profile
-        luts = {**{c: p.resolve() for c, p in files.items()}, **slm.lut}
-        return dataclasses.replace(profile, slm=dataclasses.replace(slm, lut=luts))
+        model = (self.folder / MODEL_FILE).resolve()
+        return dataclasses.replace(profile, optics=dataclasses.replace(profile.optics, model=model))
 
     def state(self, colours: list[str]) -> tuple[list[dict[str, Any]], list[str]]:
         """For the report: one row per colour (registration and lookup table in use) and warnings."""
         rows, warnings = [], []
-        registrations, luts = self.registrations(), self.lut_info()
+        registrations, luts, models = self.registrations(), self.lut_info(), self.models()
         explicit = self.profile.slm.lut if self.profile.slm else {}
         for colour in colours:
             reg, lut = registrations.get(colour), luts.get(colour)
@@ -149,7 +175,12 @@ class Calibration:
             for label, entry in (("registration", reg), ("lookup table", lut)):
                 if entry and _age(entry["created"]) > timedelta(days=STALE_DAYS):
                     warnings.append(f"{colour}: {label} is stale (made {entry['created']}, over {STALE_DAYS} days ago)")
-            rows.append({"colour": colour, "registration": reg_text, "lookup_table": lut_text})
+            model = models.get(colour)
+            model_text = (f"fitted {model['created']}, residual {model['residual']:.3f}: "
+                          + ", ".join(f"{k} {v:+.3f}" for k, v in model["zernike_waves"].items())
+                          + f" waves; beam waist {model['waist_mm']:.2f} mm" if model else "none: ideal model")
+            rows.append({"colour": colour, "registration": reg_text, "lookup_table": lut_text,
+                         "optical_model": model_text})
         return rows, warnings
 
 

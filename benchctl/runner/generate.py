@@ -15,6 +15,7 @@ from benchctl.images import write_png
 from benchctl.optics import linear_to_srgb
 from benchctl.profiles import Profile
 from benchctl.provenance import code_identity
+from benchctl.runner.calibration import Calibration
 from benchctl.runner.holograms import SceneResult, compute_scene
 from benchctl.targets import load_target, prepare_target
 
@@ -55,10 +56,12 @@ def run_generate(
 ) -> dict[str, Any]:
     """Generate one hologram per colour present in `target`, write PNGs and metrics.json to `out_dir`.
 
-    A learned method uses `checkpoint`, else the one shipped for the profile (see `compute_scene`).
+    A learned method uses `checkpoint`, else the one shipped for the profile (see `compute_scene`). The profile's
+    fitted optical model (model calibration, calibration/<profile>/) is used when one is stored.
     """
     started = time.time()
     profile.require("slm", "optics", "laser")  # the laser's channels are the colours generated
+    profile = Calibration.store(profile).with_model(profile)
     srgb = load_target(target, size=profile.optics.roi)
     amplitude = prepare_target(srgb, profile.slm.shape, profile.optics.roi)
     out_dir = ensure_dir(Path(out_dir))
@@ -77,6 +80,7 @@ def run_generate(
         "profile": str(profile.path),
         "grid": list(profile.slm.shape),
         "roi": list(profile.optics.roi),
+        "optical_model": str(profile.optics.model) if profile.optics.model else None,
         "seed": seed,
         "started_unix": round(started, 3),
         **scene_metrics(scene),

@@ -59,6 +59,7 @@ def _key(profile: Profile, channel: str, plane: torch.Tensor, options: dict[str,
         "roi": list(setup.roi), "aperture": setup.aperture, "bit_depth": slm.bit_depth,
         "two_pi_gray": slm.two_pi_gray, "offset": slm.phase_offset_rad, "carrier": list(slm.grating_period_px),
         "flips": [slm.flip_y, slm.flip_x],
+        "field_model": setup.field_model.to_dict() if setup.field_model else None,
     }
     digest.update(json.dumps(description, sort_keys=True, default=str).encode())
     for path in (slm.lut.get(channel), options.get("checkpoint")):

@@ -49,6 +49,7 @@ BUILTINS = {
     "registration": "benchctl.runner.builtin.registration",
     "lut-calibration": "benchctl.runner.builtin.lut_calibration",
     "power-sweep": "benchctl.runner.builtin.power_sweep",
+    "model-calibration": "benchctl.runner.builtin.model_calibration",
 }
 
 MAX_STEPS = 100_000  # a plan longer than this is a mistake (repeats = 1000000), not an experiment

@@ -33,6 +33,7 @@ from benchctl.devices.sim.protocol_sim import parse_url
 from benchctl.devices.sim.state import load_state, save_state
 from benchctl.devices.slm.sim import read_displayed
 from benchctl.optics import PhaseLUT, Propagator, gray_to_phase
+from benchctl.optics.aberration import crosstalk_blur, gaussian_beam_power, tilt_phase, wavefront_phase
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import LaserChannel, Profile, SimSensorConfig, SimSLMConfig
 
@@ -134,28 +135,34 @@ def _propagator(setup: OpticalSetup) -> Propagator:
 
 
 def _beam_power(profile: Profile) -> torch.Tensor:
-    """Fraction of the beam's power falling on each SLM pixel: uniform over the panel, or a centred Gaussian."""
-    slm, waist_m = profile.slm, profile.sim.beam.waist_mm * 1e-3
+    """Fraction of the beam's power falling on each SLM pixel: uniform over the panel, or a Gaussian."""
+    slm, beam = profile.slm, profile.sim.beam
     assert slm is not None
-    if not waist_m:
+    if not beam.waist_mm:
         return torch.full(slm.shape, 1.0 / (slm.height * slm.width), dtype=torch.float64)
-    y = (torch.arange(slm.height, dtype=torch.float64) - (slm.height - 1) / 2) * slm.pitch_m
-    x = (torch.arange(slm.width, dtype=torch.float64) - (slm.width - 1) / 2) * slm.pitch_m
-    r2 = y[:, None].square() + x[None, :].square()
-    return 2 / (math.pi * waist_m**2) * torch.exp(-2 * r2 / waist_m**2) * slm.pitch_m**2
+    return gaussian_beam_power(slm.shape, slm.pitch_m, beam.waist_mm * 1e-3, [v * 1e-3 for v in beam.offset_mm])
 
 
 def _target_irradiance(profile: Profile, channel: LaserChannel, gray: torch.Tensor) -> torch.Tensor:
-    """Fraction of the beam's power on each target-plane pixel, (H, W) float64, for one channel."""
+    """Fraction of the beam's power on each target-plane pixel, (H, W) float64, for one channel.
+
+    The driven phase (true response, blurred by crosstalk) modulates all but the pixel gaps' light; the beam's
+    tilt and the channel's wavefront error act on all of it; stray light spreads a fraction evenly."""
     slm, sim = profile.slm, profile.sim
     assert slm is not None
-    phase = gray_to_phase(gray, true_lut(channel.wavelength_m, slm.bit_depth, sim.slm))
+    phase = crosstalk_blur(gray_to_phase(gray, true_lut(channel.wavelength_m, slm.bit_depth, sim.slm)),
+                           sim.slm.crosstalk_px)
     gap = sim.slm.zero_order
+    wavefront = (tilt_phase(slm.shape, slm.pitch_m, [v * 1e-3 for v in sim.beam.tilt_mrad], channel.wavelength_m)
+                 + wavefront_phase(slm.shape, slm.pitch_m, sim.aberration.get(channel.name, {})))
     amplitude = _beam_power(profile).sqrt().to(torch.float32)
-    field = torch.polar(amplitude * (1 - gap), phase) + amplitude * gap
+    field = (torch.polar(amplitude * (1 - gap), phase) + amplitude * gap) * torch.polar(
+        torch.ones_like(amplitude), wavefront.to(torch.float32))
     with torch.inference_mode():
         out = _propagator(OpticalSetup.from_profile(profile, channel.name))(field)
-    return out.abs().square().to(torch.float64)
+    irradiance = out.abs().square().to(torch.float64)
+    stray = sim.imaging.stray_light
+    return (1 - stray) * irradiance + stray * irradiance.mean() if stray else irradiance
 
 
 def _lit_box(profile: Profile, homography: np.ndarray) -> tuple[int, int, int, int] | None:

@@ -1,0 +1,130 @@
+"""What makes a real bench differ from the ideal model: Zernike wavefront error at the SLM, a Gaussian beam,
+SLM pixel crosstalk. The simulated bench renders with these; a fitted optical model (optics.fitted) uses the
+same functions, differentiably, so the one definition serves both the hidden truth and its estimate.
+
+Zernike convention: ANSI Z80.28 / OSA (Thibos et al. 2002), RMS-normalised, so a coefficient of c waves is an
+RMS wavefront error of c waves over the unit disc: Z_n^m = N R_n^|m|(rho) cos(m theta) (m >= 0) or
+N R_n^|m|(rho) sin(|m| theta) (m < 0), N = sqrt((2 - delta_m0)(n + 1)). The unit disc is the circle that
+circumscribes the SLM panel (radius half its diagonal), centred on the panel; x runs along columns (right),
+y along rows (down), theta from +x towards +y.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import Union
+
+import torch
+
+# Term name -> (n, m), in ANSI order. Tilt is left to the beam (a tilted beam is a tilted wavefront).
+ZERNIKE_TERMS: dict[str, tuple[int, int]] = {
+    "astigmatism_oblique": (2, -2),
+    "defocus": (2, 0),
+    "astigmatism_vertical": (2, 2),
+    "coma_vertical": (3, -1),
+    "coma_horizontal": (3, 1),
+    "spherical": (4, 0),
+}
+
+
+Pitch = Union[float, Sequence[float]]
+
+
+def _pair(pitch_m: Pitch) -> tuple[float, float]:
+    return (float(pitch_m), float(pitch_m)) if isinstance(pitch_m, (int, float)) else (pitch_m[0], pitch_m[1])
+
+
+def _radial(n: int, m: int, rho: torch.Tensor) -> torch.Tensor:
+    """The Zernike radial polynomial R_n^m(rho), m >= 0."""
+    out = torch.zeros_like(rho)
+    for k in range((n - m) // 2 + 1):
+        coefficient = (-1) ** k * math.factorial(n - k) / (
+            math.factorial(k) * math.factorial((n + m) // 2 - k) * math.factorial((n - m) // 2 - k))
+        out = out + coefficient * rho ** (n - 2 * k)
+    return out
+
+
+def pupil_coordinates(shape: tuple[int, int], pitch_m: Pitch) -> tuple[torch.Tensor, torch.Tensor]:
+    """(y, x) in metres of every pixel centre from the panel's centre, float64, shaped (H, 1) and (1, W)."""
+    h, w = shape
+    pitch_m = _pair(pitch_m)
+    y = (torch.arange(h, dtype=torch.float64) - (h - 1) / 2) * pitch_m[0]
+    x = (torch.arange(w, dtype=torch.float64) - (w - 1) / 2) * pitch_m[1]
+    return y[:, None], x[None, :]
+
+
+def pupil_radius_m(shape: tuple[int, int], pitch_m: Pitch) -> float:
+    """Radius of the unit disc of the Zernike terms: half the panel's diagonal."""
+    pitch_m = _pair(pitch_m)
+    return math.hypot(shape[0] * pitch_m[0], shape[1] * pitch_m[1]) / 2
+
+
+def zernike_basis(shape: tuple[int, int], pitch_m: Pitch,
+                  names: Sequence[str] = tuple(ZERNIKE_TERMS)) -> torch.Tensor:
+    """The RMS-normalised terms `names` over the panel, (len(names), H, W) float64."""
+    y, x = pupil_coordinates(shape, pitch_m)
+    radius = pupil_radius_m(shape, pitch_m)
+    rho = torch.sqrt(y.square() + x.square()) / radius
+    theta = torch.atan2(y.expand(shape), x.expand(shape))
+    terms = []
+    for name in names:
+        if name not in ZERNIKE_TERMS:
+            raise ValueError(f"unknown Zernike term {name!r} (known: {', '.join(ZERNIKE_TERMS)})")
+        n, m = ZERNIKE_TERMS[name]
+        norm = math.sqrt((2 - (m == 0)) * (n + 1))
+        angular = torch.cos(m * theta) if m >= 0 else torch.sin(-m * theta)
+        terms.append(norm * _radial(n, abs(m), rho) * angular)
+    return torch.stack(terms)
+
+
+def wavefront_phase(shape: tuple[int, int], pitch_m: Pitch, waves: Mapping[str, float]) -> torch.Tensor:
+    """Phase (rad, (H, W) float64) of the wavefront error sum_j c_j Z_j, coefficients in waves by term name."""
+    if not waves:
+        return torch.zeros(shape, dtype=torch.float64)
+    names = list(waves)
+    coefficients = torch.tensor([float(waves[name]) for name in names], dtype=torch.float64)
+    return 2 * math.pi * torch.einsum("k,khw->hw", coefficients, zernike_basis(shape, pitch_m, names))
+
+
+def defocus_focal_length_m(waves: float, wavelength_m: float, shape: tuple[int, int],
+                           pitch_m: Pitch) -> float:
+    """Focal length of the thin lens equal to `waves` of defocus: Z_2^0 = sqrt(3) (2 rho^2 - 1) adds the phase
+    2 pi c 2 sqrt(3) r^2 / R^2, a lens exp(-i pi r^2 / (lambda f)) with f = -R^2 / (4 sqrt(3) c lambda)
+    (positive c diverges)."""
+    return -pupil_radius_m(shape, pitch_m) ** 2 / (4 * math.sqrt(3) * waves * wavelength_m)
+
+
+def gaussian_beam_power(shape: tuple[int, int], pitch_m: Pitch, waist_m: torch.Tensor | float,
+                        offset_m: torch.Tensor | Sequence[float] = (0.0, 0.0)) -> torch.Tensor:
+    """Fraction of a Gaussian beam's power on each pixel (H, W): 2 / (pi w^2) exp(-2 r^2 / w^2) pitch^2 with r
+    measured from `offset_m` (y, x) off the panel's centre; w the 1/e^2 intensity radius. Differentiable in
+    waist and offset; light that misses the panel is lost."""
+    y, x = pupil_coordinates(shape, pitch_m)
+    waist = torch.as_tensor(waist_m, dtype=torch.float64)
+    offset = torch.as_tensor(offset_m, dtype=torch.float64)
+    r2 = (y - offset[0]).square() + (x - offset[1]).square()
+    return 2 / (math.pi * waist.square()) * torch.exp(-2 * r2 / waist.square()) * math.prod(_pair(pitch_m))
+
+
+def tilt_phase(shape: tuple[int, int], pitch_m: Pitch, tilt_rad: Sequence[float],
+               wavelength_m: float) -> torch.Tensor:
+    """Phase (H, W) float64 of a plane wave arriving tilted by (theta_y, theta_x): 2 pi (y sin theta_y +
+    x sin theta_x) / lambda. At the target plane z downstream the image moves by z tan(theta) along each axis."""
+    y, x = pupil_coordinates(shape, pitch_m)
+    return 2 * math.pi * (y * math.sin(tilt_rad[0]) + x * math.sin(tilt_rad[1])) / wavelength_m
+
+
+def crosstalk_blur(phase: torch.Tensor, sigma_px: torch.Tensor | float) -> torch.Tensor:
+    """SLM pixel crosstalk (fringing fields): the phase the panel drives, blurred by a Gaussian of `sigma_px`
+    pixels before it modulates the light. Applied in frequency (exactly exp(-2 pi^2 sigma^2 f^2) at f cycles per
+    pixel), periodic at the panel's edges, where the error is confined to about one blur width."""
+    sigma = torch.as_tensor(sigma_px, dtype=torch.float64)
+    if not sigma.requires_grad and float(sigma) == 0:
+        return phase
+    h, w = phase.shape[-2:]
+    fy = torch.fft.fftfreq(h, dtype=torch.float64)[:, None]
+    fx = torch.fft.rfftfreq(w, dtype=torch.float64)[None, :]
+    response = torch.exp(-2 * math.pi**2 * sigma.square() * (fy.square() + fx.square()))
+    spectrum = torch.fft.rfft2(phase.to(torch.float64)) * response
+    return torch.fft.irfft2(spectrum, s=(h, w)).to(phase.dtype)

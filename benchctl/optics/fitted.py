@@ -1,0 +1,185 @@
+"""A propagation model fitted to captures: per colour, the wavefront error at the SLM (Zernike terms of
+optics.aberration) and the beam's amplitude (a Gaussian with waist and offset), found by gradient descent through
+the differentiable propagation so that the model's target-plane intensity of known phase patterns matches what
+the camera recorded of them (registered onto the target plane).
+
+`FittedOptics` is the result: an `OpticalSetup` carrying one (field_model) multiplies every SLM field by
+A e^(i W) before propagating, so SGD and every simulated score see the bench as measured.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from benchctl.optics.aberration import ZERNIKE_TERMS, Pitch, gaussian_beam_power, pupil_radius_m, zernike_basis
+from benchctl.optics.metrics import centred_slices
+from benchctl.optics.propagation import Propagator
+
+
+@dataclass(frozen=True)
+class FittedOptics:
+    """One colour's fitted departure from the ideal model (hashable, so setups carrying it stay comparable)."""
+
+    zernike_waves: tuple[tuple[str, float], ...] = ()  # (term, waves) pairs, ANSI/OSA RMS-normalised
+    waist_m: float = 0.0  # Gaussian 1/e^2 radius of the beam; 0: uniform illumination
+    offset_m: tuple[float, float] = (0.0, 0.0)  # (rows, cols) from the panel's centre to the beam's centre
+
+    def slm_factor(self, shape: tuple[int, int], pitch_m: Pitch) -> torch.Tensor:
+        """A e^(i W) on the SLM grid, complex64 (H, W): beam amplitude (mean power 1) and wavefront error."""
+        amplitude = torch.ones(shape, dtype=torch.float64)
+        if self.waist_m:
+            power = gaussian_beam_power(shape, pitch_m, self.waist_m, self.offset_m)
+            amplitude = (power / power.mean()).sqrt()
+        names = [name for name, _ in self.zernike_waves]
+        phase = torch.zeros(shape, dtype=torch.float64)
+        if names:
+            waves = torch.tensor([w for _, w in self.zernike_waves], dtype=torch.float64)
+            phase = 2 * math.pi * torch.einsum("k,khw->hw", waves, zernike_basis(shape, pitch_m, names))
+        return torch.polar(amplitude, phase).to(torch.complex64)
+
+    def to_dict(self) -> dict[str, object]:
+        """Profile units (waves, mm), as stored in calibration/<profile>/optical-model.json."""
+        return {"zernike_waves": dict(self.zernike_waves), "waist_mm": self.waist_m * 1e3,
+                "offset_mm": [v * 1e3 for v in self.offset_m]}
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, object]) -> FittedOptics:
+        waves = data.get("zernike_waves", {})
+        assert isinstance(waves, Mapping)
+        unknown = set(waves) - set(ZERNIKE_TERMS)
+        if unknown:
+            raise ValueError(f"unknown Zernike terms {sorted(unknown)} (known: {', '.join(ZERNIKE_TERMS)})")
+        offset = data.get("offset_mm", (0.0, 0.0))
+        return cls(tuple((name, float(waves[name])) for name in ZERNIKE_TERMS if name in waves),
+                   float(data.get("waist_mm", 0.0)) * 1e-3, (float(offset[0]) * 1e-3, float(offset[1]) * 1e-3))
+
+    @staticmethod
+    def load(path: Path, channel: str) -> FittedOptics | None:
+        """`channel`'s model from an optical-model file (None if the file has none for it)."""
+        stat = Path(path).stat()
+        return _load(str(path), stat.st_mtime_ns, stat.st_size).get(channel)
+
+
+@functools.lru_cache(maxsize=4)
+def _load(path: str, mtime_ns: int, size: int) -> dict[str, FittedOptics]:
+    data = json.loads(Path(path).read_text())
+    return {name: FittedOptics.from_dict(entry) for name, entry in data.get("colours", {}).items()}
+
+
+@dataclass
+class FitResult:
+    """A fit's outcome: the model, the relative RMS residual of the captures before and after, and the loss curve."""
+
+    model: FittedOptics
+    residual: float
+    initial_residual: float
+    losses: list[float]
+
+
+class _Model(torch.nn.Module):
+    """The differentiable bench: zernike waves, log-waist and offset (both in units of the pupil radius)."""
+
+    def __init__(self, shape: tuple[int, int], pitch_m: Pitch, terms: Sequence[str], beam: bool) -> None:
+        super().__init__()
+        self.shape, self.pitch_m, self.terms, self.beam = shape, pitch_m, list(terms), beam
+        self.radius = pupil_radius_m(shape, pitch_m)
+        self.register_buffer("basis", zernike_basis(shape, pitch_m, self.terms))
+        self.waves = torch.nn.Parameter(torch.zeros(len(self.terms), dtype=torch.float64))
+        self.log_waist = torch.nn.Parameter(torch.tensor(math.log(4.0), dtype=torch.float64))  # nearly uniform
+        self.offset = torch.nn.Parameter(torch.zeros(2, dtype=torch.float64))
+
+    def factor(self) -> torch.Tensor:
+        phase = 2 * math.pi * torch.einsum("k,khw->hw", self.waves, self.basis)
+        amplitude = torch.ones_like(phase)
+        if self.beam:
+            power = gaussian_beam_power(self.shape, self.pitch_m, self.log_waist.exp() * self.radius,
+                                        self.offset * self.radius)
+            amplitude = (power / power.mean()).sqrt()
+        return torch.polar(amplitude, phase).to(torch.complex64)
+
+    def result(self) -> FittedOptics:
+        waves = tuple((name, round(float(w), 5)) for name, w in zip(self.terms, self.waves.detach()))
+        if not self.beam:
+            return FittedOptics(waves)
+        offset = self.offset.detach() * self.radius
+        return FittedOptics(waves, float(self.log_waist.detach().exp()) * self.radius, (float(offset[0]), float(offset[1])))
+
+
+def _residual(model_intensity: torch.Tensor, captured: torch.Tensor) -> torch.Tensor:
+    """Relative RMS misfit per image after the best gain and offset (exposure, stray light): closed-form least
+    squares of captured ~ g model + b, differentiable in the model."""
+    m = model_intensity.flatten(1).double()
+    c = captured.flatten(1).double()
+    m0, c0 = m - m.mean(1, keepdim=True), c - c.mean(1, keepdim=True)
+    gain = (m0 * c0).sum(1, keepdim=True) / (m0.square().sum(1, keepdim=True) + 1e-30)
+    misfit = (gain * m0 - c0).square().mean(1)
+    return (misfit / c.square().mean(1)).sqrt()
+
+
+def fit_optics(propagator: Propagator, roi: tuple[int, int], phases: torch.Tensor, captured: torch.Tensor, *,
+               terms: Sequence[str] = tuple(ZERNIKE_TERMS), beam: bool = True, iterations: int = 200,
+               learning_rate: float = 0.02, smoothing_px: Sequence[float] = (2.0, 0.0)) -> FitResult:
+    """Fit wavefront error and beam so that |P(A e^(iW) e^(i phase))|^2 on the ROI matches `captured`.
+
+    `phases` (N, H, W) are the displayed phases, `captured` (N, rows, cols) the registered captured intensity on
+    the ROI (any scale). Adam on the mean relative residual; coarse to fine: the first stage compares the images
+    blurred by `smoothing_px[0]` pixels (a smoother landscape for large aberrations), the last unblurred.
+    """
+    shape = propagator.plan.shape
+    rows, cols = centred_slices(shape, roi)
+    model = _Model(shape, propagator.plan.pitch_m, terms, beam)
+    optimiser = torch.optim.Adam(model.parameters(), lr=learning_rate)
+    slm_fields = torch.polar(torch.ones_like(phases, dtype=torch.float32), phases.float())
+    captured = captured.double()
+    stages = [(sigma, iterations // len(smoothing_px)) for sigma in smoothing_px]
+    losses: list[float] = []
+    initial = None
+    for sigma, steps in stages:
+        target = _blurred(captured, sigma)
+        for _ in range(steps):
+            optimiser.zero_grad()
+            intensity = propagator(slm_fields * model.factor()).abs().square()[..., rows, cols]
+            loss = _residual(_blurred(intensity, sigma), target).mean()
+            if initial is None:
+                with torch.no_grad():
+                    initial = float(_residual(intensity, captured).mean())
+            loss.backward()
+            optimiser.step()
+            losses.append(float(loss.detach()))
+    with torch.no_grad():
+        intensity = propagator(slm_fields * model.factor()).abs().square()[..., rows, cols]
+        residual = float(_residual(intensity, captured).mean())
+    return FitResult(model.result(), residual, initial if initial is not None else residual, losses)
+
+
+def _blurred(images: torch.Tensor, sigma_px: float) -> torch.Tensor:
+    """Images (N, h, w) blurred by a Gaussian of sigma pixels (in frequency, periodic); unchanged at 0."""
+    if not sigma_px:
+        return images
+    h, w = images.shape[-2:]
+    fy = torch.fft.fftfreq(h, dtype=torch.float64)[:, None]
+    fx = torch.fft.rfftfreq(w, dtype=torch.float64)[None, :]
+    response = torch.exp(-2 * math.pi**2 * sigma_px**2 * (fy.square() + fx.square()))
+    return torch.fft.irfft2(torch.fft.rfft2(images.double()) * response, s=(h, w))
+
+
+def calibration_patterns(propagator_to_slm: Propagator, roi: tuple[int, int], count: int, seed: int,
+                         spacing_px: int = 6) -> torch.Tensor:
+    """`count` phase patterns (N, H, W) for calibration: each focuses a random sparse set of points with random
+    phases in the ROI (one point per spacing^2 pixels on average), so every capture shows the local point-spread
+    function over the whole ROI plus the speckle between points, both sensitive to the wavefront and the beam."""
+    shape = propagator_to_slm.plan.shape
+    rows, cols = centred_slices(shape, roi)
+    generator = torch.Generator().manual_seed(seed)
+    fields = torch.zeros((count, *shape), dtype=torch.complex64)
+    points = (torch.rand((count, *roi), generator=generator) < 1 / spacing_px**2).float()
+    phase = 2 * math.pi * torch.rand((count, *roi), generator=generator)
+    fields[:, rows, cols] = torch.polar(points, phase)
+    return propagator_to_slm(fields).angle()

@@ -1,0 +1,134 @@
+"""Model calibration: per colour, display phase patterns that focus random sparse points over the ROI, capture
+each, register it onto the target plane (the stored registration) and fit the propagation model's wavefront error
+(Zernike terms at the SLM) and beam (Gaussian waist and offset) by gradient descent through the differentiable
+propagation (optics.fitted). The fit is stored per profile (calibration/<profile>/optical-model.json), where
+generation, SGD and the simulated scores of later runs find it (OpticalSetup.field_model).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from benchctl.capture.colour_planes import registered_plane, roi_saturation
+from benchctl.devices.slm import slm_for
+from benchctl.errors import BenchctlError
+from benchctl.images import read_image, write_png
+from benchctl.optics.aberration import ZERNIKE_TERMS
+from benchctl.optics.fitted import calibration_patterns, fit_optics
+from benchctl.optics.setup import OpticalSetup
+from benchctl.profiles import LaserChannel
+from benchctl.runner.builtin import registration
+from benchctl.runner.calibration import Calibration
+from benchctl.runner.holograms import target_plane
+from benchctl.runner.procedure import Context, Step
+from benchctl.runner.report import model_calibration_report
+from benchctl.runner.steps import EXPOSURE_PARAMETERS, channels, exposure_step, load_exposure, power_w, unknown_setpoints
+from benchctl.schema import Field
+
+MAX_SATURATED = 1e-3  # fraction of ROI pixels clipped in a capture above which the fit is refused
+DESCRIPTION = "random-point phase patterns per colour, captured, registered; wavefront and beam fitted and stored"
+PARAMETERS = {
+    **EXPOSURE_PARAMETERS,
+    # 4 patterns: on the test bench the fitted coefficients move by < 0.005 waves from 4 to 8 (docs/model_calibration.md)
+    "patterns": Field("int", required=False, default=4, ge=1),
+    "spacing_px": Field("int", required=False, default=6, ge=2),  # one focused point per spacing^2 ROI pixels
+    "fit_steps": Field("int", required=False, default=120, ge=2),  # Adam steps of the fit (half blurred, half sharp)
+    "learning_rate": Field("float", required=False, default=0.03, gt=0),
+    "beam": Field("bool", required=False, default=True),  # fit the beam's waist and offset too
+    "seed": Field("int", required=False, default=0, ge=0),
+    "registration": Field("str", required=False, default="auto", choices=("auto", "stored")),
+}
+
+
+def plan(context: Context) -> list[Step]:
+    """Registration if needed; per colour: patterns, one exposure per pattern, the fit; the report."""
+    unknown_setpoints(context)
+    used = channels(context)
+    steps: list[Step] = []
+    missing = [c for c in used if c.name not in context.calibration.registrations()]
+    if missing and context.params["registration"] == "stored":
+        raise BenchctlError(f"no stored camera-SLM registration for {', '.join(c.name for c in missing)} on profile "
+                            f"{context.profile.name!r}: run procedures/registration.toml first, or set "
+                            "registration = \"auto\"")
+    if missing:
+        steps += registration.registration_steps(context, missing)
+    count = context.params["patterns"]
+    for channel in used:
+        steps.append(Step(f"model/patterns/{channel.name}", f"{count} calibration patterns ({channel.name})",
+                          _patterns(channel)))
+        for k in range(count):
+            steps.append(exposure_step(context, f"model/capture/{channel.name}/{k}", ("model", channel.name, str(k)),
+                                       channel, power_w(context, channel),
+                                       lambda ctx, c=channel.name, n=k: _pattern_frame(ctx, c, n),
+                                       f"expose calibration pattern {k + 1}/{count}"))
+        steps.append(Step(f"model/fit/{channel.name}", f"fit wavefront and beam ({channel.name})", _fitter(channel)))
+    steps.append(Step("report", "metrics.json, metrics.csv and report.html", _reporter(used)))
+    return steps
+
+
+def _patterns(channel: LaserChannel):
+    def action(context: Context) -> dict[str, Any]:
+        setup = OpticalSetup.from_profile(context.profile, channel.name)
+        phases = calibration_patterns(setup.slm_propagator(), setup.roi, context.params["patterns"],
+                                      seed=context.params["seed"], spacing_px=context.params["spacing_px"])
+        slm = slm_for(context.profile)
+        files = []
+        for k, phase in enumerate(phases):
+            file = Path("holograms") / f"model-{channel.name}-{k}.png"
+            write_png(context.path(str(file)), slm.encode(phase, channel.name))
+            files.append(str(file))
+        return {"files": files}
+
+    return action
+
+
+def _pattern_frame(context: Context, channel: str, k: int) -> np.ndarray:
+    return read_image(context.path(context.result(f"model/patterns/{channel}")["files"][k]))
+
+
+def _fitter(channel: LaserChannel):
+    def action(context: Context) -> dict[str, Any]:
+        profile = context.profile
+        assert profile.slm is not None and profile.optics is not None
+        setup = OpticalSetup.from_profile(profile, channel.name)
+        slm = slm_for(profile)
+        homography = np.asarray(context.calibration.registrations()[channel.name]["homography"], dtype=np.float64)
+        shown, captured, saturated = [], [], 0.0
+        for k, file in enumerate(context.result(f"model/patterns/{channel.name}")["files"]):
+            shown.append(slm.decode(read_image(context.path(file)), channel.name))
+            image, _ = load_exposure(context, f"model/capture/{channel.name}/{k}")
+            where = (target_plane(channel), homography, profile.slm.shape, profile.optics.roi)
+            captured.append(torch.from_numpy(registered_plane(image, *where)))
+            saturated = max(saturated, roi_saturation(image, *where))
+        if saturated > MAX_SATURATED:
+            raise BenchctlError(f"model calibration {channel.name}: {saturated:.2%} of the ROI is saturated in a "
+                                "capture (the fit needs linear images): lower the setpoint or the exposure")
+        start = time.perf_counter()
+        fit = fit_optics(setup.target_propagator(), setup.roi, torch.stack(shown), torch.stack(captured),
+                         beam=context.params["beam"], iterations=context.params["fit_steps"],
+                         learning_rate=context.params["learning_rate"])
+        seconds = time.perf_counter() - start
+        entry = {**fit.model.to_dict(), "residual": round(fit.residual, 5),
+                 "initial_residual": round(fit.initial_residual, 5), "patterns": len(shown)}
+        context.calibration.save_model(channel.name, entry)
+        Calibration.store(context.calibration.profile).save_model(channel.name, entry)
+        context.recalibrated()
+        waves = ", ".join(f"{name} {value:+.3f}" for name, value in fit.model.zernike_waves)
+        context.say(f"      {channel.name}: {waves} waves; residual {fit.initial_residual:.3f} -> {fit.residual:.3f} "
+                    f"({seconds:.1f} s)")
+        return {**entry, "seconds": round(seconds, 2), "losses": [round(v, 6) for v in fit.losses]}
+
+    return action
+
+
+def _reporter(used: list[LaserChannel]):
+    def action(context: Context) -> dict[str, Any]:
+        fits = {c.name: context.result(f"model/fit/{c.name}") for c in used}
+        return model_calibration_report(context, fits, list(ZERNIKE_TERMS))
+
+    return action
