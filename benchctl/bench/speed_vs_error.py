@@ -114,16 +114,18 @@ def front_rows(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
 
 
 def _load_targets(targets: Sequence[str], profile: Profile, out: Callable[[str], None]) -> dict[str, torch.Tensor]:
-    """Each target as (3, H, W) amplitude on the grid; one that cannot be loaded is skipped with the reason."""
+    """Each target as (3, H, W) amplitude on the grid; one that cannot be loaded is skipped with the reason, and
+    when none can, the first reason is the error."""
     grid, roi = profile.slm.shape, profile.optics.roi
-    amplitudes = {}
+    amplitudes, errors = {}, []
     for spec in targets:
         try:
             amplitudes[spec] = prepare_target(load_target(spec, size=roi), grid, roi)
         except BenchctlError as error:
             out(f"not running target {spec}: {error}")
+            errors.append(error)
     if not amplitudes:
-        raise BenchctlError("no target could be loaded")
+        raise errors[0]
     return amplitudes
 
 
