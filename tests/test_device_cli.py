@@ -61,6 +61,15 @@ def test_on_for_a_time_then_off(capsys, small_profile_path):
     assert "emission off" in _line(_run(capsys, "laser", "status", "-p", p)[1], "blue")
 
 
+def test_on_at_a_zero_setpoint_says_no_light_comes_out(capsys, small_profile_path):
+    p = str(small_profile_path)
+    assert _run(capsys, "laser", "set", "green", "0mW", "-p", p)[0] == 0
+    code, out, _ = _run(capsys, "laser", "on", "green", "--for", "10ms", "-p", p)
+    assert code == 0 and "green: the setpoint is 0 mW, so no light comes out" in out
+    assert _run(capsys, "laser", "set", "blue", "1mW", "-p", p)[0] == 0
+    assert "setpoint is 0 mW" not in _run(capsys, "laser", "on", "blue", "--for", "10ms", "-p", p)[1]
+
+
 def test_leave_on_says_so_and_off_turns_it_off(capsys, small_profile_path):
     p = str(small_profile_path)
     code, out, _ = _run(capsys, "laser", "on", "red", "--leave-on", "-p", p)

@@ -14,7 +14,7 @@ import signal
 import time
 from pathlib import Path
 from urllib.parse import urlsplit
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
@@ -26,10 +26,11 @@ from benchctl.devices.laser.base import UNKNOWN_EMISSION, port_lock
 from benchctl.devices.power import format_power
 from benchctl.devices.sim.laser_emulators import parse_faults
 from benchctl.devices.sim.state import list_states, load_state, reset_states, save_state, state_dir
-from benchctl.devices.slm import open_slm
 from benchctl.errors import BenchctlError
-from benchctl.images import read_image
 from benchctl.profiles import Profile
+
+if TYPE_CHECKING:
+    from benchctl.devices.slm import SLM
 
 _DURATION = re.compile(r"^\s*(\d+(?:\.\d*)?|\.\d+)\s*(ms|s|min|m|h)?\s*$")
 _SECONDS = {"ms": 1e-3, "s": 1.0, None: 1.0, "min": 60.0, "m": 60.0, "h": 3600.0}
@@ -74,6 +75,9 @@ def laser_on(profile: Profile, channel: str, duration_s: float | None, leave_on:
             for line in laser.connect_report():
                 out(line)
             laser.set_emission(channel, True)
+            if laser.setpoint_w(channel) <= 0:
+                out(f"{channel}: the setpoint is 0 mW, so no light comes out; set one with "
+                    f"`benchctl laser set {channel} 5mW`")
             if leave_on:
                 laser.leave_on = True
                 return [f"{channel}: emission ON and LEFT ON after exit; `benchctl laser off {channel}` turns it off"]
@@ -150,16 +154,23 @@ def stop_laser_holders(ports: list[str], wait_s: float) -> list[str]:
     return lines
 
 
+def _open_slm(profile: Profile) -> SLM:
+    """The profile's SLM, imported here: the SLM layer encodes phases with torch, which only SLM commands load."""
+    from benchctl.devices.slm import open_slm
+
+    return open_slm(profile.require("slm"))
+
+
 def slm_info(profile: Profile) -> list[str]:
     """The SLM's driver, geometry, settle time and lookup tables."""
-    with open_slm(profile.require("slm")) as slm:
+    with _open_slm(profile) as slm:
         return [f"{key}: {value}" for key, value in slm.info().items()]
 
 
 def slm_show(profile: Profile, path: Path, channel: str | None) -> list[str]:
     """Show an image file's gray levels as they are, or a .npy phase (radians) encoded for `channel`."""
     path = Path(path)
-    with open_slm(profile.require("slm")) as slm:
+    with _open_slm(profile) as slm:
         if path.suffix.lower() == ".npy":
             if channel is None:
                 raise BenchctlError(f"{path}: a phase in radians needs --channel to choose the lookup table")
@@ -171,6 +182,8 @@ def slm_show(profile: Profile, path: Path, channel: str | None) -> list[str]:
             return [f"showing {path} as {channel} phase (gray {int(gray.min())}..{int(gray.max())})"]
         if channel is not None:
             raise BenchctlError(f"{path}: --channel applies to .npy phases; an image is shown as its gray levels")
+        from benchctl.images import read_image
+
         image = read_image(path)
         if image.ndim == 3:
             raise BenchctlError(f"{path}: the SLM shows gray levels, this image has {image.shape[2]} channels")
@@ -180,7 +193,7 @@ def slm_show(profile: Profile, path: Path, channel: str | None) -> list[str]:
 
 def slm_blank(profile: Profile) -> list[str]:
     """Show gray level 0 everywhere."""
-    with open_slm(profile.require("slm")) as slm:
+    with _open_slm(profile) as slm:
         slm.blank()
     return ["SLM blank"]
 

@@ -7,9 +7,8 @@ import time
 
 from benchctl.devices.camera.base import Camera, RawFrame
 from benchctl.devices.errors import DeviceError
-from benchctl.devices.sim.bench import STATE_NAME, render_capture
 from benchctl.devices.lock import DeviceLock
-from benchctl.devices.sim.state import load_state, sim_lock, state_dir
+from benchctl.devices.sim.state import CAMERA_STATE, load_state, sim_lock, state_dir
 from benchctl.files import ensure_dir
 from benchctl.profiles import CameraConfig, Profile
 
@@ -33,7 +32,7 @@ class SimCamera(Camera):
         self.profile = profile
 
     def _device_lock(self) -> DeviceLock:
-        return sim_lock(STATE_NAME, "camera (sim)")
+        return sim_lock(CAMERA_STATE, "camera (sim)")
 
     def _open(self) -> None:
         """Nothing to connect to; fail now, not at the first frame, if the state folder is not writable."""
@@ -48,7 +47,7 @@ class SimCamera(Camera):
     def _check_cable(self) -> None:
         """Fault `unplug_at=N` (benchctl sim fault sim-camera unplug_at=N): the cable is pulled just before
         frame N, so that shutter release fails and the frame counter stays at N - 1."""
-        state = load_state(STATE_NAME)
+        state = load_state(CAMERA_STATE)
         for fault in state.get("faults", []):
             if int(state.get("frame", 0)) + 1 >= unplug_frame(fault):
                 raise DeviceError(f"simulated camera: USB cable pulled before frame {state.get('frame', 0) + 1}")
@@ -58,6 +57,8 @@ class SimCamera(Camera):
 
     def _capture_one(self) -> RawFrame:
         """Render the frame, then wait the exposure and the body's readout time as a real camera would."""
+        from benchctl.devices.sim.bench import render_capture  # torch physics: only a capture needs it
+
         self._check_cable()
         frame = render_capture(self.profile, exposure_s=self.config.exposure_s, iso=self.config.iso)
         time.sleep(frame.metadata["exposure_s"] + self.profile.sim.sensor.readout_s)

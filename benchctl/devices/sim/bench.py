@@ -30,14 +30,13 @@ from benchctl.dng import CFA_LAYOUTS, dng_bytes
 from benchctl.devices.camera.base import RawFrame
 from benchctl.devices.errors import DeviceError
 from benchctl.devices.sim.protocol_sim import parse_url
-from benchctl.devices.sim.state import load_state, save_state
+from benchctl.devices.sim.state import CAMERA_STATE, load_state, save_state
 from benchctl.devices.slm.sim import read_displayed
 from benchctl.optics import PhaseLUT, Propagator, gray_to_phase
 from benchctl.optics.aberration import crosstalk_blur, gaussian_beam_power, tilt_phase, wavefront_phase
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import LaserChannel, Profile, SimSensorConfig, SimSLMConfig
 
-STATE_NAME = "sim-camera"  # the simulated camera's file counter, in the simulated bench's state folder
 PLANCK_J_S = 6.62607015e-34
 LIGHT_M_S = 299792458.0
 
@@ -239,9 +238,9 @@ def render_capture(profile: Profile, exposure_s: float | None = None, iso: int |
     sensor = sim.sensor
     exposure_s = sensor.exposure_s if exposure_s is None else exposure_s
     iso = sensor.iso if iso is None else iso
-    state = load_state(STATE_NAME)
+    state = load_state(CAMERA_STATE)
     number = int(state.get("frame", 0)) + 1
-    save_state(STATE_NAME, {**state, "frame": number})
+    save_state(CAMERA_STATE, {**state, "frame": number})
     powers = emitting_channels(profile)
     gray, shown = read_displayed()
     mosaic = render_mosaic(profile, gray, powers, exposure_s=exposure_s, iso=iso, frame=number)

@@ -18,6 +18,7 @@ from benchctl.devices.lock import DeviceLock
 from benchctl.files import atomic_write_bytes, ensure_dir
 
 STATE_ENV = "BENCHCTL_SIM_DIR"
+CAMERA_STATE = "sim-camera"  # the simulated camera's file counter and faults
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 
 
