@@ -1,5 +1,13 @@
 """benchctl: holographic-display experiments on an optical bench, real or simulated."""
 
-from benchctl.provenance import release_version
+from typing import Any
 
-__version__ = release_version()
+
+def __getattr__(name: str) -> Any:
+    """`benchctl.__version__`, read from the installed metadata only when asked (it costs an import that the
+    emergency `benchctl laser off` should not pay)."""
+    if name == "__version__":
+        from benchctl.provenance import release_version
+
+        return release_version()
+    raise AttributeError(f"module 'benchctl' has no attribute {name!r}")

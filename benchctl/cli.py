@@ -49,6 +49,13 @@ def _positive_int(text: str) -> int:
     return value
 
 
+class _VersionAction(argparse.Action):
+    """--version, reading the installed metadata only when asked (building the parser must stay cheap)."""
+
+    def __call__(self, parser: argparse.ArgumentParser, *_: object) -> None:
+        parser.exit(message=f"benchctl {benchctl.__version__}\n")
+
+
 def _add_profile(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--profile", "-p", metavar="P",
                         help="hardware profile: TOML path or name in hardware_profiles/ (default: simulated)")
@@ -303,7 +310,7 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("--version", action="version", version=f"benchctl {benchctl.__version__}")
+    parser.add_argument("--version", action=_VersionAction, nargs=0, help="show the version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
     gen = sub.add_parser("generate", help="phase holograms for a target, with simulated reconstruction and scores",

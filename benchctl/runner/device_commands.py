@@ -18,8 +18,6 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
-from benchctl.devices.camera import open_camera
-from benchctl.devices.discovery import discover
 from benchctl.devices.errors import EmissionNotOff
 from benchctl.devices.laser import ChannelStatus, open_laser
 from benchctl.devices.laser.base import UNKNOWN_EMISSION, port_lock
@@ -30,6 +28,7 @@ from benchctl.errors import BenchctlError
 from benchctl.profiles import Profile
 
 if TYPE_CHECKING:
+    from benchctl.devices.camera import Camera
     from benchctl.devices.slm import SLM
 
 _DURATION = re.compile(r"^\s*(\d+(?:\.\d*)?|\.\d+)\s*(ms|s|min|m|h)?\s*$")
@@ -154,6 +153,13 @@ def stop_laser_holders(ports: list[str], wait_s: float) -> list[str]:
     return lines
 
 
+def _open_camera(profile: Profile) -> Camera:
+    """The profile's camera, imported here so that laser commands do not load the camera drivers."""
+    from benchctl.devices.camera import open_camera
+
+    return open_camera(profile)
+
+
 def _open_slm(profile: Profile) -> SLM:
     """The profile's SLM, imported here: the SLM layer encodes phases with torch, which only SLM commands load."""
     from benchctl.devices.slm import open_slm
@@ -201,7 +207,7 @@ def slm_blank(profile: Profile) -> list[str]:
 def camera_info(profile: Profile) -> list[str]:
     """What the camera says it is, and the capture settings the profile gives."""
     config = profile.require("camera").camera
-    with open_camera(profile) as camera:
+    with _open_camera(profile) as camera:
         lines = [f"{key}: {value}" for key, value in camera.identity().items()]
     exposure = f"{config.exposure_s:g} s" if config.exposure_s else "as set on the camera"
     writes = "on" if config.write_properties else "off (set exposure, ISO and RAW on the body)"
@@ -218,7 +224,7 @@ def camera_capture(profile: Profile, output: Path, frames: int | None) -> list[s
     taken = [output] if output.exists() else numbered or sorted(output.parent.glob(f"{glob.escape(output.name)}.*"))
     if taken:
         raise BenchctlError(f"{taken[0]} exists; captured files never replace one (choose another --output)")
-    with open_camera(profile) as camera:
+    with _open_camera(profile) as camera:
         captured = camera.capture(output.parent, frames=frames, stem=output.stem)
     if len(captured) == 1:
         single = output if output.suffix else output.with_suffix(captured[0].suffix)
@@ -237,6 +243,8 @@ def camera_capture(profile: Profile, output: Path, frames: int | None) -> list[s
 
 def devices_found() -> list[str]:
     """Serial ports, PTP cameras (or why USB cannot be scanned) and framebuffers on this machine."""
+    from benchctl.devices.discovery import discover  # USB and framebuffer probing: only `devices` needs it
+
     found = discover()
     lines = ["serial ports:"] + [f"  {p.device}  {p.description}  {p.hwid}" for p in found.serial_ports]
     if not found.serial_ports:
