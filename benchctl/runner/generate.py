@@ -64,9 +64,9 @@ def run_generate(
     profile = Calibration.store(profile).with_model(profile)
     srgb = load_target(target, size=profile.optics.roi)
     amplitude = prepare_target(srgb, profile.slm.shape, profile.optics.roi)
-    out_dir = ensure_dir(Path(out_dir))
     scene = compute_scene(amplitude, profile, method, iterations=iterations, colours=colours, seed=seed,
                           progress=progress, checkpoint=checkpoint)
+    out_dir = ensure_dir(Path(out_dir))  # only once there is something to write
     files = []
     for c in scene.colours:
         if not c.skipped:

@@ -17,7 +17,7 @@ import torch
 from benchctl.cgh import Method, OpticalSetup, get_method, method_names, sgd_method
 from benchctl.cgh.learned import LEARNED_METHODS, checkpoint_problem, find_checkpoint, model_info, resolve_method
 from benchctl.devices.slm import slm_for
-from benchctl.errors import BenchctlError
+from benchctl.errors import BadValueError, BenchctlError
 from benchctl.optics import amplitude_scores, colour_scores, crop_roi, lsq_scale
 from benchctl.profiles import LaserChannel, Profile
 from benchctl.targets import active_channels
@@ -121,8 +121,11 @@ def refined_base(method: str) -> str | None:
 def resolve_any(method: str, profile: Profile, checkpoint: Path | None = None,
                 channels: list[str] | None = None) -> tuple[Method, Path | None]:
     """`resolve_method`, plus the refined learned methods (`REFINED_SUFFIX`): SGD started from the network's
-    hologram, with the network's checkpoint."""
+    hologram, with the network's checkpoint. An unknown name is an error listing every method there is."""
     base = refined_base(method)
+    if base is None and method not in (*method_names(), *LEARNED_METHODS):
+        raise BadValueError(f"unknown hologram method {method!r}; known: {', '.join(method_names())}; learned: "
+                            f"{', '.join(LEARNED_METHODS)}; a learned one refined by SGD: <learned>{REFINED_SUFFIX}")
     if base is None:
         return resolve_method(method, profile, checkpoint, channels)
     start, path = resolve_method(base, profile, checkpoint, channels)
