@@ -99,14 +99,16 @@ def test_a_non_finite_float_target_is_refused_and_metrics_are_strict_json(tmp_pa
     assert not (tmp_path / "metrics.json").exists()
 
 
-def test_training_images_one_pixel_high_or_wide_train(tmp_path: Path, small_profile_path: Path) -> None:
-    data = tmp_path / "data"
-    data.mkdir()
-    cv2.imwrite(str(data / "row.png"), np.full((1, 50, 3), 128, np.uint8))
-    cv2.imwrite(str(data / "column.png"), np.full((40, 1, 3), 200, np.uint8))
-    assert main(["train", "--method", "holonet", "--data", str(data), "--epochs", "4", "--val-fraction", "0",
-                 "--colours", "green", "-p", str(small_profile_path), "-o", str(tmp_path / "t")]) == 0
-    assert (tmp_path / "t" / "holonet.pt").is_file()
+def test_training_images_one_pixel_high_or_wide_load_flipped(tmp_path: Path) -> None:
+    from benchctl.cgh.learned.data import ImageSource
+    from benchctl.cgh.learned.training import load_targets
+
+    cv2.imwrite(str(tmp_path / "row.png"), np.full((1, 50, 3), 128, np.uint8))
+    cv2.imwrite(str(tmp_path / "column.png"), np.full((40, 1, 3), 200, np.uint8))
+    sources = [ImageSource(name, path=tmp_path / name) for name in ("row.png", "column.png")]
+    for flips in ([(False, True), (True, False)], [(True, True), (True, True)]):
+        targets = load_targets(sources, (64, 96), (48, 80), flips)
+        assert targets.shape == (2, 3, 64, 96) and bool(targets[:, :, 8:56, 8:88].gt(0).all())
 
 
 # -- profiles ---------------------------------------------------------------------------------------------------------
