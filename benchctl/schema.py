@@ -21,7 +21,8 @@ from benchctl.errors import BenchctlError
 class Field:
     """One key of the schema: its kind, whether it is required, its default and its numeric bounds."""
 
-    # "float", "int", "bool", "str", "str_list", "int_pair", "float_pair", "str_map", "triple_map" (name -> three numbers),
+    # "float", "int", "bool", "str", "str_list", "int_pair", "float_pair", "str_map",
+    # "triple_map" (name -> three numbers),
     # "table" (fields), "tables" (array) or "table_map" (name -> a table of `fields`, e.g. one per laser channel)
     kind: str
     required: bool = True

@@ -30,7 +30,8 @@ def png_header(height: int, width: int) -> bytes:
     def chunk(kind: bytes, body: bytes) -> bytes:
         return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
     ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
-    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"\0" * 1000)) + chunk(b"IEND", b"")
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"\0" * 1000))
+            + chunk(b"IEND", b""))
 
 
 # -- image files ----------------------------------------------------------------------------------------------------
@@ -116,7 +117,8 @@ def test_training_images_one_pixel_high_or_wide_load_flipped(tmp_path: Path) -> 
 
 @pytest.mark.parametrize("old, new, message", [
     ("pitch_um = 8.0", "pitch_um = 8000.0", "slm.pitch_um: must be <= 1000, got 8000.0"),
-    ("wavelength_nm = 520", "wavelength_nm = 0.00000052", "laser.channels[1].wavelength_nm: must be >= 100, got 5.2e-07"),
+    ("wavelength_nm = 520", "wavelength_nm = 0.00000052",
+     "laser.channels[1].wavelength_nm: must be >= 100, got 5.2e-07"),
     ("width = 96", "width = 10000000", "slm.height x slm.width: 64 x 10000000 = 640,000,000 pixels is above the limit "
                                        "of 67,108,864 (set $BENCHCTL_MAX_PIXELS to raise it)"),
     ('name = "small"', 'name = "../../x"', "name: '../../x' must be letters, digits, '_', '-' or '.' and start with a "
@@ -174,7 +176,8 @@ def test_a_plan_is_bounded(tmp_path: Path, bench_profile_path: Path) -> None:
 
     procedure = tmp_path / "many.py"
     procedure.write_text("from benchctl.runner.procedure import Step\nPARAMETERS = {}\n\n\n"
-                         "def plan(context):\n    return [Step(f's{i}', 'nothing', lambda c: {}) for i in range(100001)]\n")
+                         "def plan(context):\n"
+                         "    return [Step(f's{i}', 'nothing', lambda c: {}) for i in range(100001)]\n")
     with pytest.raises(BenchctlError, match="plans 100,001 steps, above the limit of 100,000"):
         run_procedure(procedure, profile=str(bench_profile_path), dry_run=True, say=lambda _: None)
 
@@ -183,10 +186,12 @@ def test_a_plan_is_bounded(tmp_path: Path, bench_profile_path: Path) -> None:
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["sim", "fault", "rgb-laser", "frobnicate"], "rgb-laser: unknown fault 'frobnicate' (known: no_reply, garbled, echo, slow, "
+    (["sim", "fault", "rgb-laser", "frobnicate"],
+     "rgb-laser: unknown fault 'frobnicate' (known: no_reply, garbled, echo, slow, "
                                                   "interlock_open, device_fault, clamp, drop_after=N)"),
     (["sim", "fault", "sim-camera", "unplug"], "simulated camera: unknown fault 'unplug' (known: unplug_at=N)"),
-    (["sim", "fault", "no-such-laser", "no_reply"], "no simulated device 'no-such-laser' (known: rgb-laser, sim-camera)"),
+    (["sim", "fault", "no-such-laser", "no_reply"],
+     "no simulated device 'no-such-laser' (known: rgb-laser, sim-camera)"),
 ])
 def test_sim_fault_refuses_unknown_faults_and_devices(argv: list[str], message: str, small_profile_path: Path,
                                                       capsys: pytest.CaptureFixture[str]) -> None:

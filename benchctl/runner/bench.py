@@ -111,7 +111,8 @@ class Bench:
                               f"frame {shown} that this step displayed (did another program change the SLM?)")
         darks = camera.capture(folder, dark_frames, stem="dark") if dark_frames else []
         return {
-            "channel": channel, "slm_frame": shown, "slm_frames_seen": seen, "setpoint_w": setpoint, "measured_w": measured, "emission_s": round(exposed_s, 3),
+            "channel": channel, "slm_frame": shown, "slm_frames_seen": seen, "setpoint_w": setpoint,
+            "measured_w": measured, "emission_s": round(exposed_s, 3),
             "frames": [frame_.path.name for frame_ in lit if frame_.path],
             "darks": [frame_.path.name for frame_ in darks if frame_.path],
             "camera": [frame_.metadata for frame_ in lit][:1],

@@ -257,7 +257,8 @@ def devices_found() -> list[str]:
     if not found.cameras and not found.usb_error:
         lines.append("  none")
     lines.append("framebuffers:")
-    lines += [f"  {f.device}  {f.name or '?'}  {f.width}x{f.height}  {f.bits_per_pixel} bpp" for f in found.framebuffers]
+    lines += [f"  {f.device}  {f.name or '?'}  {f.width}x{f.height}  {f.bits_per_pixel} bpp"
+              for f in found.framebuffers]
     if not found.framebuffers:
         lines.append("  none")
     return lines

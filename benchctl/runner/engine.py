@@ -8,6 +8,7 @@ the procedure and its calibration, checks the profile is unchanged, and runs onl
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import time
@@ -127,8 +128,8 @@ def _execute(steps: list[Step], context: Context, record: RunRecord) -> RunOutco
             try:
                 result = step.action(context)
             except BaseException as exc:
-                _best_effort(context, "log the failed step", lambda: record.failed(
-                    step.key, time.perf_counter() - start, exc))
+                _best_effort(context, "log the failed step",
+                             functools.partial(record.failed, step.key, time.perf_counter() - start, exc))
                 raise
             record.finished(step.key, time.perf_counter() - start, result)
             ran.append(step.key)
@@ -136,8 +137,8 @@ def _execute(steps: list[Step], context: Context, record: RunRecord) -> RunOutco
     except BaseException as exc:
         status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
         _best_effort(context, "save devices.json", lambda: _save_devices(context, record))
-        _best_effort(context, "write the stop record", lambda: record.finish(
-            status, step=current, error=f"{type(exc).__name__}: {exc}"))
+        _best_effort(context, "write the stop record",
+                     functools.partial(record.finish, status, step=current, error=f"{type(exc).__name__}: {exc}"))
         context.say(f"run {status} at step {current!r}; everything captured so far is in {record.folder}; "
                     f"finish it with: benchctl run --resume {record.folder}")
         if isinstance(exc, OSError):  # the disk or a device file failed: one line, not a traceback

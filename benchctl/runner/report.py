@@ -116,7 +116,8 @@ def _run_section(context: Context, colours: list[str]) -> tuple[str, list[str]]:
         f"<p>Run <code>{_esc(record.name)}</code>: procedure <b>{_esc(info.get('procedure'))}</b> on profile "
         f"<b>{_esc(info.get('profile'))}</b>, started {_esc(info.get('start'))}"
         + (f", resumed {len(info['resumed'])} time(s)" if info.get("resumed") else "") + ".</p>",
-        "<h2>Parameters</h2>" + table([{"parameter": k, "value": json.dumps(v)} for k, v in info["parameters"].items()]),
+        "<h2>Parameters</h2>"
+        + table([{"parameter": k, "value": json.dumps(v)} for k, v in info["parameters"].items()]),
         "<h2>Calibration used</h2>" + table(rows),
         "<h2>Devices</h2>" + table([{"device": k, "identity": json.dumps(v, default=str)} for k, v in devices.items()]),
         "<h2>Time per kind of step</h2>" + table([{"steps": k, "seconds": round(v, 3)} for k, v in timings.items()]),
@@ -220,7 +221,8 @@ def power_sweep_report(context: Context, analyses: dict[str, dict[str, Any]]) ->
         for point in analysis["points"]:
             rows.append({"colour": name, "setpoint_mw": point["setpoint_w"] * 1e3,
                          "measured_mw": None if point["measured_w"] is None else point["measured_w"] * 1e3,
-                         "mean": point["mean"], "peak": point["peak"], "saturated_fraction": point["saturated_fraction"],
+                         "mean": point["mean"], "peak": point["peak"],
+                         "saturated_fraction": point["saturated_fraction"],
                          "exposure_s": point["exposure_s"]})
         if "warning" in analysis:
             warnings.append(analysis["warning"])

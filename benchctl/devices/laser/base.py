@@ -313,7 +313,7 @@ class Laser(ABC):
 
     # -- hooks -------------------------------------------------------------------------------------------------
 
-    def _prepare(self, channel: LaserChannel) -> None:
+    def _prepare(self, channel: LaserChannel) -> None:  # noqa: B027 (an optional hook, not abstract)
         """Dialect set-up on connect, before emission is forced off (e.g. autostart off). Default: nothing."""
 
     def _read_limit_w(self, channel: LaserChannel) -> float | None:

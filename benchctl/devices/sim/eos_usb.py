@@ -65,9 +65,10 @@ _WITH_HOST_DATA = {OperationCode.SetDevicePropValue, OperationCode.EosSetDeviceP
 _OUTSIDE_SESSION = {OperationCode.GetDeviceInfo, OperationCode.OpenSession}
 _FORMATS_BY_SUFFIX = {f".{name}": code for code, name in RAW_OBJECT_FORMATS.items()} | {
     ".jpg": ObjectFormat.JPEG, ".jpeg": ObjectFormat.JPEG}
-_INITIAL_PROPERTIES: dict[int, tuple[int, ...]] = {EosProperty.Aperture: (0x28,), EosProperty.ShutterSpeed: (0x68,), EosProperty.ISO: (0x48,),
-                       EosProperty.CaptureDestination: (1,), EosProperty.ImageFormat: (1, 0x10, 6, 0, 4),
-                       EosProperty.EVFOutputDevice: (0,)}
+_INITIAL_PROPERTIES: dict[int, tuple[int, ...]] = {
+    EosProperty.Aperture: (0x28,), EosProperty.ShutterSpeed: (0x68,), EosProperty.ISO: (0x48,),
+    EosProperty.CaptureDestination: (1,), EosProperty.ImageFormat: (1, 0x10, 6, 0, 4),
+    EosProperty.EVFOutputDevice: (0,)}
 
 Reply = tuple[int, tuple[int, ...], bytes | None]  # response code, response parameters, data phase
 

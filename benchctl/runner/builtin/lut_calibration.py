@@ -26,7 +26,14 @@ from benchctl.runner.calibration import Calibration
 from benchctl.runner.holograms import target_plane
 from benchctl.runner.procedure import Context, Step
 from benchctl.runner.report import lut_report
-from benchctl.runner.steps import EXPOSURE_PARAMETERS, channels, exposure_step, load_exposure, power_w, unknown_setpoints
+from benchctl.runner.steps import (
+    EXPOSURE_PARAMETERS,
+    channels,
+    exposure_step,
+    load_exposure,
+    power_w,
+    unknown_setpoints,
+)
 from benchctl.schema import Field
 
 DESCRIPTION = "gray -> phase response per colour from zero-order intensity of binary gratings; writes the LUTs"

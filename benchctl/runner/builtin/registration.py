@@ -104,7 +104,8 @@ def _against_simulator(context: Context, fit: Registration) -> dict[str, float] 
     corners = np.array([[left, top], [left + rw - 1, top], [left, top + rh - 1], [left + rw - 1, top + rh - 1]])
     errors = np.hypot(*(apply_homography(fit.homography, corners)
                         - apply_homography(camera_homography(profile), corners)).T)
-    return {"corner_error_max_px": round(float(errors.max()), 4), "corner_error_mean_px": round(float(errors.mean()), 4)}
+    return {"corner_error_max_px": round(float(errors.max()), 4),
+            "corner_error_mean_px": round(float(errors.mean()), 4)}
 
 
 def _reporter(used: list[LaserChannel]):
