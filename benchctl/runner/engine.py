@@ -2,8 +2,10 @@
 
 The plan is made before anything is touched, so `--dry-run` prints exactly the steps a run would take. A run
 logs each step as it starts and finishes; on any exit (error, Ctrl-C, SIGTERM) the bench closes with every
-laser channel off and the run's stop record says where it stopped. `--resume` reloads the run's own copy of
-the procedure and its calibration, checks the profile is unchanged, and runs only the steps not finished.
+laser channel off and the run's stop record says where it stopped (the first error is the one reported, even
+when a full disk stops the record-keeping too). `--resume` checks the run's own copy of the procedure against
+the hashes taken at its start before any of it runs, reloads it and the calibration, checks the profile is
+unchanged, and runs only the steps not finished (or whose captured files changed).
 """
 
 from __future__ import annotations

@@ -6,14 +6,16 @@
       procedure.toml    the procedure as used (plus the .py file of a Python procedure)
       calibration/      the camera-SLM registration and lookup tables the run used (copied at its start)
       devices.json      identity of every device the run opened
-      steps.jsonl       one JSON line per event: a step started, finished (with its result) or failed
+      steps.jsonl       one JSON line per event: a step started, finished (with its result and the checksums
+                        of the files it captured), failed, or became invalid (a file it captured changed)
       holograms/        SLM frames exactly as displayed (8-bit PNG)
       raw/              RAW frames exactly as the camera delivered them, never modified
       images/           decoded, registered and merged images (16-bit PNG)
       metrics.json, metrics.csv, report.html
 
-Every file is written atomically. A folder is never reused for a new run; `open_run` reopens one to resume
-it, and a step recorded as finished is never run again.
+Every file is written atomically and every step-log line is on disk before the next action. A folder is never
+reused for a new run; `open_run` reopens one to resume it: it repairs a log line cut by a crash, and a step
+recorded as finished is never run again unless a file it captured no longer matches its checksum.
 """
 
 from __future__ import annotations
