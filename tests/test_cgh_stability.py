@@ -170,6 +170,6 @@ def test_learned_amplitudes_above_one(setup: OpticalSetup, learned: dict[str, Me
 def test_learned_nan_or_inf_target_refused(setup: OpticalSetup, learned: dict[str, Method], bad: float) -> None:
     target = roi_target(setup)
     target[30, 30] = bad
-    for name, method in learned.items():
+    for method in learned.values():
         with pytest.raises(ValueError, match="finite"):
             method(target, setup)
