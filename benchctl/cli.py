@@ -85,8 +85,13 @@ def _cmd_generate(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_speed(args: argparse.Namespace) -> int:
-    from benchctl.bench.speed_vs_error import (DEFAULT_BUDGETS, DEFAULT_TARGETS, FULL_BUDGETS, resized_profile,
-                                               run_speed_vs_error)
+    from benchctl.bench.speed_vs_error import (
+        DEFAULT_BUDGETS,
+        DEFAULT_TARGETS,
+        FULL_BUDGETS,
+        resized_profile,
+        run_speed_vs_error,
+    )
     from benchctl.console import Progress
     from benchctl.errors import BadValueError
     from benchctl.profiles import load_profile

@@ -4,20 +4,20 @@ Methods register themselves when their module is imported; importing this packag
 Gerchberg-Saxton ("gs") and SGD ("sgd"). Imports only `benchctl.optics` from the rest of benchctl.
 """
 
+from benchctl.cgh.dpac import DPAC, double_phase
+from benchctl.cgh.gerchberg_saxton import GERCHBERG_SAXTON
 from benchctl.cgh.method import (
     METHODS,
     Algorithm,
     Method,
     Progress,
     check_target,
-    stopped_improving,
     get_method,
     method_names,
     register,
+    stopped_improving,
     wrap_phase,
 )
-from benchctl.cgh.dpac import DPAC, double_phase
-from benchctl.cgh.gerchberg_saxton import GERCHBERG_SAXTON
 from benchctl.cgh.sgd import SGD, roi_loss, sgd_method
 from benchctl.optics.setup import OpticalSetup
 

@@ -8,15 +8,15 @@ wrapping) and hands the algorithm a clean target, so an algorithm (classical or 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from numbers import Integral
-from collections.abc import Sequence
 from typing import Callable, Optional
 
 import torch
 
-from benchctl.optics.setup import OpticalSetup
 from benchctl.errors import BadValueError
+from benchctl.optics.setup import OpticalSetup
 
 Progress = Callable[[int, int], None]
 """Called as progress(done, total) after each iteration of an iterative method."""

@@ -7,18 +7,16 @@ the backward pass gives the exact gradient of the scale-free error; nothing abou
 
 Choices, measured on the Fresnel-scaled simulated bench (272 x 480, ROI 220 x 400, iris 0.5; docs/benchmarks.md):
 - Start from the DPAC hologram, not from neural-holography's uniform [-0.5, 0.5] phase: DPAC is already a
-  good solution (16-28 dB), so the first iterations refine it instead of building one from a flat phase.
+  good solution (16-33 dB there), so the first iterations refine it instead of building one from a flat phase.
   `init="random"` keeps that uniform start; `init` may also be any `Method` (a trained network's output).
 - Adam with lr 0.05 on the phase (neural-holography: 8e-3, plus 2e-3 on a learned scale).
 - The best phase seen is returned, so SGD never ends worse (in its loss) than the phase it started from.
 - Early stop: once the best loss fell by less than `tolerance` (relative) over the last `STOP_WINDOW`
-  iterations, the result is as good as it will get for this budget's purpose; stop and report the
-  iterations done as the total.
+  iterations, further iterations would change the result by less than that: stop and report the
+  iterations done as the total (an all-black target stops after STOP_WINDOW iterations: its loss is zero).
 """
 
 from __future__ import annotations
-
-from typing import Optional, Union
 
 import torch
 
@@ -32,7 +30,7 @@ DEFAULT_ITERATIONS = 500
 PHASE_LR = 0.05
 RANDOM_RANGE = 0.5  # init="random": phase uniform in [-RANDOM_RANGE, RANDOM_RANGE] rad (neural-holography's start)
 
-Init = Union[str, Method]
+Init = str | Method
 INITS = ("dpac", "random")
 
 
@@ -69,8 +67,8 @@ def sgd_method(name: str = "sgd", *, init: Init = "dpac", lr: float = PHASE_LR,
         raise BadValueError(f"SGD tolerance must be >= 0 or None, got {tolerance!r}")
     start = init.name if isinstance(init, Method) else init
 
-    def algorithm(target: torch.Tensor, setup: OpticalSetup, iterations: Optional[int], seed: int,
-                  progress: Optional[Progress]) -> torch.Tensor:
+    def algorithm(target: torch.Tensor, setup: OpticalSetup, iterations: int | None, seed: int,
+                  progress: Progress | None) -> torch.Tensor:
         assert iterations is not None  # Method resolves the default for iterative methods
         # Optimise even when called under no_grad or inference_mode; the clone makes the target a normal tensor.
         with torch.inference_mode(False), torch.enable_grad():
