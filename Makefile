@@ -19,4 +19,5 @@ demo: setup
 	$(BIN)/benchctl run procedures/colour_capture.toml
 
 test: setup
+	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -q
