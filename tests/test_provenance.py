@@ -75,3 +75,23 @@ def test_run_records_and_generate_metrics_carry_the_code_identity(small_profile_
     metrics = run_generate("chart:siemens", load_profile(small_profile_path), tmp_path / "out", method="dpac",
                            colours=["green"])
     assert metrics["benchctl_code"]["source_sha256"] == provenance.source_hash()
+
+
+def test_refined_learned_methods_key_the_cache_by_their_networks_checkpoint(
+        small_profile_path: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    shipped = tmp_path / "ccnn-dcm4.pt"
+    shipped.write_bytes(b"weights")
+    monkeypatch.setattr(hologram_cache, "find_checkpoint", lambda name, profile: shipped if name == "ccnn-dcm4"
+                        else None)
+    seen: list[dict] = []
+
+    def key(profile, channel, plane, options):  # record what the key is made of, then stop before computing
+        seen.append(options)
+        raise RuntimeError("stop")
+
+    monkeypatch.setattr(hologram_cache, "_key", key)
+    target = prepare_target(load_target("chart:siemens", (48, 80)), (64, 96), (48, 80))
+    with pytest.raises(RuntimeError, match="stop"):
+        hologram_cache.hologram(load_profile(small_profile_path), target, "green", "ccnn-dcm4+sgd", iterations=5,
+                                seed=0, checkpoint=None)
+    assert seen == [{"method": "ccnn-dcm4+sgd", "iterations": 5, "seed": 0, "checkpoint": str(shipped)}]

@@ -26,7 +26,7 @@ from benchctl.files import atomic_write_bytes, ensure_dir
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import Profile
 from benchctl.provenance import source_hash
-from benchctl.runner.holograms import compute_scene, target_plane
+from benchctl.runner.holograms import compute_scene, refined_base, target_plane
 
 CACHE_ENV = "BENCHCTL_CACHE_DIR"
 
@@ -74,8 +74,9 @@ def hologram(profile: Profile, target: torch.Tensor, channel: str, method: str, 
              progress: Callable[[str], Callable[[int, int], None]] | None = None) -> Hologram:
     """The hologram of `channel` for `target` (3, H, W amplitude on the SLM grid): from the cache when this
     exact computation was done before, else computed (compute_scene, one colour) and cached."""
-    if checkpoint is None and method in LEARNED_METHODS:
-        found = find_checkpoint(method, profile)  # what compute_scene will use: its bytes belong in the key
+    network = method if method in LEARNED_METHODS else refined_base(method)  # "ccnn-dcm4+sgd" runs ccnn-dcm4
+    if checkpoint is None and network is not None:
+        found = find_checkpoint(network, profile)  # what compute_scene will use: its bytes belong in the key
         checkpoint = str(found) if found else None
     options = {"method": method, "iterations": iterations, "seed": seed, "checkpoint": checkpoint}
     plane = target[target_plane(profile.channel(channel))]
