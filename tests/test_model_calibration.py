@@ -19,8 +19,8 @@ from benchctl.cgh import get_method
 from benchctl.devices.sim import bench
 from benchctl.devices.sim.state import load_state
 from benchctl.images import read_image
-from benchctl.optics.fitted import FittedOptics, calibration_patterns, fit_optics
 from benchctl.optics import lsq_scale, psnr
+from benchctl.optics.fitted import FittedOptics, calibration_patterns, fit_optics
 from benchctl.optics.phase_encoding import PhaseLUT, gray_to_phase, phase_to_gray
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import Profile

@@ -502,7 +502,7 @@ def test_generation_never_reads_the_hidden_optics(make_bench_profile: Callable[.
     target[1, 20:44, 30:66] = 1.0
     results = [compute_scene(target, make_bench_profile(SMALL_BENCH, SIM_SMALL, *extra), "sgd", iterations=5,
                              colours=["green"]) for extra in ((), (hidden,))]
-    plain, aberrated = ([c for c in result.colours if c.channel == "green"][0] for result in results)
+    plain, aberrated = (next(c for c in result.colours if c.channel == "green") for result in results)
     assert plain.gray is not None and np.array_equal(plain.gray, aberrated.gray)
     assert results[0].merged_scores == results[1].merged_scores
 

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from typing import Union
 
 import torch
 
@@ -28,7 +27,7 @@ ZERNIKE_TERMS: dict[str, tuple[int, int]] = {
 }
 
 
-Pitch = Union[float, Sequence[float]]
+Pitch = float | Sequence[float]
 
 
 def _pair(pitch_m: Pitch) -> tuple[float, float]:

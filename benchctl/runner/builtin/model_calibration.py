@@ -27,7 +27,14 @@ from benchctl.runner.calibration import Calibration
 from benchctl.runner.holograms import target_plane
 from benchctl.runner.procedure import Context, Step
 from benchctl.runner.report import model_calibration_report
-from benchctl.runner.steps import EXPOSURE_PARAMETERS, channels, exposure_step, load_exposure, power_w, unknown_setpoints
+from benchctl.runner.steps import (
+    EXPOSURE_PARAMETERS,
+    channels,
+    exposure_step,
+    load_exposure,
+    power_w,
+    unknown_setpoints,
+)
 from benchctl.schema import Field
 
 MAX_SATURATED = 1e-3  # fraction of ROI pixels clipped in a capture above which the fit is refused
