@@ -106,7 +106,8 @@ def _checkpoint(setups: dict[str, OpticalSetup], method: str = "holonet-dcm2") -
                 p.add_(0.01 * torch.randn_like(p))  # GRN gammas and all: no parameter left at its init value
         weights[colour] = model.state_dict()
     return Checkpoint(method=method, geometry={c: geometry_of(s) for c, s in setups.items()}, weights=weights,
-                      training={"loss": "mse", "steps": 3}, metrics={c: {"val_psnr_amplitude_db": 12.5} for c in setups})
+                      training={"loss": "mse", "steps": 3},
+                      metrics={c: {"val_psnr_amplitude_db": 12.5} for c in setups})
 
 
 def test_checkpoint_round_trip_float32_exact_and_float16_close(tmp_path: Path) -> None:

@@ -89,7 +89,8 @@ def test_the_procedure_fits_stores_and_hands_the_model_to_generation(tmp_path: P
     outcome = run_procedure(procedure, profile=str(profile.path), out=tmp_path / "runs", say=lambda line: None)
     folder = outcome.folder
     assert folder is not None
-    stored = json.loads((Path(os.environ["BENCHCTL_CALIBRATION_DIR"]) / profile.name / "optical-model.json").read_text())
+    store = Path(os.environ["BENCHCTL_CALIBRATION_DIR"]) / profile.name
+    stored = json.loads((store / "optical-model.json").read_text())
     assert stored == json.loads((folder / "calibration" / "optical-model.json").read_text())
     fitted = stored["colours"]["green"]
     for name, value in HIDDEN.items():

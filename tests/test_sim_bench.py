@@ -425,7 +425,8 @@ def test_defocus_moves_the_best_focus_as_its_thin_lens_predicts(profile: Profile
     A Gaussian beam focused by F has its waist at d = F / (1 + (F / z_R)^2), z_R = pi w0^2 / lambda; the spot's
     second moment w^2(z) is a parabola in z whose vertex is d. c = +-0.5 moves it from 19.00 mm to 22.36 / 16.47 mm."""
     profile = changed(profile, "beam", waist_mm=0.12)
-    profile = dataclasses.replace(profile, sim=dataclasses.replace(profile.sim, aberration={"green": {"defocus": waves}}))
+    sim = dataclasses.replace(profile.sim, aberration={"green": {"defocus": waves}})
+    profile = dataclasses.replace(profile, sim=sim)
     wavelength, pitch = 520e-9, 8e-6
     y, x = (np.indices((64, 96)) - np.array([31.5, 47.5])[:, None, None]) * pitch
     lens = np.remainder(-math.pi * (x**2 + y**2) / (wavelength * 20e-3), 2 * math.pi)

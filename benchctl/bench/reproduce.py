@@ -6,10 +6,10 @@ scaled like `bench speed-vs-error` does (pitch kept, distance scaled with the gr
 Fresnel number stays the paper's). Each method gets the same budget: `cpu_seconds` of training or `steps`
 optimisation steps. Time is this process's CPU time in the training steps (all its threads; evaluation
 excluded), not the wall clock: on a machine shared with other work the wall clock charges a method for the
-others' load, CPU time does not (with one thread and an idle core the two agree; `threads` sets torch's). It is evaluated on the held-out photographs
-(`photo_specs("eval")`, never trained on) at `evaluations` even intervals of its budget, scored exactly as
-`benchctl generate` scores a hologram: 8-bit displayed phase through the SLM's lookup table, amplitude PSNR /
-SSIM on the ROI after the least-squares scale.
+others' load, CPU time does not (with one thread and an idle core the two agree; `threads` sets torch's). It
+is evaluated on the held-out photographs (`photo_specs("eval")`, never trained on) at `evaluations` even
+intervals of its budget, scored exactly as `benchctl generate` scores a hologram: 8-bit displayed phase
+through the SLM's lookup table, amplitude PSNR / SSIM on the ROI after the least-squares scale.
 
 One timed run gives both of the issue's budgets: "equal time" is each method's score at the end of its
 `cpu_seconds`; "equal steps" is its score at the step count the first method reached in that time (put the
@@ -341,8 +341,8 @@ def format_table(rows: Sequence[dict[str, Any]], dpac: tuple[float, float]) -> l
             f"{r['equal_steps']} | {r['steps_psnr_db']:.2f} / {r['steps_ssim']:.3f} | "
             f"{num(r, 'steps_delta_db', '+.2f')} | {num(r, 'train_step_peak_mib', '.0f')} | "
             f"{num(r, 'memory_ratio', '.2f')} | {r['inference_seconds']:.4f} | {num(r, 'speedup', '.2f')} |")
-    lines.append(f"| dpac (classical reference) | - | - | - | {dpac[0]:.2f} / {dpac[1]:.3f} | - | - | - | - | - | - | - "
-                 "| - |")
+    lines.append(f"| dpac (classical reference) | - | - | - | {dpac[0]:.2f} / {dpac[1]:.3f} "
+                 "| - | - | - | - | - | - | - | - |")
     return lines
 
 

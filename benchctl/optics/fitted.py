@@ -109,7 +109,8 @@ class _Model(torch.nn.Module):
         if not self.beam:
             return FittedOptics(waves)
         offset = self.offset.detach() * self.radius
-        return FittedOptics(waves, float(self.log_waist.detach().exp()) * self.radius, (float(offset[0]), float(offset[1])))
+        waist = float(self.log_waist.detach().exp()) * self.radius
+        return FittedOptics(waves, waist, (float(offset[0]), float(offset[1])))
 
 
 def _residual(model_intensity: torch.Tensor, captured: torch.Tensor) -> torch.Tensor:

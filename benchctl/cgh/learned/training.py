@@ -68,7 +68,8 @@ class TrainSettings:
     def validate(self) -> None:
         """BadValueError naming the flag for every setting a user can get wrong."""
         if self.method not in LEARNED_METHODS:
-            raise BadValueError(f"--method {self.method!r} is not a learned method; known: {', '.join(LEARNED_METHODS)}")
+            raise BadValueError(f"--method {self.method!r} is not a learned method; "
+                                f"known: {', '.join(LEARNED_METHODS)}")
         if self.loss not in LOSSES:
             raise BadValueError(f"--loss {self.loss!r}: expected one of {', '.join(LOSSES)}")
         if self.loss == "l2-perceptual" and self.vgg_weights is None:

@@ -41,7 +41,8 @@ MAX_SATURATED = 1e-3  # fraction of ROI pixels clipped in a capture above which 
 DESCRIPTION = "random-point phase patterns per colour, captured, registered; wavefront and beam fitted and stored"
 PARAMETERS = {
     **EXPOSURE_PARAMETERS,
-    # 4 patterns: on the test bench the fitted coefficients move by < 0.005 waves from 4 to 8 (docs/model_calibration.md)
+    # 4 patterns: on the test bench the fitted coefficients move by < 0.005 waves from 4 to 8
+    # (docs/model_calibration.md)
     "patterns": Field("int", required=False, default=4, ge=1),
     "spacing_px": Field("int", required=False, default=6, ge=2),  # one focused point per spacing^2 ROI pixels
     "fit_steps": Field("int", required=False, default=120, ge=2),  # Adam steps of the fit (half blurred, half sharp)
