@@ -85,7 +85,7 @@ def _cmd_generate(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_speed(args: argparse.Namespace) -> int:
-    from benchctl.bench.speed_vs_error import (
+    from benchctl.benchmarks.speed_vs_error import (
         DEFAULT_BUDGETS,
         DEFAULT_TARGETS,
         FULL_BUDGETS,
@@ -108,7 +108,7 @@ def _cmd_bench_speed(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_propagation(args: argparse.Namespace) -> int:
-    from benchctl.bench.propagation import PAPER_SIZES, run_propagation_bench
+    from benchctl.benchmarks.propagation import PAPER_SIZES, run_propagation_bench
     from benchctl.files import ensure_dir, write_csv
     from benchctl.profiles import load_profile
 
@@ -261,7 +261,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_learned(args: argparse.Namespace) -> int:
-    from benchctl.bench.learned import run_learned_bench
+    from benchctl.benchmarks.learned import run_learned_bench
     from benchctl.profiles import load_profile
 
     run_learned_bench(load_profile(args.profile), size=args.size, methods=args.methods, checkpoints=args.checkpoint,
@@ -270,7 +270,7 @@ def _cmd_bench_learned(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_reproduce(args: argparse.Namespace) -> int:
-    from benchctl.bench.reproduce import DEFAULT_METHODS, reproduce_command, run_reproduction
+    from benchctl.benchmarks.reproduce import DEFAULT_METHODS, reproduce_command, run_reproduction
     from benchctl.profiles import load_profile
 
     methods = args.methods or list(DEFAULT_METHODS)

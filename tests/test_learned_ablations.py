@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from benchctl.bench.reproduce import DEFAULT_METHODS, PAPER
+from benchctl.benchmarks.reproduce import DEFAULT_METHODS, PAPER
 from benchctl.cgh.learned import read_checkpoint
 from benchctl.cgh.learned.data import image_sources
 from benchctl.cli import main

@@ -316,7 +316,7 @@ def test_auto_pads_much_less_than_2x_where_spread_is_small(wavelength):
 
 
 def test_propagation_bench_returns_one_row_per_mode_with_ratios():
-    from benchctl.bench.propagation import run_propagation_bench
+    from benchctl.benchmarks.propagation import run_propagation_bench
 
     lines: list[str] = []
     rows = run_propagation_bench(sizes=[(48, 64)], wavelengths=[("green", 520e-9)], distance_m=2e-3, pitch_m=8e-6,

@@ -35,8 +35,8 @@ from typing import Any
 
 import torch
 
-from benchctl.bench.learned import inference_seconds, measure_training_step
-from benchctl.bench.speed_vs_error import resized_profile
+from benchctl.benchmarks.learned import inference_seconds, measure_training_step
+from benchctl.benchmarks.speed_vs_error import resized_profile
 from benchctl.cgh import OpticalSetup
 from benchctl.cgh.learned import LEARNED_METHODS, build_model
 from benchctl.cgh.learned.data import image_sources

@@ -146,8 +146,8 @@ def training_step_memory(method: str, geometry: dict[str, Any], device: str) -> 
 def measure_training_step(method: str, setup: OpticalSetup, device: torch.device) -> dict[str, Any]:
     """`training_step_memory` for `method` in a fresh Python subprocess; its JSON result."""
     request = json.dumps({"method": method, "geometry": geometry_of(setup), "device": str(device)})
-    proc = subprocess.run([sys.executable, "-m", "benchctl.bench.learned", request], capture_output=True, text=True,
-                          env=os.environ.copy(), check=False)
+    proc = subprocess.run([sys.executable, "-m", "benchctl.benchmarks.learned", request], capture_output=True,
+                          text=True, env=os.environ.copy(), check=False)
     if proc.returncode != 0:
         tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
         raise BenchctlError(f"training-step subprocess for {method} failed (exit {proc.returncode}): "
