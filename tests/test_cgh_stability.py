@@ -22,15 +22,17 @@ def setup() -> OpticalSetup:
 
 def run_every_method(target: torch.Tensor, setup: OpticalSetup) -> dict[str, torch.Tensor]:
     """Each method's phase for `target`, checked to be finite, float32, (H, W) and in [-pi, pi)."""
-    phases = {}
-    for name, method in METHODS.items():
-        phase = method(target, setup, iterations=ITERATIONS.get(name))
-        assert phase.shape == setup.shape and phase.dtype == torch.float32, name
-        assert bool(torch.isfinite(phase).all()), name
-        assert bool((phase >= -math.pi).all()) and bool((phase < math.pi).all()), name
-        assert bool(torch.isfinite(setup.reconstruct(phase)).all()), name
-        phases[name] = phase
-    return phases
+    return {name: _checked(name, method(target, setup, iterations=ITERATIONS.get(name)), setup)
+            for name, method in METHODS.items()}
+
+
+def _checked(name: str, phase: torch.Tensor, setup: OpticalSetup) -> torch.Tensor:
+    """`phase` after asserting it is finite, float32, (H, W), in [-pi, pi) and reconstructs to finite values."""
+    assert phase.shape == setup.shape and phase.dtype == torch.float32, name
+    assert bool(torch.isfinite(phase).all()), name
+    assert bool((phase >= -math.pi).all()) and bool((phase < math.pi).all()), name
+    assert bool(torch.isfinite(setup.reconstruct(phase)).all()), name
+    return phase
 
 
 def roi_target(setup: OpticalSetup, value: float = 1.0) -> torch.Tensor:
@@ -138,15 +140,8 @@ def learned(setup: OpticalSetup, tmp_path_factory: pytest.TempPathFactory) -> di
 
 def run_learned(methods: dict[str, Method], target: torch.Tensor, setup: OpticalSetup) -> dict[str, torch.Tensor]:
     """Each learned method's phase for `target`, checked like `run_every_method` checks the classical ones."""
-    phases = {}
-    for name, method in methods.items():
-        phase = method(target, setup, iterations=3 if method.default_iterations else None)
-        assert phase.shape == setup.shape and phase.dtype == torch.float32, name
-        assert bool(torch.isfinite(phase).all()), name
-        assert bool((phase >= -math.pi).all()) and bool((phase < math.pi).all()), name
-        assert bool(torch.isfinite(setup.reconstruct(phase)).all()), name
-        phases[name] = phase
-    return phases
+    return {name: _checked(name, method(target, setup, iterations=3 if method.default_iterations else None), setup)
+            for name, method in methods.items()}
 
 
 def test_learned_all_black_and_single_pixel(setup: OpticalSetup, learned: dict[str, Method]) -> None:
