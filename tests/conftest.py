@@ -261,7 +261,8 @@ def lock_dir(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.Monke
 
 # Tests that take seconds to a minute each on two cores: whole procedure runs, training and DDP, subprocesses that
 # import torch. `pytest -m "not slow"` skips them for a quick loop; CI runs everything.
-SLOW_MODULES = {"test_procedures.py", "test_learned_ddp.py", "test_learned_training.py", "test_learned_usage.py"}
+SLOW_MODULES = {"test_procedures.py", "test_learned_ddp.py", "test_learned_training.py", "test_learned_usage.py",
+                "test_generate_memory.py"}
 SLOW_TESTS = {
     "test_sgd_beats_its_initial_phase_and_gs",
     "test_bench_speed_vs_error_writes_a_row_per_method_budget_and_target",
