@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from benchctl.benchmarks.reproduce import DEFAULT_METHODS, PAPER
+from benchctl.benchmarks.reproduce import DEFAULT_METHODS, PAPER, reproduce_command
 from benchctl.cgh.learned import read_checkpoint
 from benchctl.cgh.learned.data import image_sources
 from benchctl.cli import main
@@ -90,3 +90,13 @@ def test_reproduce_user_mistakes_are_one_line_errors(capsys, small_profile_path:
     code, _, err = _run(capsys, "bench", "reproduce", "--profile", str(small_profile_path), "--steps", "1",
                         "--methods", "holonet-dcm3")
     assert code != 0 and "holonet-dcm3" in err and len(err.strip().splitlines()) == 1
+
+
+def test_the_recorded_reproduction_command_names_every_setting_and_only_a_given_profile() -> None:
+    default = reproduce_command(None, (136, 240), 0.5, None, ["ccnn", "ccnn-dcm4"], "red", "procedural:2", 5, 1e-3,
+                                42, 1, Path("out dir"))
+    assert default == ("benchctl bench reproduce --size 136x240 --minutes 0.5 --methods ccnn,ccnn-dcm4 --colour red "
+                       "--data procedural:2 --evaluations 5 --lr 0.001 --seed 42 --threads 1 --out 'out dir'")
+    named = reproduce_command("simulated", (136, 240), None, 3, ["ccnn"], "red", "procedural:2", 1, 1e-3, 0, None,
+                              None)
+    assert named.startswith("benchctl bench reproduce --profile simulated --size 136x240 --steps 3 ")

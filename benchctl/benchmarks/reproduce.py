@@ -370,11 +370,12 @@ def _plot(runs: Sequence[MethodRun], key: str, label: str, path: Path) -> Path |
     return atomic_write_bytes(path, buffer.getvalue())
 
 
-def reproduce_command(profile: str, size: tuple[int, int], minutes: float | None, steps: int | None,
+def reproduce_command(profile: str | None, size: tuple[int, int], minutes: float | None, steps: int | None,
                       methods: Sequence[str], colour: str, data: str, evaluations: int, lr: float, seed: int,
                       threads: int | None, out_dir: Path | None) -> str:
     """The `benchctl bench reproduce` command line that asks for exactly these settings."""
-    words = ["benchctl", "bench", "reproduce", "--profile", profile, "--size", f"{size[0]}x{size[1]}"]
+    words = ["benchctl", "bench", "reproduce", *(["--profile", profile] if profile else []),
+             "--size", f"{size[0]}x{size[1]}"]
     words += ["--minutes", f"{minutes:g}"] if minutes is not None else ["--steps", str(steps)]
     words += ["--methods", ",".join(methods), "--colour", colour, "--data", data, "--evaluations", str(evaluations),
               "--lr", f"{lr:g}", "--seed", str(seed)] + (["--threads", str(threads)] if threads else [])
