@@ -21,7 +21,8 @@ from benchctl.errors import BenchctlError
 class Field:
     """One key of the schema: its kind, whether it is required, its default and its numeric bounds."""
 
-    # "float", "int", "bool", "str", "str_list", "int_pair", "float_pair", "str_map",
+    # "float", "int", "bool", "str", "str_list", "names" (one string or a list of them), "int_pair", "float_pair",
+    # "str_map",
     # "triple_map" (name -> three numbers),
     # "table" (fields), "tables" (array) or "table_map" (name -> a table of `fields`, e.g. one per laser channel)
     kind: str
@@ -87,9 +88,11 @@ def _check_value(value: Any, field: Field, key: str, path: Path) -> Any:
         if len(value) < field.min_items:
             raise fail(path, key, f"at least {field.min_items} entry required, got {len(value)}")
         return [check_table(item, field.fields or {}, f"{key}[{i}]", path) for i, item in enumerate(value)]
-    if field.kind == "str_list":
+    if field.kind == "names" and isinstance(value, str):
+        return _check_value(value, Field("str", choices=field.choices), key, path)
+    if field.kind in ("str_list", "names"):
         if not (isinstance(value, list) and all(isinstance(v, str) for v in value)):
-            raise wrong("a list of strings")
+            raise wrong("a list of strings" if field.kind == "str_list" else "a string or a list of strings")
         if len(value) < field.min_items:
             raise fail(path, key, f"at least {field.min_items} entry required, got {len(value)}")
         for i, item in enumerate(value):

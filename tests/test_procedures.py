@@ -345,3 +345,35 @@ def test_auto_exposure_puts_every_colours_peak_near_the_goal(tmp_path: Path, ben
             assert peak == pytest.approx(0.7, abs=0.07), (colour, peak)
     assert not [w for w in metrics["warnings"] if "low signal" in w]
     assert (folder / "raw" / "bars" / "probe" / "blue" / "frame-000.dng").is_file()
+
+
+def test_colour_capture_with_several_methods_draws_their_front(tmp_path: Path, bench_profile_path: Path,
+                                                               capture_procedure: Path) -> None:
+    """method = [dpac, sgd]: each target is captured with each method under its own label; metrics.json and
+    the report hold one front row per method, SGD captures better than DPAC and takes longer, so both are on
+    the front, and the report plots them."""
+    write(capture_procedure, CAPTURE.replace('lut_calibration = "skip"', 'lut_calibration = "auto"')
+          + 'method = ["dpac", "sgd"]\niterations = 10\n')
+    folder = run_ok(capture_procedure, bench_profile_path, tmp_path / "runs")
+    metrics = json.loads((folder / "metrics.json").read_text())
+    assert [(t["label"], t["method"]) for t in metrics["targets"]] == [("bars-dpac", "dpac"), ("bars-sgd", "sgd")]
+    assert (folder / "holograms" / "bars-sgd-green.png").is_file() and (folder / "raw" / "bars-dpac" / "red").is_dir()
+    front = {row["method"]: row for row in metrics["front"]}
+    assert set(front) == {"dpac", "sgd"}
+    dpac, sgd = front["dpac"], front["sgd"]
+    captured = {t["method"]: t["merged"]["capture"]["psnr_srgb_db"] for t in metrics["targets"]}
+    assert sgd["capture PSNR dB sRGB"] == pytest.approx(captured["sgd"], abs=1e-3)
+    assert sgd["capture PSNR dB sRGB"] > dpac["capture PSNR dB sRGB"] + 1.0, front
+    assert sgd["seconds per frame"] > dpac["seconds per frame"] and sgd["on front"] and dpac["on front"]
+    report = (folder / "report.html").read_text()
+    section = report[report.index("Speed against error across methods"):]
+    assert section.count("<circle") == 2 and "log scale" in section and ">sgd<" in section
+
+
+@pytest.mark.parametrize("value, problem", [("3", "expected a string or a list of strings"),
+                                            ("[]", "at least 1 entry required")])
+def test_colour_capture_method_must_name_methods(tmp_path: Path, bench_profile_path: Path, capture_procedure: Path,
+                                                 value: str, problem: str) -> None:
+    write(capture_procedure, CAPTURE + f"method = {value}\n")
+    with pytest.raises(BenchctlError, match=f"parameters.method: {problem}"):
+        run_procedure(capture_procedure, profile=str(bench_profile_path), out=tmp_path / "runs", say=lambda _: None)

@@ -6,7 +6,8 @@ import math
 
 import pytest
 
-from benchctl.benchmarks.speed_vs_error import budgets_for, front_rows, pareto_front
+from benchctl.benchmarks.speed_vs_error import budgets_for, front_rows
+from benchctl.optics.metrics import pareto_front
 
 
 def test_pareto_front_on_hand_made_points() -> None:

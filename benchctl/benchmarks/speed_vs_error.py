@@ -23,6 +23,7 @@ from benchctl.cgh.learned import LEARNED_METHODS
 from benchctl.cgh.learned.geometry import grid_profile
 from benchctl.errors import BenchctlError
 from benchctl.files import atomic_write_bytes, ensure_dir, write_csv
+from benchctl.optics.metrics import pareto_front
 from benchctl.profiles import Profile
 from benchctl.runner.holograms import (
     REFINED_SUFFIX,
@@ -70,14 +71,6 @@ def default_methods(profile: Profile, out: Callable[[str], None] = print) -> tup
         if name not in learned:
             out(f"not running {name} (nor {name}{REFINED_SUFFIX}): {checkpoint_status(name, profile)}")
     return (*method_names(), *learned, *(f"{name}{REFINED_SUFFIX}" for name in learned))
-
-
-def pareto_front(points: Sequence[tuple[float, float]]) -> list[bool]:
-    """For each (seconds, psnr) point, whether no other point is at least as fast and as good and better in one.
-
-    Ties (the same point twice) are both on the front.
-    """
-    return [not any(t2 <= t1 and p2 >= p1 and (t2 < t1 or p2 > p1) for t2, p2 in points) for t1, p1 in points]
 
 
 def _mean(values: Sequence[float]) -> float:

@@ -7,6 +7,8 @@ the result has shape (...). Callers pass data_range explicitly and say which dom
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 import torch.nn.functional as F
 
@@ -130,3 +132,11 @@ def colour_scores(merged_linear: torch.Tensor, target_roi: torch.Tensor) -> dict
         "psnr_srgb_db": float(psnr(srgb_r.reshape(3 * h, w), srgb_t.reshape(3 * h, w), data_range=1.0)),
         "ssim_srgb": float(ssim(srgb_r, srgb_t, data_range=1.0).mean()),
     }
+
+
+def pareto_front(points: Sequence[tuple[float, float]]) -> list[bool]:
+    """For each (seconds, psnr) point, whether no other point is at least as fast and as good and better in one.
+
+    Ties (the same point twice) are both on the front.
+    """
+    return [not any(t2 <= t1 and p2 >= p1 and (t2 < t1 or p2 > p1) for t2, p2 in points) for t1, p1 in points]

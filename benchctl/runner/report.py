@@ -8,13 +8,16 @@ import base64
 import html
 import json
 from pathlib import Path
+from collections.abc import Iterable
 from typing import Any
 
 import cv2
 import numpy as np
 
 from benchctl.files import atomic_write_bytes, write_csv, write_json
+from benchctl.optics.metrics import pareto_front
 from benchctl.images import read_image
+from benchctl.runner.plots import front_plot, line_plot
 from benchctl.runner.procedure import Context
 
 PREVIEW_WIDTH = 480
@@ -62,41 +65,6 @@ def figure(folder: Path, relative: str, caption: str) -> str:
     data = base64.b64encode(png.tobytes()).decode() if ok else ""
     return (f'<figure><a href="{_esc(relative)}"><img src="data:image/png;base64,{data}" alt="{_esc(caption)}">'
             f"</a><figcaption>{_esc(caption)}</figcaption></figure>")
-
-
-def line_plot(series: dict[str, tuple[list[float], list[float]]], xlabel: str, ylabel: str,
-              width: int = 520, height: int = 300) -> str:
-    """An inline SVG plot of named (x, y) series, with axis ranges and labels."""
-    colours = ["#d62728", "#2ca02c", "#1f77b4", "#9467bd", "#ff7f0e", "#8c564b"]
-    xs = [x for x_values, _ in series.values() for x in x_values]
-    ys = [y for _, y_values in series.values() for y in y_values]
-    if not xs:
-        return "<p>(no data)</p>"
-    x0, x1 = min(xs), max(xs) if max(xs) > min(xs) else min(xs) + 1
-    y0, y1 = min(0.0, min(ys)), max(ys) if max(ys) > min(0.0, min(ys)) else 1.0
-    left, bottom, pad = 60, 40, 10
-
-    def px(x: float, y: float) -> str:
-        return (f"{left + (x - x0) / (x1 - x0) * (width - left - pad):.1f},"
-                f"{height - bottom - (y - y0) / (y1 - y0) * (height - bottom - pad):.1f}")
-
-    parts = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" font-size="11">',
-             f'<rect x="{left}" y="{pad}" width="{width - left - pad}" height="{height - bottom - pad}" '
-             'fill="none" stroke="#999"/>',
-             f'<text x="{left}" y="{height - 22}">{x0:.4g}</text>',
-             f'<text x="{width - pad}" y="{height - 22}" text-anchor="end">{x1:.4g}</text>',
-             f'<text x="{left - 4}" y="{height - bottom}" text-anchor="end">{y0:.4g}</text>',
-             f'<text x="{left - 4}" y="{pad + 10}" text-anchor="end">{y1:.4g}</text>',
-             f'<text x="{(width + left) / 2}" y="{height - 6}" text-anchor="middle">{_esc(xlabel)}</text>',
-             f'<text x="12" y="{(height - bottom) / 2}" transform="rotate(-90 12 {(height - bottom) / 2})" '
-             f'text-anchor="middle">{_esc(ylabel)}</text>']
-    for n, (name, (x_values, y_values)) in enumerate(series.items()):
-        colour = colours[n % len(colours)]
-        points = " ".join(px(x, y) for x, y in zip(x_values, y_values))
-        parts.append(f'<polyline points="{points}" fill="none" stroke="{colour}" stroke-width="1.5"/>')
-        parts.append(f'<text x="{left + 8}" y="{pad + 14 + 13 * n}" fill="{colour}">{_esc(name)}</text>')
-    parts.append("</svg>")
-    return "".join(parts)
 
 
 def _run_section(context: Context, colours: list[str]) -> tuple[str, list[str]]:
@@ -181,10 +149,20 @@ def colour_capture_report(context: Context, results: list[dict[str, Any]], colou
               "simulated PSNR dB": r.get("simulated_psnr_amplitude_db"),
               "capture PSNR dB": r.get("capture_psnr_amplitude_db")} for r in rows if r["colour"] != "merged"]
     method = context.params.get("method")
-    body.append(f"<h2>Generation time against error ({_esc(method)})</h2>{table(speed)}"
+    methods = method if isinstance(method, str) else ", ".join(method)
+    body.append(f"<h2>Generation time against error ({_esc(methods)})</h2>{table(speed)}"
                 "<p>Generation time is the time it took to compute the hologram (for a cached hologram, when it was "
                 "computed). PSNR in amplitude on the ROI after least-squares scaling.</p>")
-    write_json(record.folder / "metrics.json", {"procedure": "colour-capture", "method": method, "targets": results})
+    front = method_front(results)
+    if len(front) > 1:
+        points = [(r["method"], r["seconds per frame"], r["capture PSNR dB sRGB"], r["on front"]) for r in front]
+        body.append("<h2>Speed against error across methods</h2>"
+                    + front_plot(points, "seconds per frame (every colour)", "merged capture PSNR dB (sRGB)")
+                    + table(front) + "<p>Per method, means over the targets: the time to compute one frame of "
+                    "every colour in the target, and the merged capture's PSNR. Filled markers are on the Pareto "
+                    "front: no other method is both at least as fast and at least as good.</p>")
+    write_json(record.folder / "metrics.json", {"procedure": "colour-capture", "method": method, "targets": results,
+                                                "front": front})
     write_csv(record.folder / "metrics.csv", rows)
     write_report(context, f"Colour capture: {', '.join(r['label'] for r in results)}", "".join(body), colours,
                  warnings)
@@ -193,6 +171,31 @@ def colour_capture_report(context: Context, results: list[dict[str, Any]], colou
                 f"dB, {r['merged']['simulated']['ssim_srgb']:.3f}); generation "
                 + ", ".join(f"{n} {c['generation_s']:.2f} s" for n, c in r["colours"].items()) for r in results]
     return {"headline": headline, "warnings": warnings}
+
+
+def method_front(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One row per hologram method of a colour capture: mean seconds per frame (all colours of a target), mean
+    merged PSNR / SSIM captured and simulated, and whether it is on the Pareto front of time against captured
+    PSNR."""
+    groups: dict[str, list[dict[str, Any]]] = {}
+    for result in results:
+        groups.setdefault(result["method"], []).append(result)
+    rows = []
+    for method, group in groups.items():
+        rows.append({
+            "method": method, "targets": len(group),
+            "seconds per frame": _mean(sum(c["generation_s"] for c in r["colours"].values()) for r in group),
+            "capture PSNR dB sRGB": _mean(r["merged"]["capture"]["psnr_srgb_db"] for r in group),
+            "capture SSIM sRGB": _mean(r["merged"]["capture"]["ssim_srgb"] for r in group),
+            "simulated PSNR dB sRGB": _mean(r["merged"]["simulated"]["psnr_srgb_db"] for r in group),
+        })
+    on_front = pareto_front([(r["seconds per frame"], r["capture PSNR dB sRGB"]) for r in rows])
+    return [row | {"on front": flag} for row, flag in zip(rows, on_front)]
+
+
+def _mean(values: Iterable[float]) -> float:
+    items = list(values)
+    return round(sum(items) / len(items), 4)
 
 
 def registration_report(context: Context, fits: dict[str, dict[str, Any]]) -> dict[str, Any]:

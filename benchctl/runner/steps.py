@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from benchctl.capture.raw import RawImage, average_frames, decode_raw, subtract_dark
-from benchctl.cgh.learned import resolve_method
+from benchctl.cgh import Method
 from benchctl.devices.power import format_power, parse_power
 from benchctl.errors import BenchctlError
 from benchctl.files import file_sha256
@@ -20,6 +20,7 @@ from benchctl.images import read_image, write_png
 from benchctl.optics import linear_to_srgb
 from benchctl.profiles import LaserChannel, Profile
 from benchctl.runner.hologram_cache import hologram
+from benchctl.runner.holograms import resolve_any
 from benchctl.runner.procedure import Context, Step
 from benchctl.runner.record import set_aside
 from benchctl.schema import Field
@@ -40,12 +41,12 @@ METHOD_PARAMETERS = {
 }
 
 
-def check_method(context: Context, used: list[LaserChannel]) -> None:
-    """The procedure's hologram method and checkpoint (its file and the geometry it was trained for), checked
-    when planning, so a dry run reports what the run would otherwise fail on at its first hologram."""
+def check_method(context: Context, used: list[LaserChannel], method: str | None = None) -> Method:
+    """A hologram method (default: the procedure's) and its checkpoint (the file and the geometry it was trained
+    for), checked when planning, so a dry run reports what the run would otherwise fail on at its first hologram."""
     try:
-        resolve_method(context.params["method"], context.profile, context.params.get("checkpoint"),
-                       [channel.name for channel in used])
+        return resolve_any(method or context.params["method"], context.profile, context.params.get("checkpoint"),
+                           [channel.name for channel in used])[0]
     except BenchctlError as exc:
         raise BenchctlError(f"parameters.method / checkpoint: {exc}") from None
 

@@ -53,6 +53,8 @@ DESCRIPTION = "holograms per colour, each colour exposed alone, RAW capture, reg
 PARAMETERS = {
     "targets": Field("str_list", required=False, default=["chart:bars"], min_items=1),
     **METHOD_PARAMETERS,
+    # one method, or several: each target is then captured with each, and the report draws their front
+    "method": Field("names", required=False, default="dpac", min_items=1),
     **EXPOSURE_PARAMETERS,
     "repeats": Field("int", required=False, default=1, ge=1, le=1000),
     # "auto": register first when no stored registration fits this profile; "stored": require one
@@ -71,7 +73,12 @@ def plan(context: Context) -> list[Step]:
     unknown_setpoints(context)
     used = channels(context)
     steps: list[Step] = []
-    check_method(context, used)
+    methods = _methods(params)
+    iterative = {method: check_method(context, used, method).default_iterations is not None for method in methods}
+    # with several methods, `iterations` is the budget of the iterative ones
+    options = {method: {key: params.get(key) for key in METHOD_PARAMETERS} | {
+        "method": method, "iterations": params.get("iterations") if len(methods) == 1 or iterative[method] else None}
+        for method in methods}
     calibrated = {*context.calibration.lut_files(), *(context.profile.slm.lut if context.profile.slm else {})}
     uncalibrated = [c for c in used if c.name not in calibrated]
     if uncalibrated and params["lut_calibration"] == "auto":
@@ -82,31 +89,46 @@ def plan(context: Context) -> list[Step]:
                             f"{context.profile.name!r}: run procedures/registration.toml first, or set "
                             "registration = \"auto\"")
     if missing:
-        steps += registration.registration_steps(context, missing)
-    options = {key: params.get(key) for key in METHOD_PARAMETERS}
+        steps += registration.registration_steps(context, missing, dict(options[methods[0]]))
     labels: set[str] = set()
     targets = []
     for spec in params["targets"]:
-        label, target = target_label(spec, labels), prepared_target(context.profile, spec)
+        base, target = target_label(spec, labels), prepared_target(context.profile, spec)
         present = active_channels(target)
         lit = [c for c in used if present[target_plane(c)]]
         if not lit:
             raise BenchctlError(f"parameters.targets: {spec!r} has none of the colours {[c.name for c in used]}")
-        targets.append((spec, label, lit))
-        steps += [hologram_step(f"hologram/{label}/{c.name}", label, target, c, options) for c in lit]
-        powers = {c.name: power_w(context, c) for c in lit}
-        if params["exposure"] == "auto":
-            for channel in lit:
-                steps.append(_probe_step(context, label, channel))
-                powers[channel.name] = _probed_power(f"probe/{label}/{channel.name}")
-        for repeat in _repeats(params["repeats"]):
-            for channel in lit:
-                steps.append(exposure_step(
-                    context, f"capture/{label}{repeat}/{channel.name}", (label + repeat, channel.name), channel,
-                    powers[channel.name], _shown(f"hologram/{label}/{channel.name}"), f"expose {label}{repeat}"))
-            steps.append(Step(f"process/{label}{repeat}", f"register, merge and score {label}{repeat}",
-                              _processor(spec, label, repeat, lit, target)))
+        for method in methods:
+            label = base if len(methods) == 1 else target_label(f"{base}-{method.replace('+', '-')}", labels)
+            targets.append((spec, label, lit))
+            steps += _capture_steps(context, spec, label, lit, target, options[method])
     steps.append(Step("report", "metrics.json, metrics.csv and report.html", _reporter(targets, used)))
+    return steps
+
+
+def _methods(params: dict[str, Any]) -> list[str]:
+    """The hologram methods asked for, in order, each once."""
+    method = params["method"]
+    return list(dict.fromkeys([method] if isinstance(method, str) else method))
+
+
+def _capture_steps(context: Context, spec: str, label: str, lit: list[LaserChannel], target: torch.Tensor,
+                   options: dict[str, Any]) -> list[Step]:
+    """One target with one method (`options`): holograms per colour, probes, exposures per repeat, processing."""
+    params, method = context.params, options["method"]
+    steps = [hologram_step(f"hologram/{label}/{c.name}", label, target, c, options) for c in lit]
+    powers = {c.name: power_w(context, c) for c in lit}
+    if params["exposure"] == "auto":
+        for channel in lit:
+            steps.append(_probe_step(context, label, channel))
+            powers[channel.name] = _probed_power(f"probe/{label}/{channel.name}")
+    for repeat in _repeats(params["repeats"]):
+        for channel in lit:
+            steps.append(exposure_step(
+                context, f"capture/{label}{repeat}/{channel.name}", (label + repeat, channel.name), channel,
+                powers[channel.name], _shown(f"hologram/{label}/{channel.name}"), f"expose {label}{repeat}"))
+        steps.append(Step(f"process/{label}{repeat}", f"register, merge and score {label}{repeat}",
+                          _processor(spec, label, repeat, lit, target, method)))
     return steps
 
 
@@ -144,7 +166,7 @@ def _probed_power(probe_key: str):
     return lambda context: context.result(probe_key)["auto_exposure"]["power_w"]
 
 
-def _processor(spec: str, label: str, repeat: str, lit: list[LaserChannel], target: torch.Tensor):
+def _processor(spec: str, label: str, repeat: str, lit: list[LaserChannel], target: torch.Tensor, method: str):
     def action(context: Context) -> dict[str, Any]:
         profile = context.profile
         assert profile.slm is not None and profile.optics is not None
@@ -185,7 +207,7 @@ def _processor(spec: str, label: str, repeat: str, lit: list[LaserChannel], targ
                 "peak": round(float(np.percentile(planes[index], PEAK_PERCENTILE)), 4),
             }
         return {
-            "target": spec, "label": label + repeat, "folder": "/".join(folder), "files": files,
+            "target": spec, "method": method, "label": label + repeat, "folder": "/".join(folder), "files": files,
             "colours": per_colour, "warnings": list(merged.warnings),
             "merged": {"capture": {k: round(v, 4) for k, v in merged.merged_scores.items()},
                        "simulated": {k: round(v, 4) for k, v in colour_scores(simulated, target_roi).items()}},

@@ -54,14 +54,16 @@ def plan(context: Context) -> list[Step]:
     return registration_steps(context, used) + [Step("report", "registration report", _reporter(used))]
 
 
-def registration_steps(context: Context, used: list[LaserChannel]) -> list[Step]:
-    """Hologram, exposure and fit per colour; colour capture runs these first when it finds no registration."""
+def registration_steps(context: Context, used: list[LaserChannel],
+                       options: dict[str, Any] | None = None) -> list[Step]:
+    """Hologram (by the method `options` name, default the procedure's, else DPAC), exposure and fit per colour;
+    colour capture runs these first when it finds no registration."""
     profile = context.profile.require("slm", "optics")
     assert profile.slm is not None and profile.optics is not None
     grid = tuple(context.params.get("grid", DEFAULT_GRID))
     dots, points = dot_grid_target(profile.slm.shape, profile.optics.roi, grid)
     target = dots.expand(3, -1, -1).clone()
-    options = {key: context.params.get(key) for key in METHOD_PARAMETERS}
+    options = options or {key: context.params.get(key) for key in METHOD_PARAMETERS}
     options["method"] = options.get("method") or "dpac"
     steps = []
     for channel in used:
