@@ -106,11 +106,14 @@ def test_the_procedure_fits_stores_and_hands_the_model_to_generation(tmp_path: P
     assert all(not state.get("emission") for state in load_state("rgb-laser").get("channels", {}).values())
 
 
-def test_sgd_with_the_fitted_model_captures_closer_to_the_target(profile: Profile) -> None:
-    """SGD through a setup carrying the bench's model (here the hidden values themselves) makes holograms the
-    aberrated bench shows far better than model-only SGD's: 23.1 against 14.1 dB measured (amplitude PSNR of the
-    simulator's noiseless irradiance on the ROI, least-squares scaled; model-only SGD simulates 27.9 dB, and the
-    calibrated SGD's simulation equals what the bench shows)."""
+@pytest.mark.parametrize("method, iterations, gain_db", [("sgd", 100, 20.0), ("dpac", None, 5.0), ("gs", 50, 4.0)])
+def test_methods_with_the_fitted_model_show_closer_to_the_target(profile: Profile, method: str,
+                                                                 iterations: int | None, gain_db: float) -> None:
+    """Each method through a setup carrying the bench's model (here the hidden values themselves) makes holograms
+    the aberrated bench shows far better than the model-only ones (amplitude PSNR of the simulator's noiseless
+    irradiance on the ROI, least-squares scaled). Measured, model-only -> calibrated: SGD 15.3 -> 48.3 dB (its
+    simulation equals what the bench shows), DPAC (wavefront removed, beam divided out) 15.5 -> 23.1 dB, GS (lit
+    through the model, its wavefront removed on the way back) 11.1 -> 16.7 dB."""
     ideal = OpticalSetup.from_profile(profile, "green")
     model = FittedOptics(tuple(HIDDEN.items()), 0.5e-3, (0.05e-3, -0.08e-3))
     calibrated = dataclasses.replace(ideal, field_model=model)
@@ -120,11 +123,11 @@ def test_sgd_with_the_fitted_model_captures_closer_to_the_target(profile: Profil
     target[rows, cols] = torch.from_numpy(0.55 + 0.4 * np.sin(2 * np.pi * (x / 20 + y / 30))).float()  # smooth waves
     scores = []
     for setup in (ideal, calibrated):
-        phase = get_method("sgd")(target, setup, iterations=100)
+        phase = get_method(method)(target, setup, iterations=iterations)
         amplitude = rendered(profile, phase[None])[0][0].sqrt()
         amplitude = amplitude * lsq_scale(amplitude, target[rows, cols])
         scores.append(float(psnr(amplitude, target[rows, cols], data_range=1.0)))
-    assert scores[1] > scores[0] + 6
+    assert scores[1] > scores[0] + gain_db, scores
 
 
 def test_generate_uses_the_stored_model(tmp_path: Path, profile: Profile) -> None:

@@ -1,4 +1,5 @@
-"""Double-phase amplitude coding (DPAC): a one-shot phase-only encoding of the target's field at the SLM."""
+"""Double-phase amplitude coding (DPAC): a one-shot phase-only encoding of the target's field at the SLM (with a
+fitted optical model, of the field that bench must be given: its wavefront removed, its beam divided out)."""
 
 from __future__ import annotations
 
@@ -24,10 +25,24 @@ def double_phase(amplitude: torch.Tensor, phase: torch.Tensor) -> torch.Tensor:
     return phase + torch.where((rows + cols) % 2 == 0, offset, -offset)
 
 
+BEAM_FLOOR = 0.1
+"""With a fitted beam, its amplitude is divided out no lower than this fraction of its peak: a dim beam edge
+would otherwise ask for more light than the SLM has and darken the whole hologram after normalisation."""
+
+
+def through_fitted_bench(field: torch.Tensor, factor: torch.Tensor) -> torch.Tensor:
+    """The SLM field that a bench lighting the SLM with `factor` = A e^(i W) (the fitted beam and wavefront error)
+    turns into `field`: field e^(-i W) / A, A floored at BEAM_FLOOR of its peak."""
+    amplitude = factor.abs()
+    return field * torch.exp(-1j * factor.angle()) / torch.clamp(amplitude, min=BEAM_FLOOR * float(amplitude.max()))
+
+
 def _dpac(target: torch.Tensor, setup: OpticalSetup, _iterations: Optional[int], _seed: int,
           _progress: Optional[Progress]) -> torch.Tensor:
     with torch.no_grad():
         field = setup.slm_propagator()(target)
+        if setup.field_model is not None:
+            field = through_fitted_bench(field, setup.slm_factor().to(field.device))
         amplitude = field.abs()
         peak = amplitude.max()
         # An all-black target back-propagates to zero: divide by 1 there instead of by 0.
