@@ -255,7 +255,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
                              colours=tuple(args.colours) if args.colours else None, epochs=args.epochs, lr=args.lr,
                              loss=args.loss, vgg_weights=args.vgg_weights, batch_size=args.batch_size, seed=args.seed,
                              val_fraction=args.val_fraction, max_steps=args.max_steps,
-                             weights_dtype=args.weights_dtype)
+                             weights_dtype=args.weights_dtype, model_calibration=args.model_calibration)
     run_train(load_profile(args.profile), settings, args.out, resume=args.resume)
     return 0
 
@@ -455,6 +455,9 @@ def build_parser() -> argparse.ArgumentParser:
                        help="how the checkpoint stores weights; float16 halves the file (default: float32)")
     train.add_argument("--out", "-o", type=Path, default=Path("out/train"), metavar="DIR",
                        help="folder for the checkpoints (default: out/train)")
+    train.add_argument("--model-calibration", metavar="FILE",
+                       help="train (or fine-tune, with --resume) through a fitted optical model: 'stored' for the "
+                            "profile's (procedures/model_calibration.toml), or an optical-model.json")
     train.add_argument("--resume", type=Path, metavar="CKPT",
                        help="continue from OUT/<method>.resume.pt (exactly) or a checkpoint's weights")
     train.set_defaults(func=_cmd_train)

@@ -268,6 +268,8 @@ SLOW_TESTS = {
     "test_bench_speed_vs_error_writes_a_row_per_method_budget_and_target",
     "test_sigterm_during_laser_on_turns_emission_off",
     "test_console_script_reports_errors_without_traceback",
+    "test_a_learned_checkpoint_fine_tuned_through_the_fitted_model_shows_better",
+    "test_colour_capture_with_several_methods_draws_their_front",
 }
 
 

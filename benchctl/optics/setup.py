@@ -129,6 +129,14 @@ class OpticalSetup:
             field = field * self.slm_factor().to(field.device)
         return self.target_propagator()(field).abs()
 
+    def without_wavefront(self, phase: torch.Tensor) -> torch.Tensor:
+        """`phase` minus the fitted model's wavefront error W (unchanged without a model): what to display so that
+        the measured bench lights the SLM as an ideal one would, up to its beam's amplitude. Learned networks,
+        trained as translation-invariant maps, cannot learn a position-dependent W; it is taken out here."""
+        if self.field_model is None:
+            return phase
+        return phase - self.slm_factor().angle().to(phase.device)
+
     def slm_factor(self) -> torch.Tensor:
         """The fitted model's A e^(i W) on the SLM grid (complex64), computed once; ones without a model."""
         factor = self.__dict__.get("_slm_factor")

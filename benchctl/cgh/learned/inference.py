@@ -36,7 +36,8 @@ def learned_method(name: str, checkpoint_path: Path | str) -> Method:
             phase = model(target[None, None])[0, 0]
         if progress is not None:
             progress(1, 1)
-        return phase.clone()  # a normal tensor, not an inference tensor, for callers that go on with autograd
+        # a normal tensor, not an inference tensor, for callers that go on with autograd
+        return setup.without_wavefront(phase.clone())
 
     family = VARIANTS[name].family
     return Method(name=name, description=f"trained {family} network ({path})", default_iterations=None,

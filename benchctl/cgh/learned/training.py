@@ -64,6 +64,7 @@ class TrainSettings:
     val_fraction: float = 0.1
     max_steps: int | None = None
     weights_dtype: str = "float32"
+    model_calibration: str | None = None  # "stored" or an optical-model.json: train through that fitted model
 
     def validate(self) -> None:
         """BadValueError naming the flag for every setting a user can get wrong."""
@@ -101,6 +102,8 @@ class TrainSettings:
             words += ["--max-steps", str(self.max_steps)]
         if self.weights_dtype != "float32":
             words += ["--weights-dtype", self.weights_dtype]
+        if self.model_calibration:
+            words += ["--model-calibration", self.model_calibration]
         return shlex.join(words + ["--out", str(out_dir)])
 
 
@@ -199,9 +202,10 @@ def scaled_reconstruction(model: nn.Module, setup: OpticalSetup,
     """(reconstruction, target) on the ROI, (B, 1, h, w), the reconstruction least-squares scaled to the target.
 
     `amplitude` is the target on the SLM grid (B, 1, H, W). The scale stays in the graph: the loss is then the
-    error at the best brightness, which is what a phase-only hologram can be asked for.
+    error at the best brightness, which is what a phase-only hologram can be asked for. With a fitted optical
+    model the network's phase is displayed without the model's wavefront, as at inference.
     """
-    recon = crop_roi(setup.reconstruct(model(amplitude)), setup.roi)
+    recon = crop_roi(setup.reconstruct(setup.without_wavefront(model(amplitude))), setup.roi)
     target = crop_roi(amplitude, setup.roi)
     return recon * lsq_scale(recon, target), target
 
@@ -342,6 +346,7 @@ def _train(profile: Profile, settings: TrainSettings, out_dir: Path, planes: Map
         "optimiser": "Adam(betas=(0.9, 0.999))", "flips": "random horizontal and vertical",
         "loss_region": "ROI, least-squares scaled", "perceptual_weight": PERCEPTUAL_WEIGHT
         if settings.loss == "l2-perceptual" else None,
+        "optical_model": {c: s.field_model.to_dict() for c, s in setups.items() if s.field_model is not None} or None,
     }
     progress = Progress(settings.method, stream=progress_stream) if job.main else None
     started = time.perf_counter()
