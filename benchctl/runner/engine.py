@@ -89,7 +89,7 @@ def run_procedure(path: Path | None, *, profile: str | None = None, out: Path = 
         bench_profile = load_profile(profile)
         calibration = Calibration.store(bench_profile)
         record = None
-    effective = calibration.applied(bench_profile)
+    effective = procedure.params.applied_to(calibration.applied(bench_profile))
     with Bench(effective, say) as bench:
         context = Context(effective, procedure.params, calibration, bench, record, say)
         steps = procedure.plan(context)

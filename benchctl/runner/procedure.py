@@ -62,6 +62,10 @@ class Parameters(Model, kw_only=True):
     """Base of every procedure's parameters (its PARAMETERS model; the file's [parameters] table is decoded into
     it). Groups that several procedures share derive from it (runner.steps.ExposureParameters, ...)."""
 
+    def applied_to(self, profile: Profile) -> Profile:
+        """The profile the run uses: parameters that override a profile setting say so here (none by default)."""
+        return profile
+
 
 P = TypeVar("P", bound=Parameters)
 
@@ -99,7 +103,7 @@ class Context:
 
     def recalibrated(self) -> None:
         """Apply lookup tables measured during this run to the profile later steps use."""
-        self.profile = self.calibration.applied(self.calibration.profile)
+        self.profile = self.params.applied_to(self.calibration.applied(self.calibration.profile))
 
     def parameters(self, kind: type[P]) -> P:
         """The procedure's parameters as `kind`: its PARAMETERS or a group they derive from, which the shared

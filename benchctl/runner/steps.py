@@ -40,6 +40,12 @@ class ExposureParameters(Parameters, kw_only=True):
     dark_frames: DarkFrames = 1
     settle_ms: NonNegative | None = None  # after a new SLM frame (default: the profile's slm.settle_ms)
 
+    def applied_to(self, profile: Profile) -> Profile:
+        """The profile with this procedure's SLM settle time, if it gives one."""
+        if self.settle_ms is None or profile.slm is None:
+            return profile
+        return msgspec.structs.replace(profile, slm=msgspec.structs.replace(profile.slm, settle_ms=self.settle_ms))
+
 
 class HologramParameters(ExposureParameters, kw_only=True):
     """The exposure parameters and how the holograms shown are computed. (Groups stack by derivation: a msgspec
