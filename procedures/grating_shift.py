@@ -7,18 +7,20 @@ stored camera-SLM registration) and measures the shift between them by phase cor
 
     benchctl run procedures/grating_shift.py [--profile P]
 
-A Python procedure defines DESCRIPTION, PARAMETERS (benchctl.schema.Field) and plan(context) -> list[Step]; the
-built-in procedures in benchctl/runner/builtin/ are written the same way.
+A Python procedure defines DESCRIPTION, PARAMETERS (a model deriving from benchctl.runner.procedure.Parameters, here
+the shared exposure parameters plus its own) and plan(context) -> list[Step]; the built-in procedures in
+benchctl/runner/builtin/ are written the same way.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 
 import cv2
+import msgspec
 import torch
 
 from benchctl.capture.colour_planes import registered_plane
@@ -31,11 +33,23 @@ from benchctl.profiles import LaserChannel
 from benchctl.runner.holograms import target_plane
 from benchctl.runner.procedure import Context, Step
 from benchctl.runner.report import table, write_report
-from benchctl.runner.steps import EXPOSURE_PARAMETERS, channels, exposure_step, load_exposure, power_w, prepared_target
-from benchctl.schema import Field
+from benchctl.runner.steps import (
+    ExposureParameters,
+    channels,
+    exposure_step,
+    load_exposure,
+    power_w,
+    prepared_target,
+)
 
 DESCRIPTION = "blazed-grating deflection per colour, measured through the registration, against z lambda / (P pitch)"
-PARAMETERS = {**EXPOSURE_PARAMETERS, "period_px": Field("float", required=False, default=32.0, gt=2)}
+
+
+class GratingShiftParameters(ExposureParameters, kw_only=True):
+    period_px: Annotated[float, msgspec.Meta(gt=2)] = 32.0  # of the blazed grating
+
+
+PARAMETERS = GratingShiftParameters
 
 
 def plan(context: Context) -> list[Step]:
@@ -45,7 +59,7 @@ def plan(context: Context) -> list[Step]:
         if channel.name not in registrations:
             raise BenchctlError(f"no stored camera-SLM registration for {channel.name}: run "
                                 "procedures/registration.toml first")
-        for name, period in (("flat", 0.0), ("grating", context.params["period_px"])):
+        for name, period in (("flat", 0.0), ("grating", context.parameters(GratingShiftParameters).period_px)):
             steps.append(exposure_step(context, f"{name}/{channel.name}", (name, channel.name), channel,
                                        power_w(context, channel), _ramp(period, channel), f"expose {name}"))
     steps.append(Step("report", "centroids, shifts against the prediction", _analyse))
@@ -85,7 +99,7 @@ def _analyse(context: Context) -> dict[str, Any]:
         window = cv2.createHanningWindow(flat.shape[::-1], cv2.CV_64F)
         shift, _ = cv2.phaseCorrelate(flat, tilted, window)
         predicted = (profile.optics.distance_mm * 1e-3 * channel.wavelength_m
-                     / (context.params["period_px"] * profile.slm.pitch_m ** 2))
+                     / (context.parameters(GratingShiftParameters).period_px * profile.slm.pitch_m ** 2))
         rows.append({"colour": channel.name, "predicted_px": predicted, "measured_px": float(shift[0]),
                      "across_px": float(shift[1]), "error_px": float(shift[0]) - predicted})
     write_json(context.path("metrics.json"), {"procedure": "grating-shift", "colours": rows})

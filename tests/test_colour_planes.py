@@ -4,10 +4,10 @@ benchctl's own simulated reconstruction."""
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Callable
 
+import msgspec
 import numpy as np
 import pytest
 import torch
@@ -169,8 +169,8 @@ def test_a_captured_colour_chart_scores_like_the_simulated_reconstruction(profil
     homography = bench.camera_homography(profile)
     planes, saturation = {}, {}
     for colour, channel in enumerate(profile.channels):
-        calibrated = dataclasses.replace(profile, sim=dataclasses.replace(profile.sim, slm=dataclasses.replace(
-            profile.sim.slm, two_pi_nm=channel.wavelength_nm, gamma=1.0, zero_order=0.0)))
+        linear = msgspec.structs.replace(profile.sim.slm, two_pi_nm=channel.wavelength_nm, gamma=1.0, zero_order=0.0)
+        calibrated = msgspec.structs.replace(profile, sim=msgspec.structs.replace(profile.sim, slm=linear))
         powers_w = {channel.name: channel.setpoint_mw * 1e-3}
         lit = sim_exposure(calibrated, scene.colours[colour].gray, powers_w, 2 * colour + 1)
         dark = sim_exposure(calibrated, None, {}, 2 * colour + 2)

@@ -3,11 +3,11 @@ and without one."""
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import sys
 from pathlib import Path
 
+import msgspec
 import pytest
 
 from benchctl.devices.camera.gphoto2 import Gphoto2Camera, gphoto2_error
@@ -82,7 +82,7 @@ def fake_gphoto2(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
 
 
 def config(**changes: object) -> CameraConfig:
-    return dataclasses.replace(CameraConfig(driver="gphoto2"), **changes)  # type: ignore[arg-type]
+    return msgspec.structs.replace(CameraConfig(driver="gphoto2"), **changes)  # type: ignore[arg-type]
 
 
 def test_capture_downloads_the_raw_file(fake_gphoto2: Path, tmp_path: Path) -> None:

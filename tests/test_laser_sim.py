@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-import dataclasses
 import time
 
+import msgspec
 import pytest
 
 from benchctl.devices.errors import DeviceBusy, DeviceError, DeviceTimeout, EmissionNotOff, SafetyError
@@ -21,6 +21,10 @@ RGB_PROTOCOL = TemplateProtocol(
 )
 
 
+def _channel(name: str, index: int, nm: float, port: str | None = None) -> LaserChannel:
+    return LaserChannel(name=name, index=index, wavelength_nm=nm, max_power_mw=40.0, setpoint_mw=1.0, port=port)
+
+
 def sim_config(dialect: str, options: str = "", *, channels: int = 3, timeout_s: float = 0.2,
                echo: bool = False) -> LaserConfig:
     """The RGB bench on sim://: one template unit on one port, or one cobolt / obis head per channel and port."""
@@ -28,12 +32,12 @@ def sim_config(dialect: str, options: str = "", *, channels: int = 3, timeout_s:
     chosen = RGB[:channels]
     if dialect == "template":
         return LaserConfig(
-            channels=tuple(LaserChannel(name, index, nm, 40.0, 1.0) for name, index, nm in chosen),
+            channels=tuple(_channel(name, index, nm) for name, index, nm in chosen),
             driver="template", port=f"sim://rgb-laser?dialect=template{query}", timeout_s=timeout_s,
-            protocol=dataclasses.replace(RGB_PROTOCOL, echo=echo),
+            protocol=msgspec.structs.replace(RGB_PROTOCOL, echo=echo),
         )
     return LaserConfig(
-        channels=tuple(LaserChannel(name, index, nm, 40.0, 1.0, port=f"sim://{dialect}-{name}?dialect={dialect}{query}")
+        channels=tuple(_channel(name, index, nm, port=f"sim://{dialect}-{name}?dialect={dialect}{query}")
                        for name, index, nm in chosen),
         driver=dialect, timeout_s=timeout_s,
     )
@@ -66,7 +70,7 @@ def test_session(dialect: str) -> None:
 def test_the_default_profile_speaks_the_simulators_protocol() -> None:
     laser_config = load_profile("simulated").require("laser").laser
     assert laser_config is not None
-    config = dataclasses.replace(laser_config, timeout_s=0.5)
+    config = msgspec.structs.replace(laser_config, timeout_s=0.5)
     with open_laser(config) as laser:
         assert "simulated RGB laser" in laser.identity()
         assert laser.set_power("green", "5%") == pytest.approx(0.002)
@@ -75,7 +79,7 @@ def test_the_default_profile_speaks_the_simulators_protocol() -> None:
 
 
 def test_obis_box_of_heads_on_one_port() -> None:
-    config = LaserConfig(channels=tuple(LaserChannel(name, index, nm, 40.0, 1.0) for name, index, nm in RGB),
+    config = LaserConfig(channels=tuple(_channel(name, index, nm) for name, index, nm in RGB),
                          driver="obis", port="sim://obis-box?dialect=obis&channels=3", timeout_s=0.2)
     with open_laser(config) as laser:
         laser.set_power("blue", "3mW")

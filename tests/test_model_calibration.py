@@ -154,7 +154,8 @@ def test_a_learned_checkpoint_fine_tuned_through_the_fitted_model_shows_better(
     """ccnn trained on the ideal model, then fine-tuned with `--model-calibration stored`: its holograms (the
     network's phase without the fitted wavefront) show on the aberrated bench far better than the ideal
     checkpoint's do on the uncalibrated profile, as well as on a bench without aberrations, and fine-tuning adds to
-    that; the checkpoint records the model and the command to repeat. The beam here is wide (a translation-invariant network cannot undo a beam much narrower than the panel)."""
+    that; the checkpoint records the model and the command to repeat. The beam here is wide (a translation-invariant
+    network cannot undo a beam much narrower than the panel)."""
     profile = make_bench_profile(SMALL_BENCH, {"sim": {**ABERRATED["sim"], "beam": {"waist_mm": 3.0}}})
     model = FittedOptics(tuple(HIDDEN.items()), 3e-3)
     calibration = Calibration.store(profile)

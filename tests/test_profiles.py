@@ -43,9 +43,9 @@ def test_simulated_profile_has_the_papers_bench(monkeypatch: pytest.MonkeyPatch,
     assert profile.slm.pitch_um == 3.74 and profile.slm.pitch_m == pytest.approx(3.74e-6)
     assert profile.slm.shape == (1088, 1920)
     assert profile.channels == (
-        LaserChannel("red", 1, 680.0, 40.0, 40.0),
-        LaserChannel("green", 2, 520.0, 40.0, 2.0),
-        LaserChannel("blue", 3, 450.0, 40.0, 2.0),
+        LaserChannel(name="red", index=1, wavelength_nm=680.0, max_power_mw=40.0, setpoint_mw=40.0),
+        LaserChannel(name="green", index=2, wavelength_nm=520.0, max_power_mw=40.0, setpoint_mw=2.0),
+        LaserChannel(name="blue", index=3, wavelength_nm=450.0, max_power_mw=40.0, setpoint_mw=2.0),
     )
     assert profile.channel("green").wavelength_m == pytest.approx(520e-9)
     assert load_profile("simulated") == profile

@@ -9,6 +9,7 @@ import math
 import struct
 from pathlib import Path
 
+import msgspec
 import pytest
 
 from benchctl.devices.camera.ptp.container import (
@@ -67,7 +68,7 @@ class Images:
 
 
 def config(**changes: object) -> CameraConfig:
-    return dataclasses.replace(CameraConfig(driver="ptp", transport="usb"), **changes)  # type: ignore[arg-type]
+    return msgspec.structs.replace(CameraConfig(driver="ptp", transport="usb"), **changes)  # type: ignore[arg-type]
 
 
 def camera(sim: SimEosTransport, **changes: object) -> PtpCamera:

@@ -19,9 +19,9 @@ from benchctl.runner.engine import run_procedure
 EXPOSE = """\
 import numpy as np
 
-from benchctl.runner.steps import EXPOSURE_PARAMETERS, channels, exposure_step, power_w
+from benchctl.runner.steps import ExposureParameters, channels, exposure_step, power_w
 
-PARAMETERS = {**EXPOSURE_PARAMETERS}
+PARAMETERS = ExposureParameters
 
 
 def plan(context):

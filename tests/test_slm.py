@@ -3,10 +3,10 @@ flips, persistence for other programs, refusals with clear messages, settle wait
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from pathlib import Path
 
+import msgspec
 import numpy as np
 import pytest
 import torch
@@ -23,7 +23,7 @@ CHANNELS = ("red", "green", "blue")
 def make_slm(height: int = 2, width: int = 4, **settings: object) -> SimSLM:
     """An open simulated SLM with no settle wait, linear tables, channels red/green/blue."""
     config = SLMConfig(width=width, height=height, pitch_um=8.0, bit_depth=8, settle_ms=0.0)
-    return SimSLM(dataclasses.replace(config, **settings), CHANNELS).open()
+    return SimSLM(msgspec.structs.replace(config, **settings), CHANNELS).open()
 
 
 def test_linear_table_gives_the_expected_gray_for_known_phases() -> None:

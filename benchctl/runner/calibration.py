@@ -14,13 +14,14 @@ calibration it uses into its own folder, so resuming it or reading its report la
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import shutil
 from datetime import datetime, timedelta
 from pathlib import Path
 from typing import Any
+
+import msgspec
 
 from benchctl.errors import BenchctlError
 from benchctl.files import ensure_dir, write_json
@@ -146,7 +147,7 @@ class Calibration:
         slm = profile.slm
         if slm is not None and files:
             luts = {**{c: p.resolve() for c, p in files.items()}, **slm.lut}
-            profile = dataclasses.replace(profile, slm=dataclasses.replace(slm, lut=luts))
+            profile = msgspec.structs.replace(profile, slm=msgspec.structs.replace(slm, lut=luts))
         return self.with_model(profile)
 
     def with_model(self, profile: Profile) -> Profile:
@@ -154,7 +155,7 @@ class Calibration:
         if profile.optics is None or profile.optics.model is not None or not self.models():
             return profile
         model = (self.folder / MODEL_FILE).resolve()
-        return dataclasses.replace(profile, optics=dataclasses.replace(profile.optics, model=model))
+        return msgspec.structs.replace(profile, optics=msgspec.structs.replace(profile.optics, model=model))
 
     def state(self, colours: list[str]) -> tuple[list[dict[str, Any]], list[str]]:
         """For the report: one row per colour (registration and lookup table in use) and warnings."""

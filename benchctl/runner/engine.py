@@ -19,6 +19,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import msgspec
+
 from benchctl.errors import BenchctlError
 from benchctl.files import file_sha256, write_json
 from benchctl.profiles import Profile, load_profile, resolve_profile_path
@@ -87,7 +89,7 @@ def run_procedure(path: Path | None, *, profile: str | None = None, out: Path = 
         bench_profile = load_profile(profile)
         calibration = Calibration.store(bench_profile)
         record = None
-    effective = calibration.applied(bench_profile)
+    effective = procedure.params.applied_to(calibration.applied(bench_profile))
     with Bench(effective, say) as bench:
         context = Context(effective, procedure.params, calibration, bench, record, say)
         steps = procedure.plan(context)
@@ -103,7 +105,7 @@ def run_procedure(path: Path | None, *, profile: str | None = None, out: Path = 
             record = create_run(Path(out), procedure.name, {
                 "procedure": procedure.kind, "procedure_file": next(iter(procedure.files)),
                 "profile": bench_profile.name, "profile_path": str(bench_profile.path.resolve()),
-                "parameters": procedure.params, "plan": [step.key for step in steps],
+                "parameters": msgspec.to_builtins(procedure.params), "plan": [step.key for step in steps],
                 "procedure_sha256": {name: hashlib.sha256(data).hexdigest() for name, data in procedure.files.items()},
             }, {**procedure.files, PROFILE_COPY: bench_profile.path.read_bytes()})
             calibration = Calibration.store(bench_profile).copy_to(record.folder / CALIBRATION_COPY)

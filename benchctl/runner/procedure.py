@@ -5,13 +5,14 @@ A procedure file is TOML:
     name = "colour-capture"            # names the run folder
     procedure = "colour-capture"       # a built-in (see BUILTINS) or a Python file, relative to this file
     description = "..."                # optional
-    [parameters]                       # checked against the procedure's PARAMETERS schema
+    [parameters]                       # decoded into the procedure's PARAMETERS model
     targets = ["chart:bars"]
 
 or a Python file given directly (its parameters then all take their defaults). A Python procedure defines
 
     DESCRIPTION = "one line"
-    PARAMETERS = {"gray": Field("int", required=False, default=128)}   # benchctl.schema.Field
+    class PARAMETERS(Parameters, kw_only=True):   # or a group such as runner.steps.ExposureParameters
+        gray: Annotated[int, msgspec.Meta(ge=0)] = 128
     def plan(context: Context) -> list[Step]: ...
 
 `plan` validates and returns the steps without touching a device or writing a file (that is what --dry-run
@@ -29,7 +30,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
-from typing import Any
+from typing import Any, TypeVar
+
+import msgspec
 
 from benchctl.console import Progress
 from benchctl.errors import BenchctlError
@@ -37,7 +40,7 @@ from benchctl.profiles import Profile
 from benchctl.runner.bench import Bench
 from benchctl.runner.calibration import Calibration
 from benchctl.runner.record import RunRecord
-from benchctl.schema import Field, check_table, fail
+from benchctl.schema import Model, decode
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -54,12 +57,27 @@ BUILTINS = {
 
 MAX_STEPS = 100_000  # a plan longer than this is a mistake (repeats = 1000000), not an experiment
 
-FILE_SCHEMA = {
-    "name": Field("str", required=False),
-    "procedure": Field("str"),
-    "description": Field("str", required=False, default=""),
-    "parameters": Field("table", required=False, fields=None),
-}
+
+class Parameters(Model, kw_only=True):
+    """Base of every procedure's parameters (its PARAMETERS model; the file's [parameters] table is decoded into
+    it). Groups that several procedures share derive from it (runner.steps.ExposureParameters, ...)."""
+
+    def applied_to(self, profile: Profile) -> Profile:
+        """The profile the run uses: parameters that override a profile setting say so here (none by default)."""
+        return profile
+
+
+P = TypeVar("P", bound=Parameters)
+
+
+class ProcedureFile(Model, kw_only=True):
+    """What a procedure file (.toml) says."""
+
+    name: str | None = None  # names the run folder; default: the file's name without .toml
+    procedure: str  # a built-in (see BUILTINS) or a Python file, relative to this file
+    description: str = ""  # default: the procedure's DESCRIPTION
+    # Decoded into the procedure's PARAMETERS once the procedure is known.
+    parameters: dict[str, Any] = msgspec.field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -77,7 +95,7 @@ class Context:
     """What a step sees: the profile in effect, the parameters, the bench, the calibration, the run record."""
 
     profile: Profile
-    params: dict[str, Any]
+    params: Parameters
     calibration: Calibration
     bench: Bench
     record: RunRecord | None = None  # None during a dry run
@@ -85,7 +103,15 @@ class Context:
 
     def recalibrated(self) -> None:
         """Apply lookup tables measured during this run to the profile later steps use."""
-        self.profile = self.calibration.applied(self.calibration.profile)
+        self.profile = self.params.applied_to(self.calibration.applied(self.calibration.profile))
+
+    def parameters(self, kind: type[P]) -> P:
+        """The procedure's parameters as `kind`: its PARAMETERS or a group they derive from, which the shared
+        steps need (ExposureParameters for exposure steps)."""
+        if not isinstance(self.params, kind):
+            raise BenchctlError(f"the procedure's PARAMETERS ({type(self.params).__name__}) must derive from "
+                                f"{kind.__module__}.{kind.__name__} for this step")
+        return self.params
 
     def result(self, key: str) -> dict[str, Any]:
         """The result a finished step recorded (this run, or the run being resumed)."""
@@ -111,7 +137,7 @@ class Procedure:
     kind: str
     description: str
     module: ModuleType
-    params: dict[str, Any]
+    params: Parameters
     files: dict[str, bytes]  # run-folder file name -> bytes, to keep as used
 
     def plan(self, context: Context) -> list[Step]:
@@ -129,7 +155,7 @@ def _load_module(kind: str, base: Path, where: str, copies: Path | None = None) 
     """The module for a built-in name or a Python file (relative to `base`; by file name in `copies`, a run
     folder, when given), and the files to keep."""
     if kind in BUILTINS:
-        return importlib.import_module(BUILTINS[kind]), {}
+        return _with_parameters(importlib.import_module(BUILTINS[kind]), where), {}
     path = copies / Path(kind).name if copies else (base / kind if not Path(kind).is_absolute() else Path(kind))
     if path.suffix != ".py":
         raise BenchctlError(f"{where}: unknown procedure {kind!r} (built-ins: {', '.join(BUILTINS)}; or a .py file)")
@@ -138,14 +164,25 @@ def _load_module(kind: str, base: Path, where: str, copies: Path | None = None) 
     spec = importlib.util.spec_from_file_location(f"benchctl_procedure_{path.stem}", path)
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its models' annotations are resolved in its namespace
     try:
         spec.loader.exec_module(module)
     except Exception as exc:
+        del sys.modules[spec.name]
         raise BenchctlError(f"{path}: cannot load procedure: {type(exc).__name__}: {exc}") from exc
     for attribute in ("PARAMETERS", "plan"):
         if not hasattr(module, attribute):
             raise BenchctlError(f"{path}: a Python procedure must define {attribute} (see benchctl.runner.procedure)")
-    return module, {path.name: path.read_bytes()}
+    return _with_parameters(module, str(path)), {path.name: path.read_bytes()}
+
+
+def _with_parameters(module: ModuleType, where: str) -> ModuleType:
+    """`module`, whose PARAMETERS must be a Parameters model."""
+    model = module.PARAMETERS
+    if not (isinstance(model, type) and issubclass(model, Parameters)):
+        raise BenchctlError(f"{where}: PARAMETERS must be a class deriving from benchctl.runner.procedure.Parameters, "
+                            f"got {model!r}")
+    return module
 
 
 def load_procedure(path: str | Path, *, copies: Path | None = None) -> Procedure:
@@ -162,19 +199,15 @@ def load_procedure(path: str | Path, *, copies: Path | None = None) -> Procedure
         raise BenchctlError(f"{path}: cannot read procedure: {exc.strerror or exc}") from None
     if path.suffix == ".py":
         module, files = _load_module(path.name, path.parent, str(path))
-        params = check_table({}, module.PARAMETERS, "parameters", path)
+        params = decode({}, module.PARAMETERS, path, "parameters")
         return Procedure(path.stem, path.name, getattr(module, "DESCRIPTION", ""), module, params, files)
     try:
         raw = tomllib.loads(data.decode("utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise BenchctlError(f"{path}: TOML syntax error: {exc}") from None
-    parameters = raw.pop("parameters", {})
-    top = check_table(raw, {k: v for k, v in FILE_SCHEMA.items() if k != "parameters"}, "", path)
-    if not isinstance(parameters, dict):
-        raise fail(path, "parameters", f"expected a [parameters] table, got {parameters!r}")
-    module, files = _load_module(top["procedure"], path.parent, f"{path}: procedure", copies)
-    params = check_table(parameters, module.PARAMETERS, "parameters", path)
-    name = top.get("name") or path.stem
+    top = decode(raw, ProcedureFile, path)
+    module, files = _load_module(top.procedure, path.parent, f"{path}: procedure", copies)
+    params = decode(top.parameters, module.PARAMETERS, path, "parameters")
     files = {"procedure.toml": data, **files}
-    return Procedure(name, top["procedure"], top["description"] or getattr(module, "DESCRIPTION", ""), module,
-                     params, files)
+    return Procedure(top.name or path.stem, top.procedure, top.description or getattr(module, "DESCRIPTION", ""),
+                     module, params, files)

@@ -15,10 +15,11 @@ import cv2
 import numpy as np
 
 from benchctl.files import atomic_write_bytes, write_csv, write_json
-from benchctl.optics.metrics import pareto_front
 from benchctl.images import read_image
+from benchctl.optics.metrics import pareto_front
 from benchctl.runner.plots import front_plot, line_plot
 from benchctl.runner.procedure import Context
+from benchctl.runner.steps import HologramParameters
 
 PREVIEW_WIDTH = 480
 PEAK_PERCENTILE_TEXT = "99.9th percentile"
@@ -148,7 +149,7 @@ def colour_capture_report(context: Context, results: list[dict[str, Any]], colou
     speed = [{"label": r["label"], "colour": r["colour"], "generation s": r["generation_s"],
               "simulated PSNR dB": r.get("simulated_psnr_amplitude_db"),
               "capture PSNR dB": r.get("capture_psnr_amplitude_db")} for r in rows if r["colour"] != "merged"]
-    method = context.params.get("method")
+    method = context.parameters(HologramParameters).method
     methods = method if isinstance(method, str) else ", ".join(method)
     body.append(f"<h2>Generation time against error ({_esc(methods)})</h2>{table(speed)}"
                 "<p>Generation time is the time it took to compute the hologram (for a cached hologram, when it was "

@@ -6,10 +6,12 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, Literal
 
+import msgspec
 import numpy as np
 import torch
+from msgspec import Meta
 
 from benchctl.capture.raw import RawImage, average_frames, decode_raw, subtract_dark
 from benchctl.cgh import Method
@@ -18,34 +20,57 @@ from benchctl.errors import BenchctlError
 from benchctl.files import file_sha256
 from benchctl.images import read_image, write_png
 from benchctl.optics import linear_to_srgb
-from benchctl.profiles import LaserChannel, Profile
+from benchctl.profiles import LaserChannel, NonNegative, NonNegativeInt, Profile
 from benchctl.runner.hologram_cache import hologram
 from benchctl.runner.holograms import resolve_any
-from benchctl.runner.procedure import Context, Step
+from benchctl.runner.procedure import Context, P, Parameters, Step
 from benchctl.runner.record import set_aside
-from benchctl.schema import Field
 from benchctl.targets import CHART_PREFIX, PHOTO_PREFIX, load_target, prepare_target
 
-EXPOSURE_PARAMETERS = {
-    "colours": Field("str_list", required=False),  # default: every laser channel of the profile
-    "setpoints": Field("str_map", required=False, default={}),  # colour -> "40mW" | "5%" (default: profile's)
-    "frames": Field("int", required=False, default=2, ge=1),  # RAW frames averaged per exposure
-    "dark_frames": Field("int", required=False, default=1, ge=0),  # with emission off, after each exposure
-    "settle_ms": Field("float", required=False, ge=0),  # after a new SLM frame (default: the profile's)
-}
-METHOD_PARAMETERS = {
-    "method": Field("str", required=False, default="dpac"),
-    "iterations": Field("int", required=False, ge=0),
-    "seed": Field("int", required=False, default=0, ge=0),
-    "checkpoint": Field("str", required=False),  # a trained model for a learned method
-}
+Frames = Annotated[int, Meta(ge=1)]  # RAW frames averaged per exposure
+DarkFrames = Annotated[int, Meta(ge=0)]  # with emission off, after each exposure
+Registration = Literal["auto", "stored"]  # "auto": register first when no stored registration fits; "stored": require
+
+
+class ExposureParameters(Parameters, kw_only=True):
+    """Which colours a procedure exposes, at what power, with how many frames: every procedure that exposes."""
+
+    colours: tuple[str, ...] | None = None  # default: every laser channel of the profile
+    setpoints: dict[str, str] = msgspec.field(default_factory=dict)  # colour -> "40mW" | "5%" (default: profile's)
+    frames: Frames = 2
+    dark_frames: DarkFrames = 1
+    settle_ms: NonNegative | None = None  # after a new SLM frame (default: the profile's slm.settle_ms)
+
+    def applied_to(self, profile: Profile) -> Profile:
+        """The profile with this procedure's SLM settle time, if it gives one."""
+        if self.settle_ms is None or profile.slm is None:
+            return profile
+        return msgspec.structs.replace(profile, slm=msgspec.structs.replace(profile.slm, settle_ms=self.settle_ms))
+
+
+class HologramParameters(ExposureParameters, kw_only=True):
+    """The exposure parameters and how the holograms shown are computed. (Groups stack by derivation: a msgspec
+    Struct has one base with fields.)"""
+
+    method: str = "dpac"
+    iterations: NonNegativeInt | None = None  # default: the method's own
+    seed: NonNegativeInt = 0
+    checkpoint: str | None = None  # a trained model for a learned method
+
+
+def carried(params: Parameters, kind: type[P]) -> P:
+    """Another procedure's parameters (`kind`: registration's, when colour capture registers first) with the values
+    these parameters share with it, and its own defaults for the rest."""
+    shared = set(kind.__struct_fields__) & set(params.__struct_fields__)
+    return kind(**{name: getattr(params, name) for name in shared})
 
 
 def check_method(context: Context, used: list[LaserChannel], method: str | None = None) -> Method:
     """A hologram method (default: the procedure's) and its checkpoint (the file and the geometry it was trained
     for), checked when planning, so a dry run reports what the run would otherwise fail on at its first hologram."""
+    params = context.parameters(HologramParameters)
     try:
-        return resolve_any(method or context.params["method"], context.profile, context.params.get("checkpoint"),
+        return resolve_any(method or params.method, context.profile, params.checkpoint,
                            [channel.name for channel in used])[0]
     except BenchctlError as exc:
         raise BenchctlError(f"parameters.method / checkpoint: {exc}") from None
@@ -54,14 +79,14 @@ def check_method(context: Context, used: list[LaserChannel], method: str | None 
 def channels(context: Context) -> list[LaserChannel]:
     """The laser channels a procedure uses: `colours` if given (each must exist), else all of the profile's."""
     profile = context.profile.require("laser")
-    names = context.params.get("colours") or [channel.name for channel in profile.channels]
+    names = context.parameters(ExposureParameters).colours or [channel.name for channel in profile.channels]
     return [profile.channel(name) for name in names]
 
 
 def power_w(context: Context, channel: LaserChannel) -> float:
     """The power a channel is exposed at: the procedure's setpoint for it, else the profile's; never above the
     channel's max_power_mw (checked here, at planning, and again by the laser driver)."""
-    text = context.params.get("setpoints", {}).get(channel.name)
+    text = context.parameters(ExposureParameters).setpoints.get(channel.name)
     watts = channel.setpoint_mw * 1e-3 if text is None else parse_power(text, channel.max_power_mw)
     if watts > channel.max_power_mw * 1e-3 * (1 + 1e-9):
         raise BenchctlError(f"parameters.setpoints.{channel.name}: {format_power(watts)} is above the channel's "
@@ -72,7 +97,7 @@ def power_w(context: Context, channel: LaserChannel) -> float:
 def unknown_setpoints(context: Context) -> None:
     """A setpoint for a colour the profile has no laser channel for is an error (a misspelt colour)."""
     names = {channel.name for channel in context.profile.require("laser").channels}
-    for name in context.params.get("setpoints", {}):
+    for name in context.parameters(ExposureParameters).setpoints:
         if name not in names:
             raise BenchctlError(f"parameters.setpoints.{name}: no laser channel {name!r} "
                                 f"(known: {', '.join(sorted(names))})")
@@ -99,23 +124,22 @@ def prepared_target(profile: Profile, spec: str) -> torch.Tensor:
 
 
 def hologram_step(key: str, label: str, target: torch.Tensor, channel: LaserChannel,
-                  options: dict[str, Any]) -> Step:
+                  options: HologramParameters) -> Step:
     """Compute (or take from the cache) `channel`'s hologram of `target` and keep the frame as displayed."""
     def action(context: Context) -> dict[str, Any]:
-        result = hologram(context.profile, target, channel.name, options["method"],
-                          iterations=options.get("iterations"), seed=options.get("seed", 0),
-                          checkpoint=options.get("checkpoint"), progress=context.progress)
+        result = hologram(context.profile, target, channel.name, options.method, iterations=options.iterations,
+                          seed=options.seed, checkpoint=options.checkpoint, progress=context.progress)
         file = Path("holograms") / f"{label}-{channel.name}.png"
         write_png(context.path(str(file)), result.gray)
         np.save(context.path("images", label, f"simulated-{channel.name}.npy"), result.reconstruction)
         how = "cached" if result.cached else f"{result.seconds:.2f} s"
-        context.say(f"      {options['method']} {channel.name}: {how}, simulated PSNR "
+        context.say(f"      {options.method} {channel.name}: {how}, simulated PSNR "
                     f"{result.scores['psnr_amplitude_db']:.2f} dB amplitude")
         return {"file": str(file), "seconds": round(result.seconds, 4), "cached": result.cached,
                 "scores": {k: round(v, 4) for k, v in result.scores.items()},
                 "simulated": f"images/{label}/simulated-{channel.name}.npy"}
 
-    return Step(key, f"hologram {label} {channel.name} ({options['method']})", action)
+    return Step(key, f"hologram {label} {channel.name} ({options.method})", action)
 
 
 def displayed_frame(context: Context, hologram_key: str) -> np.ndarray:
@@ -143,8 +167,9 @@ def exposure_step(context: Context, key: str, folder: tuple[str, ...], channel: 
                      for name in [*result["frames"], *result["darks"]]}
         return {**result, "folder": str(Path("raw", *folder)), "checksums": checksums}
 
-    frames = context.params["frames"] if frames is None else frames
-    darks = context.params["dark_frames"] if dark_frames is None else dark_frames
+    params = context.parameters(ExposureParameters)
+    frames = params.frames if frames is None else frames
+    darks = params.dark_frames if dark_frames is None else dark_frames
     power_text = "the power automatic exposure chooses" if callable(watts) else format_power(watts)
     return Step(key, f"{description}: {channel.name} alone at {power_text}, {frames} frame(s) + {darks} dark",
                 action, ("laser", "slm", "camera"))

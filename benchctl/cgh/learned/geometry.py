@@ -8,10 +8,11 @@ human units, and loading one for another geometry is refused with a message that
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Mapping
 from typing import Any
+
+import msgspec
 
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import Profile
@@ -36,10 +37,10 @@ def grid_profile(profile: Profile, size: tuple[int, int], *, scale_distance: boo
         return profile
     roi = (max(1, round(rh * size[0] / h)), max(1, round(rw * size[1] / w)))
     distance = profile.optics.distance_mm * (size[0] * size[1] / (h * w) if scale_distance else 1.0)
-    return dataclasses.replace(
+    return msgspec.structs.replace(
         profile,
-        slm=dataclasses.replace(profile.slm, height=size[0], width=size[1]),
-        optics=dataclasses.replace(profile.optics, roi=roi, distance_mm=distance),
+        slm=msgspec.structs.replace(profile.slm, height=size[0], width=size[1]),
+        optics=msgspec.structs.replace(profile.optics, roi=roi, distance_mm=distance),
     )
 
 

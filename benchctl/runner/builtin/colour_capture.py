@@ -13,10 +13,12 @@ above the channel's max_power_mw), so no colour is lost in read noise or clipped
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any, Literal
 
+import msgspec
 import numpy as np
 import torch
+from msgspec import Meta
 
 from benchctl.capture.colour_planes import PEAK_PERCENTILE, merge_capture, registered_plane, roi_saturation
 from benchctl.capture.exposure import choose_power
@@ -31,8 +33,9 @@ from benchctl.runner.procedure import Context, Step
 from benchctl.runner.report import colour_capture_report
 from benchctl.runner.holograms import target_plane
 from benchctl.runner.steps import (
-    EXPOSURE_PARAMETERS,
-    METHOD_PARAMETERS,
+    HologramParameters,
+    Registration,
+    carried,
     channels,
     check_method,
     displayed_frame,
@@ -45,54 +48,58 @@ from benchctl.runner.steps import (
     unknown_setpoints,
     write_linear16,
 )
-from benchctl.schema import Field
 from benchctl.targets import active_channels
 
 AUTO_LUT_GRAY_STEP = 16  # every 16th gray level: 17 exposures per colour, errors below 0.01 rad on the simulator
 DESCRIPTION = "holograms per colour, each colour exposed alone, RAW capture, registration, merge, scores"
-PARAMETERS = {
-    "targets": Field("str_list", required=False, default=["chart:bars"], min_items=1),
-    **METHOD_PARAMETERS,
+
+
+class ColourCaptureParameters(HologramParameters, kw_only=True):
+    """What to show, how often, and what to do first when calibration is missing."""
+
+    targets: Annotated[tuple[str, ...], Meta(min_length=1)] = ("chart:bars",)
     # one method, or several: each target is then captured with each, and the report draws their front
-    "method": Field("names", required=False, default="dpac", min_items=1),
-    **EXPOSURE_PARAMETERS,
-    "repeats": Field("int", required=False, default=1, ge=1, le=1000),
-    # "auto": register first when no stored registration fits this profile; "stored": require one
-    "registration": Field("str", required=False, default="auto", choices=("auto", "stored")),
+    method: str | Annotated[tuple[str, ...], Meta(min_length=1)] = "dpac"
+    repeats: Annotated[int, Meta(ge=1, le=1000)] = 1
+    registration: Registration = "auto"
     # "auto": measure the SLM's lookup table first for colours that have none; "skip": use what there is
-    "lut_calibration": Field("str", required=False, default="auto", choices=("auto", "skip")),
+    lut_calibration: Literal["auto", "skip"] = "auto"
     # "auto": a probe frame per colour sets the laser power so the peak lands at peak_goal; "fixed": setpoints
-    "exposure": Field("str", required=False, default="auto", choices=("auto", "fixed")),
-    "peak_goal": Field("float", required=False, default=0.7, gt=0.05, le=0.95),
-}
+    exposure: Literal["auto", "fixed"] = "auto"
+    peak_goal: Annotated[float, Meta(gt=0.05, le=0.95)] = 0.7  # fraction of full scale
+
+
+PARAMETERS = ColourCaptureParameters
 
 
 def plan(context: Context) -> list[Step]:
     """Registration if needed, then per target: holograms, exposures (per repeat), processing; the report."""
-    params = context.params
+    params = context.parameters(ColourCaptureParameters)
     unknown_setpoints(context)
     used = channels(context)
     steps: list[Step] = []
-    methods = _methods(params)
+    methods = list(dict.fromkeys([params.method] if isinstance(params.method, str) else params.method))
     iterative = {method: check_method(context, used, method).default_iterations is not None for method in methods}
     # with several methods, `iterations` is the budget of the iterative ones
-    options = {method: {key: params.get(key) for key in METHOD_PARAMETERS} | {
-        "method": method, "iterations": params.get("iterations") if len(methods) == 1 or iterative[method] else None}
-        for method in methods}
+    options = {method: msgspec.structs.replace(params, method=method, iterations=params.iterations
+                                               if len(methods) == 1 or iterative[method] else None)
+               for method in methods}
     calibrated = {*context.calibration.lut_files(), *(context.profile.slm.lut if context.profile.slm else {})}
     uncalibrated = [c for c in used if c.name not in calibrated]
-    if uncalibrated and params["lut_calibration"] == "auto":
-        steps += lut_calibration.lut_steps(context, uncalibrated, gray_step=AUTO_LUT_GRAY_STEP)
+    if uncalibrated and params.lut_calibration == "auto":
+        steps += lut_calibration.lut_steps(context, uncalibrated,
+                                           lut_calibration.PARAMETERS(gray_step=AUTO_LUT_GRAY_STEP))
     missing = [c for c in used if c.name not in context.calibration.registrations()]
-    if missing and params["registration"] == "stored":
+    if missing and params.registration == "stored":
         raise BenchctlError(f"no stored camera-SLM registration for {', '.join(c.name for c in missing)} on profile "
                             f"{context.profile.name!r}: run procedures/registration.toml first, or set "
                             "registration = \"auto\"")
     if missing:
-        steps += registration.registration_steps(context, missing, dict(options[methods[0]]))
+        steps += registration.registration_steps(context, missing,
+                                                 carried(options[methods[0]], registration.PARAMETERS))
     labels: set[str] = set()
     targets = []
-    for spec in params["targets"]:
+    for spec in params.targets:
         base, target = target_label(spec, labels), prepared_target(context.profile, spec)
         present = active_channels(target)
         lit = [c for c in used if present[target_plane(c)]]
@@ -106,29 +113,23 @@ def plan(context: Context) -> list[Step]:
     return steps
 
 
-def _methods(params: dict[str, Any]) -> list[str]:
-    """The hologram methods asked for, in order, each once."""
-    method = params["method"]
-    return list(dict.fromkeys([method] if isinstance(method, str) else method))
-
-
 def _capture_steps(context: Context, spec: str, label: str, lit: list[LaserChannel], target: torch.Tensor,
-                   options: dict[str, Any]) -> list[Step]:
-    """One target with one method (`options`): holograms per colour, probes, exposures per repeat, processing."""
-    params, method = context.params, options["method"]
+                   options: ColourCaptureParameters) -> list[Step]:
+    """One target with one method (`options.method`): holograms per colour, probes, exposures per repeat,
+    processing."""
     steps = [hologram_step(f"hologram/{label}/{c.name}", label, target, c, options) for c in lit]
     powers = {c.name: power_w(context, c) for c in lit}
-    if params["exposure"] == "auto":
+    if options.exposure == "auto":
         for channel in lit:
             steps.append(_probe_step(context, label, channel))
             powers[channel.name] = _probed_power(f"probe/{label}/{channel.name}")
-    for repeat in _repeats(params["repeats"]):
+    for repeat in _repeats(options.repeats):
         for channel in lit:
             steps.append(exposure_step(
                 context, f"capture/{label}{repeat}/{channel.name}", (label + repeat, channel.name), channel,
                 powers[channel.name], _shown(f"hologram/{label}/{channel.name}"), f"expose {label}{repeat}"))
         steps.append(Step(f"process/{label}{repeat}", f"register, merge and score {label}{repeat}",
-                          _processor(spec, label, repeat, lit, target, method)))
+                          _processor(spec, label, repeat, lit, target, str(options.method))))
     return steps
 
 
@@ -153,7 +154,7 @@ def _probe_step(context: Context, label: str, channel: LaserChannel) -> Step:
         image = decode_raw(context.path(result["folder"], result["frames"][0]))
         stats = signal_stats(context, image, channel)
         choice = choose_power(result["setpoint_w"], stats["peak"], stats["saturated_fraction"] > 0,
-                              context.params["peak_goal"], channel.max_power_mw * 1e-3)
+                              context.parameters(ColourCaptureParameters).peak_goal, channel.max_power_mw * 1e-3)
         limit = " (the channel's max_power_mw)" if choice.limited_by_max else ""
         context.say(f"      auto exposure {channel.name}: peak {stats['peak']:.1%} at {format_power(choice.probe_w)}"
                     f" -> {format_power(choice.power_w)}{limit}")
@@ -219,7 +220,8 @@ def _processor(spec: str, label: str, repeat: str, lit: list[LaserChannel], targ
 def _reporter(targets: list[tuple[str, str, list[LaserChannel]]], used: list[LaserChannel]):
     def action(context: Context) -> dict[str, Any]:
         results = [context.result(f"process/{label}{repeat}")
-                   for _, label, _ in targets for repeat in _repeats(context.params["repeats"])]
+                   for _, label, _ in targets
+                   for repeat in _repeats(context.parameters(ColourCaptureParameters).repeats)]
         return colour_capture_report(context, results, [c.name for c in used])
 
     return action

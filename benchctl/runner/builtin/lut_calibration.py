@@ -9,9 +9,10 @@ channel whose table the profile does not name. On the simulated bench it is comp
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
+from msgspec import Meta
 
 from benchctl.capture.lut_calibration import (
     calibration_grays,
@@ -27,44 +28,49 @@ from benchctl.runner.holograms import target_plane
 from benchctl.runner.procedure import Context, Step
 from benchctl.runner.report import lut_report
 from benchctl.runner.steps import (
-    EXPOSURE_PARAMETERS,
+    DarkFrames,
+    ExposureParameters,
+    Frames,
     channels,
     exposure_step,
     load_exposure,
     power_w,
     unknown_setpoints,
 )
-from benchctl.schema import Field
 
 DESCRIPTION = "gray -> phase response per colour from zero-order intensity of binary gratings; writes the LUTs"
-PARAMETERS = {
-    **{**EXPOSURE_PARAMETERS, "frames": Field("int", required=False, default=1, ge=1),
-       "dark_frames": Field("int", required=False, default=0, ge=0)},
-    "gray_step": Field("int", required=False, default=8, ge=1),  # every n-th gray level (and the last)
-}
+
+
+class LutCalibrationParameters(ExposureParameters, kw_only=True):
+    """One frame, no dark, per grating: the zero order is bright and the fit uses many gray levels."""
+
+    frames: Frames = 1
+    dark_frames: DarkFrames = 0
+    gray_step: Annotated[int, Meta(ge=1)] = 8  # every n-th gray level (and the last)
+
+
+PARAMETERS = LutCalibrationParameters
 
 
 def plan(context: Context) -> list[Step]:
     unknown_setpoints(context)
     used = channels(context)
-    steps = lut_steps(context, used, context.params["gray_step"], context.params["frames"],
-                      context.params["dark_frames"])
+    steps = lut_steps(context, used, context.parameters(LutCalibrationParameters))
     return steps + [Step("report", "lookup-table report", _reporter(used))]
 
 
-def lut_steps(context: Context, used: list[LaserChannel], gray_step: int, frames: int = 1,
-              dark_frames: int = 0) -> list[Step]:
+def lut_steps(context: Context, used: list[LaserChannel], params: LutCalibrationParameters) -> list[Step]:
     """Grating exposures and the fit per colour; colour capture runs these first for uncalibrated colours."""
     slm = context.profile.require("slm", "optics").slm
     assert slm is not None
-    grays = calibration_grays(slm.bit_depth, gray_step)
+    grays = calibration_grays(slm.bit_depth, params.gray_step)
     steps: list[Step] = []
     for channel in used:
         watts = power_w(context, channel)
         for gray in grays:
             steps.append(exposure_step(context, f"lut/{channel.name}/{gray}", ("lut", channel.name, f"gray-{gray:05d}"),
-                                       channel, watts, _grating(gray), f"grating 0/{gray}", frames=frames,
-                                       dark_frames=dark_frames))
+                                       channel, watts, _grating(gray), f"grating 0/{gray}", frames=params.frames,
+                                       dark_frames=params.dark_frames))
         steps.append(Step(f"lut/{channel.name}/fit", f"phase response and lookup table ({channel.name})",
                           _fitter(channel, grays)))
     return steps

@@ -9,10 +9,11 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 import torch
+from msgspec import Meta
 
 from benchctl.capture.colour_planes import registered_plane, roi_saturation
 from benchctl.devices.slm import slm_for
@@ -21,36 +22,42 @@ from benchctl.images import read_image, write_png
 from benchctl.optics.aberration import ZERNIKE_TERMS
 from benchctl.optics.fitted import calibration_patterns, fit_optics
 from benchctl.optics.setup import OpticalSetup
-from benchctl.profiles import LaserChannel
+from benchctl.profiles import LaserChannel, NonNegativeInt, Positive
 from benchctl.runner.builtin import registration
 from benchctl.runner.calibration import Calibration
 from benchctl.runner.holograms import target_plane
 from benchctl.runner.procedure import Context, Step
 from benchctl.runner.report import model_calibration_report
 from benchctl.runner.steps import (
-    EXPOSURE_PARAMETERS,
+    ExposureParameters,
+    Registration,
+    carried,
     channels,
     exposure_step,
     load_exposure,
     power_w,
     unknown_setpoints,
 )
-from benchctl.schema import Field
 
 MAX_SATURATED = 1e-3  # fraction of ROI pixels clipped in a capture above which the fit is refused
 DESCRIPTION = "random-point phase patterns per colour, captured, registered; wavefront and beam fitted and stored"
-PARAMETERS = {
-    **EXPOSURE_PARAMETERS,
+
+
+class ModelCalibrationParameters(ExposureParameters, kw_only=True):
+    """The calibration patterns and the fit."""
+
     # 4 patterns: on the test bench the fitted coefficients move by < 0.005 waves from 4 to 8
     # (docs/model_calibration.md)
-    "patterns": Field("int", required=False, default=4, ge=1),
-    "spacing_px": Field("int", required=False, default=6, ge=2),  # one focused point per spacing^2 ROI pixels
-    "fit_steps": Field("int", required=False, default=120, ge=2),  # Adam steps of the fit (half blurred, half sharp)
-    "learning_rate": Field("float", required=False, default=0.03, gt=0),
-    "beam": Field("bool", required=False, default=True),  # fit the beam's waist and offset too
-    "seed": Field("int", required=False, default=0, ge=0),
-    "registration": Field("str", required=False, default="auto", choices=("auto", "stored")),
-}
+    patterns: Annotated[int, Meta(ge=1)] = 4
+    spacing_px: Annotated[int, Meta(ge=2)] = 6  # one focused point per spacing^2 ROI pixels
+    fit_steps: Annotated[int, Meta(ge=2)] = 120  # Adam steps of the fit (half blurred, half sharp)
+    learning_rate: Positive = 0.03
+    beam: bool = True  # fit the beam's waist and offset too
+    seed: NonNegativeInt = 0  # of the random points
+    registration: Registration = "auto"
+
+
+PARAMETERS = ModelCalibrationParameters
 
 
 def plan(context: Context) -> list[Step]:
@@ -59,13 +66,14 @@ def plan(context: Context) -> list[Step]:
     used = channels(context)
     steps: list[Step] = []
     missing = [c for c in used if c.name not in context.calibration.registrations()]
-    if missing and context.params["registration"] == "stored":
+    params = context.parameters(ModelCalibrationParameters)
+    if missing and params.registration == "stored":
         raise BenchctlError(f"no stored camera-SLM registration for {', '.join(c.name for c in missing)} on profile "
                             f"{context.profile.name!r}: run procedures/registration.toml first, or set "
                             "registration = \"auto\"")
     if missing:
-        steps += registration.registration_steps(context, missing)
-    count = context.params["patterns"]
+        steps += registration.registration_steps(context, missing, carried(params, registration.PARAMETERS))
+    count = params.patterns
     for channel in used:
         steps.append(Step(f"model/patterns/{channel.name}", f"{count} calibration patterns ({channel.name})",
                           _patterns(channel)))
@@ -82,8 +90,9 @@ def plan(context: Context) -> list[Step]:
 def _patterns(channel: LaserChannel):
     def action(context: Context) -> dict[str, Any]:
         setup = OpticalSetup.from_profile(context.profile, channel.name)
-        phases = calibration_patterns(setup.slm_propagator(), setup.roi, context.params["patterns"],
-                                      seed=context.params["seed"], spacing_px=context.params["spacing_px"])
+        params = context.parameters(ModelCalibrationParameters)
+        phases = calibration_patterns(setup.slm_propagator(), setup.roi, params.patterns, seed=params.seed,
+                                      spacing_px=params.spacing_px)
         slm = slm_for(context.profile)
         files = []
         for k, phase in enumerate(phases):
@@ -117,9 +126,9 @@ def _fitter(channel: LaserChannel):
             raise BenchctlError(f"model calibration {channel.name}: {saturated:.2%} of the ROI is saturated in a "
                                 "capture (the fit needs linear images): lower the setpoint or the exposure")
         start = time.perf_counter()
+        params = context.parameters(ModelCalibrationParameters)
         fit = fit_optics(setup.target_propagator(), setup.roi, torch.stack(shown), torch.stack(captured),
-                         beam=context.params["beam"], iterations=context.params["fit_steps"],
-                         learning_rate=context.params["learning_rate"])
+                         beam=params.beam, iterations=params.fit_steps, learning_rate=params.learning_rate)
         seconds = time.perf_counter() - start
         entry = {**fit.model.to_dict(), "residual": round(fit.residual, 5),
                  "initial_residual": round(fit.initial_residual, 5), "patterns": len(shown)}

@@ -9,9 +9,10 @@ largest deviation); the peak's line at the working setpoint gives the exposure t
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
+from msgspec import Meta
 
 from benchctl.capture.colour_planes import registered_plane
 from benchctl.capture.raw import RawImage
@@ -23,8 +24,8 @@ from benchctl.runner.holograms import target_plane
 from benchctl.runner.procedure import Context, Step
 from benchctl.runner.report import power_sweep_report
 from benchctl.runner.steps import (
-    EXPOSURE_PARAMETERS,
-    METHOD_PARAMETERS,
+    Frames,
+    HologramParameters,
     channels,
     check_method,
     displayed_frame,
@@ -35,29 +36,33 @@ from benchctl.runner.steps import (
     prepared_target,
     unknown_setpoints,
 )
-from benchctl.schema import Field
 
 DESCRIPTION = "camera signal against laser setpoint per colour: linearity and the exposure that does not saturate"
-PARAMETERS = {
-    "target": Field("str", required=False, default="chart:white"),
-    "levels": Field("str_list", required=False, default=["10%", "25%", "50%", "75%", "100%"], min_items=2),
-    **METHOD_PARAMETERS,
-    **{**EXPOSURE_PARAMETERS, "frames": Field("int", required=False, default=1, ge=1)},
-}
+
+
+class PowerSweepParameters(HologramParameters, kw_only=True):
+    """The target shown and the laser powers it is exposed at ("20mW" or a share of max_power_mw, "25%")."""
+
+    frames: Frames = 1
+    target: str = "chart:white"
+    levels: Annotated[tuple[str, ...], Meta(min_length=2)] = ("10%", "25%", "50%", "75%", "100%")
+
+
+PARAMETERS = PowerSweepParameters
 PEAK_GOAL = 0.8  # fraction of full scale the recommended exposure puts the peak at
 PEAK_PERCENTILE = 99.9
 
 
 def plan(context: Context) -> list[Step]:
     unknown_setpoints(context)
-    target = prepared_target(context.profile, context.params["target"])
-    options = {key: context.params.get(key) for key in METHOD_PARAMETERS}
+    params = context.parameters(PowerSweepParameters)
+    target = prepared_target(context.profile, params.target)
     steps: list[Step] = []
     used = channels(context)
     check_method(context, used)
     for channel in used:
         hologram_key = f"hologram/sweep/{channel.name}"
-        steps.append(hologram_step(hologram_key, "sweep", target, channel, options))
+        steps.append(hologram_step(hologram_key, "sweep", target, channel, params))
         for number, watts in enumerate(_levels(context, channel)):
             steps.append(exposure_step(context, f"sweep/{channel.name}/{number}", ("sweep", channel.name, str(number)),
                                        channel, watts, lambda ctx, k=hologram_key: displayed_frame(ctx, k),
@@ -68,7 +73,7 @@ def plan(context: Context) -> list[Step]:
 
 def _levels(context: Context, channel: LaserChannel) -> list[float]:
     levels = []
-    for i, text in enumerate(context.params["levels"]):
+    for i, text in enumerate(context.parameters(PowerSweepParameters).levels):
         watts = parse_power(text, channel.max_power_mw)
         if watts > channel.max_power_mw * 1e-3 * (1 + 1e-9):
             raise BenchctlError(f"parameters.levels[{i}]: {text} is above {channel.name}'s max_power_mw "
@@ -141,7 +146,7 @@ def _exposure(context: Context, result: dict[str, Any]) -> float | None:
 
 def _reporter(used: list[LaserChannel]):
     def action(context: Context) -> dict[str, Any]:
-        count = len(context.params["levels"])
+        count = len(context.parameters(PowerSweepParameters).levels)
         analyses = {c.name: _analyse(context, c, count) for c in used}
         return power_sweep_report(context, analyses)
 

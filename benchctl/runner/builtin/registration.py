@@ -6,9 +6,10 @@ compared with the simulator's own geometry, in sensor pixels at the ROI's corner
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
+from msgspec import Meta
 
 from benchctl.capture.registration import (
     DEFAULT_GRID,
@@ -19,14 +20,13 @@ from benchctl.capture.registration import (
     dots_in_capture,
     fit_registration,
 )
-from benchctl.profiles import LaserChannel
 from benchctl.runner.calibration import Calibration
 from benchctl.runner.holograms import target_plane
 from benchctl.runner.procedure import Context, Step
 from benchctl.runner.report import registration_report
+from benchctl.profiles import LaserChannel, Positive
 from benchctl.runner.steps import (
-    EXPOSURE_PARAMETERS,
-    METHOD_PARAMETERS,
+    HologramParameters,
     channels,
     displayed_frame,
     exposure_step,
@@ -35,54 +35,53 @@ from benchctl.runner.steps import (
     power_w,
     unknown_setpoints,
 )
-from benchctl.schema import Field
 
 DESCRIPTION = "dot-grid hologram per colour, captured; RANSAC homography stored for colour capture"
-PARAMETERS = {
-    **METHOD_PARAMETERS,
-    **EXPOSURE_PARAMETERS,
-    "grid": Field("int_pair", required=False, default=DEFAULT_GRID, gt=2),  # dots [rows, cols]
+Dots = Annotated[int, Meta(gt=2)]
+
+
+class RegistrationParameters(HologramParameters, kw_only=True):
+    """The dot grid and how good its fit must be."""
+
+    grid: tuple[Dots, Dots] = DEFAULT_GRID  # dots [rows, cols]
     # refuse a fit whose RMS reprojection error is above this, in target-plane (SLM) pixels
-    "max_rms_target_px": Field("float", required=False, default=MAX_RMS_TARGET_PX, gt=0),
-}
+    max_rms_target_px: Positive = MAX_RMS_TARGET_PX
+
+
+PARAMETERS = RegistrationParameters
 LABEL = "dots"
 
 
 def plan(context: Context) -> list[Step]:
     unknown_setpoints(context)
     used = channels(context)
-    return registration_steps(context, used) + [Step("report", "registration report", _reporter(used))]
+    steps = registration_steps(context, used, context.parameters(RegistrationParameters))
+    return steps + [Step("report", "registration report", _reporter(used))]
 
 
-def registration_steps(context: Context, used: list[LaserChannel],
-                       options: dict[str, Any] | None = None) -> list[Step]:
-    """Hologram (by the method `options` name, default the procedure's, else DPAC), exposure and fit per colour;
-    colour capture runs these first when it finds no registration."""
+def registration_steps(context: Context, used: list[LaserChannel], params: RegistrationParameters) -> list[Step]:
+    """Hologram, exposure and fit per colour; colour capture runs these first when it finds no registration."""
     profile = context.profile.require("slm", "optics")
     assert profile.slm is not None and profile.optics is not None
-    grid = tuple(context.params.get("grid", DEFAULT_GRID))
-    dots, points = dot_grid_target(profile.slm.shape, profile.optics.roi, grid)
+    dots, points = dot_grid_target(profile.slm.shape, profile.optics.roi, params.grid)
     target = dots.expand(3, -1, -1).clone()
-    options = options or {key: context.params.get(key) for key in METHOD_PARAMETERS}
-    options["method"] = options.get("method") or "dpac"
     steps = []
     for channel in used:
         hologram_key = f"registration/hologram/{channel.name}"
-        steps.append(hologram_step(hologram_key, LABEL, target, channel, options))
+        steps.append(hologram_step(hologram_key, LABEL, target, channel, params))
         steps.append(exposure_step(context, f"registration/capture/{channel.name}", (LABEL, channel.name), channel,
                                    power_w(context, channel), lambda ctx, k=hologram_key: displayed_frame(ctx, k),
                                    "expose the dot grid"))
         steps.append(Step(f"registration/fit/{channel.name}", f"find the dots and fit the homography ({channel.name})",
-                          _fitter(channel, points, grid)))
+                          _fitter(channel, points, params.grid, params.max_rms_target_px)))
     return steps
 
 
-def _fitter(channel: LaserChannel, points: np.ndarray, grid: tuple[int, int]):
+def _fitter(channel: LaserChannel, points: np.ndarray, grid: tuple[int, int], max_rms_target_px: float):
     def action(context: Context) -> dict[str, Any]:
         image, _ = load_exposure(context, f"registration/capture/{channel.name}")
         found = dots_in_capture(image, target_plane(channel), grid)
-        fit = fit_registration(points, found,
-                               max_rms_target_px=context.params.get("max_rms_target_px", MAX_RMS_TARGET_PX))
+        fit = fit_registration(points, found, max_rms_target_px=max_rms_target_px)
         entry = fit.to_dict()
         context.calibration.save_registration(channel.name, entry)
         Calibration.store(context.calibration.profile).save_registration(channel.name, entry)
