@@ -18,7 +18,6 @@ from benchctl.devices.sim.state import device_file, load_state, save_state, sim_
 from benchctl.devices.slm.base import SLM
 from benchctl.errors import BenchctlError
 from benchctl.files import ensure_dir
-from benchctl.images import read_image, write_png
 
 STATE_NAME = "slm"
 _READ_ATTEMPTS = 5
@@ -26,6 +25,8 @@ _READ_ATTEMPTS = 5
 
 def read_displayed() -> tuple[np.ndarray | None, dict[str, Any]]:
     """The frame the simulated SLM shows now and its metadata; (None, {}) if it has shown nothing yet."""
+    from benchctl.images import read_image  # OpenCV: only where a frame file is read, so `slm info` stays light
+
     for _ in range(_READ_ATTEMPTS):
         state = load_state(STATE_NAME)
         if not state:
@@ -60,6 +61,8 @@ class SimSLM(SLM):
 
     def _display(self, gray: np.ndarray, channel: str | None) -> None:
         """Write the frame file first, then the state naming it, then drop older frame files."""
+        from benchctl.images import write_png
+
         frame = int(load_state(STATE_NAME).get("frame", 0)) + 1
         name = f"{STATE_NAME}-{frame}.png"
         write_png(device_file(name), gray)
