@@ -12,7 +12,6 @@ import numpy as np
 import torch
 
 from benchctl.capture.raw import RawImage, average_frames, decode_raw, subtract_dark
-from benchctl.cgh.learned import resolve_method
 from benchctl.devices.power import format_power, parse_power
 from benchctl.errors import BenchctlError
 from benchctl.files import file_sha256
@@ -20,6 +19,7 @@ from benchctl.images import read_image, write_png
 from benchctl.optics import linear_to_srgb
 from benchctl.profiles import LaserChannel, Profile
 from benchctl.runner.hologram_cache import hologram
+from benchctl.runner.holograms import resolve_method
 from benchctl.runner.procedure import Context, Step
 from benchctl.runner.record import set_aside
 from benchctl.schema import Field
