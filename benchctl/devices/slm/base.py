@@ -128,6 +128,12 @@ class SLM(Connection):
             self._luts[channel] = lut_for(self.config, channel)
         return self._luts[channel]
 
+    def ground_truth_lut(self, wavelength_m: float) -> np.ndarray | None:
+        """The panel's true gray -> phase response at `wavelength_m` (radians, one per gray level), as far as
+        the device knows: a simulated panel knows what LUT calibration should measure; a real one does not
+        (None), since only calibration can measure it."""
+        return None
+
     def displayed_frame(self) -> int | None:
         """Id of the frame the panel shows now, as the device reports it. Drivers whose panel cannot say
         report the count of frames this object displayed (the device lock keeps other commands off the panel)."""

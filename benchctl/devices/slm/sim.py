@@ -7,6 +7,7 @@ state file `slm.json` says which frame is current, its shape, bit depth, channel
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from datetime import datetime, timezone
 from typing import Any
 
@@ -18,6 +19,7 @@ from benchctl.devices.sim.state import device_file, load_state, save_state, sim_
 from benchctl.devices.slm.base import SLM
 from benchctl.errors import BenchctlError
 from benchctl.files import ensure_dir
+from benchctl.profiles import SimSLMConfig, SLMConfig
 
 STATE_NAME = "slm"
 _READ_ATTEMPTS = 5
@@ -48,6 +50,17 @@ class SimSLM(SLM):
 
     driver = "sim"
     read_displayed = staticmethod(read_displayed)
+
+    def __init__(self, config: SLMConfig, channels: Sequence[str] = (), response: SimSLMConfig | None = None) -> None:
+        """`response`: the simulated panel's true phase response (the profile's [sim.slm]; default: its defaults)."""
+        super().__init__(config, channels)
+        self.response = response if response is not None else SimSLMConfig()
+
+    def ground_truth_lut(self, wavelength_m: float) -> np.ndarray:
+        """The simulated panel's own response ([sim.slm]) at `wavelength_m`."""
+        from benchctl.devices.sim.bench import true_lut
+
+        return true_lut(wavelength_m, self.bit_depth, self.response).phases.numpy()
 
     def _device_lock(self) -> DeviceLock:
         return sim_lock(STATE_NAME, self.label)
