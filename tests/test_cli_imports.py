@@ -15,8 +15,8 @@ import pytest
 
 from benchctl.images import write_png
 
-HEAVY = ("torch", "cv2", "benchctl.cgh", "benchctl.optics")
-TORCH = ("torch", "benchctl.cgh", "benchctl.optics")
+HEAVY = ("torch", "cv2", "benchctl.cgh", "benchctl.optics.propagation")
+TORCH = ("torch", "benchctl.cgh", "benchctl.optics.propagation")
 PROBE = """
 import contextlib, io, json, sys
 from benchctl.cli import main
@@ -41,7 +41,7 @@ def _loaded(command: list[str]) -> list[str]:
 @pytest.mark.parametrize("command", [
     ["laser", "off"], ["laser", "status"], ["laser", "set", "green", "1mW"], ["camera", "info"],
     ["sim", "status"], ["sim", "fault", "sim-camera", "unplug_at=5"], ["devices"], ["--help"], ["laser", "--help"],
-    ["slm", "info"],
+    ["slm", "info"], ["profile", "check"], ["profile", "check", "simulated-aberrated"],
 ])
 def test_device_commands_never_import_torch(command: list[str]) -> None:
     assert _loaded(command) == [], command

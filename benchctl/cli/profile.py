@@ -6,12 +6,12 @@ import argparse
 
 
 def _cmd_profile_check(args: argparse.Namespace) -> int:
+    from benchctl.optics.plan import describe_plans
     from benchctl.profiles import load_profile
-    from benchctl.runner.holograms import describe_propagation
 
     profile = load_profile(args.path)
     print(profile.describe())
-    print(describe_propagation(profile))
+    print(describe_plans(profile))
     print(f"{profile.path}: OK")
     return 0
 

@@ -67,17 +67,6 @@ def target_plane(channel: LaserChannel) -> int:
     return 1 if channel.wavelength_nm >= 490 else 2
 
 
-def describe_propagation(profile: Profile) -> str:
-    """Per laser channel, the propagation plan at the profile's geometry (spread K, padded grid, band limit)."""
-    if profile.slm is None or profile.optics is None or not profile.channels:
-        return "  Propagation SLM -> target: not described (needs [slm], [optics] and [laser])"
-    lines = ["  Propagation SLM -> target (padding auto):"]
-    for channel in profile.channels:
-        plan = OpticalSetup.from_profile(profile, channel.name).target_propagator().plan
-        lines.append(f"    {channel.name}: {plan.describe()}")
-    return "\n".join(lines)
-
-
 def checkpoint_status(method: str, profile: Profile) -> str:
     """Where the trained checkpoint that `method` runs for `profile` is, or why there is none it can use."""
     path = find_checkpoint(get_method(method).network, profile)
