@@ -68,11 +68,18 @@ VARIANTS: dict[str, Variant] = {
 LEARNED_METHODS = tuple(VARIANTS)
 """The networks: the registered methods that need a checkpoint and refine no other method."""
 
-for _name, _variant in VARIANTS.items():
-    register(Method(_name, f"trained {_variant.family} network", None, None, _variant.family))
-for _name, _variant in VARIANTS.items():
-    register(Method(f"{_name}{REFINED_SUFFIX}", f"{_name}'s hologram refined by SGD", SGD.default_iterations, None,
-                    _variant.family, refines=_name))
+
+
+def _register_methods() -> None:
+    """Every network as a method that needs a checkpoint, then each refined by SGD (`<name>+sgd`)."""
+    for name, variant in VARIANTS.items():
+        register(Method(name, f"trained {variant.family} network", None, None, variant.family))
+    for name, variant in VARIANTS.items():
+        register(Method(f"{name}{REFINED_SUFFIX}", f"{name}'s hologram refined by SGD", SGD.default_iterations, None,
+                        variant.family, refines=name))
+
+
+_register_methods()
 
 PAPER_PARAMETERS: dict[str, tuple[tuple[int, int], float]] = {
     "holonet": ((1088, 1920), 2.87e6),
