@@ -21,6 +21,7 @@ from benchctl.cgh import (
     DPAC,
     GERCHBERG_SAXTON,
     METHODS,
+    REFINED_SUFFIX,
     SGD,
     Method,
     OpticalSetup,
@@ -29,10 +30,12 @@ from benchctl.cgh import (
     get_method,
     method_names,
     register,
+    roi_loss,
     sgd_method,
     stopped_improving,
     wrap_phase,
 )
+from benchctl.cgh.learned import LEARNED_METHODS
 from benchctl.optics import propagate
 
 FEW = {"dpac": None, "gs": 5, "sgd": 5}  # iteration counts that keep interface tests fast
@@ -134,17 +137,45 @@ def test_roi_is_centred(setup: OpticalSetup) -> None:
 
 # --- registry and interface -----------------------------------------------------------------------------------
 
-def test_registry_lists_the_classical_methods() -> None:
-    assert method_names() == ["dpac", "gs", "sgd"]
+def test_one_registry_lists_classical_learned_and_refined_methods() -> None:
+    assert method_names() == ["dpac", "gs", "sgd", *LEARNED_METHODS, *(f"{n}{REFINED_SUFFIX}" for n in LEARNED_METHODS)]
     assert get_method("dpac") is DPAC and get_method("gs") is GERCHBERG_SAXTON and get_method("sgd") is SGD
     assert (DPAC.default_iterations, GERCHBERG_SAXTON.default_iterations, SGD.default_iterations) == (None, 50, 500)
+    assert [n for n in method_names() if not get_method(n).needs_checkpoint] == ["dpac", "gs", "sgd"]
+    learned, refined = get_method("ccnn-dcm4"), get_method("ccnn-dcm4+sgd")
+    assert (learned.family, learned.network, learned.refines, learned.default_iterations) == \
+        ("ccnn", "ccnn-dcm4", None, None)
+    assert (refined.family, refined.network, refined.refines, refined.default_iterations) == \
+        ("ccnn", "ccnn-dcm4", "ccnn-dcm4", SGD.default_iterations)
+    assert SGD.network is None
     for method in METHODS.values():
         assert method.description and "\n" not in method.description
 
 
+def test_a_method_needing_a_checkpoint_runs_only_with_trained_networks(setup: OpticalSetup) -> None:
+    with pytest.raises(ValueError, match="'holonet' needs trained networks"):
+        get_method("holonet")(smooth_target(setup), setup)
+    with pytest.raises(ValueError, match="'dpac' is not a learned method"):
+        DPAC.trained(lambda s, device: torch.nn.Identity(), "none")
+    calls: list[OpticalSetup] = []
+
+    def constant(s: OpticalSetup, device: torch.device) -> torch.nn.Module:
+        calls.append(s)
+        return lambda target: torch.full_like(target, 4.0)  # a "network" whose phase is 4 rad everywhere
+
+    learned = get_method("holonet").trained(constant, "test")
+    assert learned.description.endswith("(test)") and not learned.needs_checkpoint
+    phase = learned(smooth_target(setup), setup)
+    assert calls == [setup] and torch.allclose(phase, torch.full(setup.shape, 4.0 - 2 * math.pi))
+    refined = get_method("holonet+sgd").trained(constant, "test")
+    assert refined.default_iterations == SGD.default_iterations
+    assert roi_loss(refined(smooth_target(setup), setup, iterations=5), smooth_target(setup), setup) < \
+        roi_loss(phase, smooth_target(setup), setup)  # SGD from the network's hologram, and better than it
+
+
 def test_unknown_method_names_the_known_ones() -> None:
-    with pytest.raises(ValueError, match="'holonet'.*dpac, gs, sgd"):
-        get_method("holonet")
+    with pytest.raises(ValueError, match="'holonet-dcm9'.*dpac, gs, sgd; learned .*holonet-dcm4.*<learned>[+]sgd"):
+        get_method("holonet-dcm9")
 
 
 def test_register_refuses_a_duplicate_name() -> None:
@@ -231,8 +262,9 @@ def test_sgd_optimises_under_no_grad_and_inference_mode(setup: OpticalSetup) -> 
 ])
 def test_bad_targets_are_refused(setup: OpticalSetup, make, message: str) -> None:
     for method in METHODS.values():
-        with pytest.raises(ValueError, match=message):
-            method(make(setup), setup)
+        if not method.needs_checkpoint:  # those refuse to run at all without trained networks
+            with pytest.raises(ValueError, match=message):
+                method(make(setup), setup)
 
 
 def test_target_must_be_a_tensor(setup: OpticalSetup) -> None:

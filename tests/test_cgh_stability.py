@@ -3,16 +3,17 @@ targets, zero amplitude."""
 
 from __future__ import annotations
 
+import functools
 import math
 
 import pytest
 import torch
 
-from benchctl.cgh import DPAC, METHODS, Method, OpticalSetup, check_target, roi_loss, sgd_method
-from benchctl.cgh.learned import LEARNED_METHODS, Checkpoint, build_model, learned_method
-from benchctl.cgh.learned.geometry import geometry_of
+from benchctl.cgh import DPAC, METHODS, Method, Networks, OpticalSetup, check_target, roi_loss
+from benchctl.cgh.learned import build_model
 
-ITERATIONS = {"dpac": None, "gs": 10, "sgd": 10}
+# Iterative methods run a few iterations: 10 for the classical ones, 3 for the networks refined by SGD.
+ITERATIONS = {"gs": 10, "sgd": 10}
 
 
 @pytest.fixture(scope="module")
@@ -20,10 +21,33 @@ def setup() -> OpticalSetup:
     return OpticalSetup(wavelength_m=520e-9, pitch_m=8e-6, distance_m=20e-3, shape=(64, 64), roi=(48, 48))
 
 
-def run_every_method(target: torch.Tensor, setup: OpticalSetup) -> dict[str, torch.Tensor]:
-    """Each method's phase for `target`, checked to be finite, float32, (H, W) and in [-pi, pi)."""
-    return {name: _checked(name, method(target, setup, iterations=ITERATIONS.get(name)), setup)
+def untrained(name: str) -> Networks:
+    """Seeded, untrained networks of learned method `name`, one per setup: no shipped checkpoint fits these small
+    grids, and stability does not depend on training."""
+
+    @functools.lru_cache(maxsize=None)
+    def model(setup: OpticalSetup) -> torch.nn.Module:
+        torch.manual_seed(0)
+        return build_model(name, setup).eval()
+
+    return lambda setup, device: model(setup)
+
+
+@pytest.fixture(scope="module")
+def methods() -> dict[str, Method]:
+    """Every registered method, runnable: those that need a checkpoint get untrained networks."""
+    return {name: method.trained(untrained(method.network), "untrained") if method.needs_checkpoint else method
             for name, method in METHODS.items()}
+
+
+def run_every_method(methods: dict[str, Method], target: torch.Tensor, setup: OpticalSetup) -> dict[str, torch.Tensor]:
+    """Each method's phase for `target`, checked to be finite, float32, (H, W) and in [-pi, pi)."""
+    return {name: _checked(name, method(target, setup, iterations=_iterations(method)), setup)
+            for name, method in methods.items()}
+
+
+def _iterations(method: Method) -> int | None:
+    return None if method.default_iterations is None else ITERATIONS.get(method.name, 3)
 
 
 def _checked(name: str, phase: torch.Tensor, setup: OpticalSetup) -> torch.Tensor:
@@ -42,30 +66,36 @@ def roi_target(setup: OpticalSetup, value: float = 1.0) -> torch.Tensor:
     return target
 
 
-def test_all_black_target_every_method(setup: OpticalSetup) -> None:
-    run_every_method(torch.zeros(setup.shape), setup)
+def test_every_registered_method_is_covered(methods: dict[str, Method]) -> None:
+    kinds = {(m.needs_checkpoint, m.refines is not None) for m in METHODS.values()}
+    assert kinds == {(False, False), (True, False), (True, True)}  # classical, learned, refined
+    assert set(methods) == set(METHODS) and not any(m.needs_checkpoint for m in methods.values())
 
 
-def test_all_white_target_every_method(setup: OpticalSetup) -> None:
+def test_all_black_target_every_method(setup: OpticalSetup, methods: dict[str, Method]) -> None:
+    run_every_method(methods, torch.zeros(setup.shape), setup)
+
+
+def test_all_white_target_every_method(setup: OpticalSetup, methods: dict[str, Method]) -> None:
     full = OpticalSetup(520e-9, 8e-6, 20e-3, setup.shape, setup.shape)
-    run_every_method(torch.ones(full.shape), full)
-    run_every_method(roi_target(setup), setup)
+    run_every_method(methods, torch.ones(full.shape), full)
+    run_every_method(methods, roi_target(setup), setup)
 
 
-def test_single_pixel_target_every_method(setup: OpticalSetup) -> None:
+def test_single_pixel_target_every_method(setup: OpticalSetup, methods: dict[str, Method]) -> None:
     target = torch.zeros(setup.shape)
     target[setup.shape[0] // 2, setup.shape[1] // 2] = 1.0
-    run_every_method(target, setup)
+    run_every_method(methods, target, setup)
 
 
-def test_amplitudes_above_one(setup: OpticalSetup) -> None:
+def test_amplitudes_above_one(setup: OpticalSetup, methods: dict[str, Method]) -> None:
     generator = torch.Generator().manual_seed(0)
     target = roi_target(setup) * torch.rand(setup.shape, generator=generator)
-    bright = run_every_method(target * 1000.0, setup)
+    bright = run_every_method(methods, target * 1000.0, setup)
     torch.testing.assert_close(check_target(target * 1000.0, setup), check_target(target, setup))
     # Only the amplitude's shape matters: the phase is the same as for the target scaled to max 1.
-    plain = run_every_method(target / target.max(), setup)
-    for name in METHODS:
+    plain = run_every_method(methods, target / target.max(), setup)
+    for name in methods:
         difference = torch.remainder(bright[name] - plain[name] + math.pi, 2 * math.pi) - math.pi
         assert float(difference.abs().max()) < 1e-3, name
 
@@ -85,10 +115,10 @@ def test_dpac_zero_amplitude(setup: OpticalSetup) -> None:
 
 
 @pytest.mark.parametrize(("bad", "word"), [(float("nan"), "NaN"), (float("inf"), "inf"), (-float("inf"), "inf")])
-def test_nan_or_inf_target_raises(setup: OpticalSetup, bad: float, word: str) -> None:
+def test_nan_or_inf_target_raises(setup: OpticalSetup, methods: dict[str, Method], bad: float, word: str) -> None:
     target = roi_target(setup)
     target[30, 30] = bad
-    for method in METHODS.values():
+    for method in methods.values():
         with pytest.raises(ValueError, match=rf"finite.* 1 {word}"):
             method(target, setup)
     with pytest.raises(ValueError, match="finite"):
@@ -116,55 +146,3 @@ def test_finite_gradients_at_zero_amplitude() -> None:
         loss = roi_loss(phase, target, far)
         loss.backward()
         assert bool(torch.isfinite(loss)) and bool(torch.isfinite(phase.grad).all())
-
-
-# --- learned methods ------------------------------------------------------------------------------------------
-# No shipped checkpoint fits this 64 x 64 grid, so each learned method gets an untrained one (seeded weights):
-# stability does not depend on training. "+sgd" refines the network's hologram (at 3 iterations here).
-
-
-@pytest.fixture(scope="module")
-def learned(setup: OpticalSetup, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Method]:
-    """Every learned method, and ccnn-dcm4 refined by SGD, with an untrained checkpoint for `setup`."""
-    folder = tmp_path_factory.mktemp("untrained")
-    methods: dict[str, Method] = {}
-    for name in LEARNED_METHODS:
-        torch.manual_seed(0)
-        model = build_model(name, setup).eval()
-        path = Checkpoint(method=name, geometry={"green": geometry_of(setup)},
-                          weights={"green": model.state_dict()}).save(folder / f"{name}.pt")
-        methods[name] = learned_method(name, path)
-    methods["ccnn-dcm4+sgd"] = sgd_method("ccnn-dcm4+sgd", init=methods["ccnn-dcm4"])
-    return methods
-
-
-def run_learned(methods: dict[str, Method], target: torch.Tensor, setup: OpticalSetup) -> dict[str, torch.Tensor]:
-    """Each learned method's phase for `target`, checked like `run_every_method` checks the classical ones."""
-    return {name: _checked(name, method(target, setup, iterations=3 if method.default_iterations else None), setup)
-            for name, method in methods.items()}
-
-
-def test_learned_all_black_and_single_pixel(setup: OpticalSetup, learned: dict[str, Method]) -> None:
-    run_learned(learned, torch.zeros(setup.shape), setup)
-    target = torch.zeros(setup.shape)
-    target[setup.shape[0] // 2, setup.shape[1] // 2] = 1.0
-    run_learned(learned, target, setup)
-
-
-def test_learned_amplitudes_above_one(setup: OpticalSetup, learned: dict[str, Method]) -> None:
-    generator = torch.Generator().manual_seed(0)
-    target = roi_target(setup) * torch.rand(setup.shape, generator=generator)
-    bright = run_learned(learned, target * 1000.0, setup)
-    plain = run_learned(learned, target / target.max(), setup)
-    for name in learned:  # the network sees the target scaled to max 1 either way
-        difference = torch.remainder(bright[name] - plain[name] + math.pi, 2 * math.pi) - math.pi
-        assert float(difference.abs().max()) < 1e-3, name
-
-
-@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
-def test_learned_nan_or_inf_target_refused(setup: OpticalSetup, learned: dict[str, Method], bad: float) -> None:
-    target = roi_target(setup)
-    target[30, 30] = bad
-    for method in learned.values():
-        with pytest.raises(ValueError, match="finite"):
-            method(target, setup)

@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
-from benchctl.cgh.learned import LEARNED_METHODS
+from benchctl.cgh import method_names
 from benchctl.cli import main
 
 
@@ -152,10 +152,11 @@ def test_bench_speed_vs_error_writes_a_row_per_method_budget_and_target(capsys, 
     assert code != 0 and "--full" in stderr and len(stderr.strip().splitlines()) == 1
 
 
-def test_models_lists_classical_and_learned_methods_with_parameter_counts(capsys):
+def test_models_lists_every_registered_method_with_parameter_counts(capsys):
     code, stdout, _ = _run(capsys, "models", "--size", "1088x1920")
     assert code == 0
     rows = {line.split()[0]: line for line in stdout.splitlines()[2:]}
-    assert set(rows) == {"dpac", "gs", "sgd", *LEARNED_METHODS}
+    assert list(rows) == method_names()
     assert "2,868,466" in rows["holonet"] and "3,111,952" in rows["holonet-dcm4"]
-    assert "yes" in rows["sgd"] and "no trained checkpoint" in rows["holonet"]
+    assert "3,111,952" in rows["holonet-dcm4+sgd"]  # the network it refines
+    assert "yes" in rows["sgd"] and "no trained checkpoint" in rows["holonet"] and "no trained" in rows["holonet+sgd"]

@@ -10,10 +10,10 @@ from pathlib import Path
 import pytest
 
 from benchctl.benchmarks.reproduce import DEFAULT_METHODS, PAPER, reproduce_command
-from benchctl.cgh.learned import read_checkpoint
-from benchctl.cgh.learned.data import image_sources
 from benchctl.cli import main
 from benchctl.errors import BadValueError
+from benchctl.runner.learned.checkpoint import read_checkpoint
+from benchctl.runner.learned.data import image_sources
 from benchctl.targets import photo_specs
 
 ABLATIONS = ("holonet-ps2", "holonet-ps4", "holonet-lowdef2", "holonet-dcm2-nolfm", "holonet-dcm2-noeccm",

@@ -11,9 +11,10 @@ import torch.multiprocessing as mp
 from conftest import SMALL_PROFILE
 
 from benchctl.cgh import OpticalSetup
-from benchctl.cgh.learned import build_model, read_checkpoint
-from benchctl.cgh.learned.training import TrainSettings, train
+from benchctl.cgh.learned import build_model
 from benchctl.profiles import load_profile
+from benchctl.runner.learned.checkpoint import read_checkpoint
+from benchctl.runner.learned.training import TrainSettings, train
 
 SETTINGS = TrainSettings(method="holonet-dcm2", data="procedural:5", epochs=1, lr=1e-3, val_fraction=0.2)
 

@@ -10,10 +10,16 @@ import pytest
 import torch
 
 from benchctl.cgh import OpticalSetup
-from benchctl.cgh.learned import Checkpoint, build_model, read_checkpoint, resolve_method
-from benchctl.cgh.learned.data import ImageSource, image_sources, procedural_image, split_sources
-from benchctl.cgh.learned.geometry import geometry_of, grid_profile
-from benchctl.cgh.learned.training import (
+from benchctl.cgh.learned import build_model
+from benchctl.cgh.learned.vgg import PerceptualLoss, load_vgg19
+from benchctl.cli import main
+from benchctl.errors import BenchctlError
+from benchctl.profiles import load_profile
+from benchctl.runner.holograms import resolve_method
+from benchctl.runner.learned.checkpoint import Checkpoint, read_checkpoint
+from benchctl.runner.learned.data import ImageSource, image_sources, procedural_image, split_sources
+from benchctl.runner.learned.geometry import geometry_of, grid_profile
+from benchctl.runner.learned.training import (
     ReconstructionLoss,
     TrainSettings,
     load_targets,
@@ -22,10 +28,6 @@ from benchctl.cgh.learned.training import (
     train,
     training_step,
 )
-from benchctl.cgh.learned.vgg import PerceptualLoss, load_vgg19
-from benchctl.cli import main
-from benchctl.errors import BenchctlError
-from benchctl.profiles import load_profile
 from benchctl.targets import prepare_target
 
 PLANES = {"red": 0, "green": 1, "blue": 2}

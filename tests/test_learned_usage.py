@@ -14,13 +14,14 @@ import torch
 from conftest import SMALL_PROFILE
 
 from benchctl.cgh import OpticalSetup
-from benchctl.cgh.learned import find_checkpoint, learned_method, model_info
-from benchctl.cgh.learned.training import TrainSettings, train
+from benchctl.cgh.learned import model_info
 from benchctl.cli import main
 from benchctl.devices.slm import slm_for
 from benchctl.errors import BenchctlError
 from benchctl.profiles import load_profile
 from benchctl.runner.holograms import compute_scene
+from benchctl.runner.learned.checkpoint import find_checkpoint, learned_method
+from benchctl.runner.learned.training import TrainSettings, train
 from benchctl.targets import load_target, prepare_target
 
 

@@ -16,8 +16,8 @@ import torch
 from conftest import SMALL_BENCH
 
 from benchctl.cgh import get_method
-from benchctl.cgh.learned.data import procedural_image
-from benchctl.cgh.learned.inference import learned_method
+from benchctl.runner.learned.data import procedural_image
+from benchctl.runner.learned.checkpoint import learned_method
 from benchctl.cli import main
 from benchctl.devices.sim import bench
 from benchctl.devices.sim.state import load_state

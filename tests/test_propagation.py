@@ -11,6 +11,9 @@ import torch
 
 import benchctl.optics.propagation as propagation
 from benchctl.optics import Propagator, plan_propagation, propagate
+from benchctl.optics.plan import describe_plans, wrapped_tail_power
+from benchctl.optics.setup import OpticalSetup
+from benchctl.profiles import load_profile
 
 
 def _rel(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -242,7 +245,7 @@ def test_wrapped_tail_power_sums_every_source_output_pair():
         for b in range(n):
             d = guard + 1 + a + b
             total += ((1 / (d - reach) - 1 / (d + reach)) / (2 * math.pi)) ** 2
-    assert propagation.wrapped_tail_power(n, reach, guard) == pytest.approx(2 * total / n, rel=1e-12)
+    assert wrapped_tail_power(n, reach, guard) == pytest.approx(2 * total / n, rel=1e-12)
 
 
 def test_bad_padding_is_refused():
@@ -383,3 +386,13 @@ def test_aperture_at_zero_distance_low_passes_instead_of_identity():
 def test_aperture_must_be_positive():
     with pytest.raises(ValueError, match="aperture"):
         plan_propagation((8, 8), 1e-3, 520e-9, 8e-6, aperture=0.0)
+
+
+@pytest.mark.parametrize("name", ["simulated", "simulated-aberrated", "paper_bench"])
+def test_a_profiles_described_plans_are_its_setups_plans(name: str) -> None:
+    # `profile check` plans without torch; what it prints must be what generation will compute.
+    profile = load_profile(name)
+    text = describe_plans(profile)
+    for channel in profile.channels:
+        plan = OpticalSetup.from_profile(profile, channel.name).target_propagator().plan
+        assert f"    {channel.name}: {plan.describe()}" in text.splitlines()

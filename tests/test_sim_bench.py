@@ -18,13 +18,15 @@ import rawpy
 import torch
 from conftest import SMALL_BENCH, bench_profile_text
 
+import benchctl.runner.builtin
 from benchctl.capture.raw import RawImage, decode_raw
 from benchctl.cgh import OpticalSetup, get_method
+from benchctl.devices.camera import camera_for
 from benchctl.devices.camera.sim import SimCamera
 from benchctl.devices.laser import open_laser
 from benchctl.devices.sim import bench
 from benchctl.devices.sim.state import reset_states
-from benchctl.devices.slm import open_slm
+from benchctl.devices.slm import open_slm, slm_for
 from benchctl.errors import BenchctlError
 from benchctl.optics import PhaseLUT, propagation
 from benchctl.optics.aberration import ZERNIKE_TERMS, defocus_focal_length_m, zernike_basis
@@ -536,3 +538,24 @@ def test_the_aberrated_profile_is_the_simulated_bench_with_hidden_optics() -> No
     assert {name: set(terms) for name, terms in aberrated.sim.aberration.items()} == {
         name: set(ZERNIKE_TERMS) for name in ("red", "green", "blue")}
     assert aberrated.sim.beam.waist_mm > 0 and aberrated.sim.slm.crosstalk_px > 0
+
+
+def test_simulated_devices_report_their_ground_truth_and_real_ones_none(profile: Profile) -> None:
+    # What calibration procedures compare against, asked of the device (procedures never import the simulator).
+    slm, camera = slm_for(profile), camera_for(profile)
+    green = profile.channel("green").wavelength_m
+    np.testing.assert_array_equal(slm.ground_truth_lut(green),
+                                  bench.true_lut(green, slm.bit_depth, profile.sim.slm).phases.numpy())
+    assert slm.ground_truth_lut(green)[-1] != slm.ground_truth_lut(profile.channel("red").wavelength_m)[-1]
+    np.testing.assert_array_equal(camera.ground_truth_homography(), bench.camera_homography(profile))
+    real = load_profile("paper_bench")  # a framebuffer SLM
+    assert slm_for(real).ground_truth_lut(green) is None
+    for driver in ("ptp", "gphoto2"):
+        real = msgspec.structs.replace(profile, camera=msgspec.structs.replace(profile.camera, driver=driver))
+        assert camera_for(real).ground_truth_homography() is None, driver
+
+
+def test_builtin_procedures_never_import_the_simulator() -> None:
+    folder = Path(benchctl.runner.builtin.__file__).parent
+    for path in sorted(folder.glob("*.py")):
+        assert "devices.sim" not in path.read_text(), path

@@ -33,21 +33,14 @@ from typing import Any
 import torch
 
 from benchctl.cgh import OpticalSetup
-from benchctl.cgh.learned import (
-    LEARNED_METHODS,
-    build_model,
-    count_parameters,
-    find_checkpoint,
-    model_info,
-    read_checkpoint,
-    resolve_method,
-)
-from benchctl.cgh.learned.geometry import geometry_of, grid_profile, setup_from_geometry
+from benchctl.cgh.learned import LEARNED_METHODS, build_model, count_parameters, model_info
 from benchctl.cgh.learned.models import VARIANTS
 from benchctl.errors import BadValueError, BenchctlError
 from benchctl.files import ensure_dir, write_csv
 from benchctl.profiles import Profile
-from benchctl.runner.holograms import compute_scene, target_plane, usable_learned_methods
+from benchctl.runner.holograms import compute_scene, resolve_method, target_plane, usable_methods
+from benchctl.runner.learned.checkpoint import find_checkpoint, read_checkpoint
+from benchctl.runner.learned.geometry import geometry_of, grid_profile, setup_from_geometry
 from benchctl.targets import load_target, prepare_target
 
 DEFAULT_TARGETS = ("chart:siemens", "chart:bars", "chart:text")
@@ -107,7 +100,7 @@ def training_step_memory(method: str, geometry: dict[str, Any], device: str) -> 
 
     Meant to run in a fresh subprocess (see `measure_training_step`), one per model.
     """
-    from benchctl.cgh.learned.training import ReconstructionLoss, peak_normalised, training_step
+    from benchctl.runner.learned.training import ReconstructionLoss, peak_normalised, training_step
 
     dev = torch.device(device)
     setup = setup_from_geometry(geometry)
@@ -164,8 +157,9 @@ def _checkpoints(paths: Sequence[Path], methods: list[str], bench: Profile) -> d
             raise BadValueError(f"--checkpoint {path} holds {method}, which is not among --methods")
         resolve_method(method, bench, path)  # refused here, naming the differences, unless it fits the grid
         chosen[method] = Path(path)
-    for method in usable_learned_methods(bench):
-        if method in methods and method not in chosen:
+    usable = usable_methods(bench)
+    for method in methods:
+        if method in usable and method not in chosen:
             found = find_checkpoint(method, bench)
             assert found is not None
             chosen[method] = found

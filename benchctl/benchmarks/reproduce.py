@@ -39,9 +39,9 @@ from benchctl.benchmarks.learned import inference_seconds, measure_training_step
 from benchctl.benchmarks.speed_vs_error import resized_profile
 from benchctl.cgh import OpticalSetup
 from benchctl.cgh.learned import LEARNED_METHODS, build_model
-from benchctl.cgh.learned.data import image_sources
 from benchctl.cgh.learned.models import VARIANTS
-from benchctl.cgh.learned.training import (
+from benchctl.runner.learned.data import image_sources
+from benchctl.runner.learned.training import (
     ReconstructionLoss,
     epoch_flips,
     epoch_order,

@@ -19,19 +19,12 @@ from typing import Any, Callable
 import torch
 
 from benchctl.cgh import OpticalSetup, get_method, method_names
-from benchctl.cgh.learned import LEARNED_METHODS
-from benchctl.cgh.learned.geometry import grid_profile
 from benchctl.errors import BenchctlError
 from benchctl.files import atomic_write_bytes, ensure_dir, write_csv
 from benchctl.optics.metrics import pareto_front
 from benchctl.profiles import Profile
-from benchctl.runner.holograms import (
-    REFINED_SUFFIX,
-    checkpoint_status,
-    compute_scene,
-    refined_base,
-    usable_learned_methods,
-)
+from benchctl.runner.holograms import checkpoint_status, compute_scene, usable_methods
+from benchctl.runner.learned.geometry import grid_profile
 from benchctl.targets import load_target, photo_specs, prepare_target
 
 CHART_TARGETS = ("chart:siemens", "chart:bars", "chart:text")
@@ -56,21 +49,17 @@ def resized_profile(profile: Profile, size: tuple[int, int]) -> Profile:
 
 def budgets_for(method: str, budgets: Sequence[int]) -> list[int | None]:
     """One-shot methods (DPAC, trained networks) run once; iterative ones (refined networks too) at every budget."""
-    if method in LEARNED_METHODS:
-        return [None]
-    if refined_base(method) is not None:
-        return list(budgets)
     return [None] if get_method(method).default_iterations is None else list(budgets)
 
 
 def default_methods(profile: Profile, out: Callable[[str], None] = print) -> tuple[str, ...]:
-    """Every classical method, plus each learned method with a checkpoint that fits this benchmark's geometry
-    and that network refined by SGD; for each learned method left out, a line saying why."""
-    learned = usable_learned_methods(profile)
-    for name in LEARNED_METHODS:
-        if name not in learned:
-            out(f"not running {name} (nor {name}{REFINED_SUFFIX}): {checkpoint_status(name, profile)}")
-    return (*method_names(), *learned, *(f"{name}{REFINED_SUFFIX}" for name in learned))
+    """Every registered method that runs on this benchmark's geometry (the classical ones, and those whose
+    network has a checkpoint that fits it); for each one left out, a line saying why."""
+    usable = usable_methods(profile)
+    for name in method_names():
+        if name not in usable:
+            out(f"not running {name}: {checkpoint_status(name, profile)}")
+    return tuple(usable)
 
 
 def _mean(values: Sequence[float]) -> float:
@@ -151,8 +140,7 @@ def run_speed_vs_error(
     (+ a PNG plot with matplotlib). Returns the front's rows (one per method and budget)."""
     methods = tuple(methods or default_methods(profile, out))
     for name in methods:
-        if name not in LEARNED_METHODS and refined_base(name) is None:
-            get_method(name)
+        get_method(name)  # an unknown name fails here, before any work, listing the known ones
     amplitudes = _load_targets(targets, profile, out)
     grid, roi = profile.slm.shape, profile.optics.roi
     unit = _propagation_seconds(profile, colours[0] if colours else profile.channels[0].name)

@@ -1,15 +1,18 @@
 """Hologram generation: the method interface and registry, the optical setup, the classical methods.
 
-Methods register themselves when their module is imported; importing this package registers DPAC ("dpac"),
-Gerchberg-Saxton ("gs") and SGD ("sgd"). Imports only `benchctl.optics` from the rest of benchctl.
+Methods register themselves when their module is imported; importing this package registers every method
+there is: DPAC ("dpac"), Gerchberg-Saxton ("gs"), SGD ("sgd") and the learned networks with their SGD
+refinements (`benchctl.cgh.learned`). Imports only `benchctl.optics` from the rest of benchctl.
 """
 
 from benchctl.cgh.dpac import DPAC, double_phase
 from benchctl.cgh.gerchberg_saxton import GERCHBERG_SAXTON
 from benchctl.cgh.method import (
     METHODS,
+    REFINED_SUFFIX,
     Algorithm,
     Method,
+    Networks,
     Progress,
     check_target,
     get_method,
@@ -21,18 +24,23 @@ from benchctl.cgh.method import (
 from benchctl.cgh.sgd import SGD, roi_loss, sgd_method
 from benchctl.optics.setup import OpticalSetup
 
+from benchctl.cgh import learned  # registers the learned methods: last, as it builds on the above
+
 __all__ = [
     "DPAC",
     "GERCHBERG_SAXTON",
     "METHODS",
+    "REFINED_SUFFIX",
     "SGD",
     "Algorithm",
     "Method",
+    "Networks",
     "OpticalSetup",
     "Progress",
     "check_target",
     "double_phase",
     "get_method",
+    "learned",
     "method_names",
     "register",
     "roi_loss",

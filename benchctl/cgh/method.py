@@ -1,8 +1,13 @@
-"""The one interface every hologram method implements, and the registry that finds methods by name.
+"""The one interface every hologram method implements, and the one registry that finds methods by name.
 
 A method is called as `method(target_amplitude, setup, *, iterations=None, seed=0, progress=None)` and returns a
 float32 phase (H, W) in [-pi, pi). `Method` does what all methods share (input checks, iteration count, phase
 wrapping) and hands the algorithm a clean target, so an algorithm (classical or learned) is only its maths.
+
+The registry holds every method: classical ones, learned ones (a method that needs trained networks, from a
+checkpoint: `needs_checkpoint`) and learned ones refined by SGD (`<learned>+sgd`, composed from the learned
+one). A method that needs a checkpoint runs once `trained` gives it its networks; where those come from
+(checkpoint files, profiles) is the runner's business, not this layer's.
 """
 
 from __future__ import annotations
@@ -27,6 +32,12 @@ Algorithm = Callable[[torch.Tensor, OpticalSetup, Optional[int], int, Optional[P
 `target` is float32 (H, W), finite, >= 0, zero outside the ROI, scaled to max 1 (or all zero);
 `iterations` is None for a one-shot method, else a resolved count >= 0.
 """
+
+Networks = Callable[[OpticalSetup, torch.device], Callable[[torch.Tensor], torch.Tensor]]
+"""networks(setup, device) -> the trained network for `setup` on `device`: amplitude (B, 1, H, W) -> phase."""
+
+REFINED_SUFFIX = "+sgd"
+"""`<learned method>+sgd`: that network's hologram refined by SGD, an iterative method of its own."""
 
 # Largest float32 below pi: phases are clamped to +-this so they lie in [-pi, pi) whether compared in float32
 # (where float32(pi) > pi) or float64.
@@ -77,13 +88,53 @@ class Method:
     """A registered hologram method: a name, a one-line description, a default iteration count, an algorithm.
 
     `default_iterations` is None for one-shot methods (DPAC, a trained network's forward pass); those refuse an
-    explicit `iterations` rather than silently ignoring it.
+    explicit `iterations` rather than silently ignoring it. `family` is "classical" or the learned network's
+    family; a learned method has no algorithm until `trained` binds its networks, and a refined one names the
+    learned method it starts from in `refines`.
     """
 
     name: str
     description: str
     default_iterations: int | None
-    algorithm: Algorithm
+    algorithm: Algorithm | None
+    family: str = "classical"
+    refines: str | None = None
+
+    @property
+    def needs_checkpoint(self) -> bool:
+        """True for learned and refined methods: they run only with trained networks (see `trained`)."""
+        return self.algorithm is None
+
+    @property
+    def network(self) -> str | None:
+        """The learned method whose checkpoint this method runs (itself or the one it refines); None if classical."""
+        return (self.refines or self.name) if self.needs_checkpoint else None
+
+    def trained(self, networks: Networks, source: str) -> Method:
+        """This learned (or refined) method running `networks`, trained as `source` says (e.g. a checkpoint path).
+
+        A learned method is one-shot: one forward pass of the network trained for the setup it is called with.
+        A refined method is SGD started from that learned method's hologram.
+        """
+        if not self.needs_checkpoint:
+            raise BadValueError(f"method {self.name!r} is not a learned method and takes no trained networks")
+        if self.refines is not None:
+            from benchctl.cgh.sgd import sgd_method  # sgd builds on this module
+
+            return sgd_method(self.name, init=get_method(self.refines).trained(networks, source),
+                              description=self.description)
+
+        def forward(target: torch.Tensor, setup: OpticalSetup, iterations: int | None, seed: int,
+                    progress: Progress | None) -> torch.Tensor:
+            model = networks(setup, target.device)
+            with torch.inference_mode():
+                phase = model(target[None, None])[0, 0]
+            if progress is not None:
+                progress(1, 1)
+            # a normal tensor, not an inference tensor, for callers that go on with autograd
+            return setup.without_wavefront(phase.clone())
+
+        return Method(self.name, f"{self.description} ({source})", None, forward, self.family)
 
     def __call__(
         self,
@@ -98,6 +149,8 @@ class Method:
 
         Deterministic for a given seed; torch's global random state is left untouched.
         """
+        if self.algorithm is None:
+            raise BadValueError(f"method {self.name!r} needs trained networks: a checkpoint (`benchctl train`)")
         target = check_target(target_amplitude, setup)
         if isinstance(seed, bool) or not isinstance(seed, Integral):
             raise BadValueError(f"seed must be an integer, got {seed!r}")
@@ -147,13 +200,20 @@ def register(method: Method) -> Method:
 
 
 def method_names() -> list[str]:
-    """Names of the registered methods, sorted."""
-    return sorted(METHODS)
+    """Names of the registered methods: classical ones sorted, then learned ones and their refinements in
+    registration order."""
+    classical = sorted(name for name, method in METHODS.items() if not method.needs_checkpoint)
+    return classical + [name for name, method in METHODS.items() if method.needs_checkpoint]
 
 
 def get_method(name: str) -> Method:
-    """The method registered as `name`; ValueError naming the known methods otherwise."""
+    """The method registered as `name`; BadValueError naming the known methods otherwise."""
     try:
         return METHODS[name]
     except (KeyError, TypeError):
-        raise BadValueError(f"unknown hologram method {name!r}; known methods: {', '.join(method_names())}") from None
+        pass
+    classical = [n for n in method_names() if not METHODS[n].needs_checkpoint]
+    learned = [n for n in method_names() if METHODS[n].needs_checkpoint and METHODS[n].refines is None]
+    raise BadValueError(f"unknown hologram method {name!r}; known: {', '.join(classical)}; learned (need a "
+                        f"checkpoint): {', '.join(learned) or 'none'}; a learned one refined by SGD: "
+                        f"<learned>{REFINED_SUFFIX}") from None

@@ -1,24 +1,38 @@
-"""Physics and metrics in torch: propagation, colour, metrics, phase encoding. Imports nothing else from benchctl."""
+"""Physics and metrics in torch: propagation, colour, metrics, phase encoding. Imports nothing else from benchctl.
 
-from benchctl.optics.colour import linear_to_srgb, srgb_to_linear
-from benchctl.optics.metrics import amplitude_scores, colour_scores, crop_roi, lsq_scale, psnr, ssim
-from benchctl.optics.phase_encoding import PhaseLUT, gray_to_phase, phase_to_gray
-from benchctl.optics.propagation import PropagationPlan, Propagator, plan_propagation, propagate
+The names below are loaded from their modules on first use, so a torch-free part (`plan`: what a propagation
+will compute) can be imported without loading torch.
+"""
 
-__all__ = [
-    "PhaseLUT",
-    "amplitude_scores",
-    "colour_scores",
-    "PropagationPlan",
-    "Propagator",
-    "crop_roi",
-    "gray_to_phase",
-    "linear_to_srgb",
-    "lsq_scale",
-    "phase_to_gray",
-    "plan_propagation",
-    "propagate",
-    "psnr",
-    "srgb_to_linear",
-    "ssim",
-]
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+_HOME = {
+    "linear_to_srgb": "colour",
+    "srgb_to_linear": "colour",
+    "amplitude_scores": "metrics",
+    "colour_scores": "metrics",
+    "crop_roi": "metrics",
+    "lsq_scale": "metrics",
+    "psnr": "metrics",
+    "ssim": "metrics",
+    "PhaseLUT": "phase_encoding",
+    "gray_to_phase": "phase_encoding",
+    "phase_to_gray": "phase_encoding",
+    "PropagationPlan": "plan",
+    "plan_propagation": "plan",
+    "Propagator": "propagation",
+    "propagate": "propagation",
+}
+
+__all__ = sorted(_HOME)
+
+def __getattr__(name: str) -> Any:
+    """`benchctl.optics.NAME`: imported from its module when first asked for."""
+    if name not in _HOME:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{_HOME[name]}"), name)
+    globals()[name] = value
+    return value

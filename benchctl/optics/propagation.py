@@ -20,214 +20,10 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
-from dataclasses import dataclass
-from numbers import Integral
-from typing import Union
 
 import torch
 
-Padding = Union[str, int]
-PADDING_MODES = ("auto", "2x", "none")
-
-
-@dataclass(frozen=True)
-class PropagationPlan:
-    """What one propagation will compute: grid sizes, padding and how much of the spectrum is kept."""
-
-    shape: tuple[int, int]
-    padded_shape: tuple[int, int]
-    pad: tuple[int, int, int, int]  # zeros added at top, bottom, left, right
-    distance_m: float
-    wavelength_m: float
-    pitch_m: tuple[float, float]  # (dy, dx)
-    padding: Padding
-    band_limit: bool
-    spread_px: tuple[float, float]  # K per axis in pixels (inf where the grid carries grazing light)
-    passed_fraction: tuple[float, float]  # fraction of each axis' frequencies kept by the band limit
-    aperture: float | None = None  # Fourier-plane iris radius as a fraction of the grid's Nyquist frequency
-
-    @property
-    def spread_fraction(self) -> tuple[float, float]:
-        """K / N per axis: where it is well under 1/2, "auto" pads much less than "2x"."""
-        return self.spread_px[0] / self.shape[0], self.spread_px[1] / self.shape[1]
-
-    def describe(self) -> str:
-        """One line a user can read: grid, padded grid, spread and band-limit figures."""
-        (h, w), (ph, pw) = self.shape, self.padded_shape
-        ky, kx = self.spread_px
-        ry, rx = self.spread_fraction
-        fy, fx = self.passed_fraction
-        return (
-            f"{h}x{w} -> {ph}x{pw} (padding={self.padding!s}, guard {ph - h}+{pw - w} px), "
-            f"z={self.distance_m * 1e3:g} mm, lambda={self.wavelength_m * 1e9:g} nm, "
-            f"spread K={ky:.0f}/{kx:.0f} px (K/N {ry:.2f}/{rx:.2f}), band limit keeps {fy:.2f} x {fx:.2f}"
-            + (f", iris {self.aperture:g} x Nyquist" if self.aperture is not None else "")
-        )
-
-
-def _pair(value: float | tuple[float, float] | list[float]) -> tuple[float, float]:
-    if isinstance(value, (tuple, list)):
-        if len(value) != 2:
-            raise ValueError(f"pitch_m must be a float or (dy, dx), got {value!r}")
-        return float(value[0]), float(value[1])
-    return float(value), float(value)
-
-
-def reach_pixels(distance_m: float, wavelength_m: float,
-                 pitch_m: float | tuple[float, float]) -> tuple[float, float]:
-    """K per axis: the furthest any propagating plane wave of the grid moves sideways over |z|, in pixels.
-
-    A plane wave (fy, fx) moves by lambda |z| f / sqrt(1 - lambda^2 (fy^2 + fx^2)) along each axis; the largest
-    move is at the corner of the spectrum (both frequencies at Nyquist, 1 / (2 pitch)). Where that corner is
-    evanescent the grid carries grazing light and K is infinite.
-    """
-    dy, dx = _pair(pitch_m)
-    sy, sx = wavelength_m / (2.0 * dy), wavelength_m / (2.0 * dx)
-    if distance_m == 0:
-        return 0.0, 0.0
-    cos_theta2 = 1.0 - sy * sy - sx * sx
-    if cos_theta2 <= 0:
-        return float("inf"), float("inf")
-    scale = abs(distance_m) / math.sqrt(cos_theta2)
-    return scale * sy / dy, scale * sx / dx
-
-
-AUTO_TOLERANCE = 3.5e-3
-"""Relative L2 error that "auto" allows the wrapped tails of a full-band field (both axes together, modelled).
-
-Chosen by measurement (docs/propagation.md): at the paper geometry (3.74 um, 70 mm, 1088 x 1920 and
-2160 x 3840, 680 / 520 / 450 nm) the ROI error of "auto" stays within 1.53x that of "2x" (goal: 2x), and
-at 2160 x 3840 it pads 66-82 % of the 2x area. The measured ROI error is about 1.5x the modelled figure.
-"""
-
-
-def wrapped_tail_power(n: int, reach: float, guard: int) -> float:
-    """Mean power per pixel that a guard band of `guard` zeros lets wrap around an axis of `n` pixels.
-
-    The model: a full-band, unit-power, random-phase field (what a phase SLM shows). Its transfer function
-    ends on a hard edge at +-Nyquist (or at the band limit, which moves the reach to half the padded extent),
-    so beyond the reach K the impulse response is the two edges' diffraction tails,
-    |1 / (d - K) - 1 / (d + K)| / (2 pi) at a distance d: slow (1 / (d - K)) just past K, 2 K / d^2 far out.
-    Light from b pixels inside one edge lands a pixels inside the other after d = guard + 1 + a + b; the
-    powers of all such pairs add (random phase), averaged over the axis and counted for both edges.
-    """
-    u = torch.arange(2 * n - 1, dtype=torch.float64)
-    pairs = torch.minimum(u + 1, 2 * n - 1 - u)  # how many (a, b) have a + b = u
-    d = guard + 1 + u
-    k = min(reach, (n + guard) / 2)
-    tail = (1 / (d - k) - 1 / (d + k)) / (2 * math.pi)
-    return float(2 * (pairs * tail.square()).sum() / n)
-
-
-def _auto_guard(n: int, reach: float) -> int:
-    """The smallest guard band >= min(K, n) whose wrapped tails stay within AUTO_TOLERANCE; at most n.
-
-    Where even n zeros cannot meet the tolerance (small grids, K close to or beyond N), "auto" pads what
-    "2x" pads instead of growing past it.
-    """
-    budget = AUTO_TOLERANCE**2 / 2  # half for each axis
-    low, high = math.ceil(min(reach, n)), n
-    if low >= high or wrapped_tail_power(n, reach, low) <= budget:
-        return min(low, high)
-    if wrapped_tail_power(n, reach, high) > budget:
-        return high
-    while high - low > 1:  # invariant: low is too small, high is enough
-        mid = (low + high) // 2
-        if wrapped_tail_power(n, reach, mid) <= budget:
-            high = mid
-        else:
-            low = mid
-    return high
-
-
-def _fft_size(n: int) -> int:
-    """Smallest multiple of 4 >= n whose prime factors are all 2, 3, 5 or 7: fast for pocketfft and cuFFT.
-
-    (Sizes with a single factor 2, like 6250, measured up to 30 % slower than their neighbours on a CPU.)
-    """
-    m = max(4, n + (-n) % 4)
-    while True:
-        k = m
-        for p in (2, 3, 5, 7):
-            while k % p == 0:
-                k //= p
-        if k == 1:
-            return m
-        m += 4
-
-
-def _guard(padding: Padding, n: int, reach: float) -> int:
-    """Zeros to add along one axis of n samples (both sides together)."""
-    if isinstance(padding, Integral) and not isinstance(padding, bool):
-        if padding < 0:
-            raise ValueError(f"padding must be >= 0 pixels per side, got {padding}")
-        return 2 * int(padding)
-    if padding == "none":
-        return 0
-    if isinstance(padding, str) and padding.endswith("x") and padding[:-1].isdigit() and int(padding[:-1]) >= 1:
-        return (int(padding[:-1]) - 1) * n
-    if padding == "auto":
-        if reach == 0:
-            return 0
-        return _fft_size(n + _auto_guard(n, reach)) - n
-    raise ValueError(f"padding must be one of {PADDING_MODES}, '<k>x' or an int (pixels per side), got {padding!r}")
-
-
-def _band_limit(m: int, pitch: float, distance_m: float, wavelength_m: float) -> float:
-    """Matsushima's per-axis frequency limit for a padded extent of m samples."""
-    df = 1.0 / (m * pitch)
-    return 1.0 / (wavelength_m * math.sqrt((2.0 * df * distance_m) ** 2 + 1.0))
-
-
-def plan_propagation(
-    shape: tuple[int, int],
-    distance_m: float,
-    wavelength_m: float,
-    pitch_m: float | tuple[float, float],
-    *,
-    padding: Padding = "auto",
-    band_limit: bool = True,
-    aperture: float | None = None,
-) -> PropagationPlan:
-    """Decide padded grid and band limit for a field of `shape` (H, W) without computing anything big."""
-    if len(shape) != 2:
-        raise ValueError(f"shape must be (H, W), got {shape!r}")
-    h, w = int(shape[0]), int(shape[1])
-    if h < 1 or w < 1:
-        raise ValueError(f"field shape must be at least 1x1, got {shape}")
-    if not (wavelength_m > 0 and math.isfinite(wavelength_m)):
-        raise ValueError(f"wavelength_m must be positive, got {wavelength_m}")
-    if not math.isfinite(distance_m):
-        raise ValueError(f"distance_m must be finite, got {distance_m}")
-    dy, dx = _pair(pitch_m)
-    if not (dy > 0 and dx > 0 and math.isfinite(dy) and math.isfinite(dx)):
-        raise ValueError(f"pitch_m must be positive, got {pitch_m}")
-    if aperture is not None and not (0 < aperture and math.isfinite(aperture)):
-        raise ValueError(f"aperture must be a positive fraction of the Nyquist frequency, got {aperture}")
-    ky, kx = reach_pixels(distance_m, wavelength_m, (dy, dx))
-    gy, gx = _guard(padding, h, ky), _guard(padding, w, kx)
-    ph, pw = h + gy, w + gx
-    fractions = []
-    for m, d in ((ph, dy), (pw, dx)):
-        freqs = torch.fft.fftfreq(m, d=d, dtype=torch.float64).abs()
-        keep = freqs < 1.0 / wavelength_m
-        if band_limit and distance_m != 0:
-            keep &= freqs < _band_limit(m, d, distance_m, wavelength_m)
-        fractions.append(float(keep.double().mean()))
-    return PropagationPlan(
-        shape=(h, w),
-        padded_shape=(ph, pw),
-        # All zeros after the field: a circular convolution does not care where the guard band sits.
-        pad=(0, gy, 0, gx),
-        distance_m=float(distance_m),
-        wavelength_m=float(wavelength_m),
-        pitch_m=(dy, dx),
-        padding=padding,
-        band_limit=band_limit,
-        spread_px=(ky, kx),
-        passed_fraction=(fractions[0], fractions[1]),
-        aperture=None if aperture is None else float(aperture),
-    )
+from benchctl.optics.plan import Padding, PropagationPlan, band_limit_frequency, pitch_pair, plan_propagation
 
 
 def transfer_function(plan: PropagationPlan, dtype: torch.dtype = torch.complex64,
@@ -245,8 +41,8 @@ def transfer_function(plan: PropagationPlan, dtype: torch.dtype = torch.complex6
     fx = torch.fft.fftfreq(m_x, d=dx, dtype=torch.float64, device=device)
     keep_y, keep_x = torch.ones_like(fy, dtype=torch.bool), torch.ones_like(fx, dtype=torch.bool)
     if plan.band_limit and z != 0:
-        keep_y = fy.abs() < _band_limit(m_y, dy, z, lam)
-        keep_x = fx.abs() < _band_limit(m_x, dx, z, lam)
+        keep_y = fy.abs() < band_limit_frequency(m_y, dy, z, lam)
+        keep_x = fx.abs() < band_limit_frequency(m_x, dx, z, lam)
     f2 = fy[:, None].square() + fx[None, :].square()
     keep = (f2 < 1.0 / lam**2) & keep_y[:, None] & keep_x[None, :]
     if plan.aperture is not None:
@@ -362,7 +158,7 @@ def propagate(
     `aperture`, if given, is a Fourier-plane iris (radius as a fraction of the grid's Nyquist frequency).
     """
     _check_shape(field)
-    key = (tuple(field.shape[-2:]), float(distance_m), float(wavelength_m), _pair(pitch_m), padding, band_limit,
+    key = (tuple(field.shape[-2:]), float(distance_m), float(wavelength_m), pitch_pair(pitch_m), padding, band_limit,
            aperture)
     prop = _CACHE.get(key)
     if prop is None:

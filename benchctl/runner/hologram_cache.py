@@ -21,12 +21,13 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from benchctl.cgh.learned import LEARNED_METHODS, find_checkpoint
+from benchctl.cgh import get_method
 from benchctl.files import atomic_write_bytes, ensure_dir
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import Profile
 from benchctl.provenance import source_hash
-from benchctl.runner.holograms import compute_scene, refined_base, target_plane
+from benchctl.runner.holograms import compute_scene, target_plane
+from benchctl.runner.learned.checkpoint import find_checkpoint
 
 CACHE_ENV = "BENCHCTL_CACHE_DIR"
 
@@ -74,7 +75,7 @@ def hologram(profile: Profile, target: torch.Tensor, channel: str, method: str, 
              progress: Callable[[str], Callable[[int, int], None]] | None = None) -> Hologram:
     """The hologram of `channel` for `target` (3, H, W amplitude on the SLM grid): from the cache when this
     exact computation was done before, else computed (compute_scene, one colour) and cached."""
-    network = method if method in LEARNED_METHODS else refined_base(method)  # "ccnn-dcm4+sgd" runs ccnn-dcm4
+    network = get_method(method).network  # "ccnn-dcm4+sgd" runs ccnn-dcm4's checkpoint
     if checkpoint is None and network is not None:
         found = find_checkpoint(network, profile)  # what compute_scene will use: its bytes belong in the key
         checkpoint = str(found) if found else None

@@ -7,19 +7,26 @@ from __future__ import annotations
 
 import functools
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from benchctl.cgh import Method, OpticalSetup, get_method, method_names, sgd_method
-from benchctl.cgh.learned import LEARNED_METHODS, checkpoint_problem, find_checkpoint, model_info, resolve_method
+from benchctl.cgh import Method, OpticalSetup, get_method, method_names
+from benchctl.cgh.learned import LEARNED_METHODS, model_info
 from benchctl.devices.slm import slm_for
 from benchctl.errors import BadValueError, BenchctlError
 from benchctl.optics import amplitude_scores, colour_scores, crop_roi, lsq_scale
 from benchctl.profiles import LaserChannel, Profile
+from benchctl.runner.learned.checkpoint import (
+    cached_checkpoint,
+    checkpoint_problem,
+    find_checkpoint,
+    learned_method,
+    profile_setups,
+)
 from benchctl.targets import active_channels
 
 RGB_PLANES = ("red", "green", "blue")
@@ -60,76 +67,70 @@ def target_plane(channel: LaserChannel) -> int:
     return 1 if channel.wavelength_nm >= 490 else 2
 
 
-def describe_propagation(profile: Profile) -> str:
-    """Per laser channel, the propagation plan at the profile's geometry (spread K, padded grid, band limit)."""
-    if profile.slm is None or profile.optics is None or not profile.channels:
-        return "  Propagation SLM -> target: not described (needs [slm], [optics] and [laser])"
-    lines = ["  Propagation SLM -> target (padding auto):"]
-    for channel in profile.channels:
-        plan = OpticalSetup.from_profile(profile, channel.name).target_propagator().plan
-        lines.append(f"    {channel.name}: {plan.describe()}")
-    return "\n".join(lines)
-
-
 def checkpoint_status(method: str, profile: Profile) -> str:
-    """Where the trained checkpoint of learned `method` for `profile` is, or why there is none it can use."""
-    path = find_checkpoint(method, profile)
+    """Where the trained checkpoint that `method` runs for `profile` is, or why there is none it can use."""
+    path = find_checkpoint(get_method(method).network, profile)
     if path is None:
         return f"no trained checkpoint for profile {profile.name!r}"
     problem = checkpoint_problem(path, profile)
     return f"{path}" if problem is None else f"{path} does not fit: {problem}"
 
 
-def usable_learned_methods(profile: Profile) -> list[str]:
-    """Learned methods with a checkpoint found for `profile` that fits its geometry (what runs out of the box)."""
-    usable = []
+def usable_methods(profile: Profile) -> list[str]:
+    """The registered methods that run out of the box for `profile`, in `method_names` order: the classical
+    ones, and those whose network has a checkpoint found for `profile` that fits its geometry."""
+    fits: dict[str, bool] = {}
     for name in LEARNED_METHODS:
         path = find_checkpoint(name, profile)
-        if path is not None and checkpoint_problem(path, profile) is None:
-            usable.append(name)
-    return usable
+        fits[name] = path is not None and checkpoint_problem(path, profile) is None
+    return [name for name in method_names() if get_method(name).network is None or fits[get_method(name).network]]
 
 
 def list_methods(shape: tuple[int, int], profile: Profile | None = None) -> list[str]:
     """Every hologram method: family, trainable parameters at `shape`, and whether it can run now.
 
-    Learned methods need a trained checkpoint that fits the profile's geometry; the last column says where it
-    is or why there is none (without a profile: that a checkpoint is needed).
+    Methods that need a checkpoint (learned ones and their SGD refinements) need a trained one that fits the
+    profile's geometry; the last column says where it is or why there is none (without a profile: that a
+    checkpoint is needed).
     """
-    lines = [f"{'method':<16} {'family':<10} {'parameters':>11}  usable / checkpoint"]
+    lines = [f"{'method':<24} {'family':<10} {'parameters':>11}  usable / checkpoint"]
+    usable = usable_methods(profile) if profile is not None else []
     for name in method_names():
-        lines.append(f"{name:<16} {'classical':<10} {'-':>11}  yes ({get_method(name).description})")
-    usable = usable_learned_methods(profile) if profile is not None else []
-    for name in LEARNED_METHODS:
-        info = model_info(name, shape)
+        method = get_method(name)
+        if method.network is None:
+            lines.append(f"{name:<24} {method.family:<10} {'-':>11}  yes ({method.description})")
+            continue
+        parameters = model_info(method.network, shape)["parameters"]
         status = checkpoint_status(name, profile) if profile is not None else "needs a trained checkpoint"
         state = "yes" if name in usable else "no"
-        lines.append(f"{name:<16} {info['family']!s:<10} {info['parameters']:>11,}  {state} ({status})")
+        lines.append(f"{name:<24} {method.family:<10} {parameters:>11,}  {state} ({status})")
     return lines
 
 
-REFINED_SUFFIX = "+sgd"
-"""`<learned method>+sgd`: that network's hologram refined by SGD, an iterative method of its own."""
+def resolve_method(name: str, profile: Profile, checkpoint: Path | str | None = None,
+                   channels: Sequence[str] | None = None) -> tuple[Method, Path | None]:
+    """The runnable method for `name` on `profile`, and the checkpoint it uses (None for classical methods).
 
-
-def refined_base(method: str) -> str | None:
-    """The learned method that `method` refines ("ccnn-dcm4" for "ccnn-dcm4+sgd"), else None."""
-    base = method.removesuffix(REFINED_SUFFIX)
-    return base if base != method and base in LEARNED_METHODS else None
-
-
-def resolve_any(method: str, profile: Profile, checkpoint: Path | None = None,
-                channels: list[str] | None = None) -> tuple[Method, Path | None]:
-    """`resolve_method`, plus the refined learned methods (`REFINED_SUFFIX`): SGD started from the network's
-    hologram, with the network's checkpoint. An unknown name is an error listing every method there is."""
-    base = refined_base(method)
-    if base is None and method not in (*method_names(), *LEARNED_METHODS):
-        raise BadValueError(f"unknown hologram method {method!r}; known: {', '.join(method_names())}; learned: "
-                            f"{', '.join(LEARNED_METHODS)}; a learned one refined by SGD: <learned>{REFINED_SUFFIX}")
-    if base is None:
-        return resolve_method(method, profile, checkpoint, channels)
-    start, path = resolve_method(base, profile, checkpoint, channels)
-    return sgd_method(method, init=start), path
+    What every caller that picks a method by name uses (generate, the cache, benchmarks, procedures). A method
+    that needs a checkpoint uses `checkpoint`, else the one shipped for the profile (`find_checkpoint`), and
+    must fit the geometry of the `channels` it will run for (all of the profile's by default). An unknown name
+    is an error listing the known ones; a classical method given a checkpoint is an error, as is a learned one
+    with none.
+    """
+    method = get_method(name)
+    if method.network is None:
+        if checkpoint is not None:
+            raise BadValueError(f"method {name!r} is not a learned method and takes no checkpoint "
+                                f"(got --checkpoint {checkpoint})")
+        return method, None
+    path = Path(checkpoint) if checkpoint is not None else find_checkpoint(method.network, profile)
+    if path is None:
+        raise BenchctlError(f"no trained checkpoint for {method.network!r} and profile {profile.name!r}: train one "
+                            f"with `benchctl train --method {method.network} --data DIR --profile {profile.name}` "
+                            "or pass --checkpoint FILE")
+    runnable = learned_method(name, path)
+    cached_checkpoint(path).check(profile_setups(profile, channels), f"profile {profile.name!r}")
+    return runnable, path
 
 
 @functools.lru_cache(maxsize=3)
@@ -169,7 +170,7 @@ def compute_scene(
         raise BenchctlError(f"target is {tuple(target_amplitude.shape)}, the SLM grid needs (3, {grid[0]}, {grid[1]})")
     present = active_channels(target_amplitude)
     channels = select_channels(profile, colours)
-    generate, used_checkpoint = resolve_any(method, profile, checkpoint,
+    generate, used_checkpoint = resolve_method(method, profile, checkpoint,
                                                [c.name for c in channels if present[target_plane(c)]])
     slm = slm_for(profile)
     target_roi = crop_roi(target_amplitude, roi)

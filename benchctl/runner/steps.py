@@ -22,7 +22,7 @@ from benchctl.images import read_image, write_png
 from benchctl.optics import linear_to_srgb
 from benchctl.profiles import LaserChannel, NonNegative, NonNegativeInt, Profile
 from benchctl.runner.hologram_cache import hologram
-from benchctl.runner.holograms import resolve_any
+from benchctl.runner.holograms import resolve_method
 from benchctl.runner.procedure import Context, P, Parameters, Step
 from benchctl.runner.record import set_aside
 from benchctl.targets import CHART_PREFIX, PHOTO_PREFIX, load_target, prepare_target
@@ -70,7 +70,7 @@ def check_method(context: Context, used: list[LaserChannel], method: str | None 
     for), checked when planning, so a dry run reports what the run would otherwise fail on at its first hologram."""
     params = context.parameters(HologramParameters)
     try:
-        return resolve_any(method or params.method, context.profile, params.checkpoint,
+        return resolve_method(method or params.method, context.profile, params.checkpoint,
                            [channel.name for channel in used])[0]
     except BenchctlError as exc:
         raise BenchctlError(f"parameters.method / checkpoint: {exc}") from None

@@ -2,23 +2,15 @@
 
 `build_model(name, setup)` returns a module mapping the target amplitude (B, 1, H, W) on the SLM grid to the
 SLM phase in [-pi, pi]; the networks propagate with the setup's propagator, always at full definition.
-`model_info(name, shape)` describes a method and counts its parameters without an optical setup.
-Training lives in `training` (data in `data`, the perceptual loss in `vgg`), checkpoints in `checkpoint`
-(`find_checkpoint` finds the shipped ones), and `inference.learned_method` / `resolve_method` turn a
-checkpoint into a hologram `Method`.
+`model_info(name, shape)` describes a method and counts its parameters without an optical setup. Importing
+this package registers every learned method (and `<name>+sgd`) in the method registry; the perceptual loss is
+in `vgg`. Training, training data and checkpoint files are workflows on disk: `benchctl.runner.learned`.
 """
 
 from benchctl.cgh.learned.ccnn import ComplexUNet, ccnn
-from benchctl.cgh.learned.checkpoint import (
-    Checkpoint,
-    checkpoint_problem,
-    find_checkpoint,
-    read_checkpoint,
-)
 from benchctl.cgh.learned.complex_layers import ComplexConv2d, ComplexConvTranspose2d, ComplexReLU
 from benchctl.cgh.learned.dcm import Divided, PhaseHologramNet, divided_pair, pad_to_multiple
 from benchctl.cgh.learned.holonet import AmplitudePhase, holonet
-from benchctl.cgh.learned.inference import learned_method, resolve_method
 from benchctl.cgh.learned.lfmn import ECCM, GRN, LFM, LFMM, LFMN, PYRAMID_GROUPS, PyramidMerger, sublattice_groups
 from benchctl.cgh.learned.models import (
     LEARNED_METHODS,
@@ -33,7 +25,6 @@ from benchctl.cgh.learned.unet import UNet
 
 __all__ = [
     "AmplitudePhase",
-    "Checkpoint",
     "ComplexConv2d",
     "ComplexConvTranspose2d",
     "ComplexReLU",
@@ -53,16 +44,11 @@ __all__ = [
     "build_model",
     "build_networks",
     "ccnn",
-    "checkpoint_problem",
     "count_parameters",
     "divided_pair",
-    "find_checkpoint",
     "holonet",
-    "learned_method",
     "model_info",
     "pad_to_multiple",
-    "read_checkpoint",
-    "resolve_method",
     "sublattice_groups",
     "tier",
 ]

@@ -10,6 +10,9 @@ sub-holograms with a plain PixelShuffle ("SR -> None"); `holonet-lowdef2` propag
 definition ("ASM at low definition", `dcm.LowDefinitionNet`); `holonet-dcm2-nolfm` / `-noeccm` / `-nogrn`
 drop one part of LFMN.
 
+Every learned method, and each refined by SGD (`<name>+sgd`), is registered in the one method registry
+(`benchctl.cgh.METHODS`) as a method that needs a checkpoint.
+
 `model_info` counts trainable parameters from the networks alone, so it needs no optical setup and builds
 no propagation kernel (at 8K with 2x padding one kernel takes about 1 GiB).
 """
@@ -24,6 +27,8 @@ from benchctl.cgh.learned.ccnn import ccnn
 from benchctl.cgh.learned.dcm import Divided, LowDefinitionNet, PhaseHologramNet
 from benchctl.cgh.learned.holonet import holonet
 from benchctl.cgh.learned.lfmn import LFMN, PyramidMerger
+from benchctl.cgh.method import REFINED_SUFFIX, Method, register
+from benchctl.cgh.sgd import SGD
 from benchctl.optics.setup import OpticalSetup
 
 TIERS = (("1080p", 1088 * 1920), ("4k", 2176 * 3840), ("8k", None))
@@ -61,6 +66,20 @@ VARIANTS: dict[str, Variant] = {
     "holonet-dcm2-nogrn": Variant("holonet", 2, "lfmn", _X2_DIMS, without=("grn",)),
 }
 LEARNED_METHODS = tuple(VARIANTS)
+"""The networks: the registered methods that need a checkpoint and refine no other method."""
+
+
+
+def _register_methods() -> None:
+    """Every network as a method that needs a checkpoint, then each refined by SGD (`<name>+sgd`)."""
+    for name, variant in VARIANTS.items():
+        register(Method(name, f"trained {variant.family} network", None, None, variant.family))
+    for name, variant in VARIANTS.items():
+        register(Method(f"{name}{REFINED_SUFFIX}", f"{name}'s hologram refined by SGD", SGD.default_iterations, None,
+                        variant.family, refines=name))
+
+
+_register_methods()
 
 PAPER_PARAMETERS: dict[str, tuple[tuple[int, int], float]] = {
     "holonet": ((1088, 1920), 2.87e6),

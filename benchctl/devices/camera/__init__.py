@@ -1,6 +1,6 @@
 """Cameras that capture RAW frames: the `Camera` interface and its drivers (ptp, gphoto2, simulated).
 
-`open_camera(profile)` builds the driver the profile's [camera] section names and opens it:
+`open_camera(profile)` builds the driver the profile's [camera] section names (`camera_for`) and opens it:
 
     with open_camera(profile) as camera:
         frames = camera.capture(Path("raw"), frames=3)
@@ -11,26 +11,27 @@ from __future__ import annotations
 from benchctl.devices.camera.base import RAW_FORMATS, Camera, RawFrame
 from benchctl.profiles import Profile
 
-__all__ = ["RAW_FORMATS", "Camera", "RawFrame", "open_camera"]
+__all__ = ["RAW_FORMATS", "Camera", "RawFrame", "camera_for", "open_camera"]
 
 
-def open_camera(profile: Profile) -> Camera:
-    """The profile's camera, opened. `ptp` with transport "sim" talks PTP to the simulated EOS body, which
-    delivers what the simulated bench renders."""
+def camera_for(profile: Profile) -> Camera:
+    """The profile's camera driver, not yet connected: enough to ask what it knows without the device.
+    `ptp` with transport "sim" talks PTP to the simulated EOS body, which delivers what the simulated bench
+    renders."""
     config = profile.require("camera").camera
     assert config is not None
     if config.driver == "sim":
         from benchctl.devices.camera.sim import SimCamera
 
-        return SimCamera(config, profile).open()
+        return SimCamera(config, profile)
     if config.driver == "gphoto2":
         from benchctl.devices.camera.gphoto2 import Gphoto2Camera
 
-        return Gphoto2Camera(config).open()
-    from benchctl.devices.camera.ptp_camera import open_ptp_camera
+        return Gphoto2Camera(config)
+    from benchctl.devices.camera.ptp_camera import PtpCamera
 
     if config.transport != "sim":
-        return open_ptp_camera(config)
+        return PtpCamera(config)
     from benchctl.devices.sim.bench import render_capture
     from benchctl.devices.sim.eos_usb import SimEosTransport
 
@@ -38,4 +39,9 @@ def open_camera(profile: Profile) -> Camera:
         frame = render_capture(profile, exposure_s=config.exposure_s, iso=config.iso)
         return frame.data, frame.file_name
 
-    return open_ptp_camera(config, SimEosTransport(image_source))
+    return PtpCamera(config, SimEosTransport(image_source))
+
+
+def open_camera(profile: Profile) -> Camera:
+    """The profile's camera, opened (use it as a context manager so it is closed again)."""
+    return camera_for(profile).open()

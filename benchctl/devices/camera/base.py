@@ -9,7 +9,7 @@ from __future__ import annotations
 from abc import abstractmethod
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from benchctl.devices.connection import Connection
 from benchctl.devices.errors import DeviceError
@@ -17,6 +17,9 @@ from benchctl.devices.lock import DeviceLock
 from benchctl.errors import BadValueError
 from benchctl.files import atomic_write_bytes, ensure_dir
 from benchctl.profiles import CameraConfig
+
+if TYPE_CHECKING:
+    import numpy as np
 
 RAW_FORMATS = {"dng": ".dng", "cr2": ".cr2", "cr3": ".cr3"}
 
@@ -54,6 +57,12 @@ class Camera(Connection):
     @abstractmethod
     def _close(self) -> None:
         """Disconnect; must not raise for a device that is already gone."""
+
+    def ground_truth_homography(self) -> np.ndarray | None:
+        """Where the bench truly images the SLM grid on the sensor (3x3, target-plane pixels -> sensor pixels),
+        as far as the device knows: a simulated camera knows what registration should find; a real one does
+        not (None), since only registration can measure it."""
+        return None
 
     @abstractmethod
     def _identity(self) -> dict[str, str]:

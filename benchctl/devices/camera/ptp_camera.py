@@ -1,7 +1,7 @@
 """The `ptp` camera driver: a Canon EOS M body (the bench's EOS M10) captured over PTP/USB, RAW to the computer.
 
-The M10 has no InitiateCapture, so this follows the EOS M sequence of the reference open-source
-implementation (REFERENCE 7):
+The M10 has no InitiateCapture, so this follows the EOS M capture sequence of libgphoto2
+(camlibs/ptp2/library.c, the Canon EOS capture path; https://github.com/gphoto/libgphoto2):
 
     open:     OpenSession(1) [transaction 0], GetDeviceInfo, SetRemoteMode(0x15), SetEventMode(1),
               GetEvent until empty, SetDevicePropValueEx(capture destination 0xD11C = 4, to the computer),

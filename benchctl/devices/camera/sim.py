@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import time
 
+import numpy as np
+
 from benchctl.devices.camera.base import Camera, RawFrame
 from benchctl.devices.errors import DeviceError
 from benchctl.devices.lock import DeviceLock
@@ -54,6 +56,12 @@ class SimCamera(Camera):
 
     def _apply_settings(self, exposure_s: float | None, iso: int | None) -> None:
         """Accepted: every capture already uses the profile's exposure and ISO."""
+
+    def ground_truth_homography(self) -> np.ndarray:
+        """The simulated bench's own imaging geometry ([sim.imaging], [sim.sensor])."""
+        from benchctl.devices.sim.bench import camera_homography
+
+        return camera_homography(self.profile)
 
     def _capture_one(self) -> RawFrame:
         """Render the frame, then wait the exposure and the body's readout time as a real camera would."""

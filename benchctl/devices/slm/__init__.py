@@ -38,7 +38,10 @@ def slm_for(profile: Profile) -> SLM:
     assert config is not None
     if config.driver not in DRIVERS:
         raise BadValueError(f"{profile.path}: slm.driver {config.driver!r} unknown (choose from {', '.join(DRIVERS)})")
-    return DRIVERS[config.driver](config, [channel.name for channel in profile.channels])
+    channels = [channel.name for channel in profile.channels]
+    if config.driver == SimSLM.driver:
+        return SimSLM(config, channels, profile.sim.slm)  # the simulated panel also knows its true response
+    return DRIVERS[config.driver](config, channels)
 
 
 def open_slm(profile: Profile) -> SLM:

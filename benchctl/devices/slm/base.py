@@ -9,21 +9,25 @@ settle time. Drivers only open, close and put a finished gray frame on the panel
 from __future__ import annotations
 
 import math
+import sys
 import time
 from abc import abstractmethod
 from collections.abc import Callable, Sequence
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
-import torch
 
 from benchctl.devices.connection import Connection
 from benchctl.devices.errors import DeviceError
 from benchctl.devices.lock import DeviceLock
 from benchctl.devices.slm.lut import lut_for
 from benchctl.errors import BadValueError
-from benchctl.optics.phase_encoding import PhaseLUT, gray_to_phase, phase_to_gray
 from benchctl.profiles import SLMConfig
+
+if TYPE_CHECKING:  # the encoding is torch; it is imported where a phase is encoded, so `slm info` stays light
+    import torch
+
+    from benchctl.optics.phase_encoding import PhaseLUT
 
 TWO_PI = 2.0 * math.pi
 
@@ -124,6 +128,12 @@ class SLM(Connection):
             self._luts[channel] = lut_for(self.config, channel)
         return self._luts[channel]
 
+    def ground_truth_lut(self, wavelength_m: float) -> np.ndarray | None:
+        """The panel's true gray -> phase response at `wavelength_m` (radians, one per gray level), as far as
+        the device knows: a simulated panel knows what LUT calibration should measure; a real one does not
+        (None), since only calibration can measure it."""
+        return None
+
     def displayed_frame(self) -> int | None:
         """Id of the frame the panel shows now, as the device reports it. Drivers whose panel cannot say
         report the count of frames this object displayed (the device lock keeps other commands off the panel)."""
@@ -139,6 +149,8 @@ class SLM(Connection):
 
     def _added_phase(self, device: torch.device) -> torch.Tensor:
         """Phase offset plus blazed carrier (float64, broadcastable to (H, W)) added before encoding."""
+        import torch
+
         total = torch.full((1, 1), self.config.phase_offset_rad, dtype=torch.float64, device=device)
         for axis, period in enumerate(self.config.grating_period_px):
             if period:
@@ -151,6 +163,10 @@ class SLM(Connection):
 
     def encode(self, phase: torch.Tensor | np.ndarray, channel: str) -> np.ndarray:
         """The gray frame `show_phase` would display for `phase` ((H, W) radians), without displaying it."""
+        import torch
+
+        from benchctl.optics.phase_encoding import phase_to_gray
+
         phase = self._checked_phase(phase)
         gray = phase_to_gray(phase.to(torch.float64) + self._added_phase(phase.device), self.lut(channel))
         if self._flips():
@@ -160,6 +176,10 @@ class SLM(Connection):
     def decode(self, gray: np.ndarray, channel: str) -> torch.Tensor:
         """The hologram phase a displayed frame carries: undo flips, look up `channel`'s table, remove the
         offset and carrier (the optics compensate those). Float32 (H, W) radians in [-pi, pi)."""
+        import torch
+
+        from benchctl.optics.phase_encoding import gray_to_phase
+
         frame = torch.as_tensor(np.ascontiguousarray(gray).astype(np.int64))
         if self._flips():
             frame = torch.flip(frame, self._flips())
@@ -172,7 +192,8 @@ class SLM(Connection):
 
     def show_gray(self, gray: np.ndarray | torch.Tensor) -> np.ndarray:
         """Display raw gray levels as they are (no offset, carrier, table or flip); returns the frame displayed."""
-        if isinstance(gray, torch.Tensor):
+        torch = sys.modules.get("torch")  # a tensor can only exist once torch is imported
+        if torch is not None and isinstance(gray, torch.Tensor):
             gray = gray.detach().cpu().numpy()
         gray = np.asarray(gray)
         if gray.shape != self.shape:
@@ -209,6 +230,8 @@ class SLM(Connection):
 
     def _checked_phase(self, phase: torch.Tensor | np.ndarray) -> torch.Tensor:
         """`phase` as a tensor, refused unless it is real floating point, (H, W) and finite."""
+        import torch
+
         tensor = phase if isinstance(phase, torch.Tensor) else torch.as_tensor(np.ascontiguousarray(phase))
         if tensor.is_complex() or not tensor.is_floating_point():
             raise BadValueError(

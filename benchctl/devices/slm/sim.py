@@ -7,6 +7,7 @@ state file `slm.json` says which frame is current, its shape, bit depth, channel
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from datetime import datetime, timezone
 from typing import Any
 
@@ -18,7 +19,7 @@ from benchctl.devices.sim.state import device_file, load_state, save_state, sim_
 from benchctl.devices.slm.base import SLM
 from benchctl.errors import BenchctlError
 from benchctl.files import ensure_dir
-from benchctl.images import read_image, write_png
+from benchctl.profiles import SimSLMConfig, SLMConfig
 
 STATE_NAME = "slm"
 _READ_ATTEMPTS = 5
@@ -26,6 +27,8 @@ _READ_ATTEMPTS = 5
 
 def read_displayed() -> tuple[np.ndarray | None, dict[str, Any]]:
     """The frame the simulated SLM shows now and its metadata; (None, {}) if it has shown nothing yet."""
+    from benchctl.images import read_image  # OpenCV: only where a frame file is read, so `slm info` stays light
+
     for _ in range(_READ_ATTEMPTS):
         state = load_state(STATE_NAME)
         if not state:
@@ -48,6 +51,17 @@ class SimSLM(SLM):
     driver = "sim"
     read_displayed = staticmethod(read_displayed)
 
+    def __init__(self, config: SLMConfig, channels: Sequence[str] = (), response: SimSLMConfig | None = None) -> None:
+        """`response`: the simulated panel's true phase response (the profile's [sim.slm]; default: its defaults)."""
+        super().__init__(config, channels)
+        self.response = response if response is not None else SimSLMConfig()
+
+    def ground_truth_lut(self, wavelength_m: float) -> np.ndarray:
+        """The simulated panel's own response ([sim.slm]) at `wavelength_m`."""
+        from benchctl.devices.sim.bench import true_lut
+
+        return true_lut(wavelength_m, self.bit_depth, self.response).phases.numpy()
+
     def _device_lock(self) -> DeviceLock:
         return sim_lock(STATE_NAME, self.label)
 
@@ -60,6 +74,8 @@ class SimSLM(SLM):
 
     def _display(self, gray: np.ndarray, channel: str | None) -> None:
         """Write the frame file first, then the state naming it, then drop older frame files."""
+        from benchctl.images import write_png
+
         frame = int(load_state(STATE_NAME).get("frame", 0)) + 1
         name = f"{STATE_NAME}-{frame}.png"
         write_png(device_file(name), gray)

@@ -21,6 +21,7 @@ from benchctl.capture.lut_calibration import (
     phase_response,
     zero_order_signal,
 )
+from benchctl.devices.slm import slm_for
 from benchctl.devices.slm.lut import save_lut
 from benchctl.profiles import LaserChannel
 from benchctl.runner.calibration import Calibration
@@ -104,7 +105,7 @@ def _fitter(channel: LaserChannel, grays: list[int]):
         table = lut.phases.numpy()
         result = {"grays": grays, "signals": signals, "phases": [float(p) for p in phases],
                   "depth_rad": float(table[-1] - table[0]), "file": f"calibration/lut-{channel.name}.csv"}
-        truth = _simulator_truth(context, channel)
+        truth = slm_for(context.profile).ground_truth_lut(channel.wavelength_m)  # None on a real panel
         if truth is not None:
             error = table - table[0] - (truth - truth[0])
             one_period = truth - truth[0] <= 2 * np.pi
@@ -116,16 +117,6 @@ def _fitter(channel: LaserChannel, grays: list[int]):
         return result
 
     return action
-
-
-def _simulator_truth(context: Context, channel: LaserChannel) -> np.ndarray | None:
-    """The simulated panel's true response, when the bench is simulated."""
-    profile = context.profile
-    if profile.slm is None or profile.slm.driver != "sim":
-        return None
-    from benchctl.devices.sim.bench import true_lut
-
-    return true_lut(channel.wavelength_m, profile.slm.bit_depth, profile.sim.slm).phases.numpy()
 
 
 def _reporter(used: list[LaserChannel]):

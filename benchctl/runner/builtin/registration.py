@@ -20,11 +20,12 @@ from benchctl.capture.registration import (
     dots_in_capture,
     fit_registration,
 )
+from benchctl.devices.camera import camera_for
+from benchctl.profiles import LaserChannel, Positive
 from benchctl.runner.calibration import Calibration
 from benchctl.runner.holograms import target_plane
 from benchctl.runner.procedure import Context, Step
 from benchctl.runner.report import registration_report
-from benchctl.profiles import LaserChannel, Positive
 from benchctl.runner.steps import (
     HologramParameters,
     channels,
@@ -95,16 +96,15 @@ def _fitter(channel: LaserChannel, points: np.ndarray, grid: tuple[int, int], ma
 def _against_simulator(context: Context, fit: Registration) -> dict[str, float] | None:
     """On the simulated bench: how far the fit puts the ROI's corners from where the simulator images them."""
     profile = context.profile
-    if profile.camera is None or profile.camera.driver != "sim":
+    truth = camera_for(profile).ground_truth_homography()
+    if truth is None:  # a real camera: only this fit knows
         return None
-    from benchctl.devices.sim.bench import camera_homography
-
     assert profile.slm is not None and profile.optics is not None
     (h, w), (rh, rw) = profile.slm.shape, profile.optics.roi
     top, left = (h - rh) / 2, (w - rw) / 2
     corners = np.array([[left, top], [left + rw - 1, top], [left, top + rh - 1], [left + rw - 1, top + rh - 1]])
     errors = np.hypot(*(apply_homography(fit.homography, corners)
-                        - apply_homography(camera_homography(profile), corners)).T)
+                        - apply_homography(truth, corners)).T)
     return {"corner_error_max_px": round(float(errors.max()), 4),
             "corner_error_mean_px": round(float(errors.mean()), 4)}
 

@@ -2,11 +2,11 @@
 computer and chunked download.
 
 GetEvent returns a run of records, each `u32 size | u32 type | body`, ending with the record size 8 type 0.
-Offsets below count from the start of a record (size field included). RequestObjectTransfer: handle at 8,
-size at 0x14 (REFERENCE); format (u16) at 0x0c and NUL-terminated file name at 0x1c as in libgphoto2.
-ObjectAddedEx: handle at 8 (REFERENCE); storage 0x0c, format 0x10, size 0x1c, parent 0x20, name 0x28 as in
-libgphoto2. CameraStatus: status at 8 (1 = busy shooting). PropValueChanged: property at 8, value from 0x0c.
-Both directions are here: the driver parses, the simulated body packs.
+Offsets below count from the start of a record (size field included) and are those libgphoto2 parses
+(camlibs/ptp2/ptp.c, `ptp_canon_eos_getevent`). RequestObjectTransfer: handle at 8, format (u16) at 0x0c,
+size at 0x14, NUL-terminated file name at 0x1c. ObjectAddedEx: handle at 8, storage 0x0c, format 0x10,
+size 0x1c, parent 0x20, name 0x28. CameraStatus: status at 8 (1 = busy shooting). PropValueChanged: property
+at 8, value from 0x0c. Both directions are here: the driver parses, the simulated body packs.
 """
 
 from __future__ import annotations
@@ -60,7 +60,9 @@ class EosProperty(IntEnum):
     EVFOutputDevice = 0xD1B0
 
 
-# Properties whose writes freeze the EOS M10 (REFERENCE 7): the exposure settings and the image format.
+# Properties whose writes freeze the EOS M10 while capture keeps working (user reports against libgphoto2:
+# https://github.com/gphoto/libgphoto2/issues/734, https://github.com/gphoto/gphoto2/issues/159):
+# the exposure settings and the image format.
 EXPOSURE_PROPERTIES = frozenset({EosProperty.Aperture, EosProperty.ShutterSpeed, EosProperty.ISO,
                                  EosProperty.ImageFormat})
 

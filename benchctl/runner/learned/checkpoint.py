@@ -10,7 +10,8 @@ A checkpoint (`torch.save` of plain dicts and tensors, read back with `weights_o
 
 Using a checkpoint for a geometry other than its own is refused, naming every difference. Shipped checkpoints
 live in `checkpoints/<profile name>/<method>.pt` (in the working folder or the repository next to the
-package, like hardware profiles); `find_checkpoint` finds them.
+package, like hardware profiles); `find_checkpoint` finds them, and `learned_method` turns one into the
+runnable form of a registered method that needs a checkpoint.
 """
 
 from __future__ import annotations
@@ -26,12 +27,13 @@ from typing import Any
 import torch
 
 import benchctl
-from benchctl.cgh.learned.geometry import Geometry, geometry_differences, geometry_of, setup_from_geometry
+from benchctl.cgh import Method, get_method
 from benchctl.cgh.learned.models import LEARNED_METHODS, build_model
 from benchctl.errors import BadValueError, BenchctlError
 from benchctl.files import atomic_write_bytes, write_json
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import Profile
+from benchctl.runner.learned.geometry import Geometry, geometry_differences, geometry_of, setup_from_geometry
 
 FORMAT = "benchctl.learned-checkpoint"
 FORMAT_VERSION = 1
@@ -270,3 +272,20 @@ def checkpoint_problem(path: Path, profile: Profile, channels: Sequence[str] | N
         return str(exc)
     problems = checkpoint.differences(profile_setups(profile, channels), f"profile {profile.name!r}")
     return "; ".join(problems) or None
+
+
+def learned_method(name: str, checkpoint_path: Path | str) -> Method:
+    """Registered method `name` (learned, or a refined `<learned>+sgd`) running the trained models of
+    `checkpoint_path`, which must hold that network. It serves any optical setup one of the checkpoint's
+    colours was trained for, exactly; any other setup is refused with the differences named."""
+    method, path = get_method(name), Path(checkpoint_path)
+    checkpoint = cached_checkpoint(path)
+    if method.network is None:
+        raise BadValueError(f"method {name!r} is not a learned method and takes no checkpoint (got {path})")
+    if checkpoint.method != method.network:
+        raise BadValueError(f"checkpoint {path} holds a {checkpoint.method} model, not {method.network}")
+
+    def networks(setup: OpticalSetup, device: torch.device) -> torch.nn.Module:
+        return cached_model(path, cached_checkpoint(path).colour_for(setup), device)
+
+    return method.trained(networks, str(path))

@@ -1,0 +1,69 @@
+"""What every command group shares: argument types, the --profile option, the epilog, line printing."""
+
+from __future__ import annotations
+
+import argparse
+
+import benchctl
+
+EPILOG = """targets: a bundled chart or photo (see `benchctl targets`) such as chart:siemens or photo:coffee, or an
+image file.
+profiles: a path to a TOML file or a name in hardware_profiles/ (default: simulated, or $BENCHCTL_PROFILE)."""
+
+
+def grid_size(text: str) -> tuple[int, int]:
+    """An `HxW` grid such as 1088x1920, as (rows, cols)."""
+    try:
+        rows, cols = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"size must look like 1088x1920 (rows x cols), got {text!r}") from None
+    if rows < 1 or cols < 1:
+        raise argparse.ArgumentTypeError(f"size must be positive, got {text!r}")
+    return rows, cols
+
+
+def int_list(text: str) -> tuple[int, ...]:
+    """Comma-separated iteration counts such as 10,50,200 (each >= 1)."""
+    try:
+        values = tuple(int(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers like 10,50,200, got {text!r}") from None
+    if any(v < 1 for v in values):
+        raise argparse.ArgumentTypeError(f"iteration counts must be >= 1, got {text!r}")
+    return values
+
+
+def name_list(text: str) -> list[str]:
+    """Comma-separated names such as red,green (blanks dropped)."""
+    return [v.strip() for v in text.split(",") if v.strip()]
+
+
+def positive_int(text: str) -> int:
+    """A whole number >= 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+class VersionAction(argparse.Action):
+    """--version, reading the installed metadata only when asked (building the parser must stay cheap)."""
+
+    def __call__(self, parser: argparse.ArgumentParser, *_: object) -> None:
+        parser.exit(message=f"benchctl {benchctl.__version__}\n")
+
+
+def add_profile(parser: argparse.ArgumentParser) -> None:
+    """The --profile option every command that opens a bench takes."""
+    parser.add_argument("--profile", "-p", metavar="P",
+                        help="hardware profile: TOML path or name in hardware_profiles/ (default: simulated)")
+
+
+def print_lines(lines: list[str]) -> int:
+    """Print `lines` one per line; exit code 0 (what a listing command returns)."""
+    for line in lines:
+        print(line)
+    return 0

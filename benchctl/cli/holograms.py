@@ -1,0 +1,80 @@
+"""`benchctl generate | models | targets`: holograms for a target, the methods and targets there are."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from benchctl.cli.args import EPILOG, add_profile, grid_size, name_list, positive_int, print_lines
+
+
+def _cmd_generate(args: argparse.Namespace) -> int:
+    from benchctl.console import Progress
+    from benchctl.profiles import load_profile
+    from benchctl.runner.generate import run_generate
+
+    profile = load_profile(args.profile)
+    metrics = run_generate(args.target, profile, Path(args.out), method=args.method, iterations=args.iterations,
+                           colours=args.colours, seed=args.seed, progress=Progress, checkpoint=args.checkpoint)
+    if metrics["checkpoint"]:
+        print(f"{args.method}: trained models from {metrics['checkpoint']}")
+    if metrics["optical_model"]:
+        print(f"fitted optical model: {metrics['optical_model']}")
+    for name, colour in metrics["colours"].items():
+        if colour["skipped"]:
+            print(f"{name:>6}: skipped (black in the target)")
+        else:
+            print(f"{name:>6}: {colour['seconds']:.2f} s, PSNR {colour['psnr_amplitude_db']:.2f} dB amplitude, "
+                  f"SSIM {colour['ssim_amplitude']:.3f}")
+    merged = metrics["merged"]
+    print(f"merged: PSNR {merged['psnr_srgb_db']:.2f} dB sRGB, SSIM {merged['ssim_srgb']:.3f}; wrote {args.out}/")
+    return 0
+
+
+def _cmd_models(args: argparse.Namespace) -> int:
+    from benchctl.profiles import load_profile
+    from benchctl.runner.holograms import list_methods
+
+    profile = load_profile(args.profile)
+    shape = args.size or profile.require("slm").slm.shape
+    print(f"hologram methods at {shape[0]}x{shape[1]} (checkpoints for profile {profile.name!r}):")
+    return print_lines(list_methods(shape, profile))
+
+
+def _cmd_targets(args: argparse.Namespace) -> int:
+    from benchctl.targets import list_targets
+
+    for name, description in list_targets().items():
+        print(f"{name:<16} {description}")
+    return 0
+
+
+def add_commands(sub: argparse._SubParsersAction) -> None:
+    """Add this group's sub-commands to the `benchctl` sub-parsers (importing nothing heavy)."""
+    gen = sub.add_parser("generate", help="phase holograms for a target, with simulated reconstruction and scores",
+                         description="Generate one 8-bit phase PNG per colour (as the SLM displays it), the "
+                                     "simulated reconstruction and metrics.json. Colours that are black in the "
+                                     "target are skipped.", epilog=EPILOG,
+                         formatter_class=argparse.RawDescriptionHelpFormatter)
+    gen.add_argument("target", help="chart or photo name (e.g. chart:siemens, photo:coffee) or image file")
+    gen.add_argument("--method", "-m", default="dpac",
+                     help="hologram method (default: dpac; `benchctl models` lists them all); learned ones, alone "
+                          "or refined as <learned>+sgd, need a trained checkpoint")
+    gen.add_argument("--checkpoint", type=Path, metavar="CKPT",
+                     help="trained models for a learned method (default: the one shipped for the profile)")
+    gen.add_argument("--iterations", "-n", type=positive_int, help="iterations for iterative methods "
+                                                                  "(default: the method's own)")
+    gen.add_argument("--colours", "--colors", type=name_list, metavar="LIST",
+                     help="comma-separated laser channels, e.g. red,green (default: all in the profile)")
+    gen.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    gen.add_argument("--out", "-o", required=True, metavar="OUTDIR", help="folder for the PNGs and metrics.json")
+    add_profile(gen)
+    gen.set_defaults(func=_cmd_generate)
+
+    models = sub.add_parser("models", help="hologram methods with family and parameter count at a grid size")
+    models.add_argument("--size", type=grid_size, metavar="HxW", help="grid (default: the profile's SLM)")
+    add_profile(models)
+    models.set_defaults(func=_cmd_models)
+
+    targets = sub.add_parser("targets", help="list the bundled targets")
+    targets.set_defaults(func=_cmd_targets)
