@@ -33,6 +33,7 @@ from msgspec.structs import replace
 from torch import nn
 
 from benchctl.cgh.learned.models import LEARNED_METHODS, build_model
+from benchctl.cgh.method import get_method
 from benchctl.cgh.learned.vgg import PERCEPTUAL_WEIGHT, PerceptualLoss, load_vgg19
 from benchctl.console import Progress
 from benchctl.errors import BadValueError, BenchctlError
@@ -262,20 +263,43 @@ def epoch_order(n: int, seed: int, epoch: int, length: int) -> np.ndarray:
 def evaluate(models: Mapping[str, nn.Module], setups: Mapping[str, OpticalSetup], planes: Mapping[str, int],
              sources: Sequence[ImageSource], loss_fn: nn.Module, device: torch.device) -> dict[str, dict[str, float]]:
     """Per colour, the mean loss and amplitude scores (`amplitude_scores`) over `sources` (unquantised phase)."""
+    def score(colour: str, amplitude: torch.Tensor) -> dict[str, float]:
+        model = models[colour]
+        model.eval()
+        with torch.no_grad():
+            recon, target = scaled_reconstruction(model, setups[colour], amplitude.to(device))
+            return {"loss": float(loss_fn(recon, target))} | amplitude_scores(recon[0, 0].cpu(), target[0, 0].cpu())
+
+    return _mean_scores(setups, planes, sources, score)
+
+
+def dpac_reference(setups: Mapping[str, OpticalSetup], planes: Mapping[str, int],
+                   sources: Sequence[ImageSource]) -> dict[str, dict[str, float]]:
+    """Per colour, DPAC's mean amplitude scores over `sources`, scored as `evaluate` scores a network: the one-shot
+    classical hologram a trained model has to beat to be worth its training."""
+    dpac = get_method("dpac")
+
+    def score(colour: str, amplitude: torch.Tensor) -> dict[str, float]:
+        setup = setups[colour]
+        recon = crop_roi(setup.reconstruct(dpac(amplitude[0, 0], setup)), setup.roi)
+        target = crop_roi(amplitude[0, 0], setup.roi)
+        return amplitude_scores(recon * lsq_scale(recon, target), target)
+
+    return _mean_scores(setups, planes, sources, score)
+
+
+def _mean_scores(setups: Mapping[str, OpticalSetup], planes: Mapping[str, int], sources: Sequence[ImageSource],
+                 score: Callable[[str, torch.Tensor], dict[str, float]]) -> dict[str, dict[str, float]]:
+    """Per colour, the mean over `sources` of `score(colour, peak-normalised target plane (1, 1, H, W))`."""
     if not sources:
         return {}
     some = next(iter(setups.values()))
-    sums: dict[str, dict[str, float]] = {c: {} for c in models}
+    sums: dict[str, dict[str, float]] = {c: {} for c in setups}
     for source in sources:
-        targets = load_targets([source], some.shape, some.roi).to(device)
-        for colour, model in models.items():
-            model.eval()
+        targets = load_targets([source], some.shape, some.roi)
+        for colour in setups:
             amplitude = peak_normalised(targets[:, planes[colour]:planes[colour] + 1])
-            with torch.no_grad():
-                recon, target = scaled_reconstruction(model, setups[colour], amplitude)
-                scores = {"loss": float(loss_fn(recon, target))} | amplitude_scores(recon[0, 0].cpu(),
-                                                                                    target[0, 0].cpu())
-            for key, value in scores.items():
+            for key, value in score(colour, amplitude).items():
                 sums[colour][key] = sums[colour].get(key, 0.0) + value
     return {c: {k: round(v / len(sources), 5) for k, v in s.items()} for c, s in sums.items()}
 
@@ -352,6 +376,7 @@ def _train(profile: Profile, settings: TrainSettings, out_dir: Path, planes: Map
         if settings.loss == "l2-perceptual" else None,
         "optical_model": {c: s.field_model.to_dict() for c, s in setups.items() if s.field_model is not None} or None,
     }
+    reference = dpac_reference(setups, planes, val_set) if job.main else {}
     progress = Progress(settings.method, stream=progress_stream) if job.main else None
     started = time.perf_counter()
     metrics: dict[str, dict[str, float]] = {}
@@ -389,7 +414,8 @@ def _train(profile: Profile, settings: TrainSettings, out_dir: Path, planes: Map
         position = {"epoch": epoch + 1 if epoch_done else epoch, "batch": 0 if epoch_done else batch, "step": step}
         if job.main:
             scores = evaluate(models, setups, planes, val_set, loss_fn, device)
-            metrics = {c: train_stats[c] | {f"val_{k}": v for k, v in scores.get(c, {}).items()} for c in setups}
+            metrics = {c: train_stats[c] | {f"val_{k}": v for k, v in scores.get(c, {}).items()}
+                       | {f"val_dpac_{k}": v for k, v in reference.get(c, {}).items()} for c in setups}
             history.append({"epoch": epoch + 1, "step": step, "complete": epoch_done,
                             "seconds": round(time.perf_counter() - started, 1), "metrics": metrics})
             checkpoint = Checkpoint(
@@ -415,7 +441,8 @@ def _epoch_line(epoch: int, epochs: int, complete: bool, step: int, metrics: Map
     state = "" if complete else " (stopped by --max-steps)"
     parts = []
     for colour, m in metrics.items():
-        val = f", val PSNR {m['val_psnr_amplitude_db']:.2f} dB" if "val_psnr_amplitude_db" in m else ""
+        val = (f", val PSNR {m['val_psnr_amplitude_db']:.2f} dB (DPAC {m['val_dpac_psnr_amplitude_db']:.2f})"
+               if "val_psnr_amplitude_db" in m else "")
         parts.append(f"{colour} loss {m['train_loss']:.5f}{val}")
     return f"epoch {epoch + 1}/{epochs}{state}, step {step}: {'; '.join(parts)}; wrote {path}"
 
@@ -460,8 +487,9 @@ def run_train(profile: Profile, settings: TrainSettings, out_dir: Path, *, resum
         return result
     for colour, metrics in result.metrics.items():
         scores = (f"validation PSNR {metrics['val_psnr_amplitude_db']:.2f} dB amplitude, SSIM "
-                  f"{metrics['val_ssim_amplitude']:.3f}" if "val_psnr_amplitude_db" in metrics
-                  else "no validation images")
+                  f"{metrics['val_ssim_amplitude']:.3f} (DPAC on the same images: "
+                  f"{metrics['val_dpac_psnr_amplitude_db']:.2f} dB, {metrics['val_dpac_ssim_amplitude']:.3f})"
+                  if "val_psnr_amplitude_db" in metrics else "no validation images")
         out(f"{colour:>6}: {scores} (training loss {metrics['train_loss']:.5f})")
     out(f"{result.steps} step(s), {result.epochs_done} complete epoch(s); checkpoint {result.checkpoint}")
     return result
