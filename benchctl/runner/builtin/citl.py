@@ -33,7 +33,7 @@ from benchctl.devices.slm import slm_for
 from benchctl.errors import BenchctlError
 from benchctl.files import atomic_write_bytes, file_sha256
 from benchctl.images import read_image, write_png
-from benchctl.optics import crop_roi, lsq_scale, psnr
+from benchctl.optics import crop_roi, linear_to_srgb, lsq_scale, psnr
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import LaserChannel
 from benchctl.runner.builtin import registration
@@ -306,17 +306,22 @@ def _reporter(target: torch.Tensor, used: list[LaserChannel]):
         baseline = ({c.name: context.result(f"citl/{c.name}/baseline") for c in used}
                     if context.params["baseline"] else {})
 
-        def merged(results: dict[str, dict[str, Any]], image: str | None = None) -> dict[str, Any]:
-            planes = {target_plane(c): read_image(folder / results[c.name]["file"]) / 65535.0
-                      * results[c.name]["full_scale"] for c in used}
-            merge = merge_capture(planes, target_roi)
-            if image is not None:
-                write_linear16(context.path("images", "citl", image), merge.merged_linear, srgb=True)
-            return {"scores": {k: round(v, 4) for k, v in merge.merged_scores.items()}, "warnings": merge.warnings,
-                    **({"image": f"images/citl/{image}"} if image else {})}
+        def planes(results: dict[str, dict[str, Any]]) -> dict[int, np.ndarray]:
+            return {target_plane(c): read_image(folder / results[c.name]["file"]) / 65535.0
+                    * results[c.name]["full_scale"] for c in used}
 
-        per_k = [merged({name: rows[k] for name, rows in iterations.items()},
-                        {0: "merged-first.png", count: "merged-last.png"}.get(k)) for k in range(count + 1)]
+        def merged(results: dict[str, dict[str, Any]], image: str) -> dict[str, Any]:
+            merge = merge_capture(planes(results), target_roi)
+            write_linear16(context.path("images", "citl", image), merge.merged_linear, srgb=True)
+            return {"scores": {k: round(v, 4) for k, v in merge.merged_scores.items()}, "warnings": merge.warnings,
+                    "image": f"images/citl/{image}"}
+
+        # Every iteration's merged PSNR; the full scoring (SSIM, warnings, the image) for the first and the last.
+        per_k: list[dict[str, Any]] = [
+            {"scores": merged_psnr(planes({name: rows[k] for name, rows in iterations.items()}), target_roi),
+             "warnings": []} for k in range(count + 1)]
+        for k, image in ((0, "merged-first.png"), (count, "merged-last.png")):
+            per_k[k] = merged({name: rows[k] for name, rows in iterations.items()}, image)
         write_linear16(context.path("images", "citl", "target.png"), target_roi.square(), srgb=True)
         disk = _disk(folder, iterations, used)
         return citl_report(context, {
@@ -327,6 +332,20 @@ def _reporter(target: torch.Tensor, used: list[LaserChannel]):
             "timing_keys": list(TIMING_KEYS), "disk": disk, "target_image": "images/citl/target.png"})
 
     return action
+
+
+def merged_psnr(planes: dict[int, np.ndarray], target_roi: torch.Tensor) -> dict[str, float]:
+    """The merged colour image's PSNR, linear and sRGB, as `merge_capture` balances and scores it (the same
+    numbers, without its SSIM: a run of hundreds of iterations scores each of them)."""
+    merged = torch.zeros_like(target_roi)
+    for colour, signal in planes.items():
+        measured = torch.from_numpy(np.sqrt(np.clip(np.asarray(signal, dtype=np.float32), 0.0, None)))
+        merged[colour] = (lsq_scale(measured, target_roi[colour]) * measured).square().clamp(0, 1)
+    rows = (3 * target_roi.shape[-2], target_roi.shape[-1])
+    linear = target_roi.square().clamp(0, 1)
+    return {"psnr_linear_db": round(float(psnr(merged.reshape(rows), linear.reshape(rows), 1.0)), 4),
+            "psnr_srgb_db": round(float(psnr(linear_to_srgb(merged).reshape(rows),
+                                             linear_to_srgb(linear).reshape(rows), 1.0)), 4)}
 
 
 def _disk(folder: Path, iterations: dict[str, list[dict[str, Any]]], used: list[LaserChannel]) -> dict[str, Any]:
