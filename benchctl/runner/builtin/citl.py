@@ -11,6 +11,13 @@ and last iterations and every `keep_raw_every`-th; every iteration keeps its reg
 the ROI (images/citl/<colour>/<k>.png). Iteration k records the loss and captured PSNR of phase k (the one it
 displayed) and the seconds spent per stage; the last (k = iterations) only captures the final phase.
 
+The learning rate falls from `learning_rate` to 0 over the iterations (cosine; `schedule = "constant"` keeps it):
+late gradients are mostly camera noise, and constant steps then walk the phase away from its best.
+
+The model is only the gradient's: where the bench departs far from it (the aberrated simulated bench without a
+fitted model) the gradient points elsewhere and the captured PSNR rises for a few iterations, then falls; run
+model calibration first (README, "Camera in the loop").
+
 With `baseline` (default on), model-only SGD with the same number of Adam steps (start_iterations + iterations
 for an SGD start) is captured the same way, so the report compares both at one budget.
 """
@@ -18,6 +25,7 @@ for an SGD start) is captured the same way, so the report compares both at one b
 from __future__ import annotations
 
 import io
+import math
 import time
 from pathlib import Path
 from typing import Any
@@ -61,6 +69,9 @@ PARAMETERS = {
     "dark_frames": Field("int", required=False, default=0, ge=0),  # per iteration (the decoder removes black level)
     "iterations": Field("int", required=False, default=50, ge=1, le=10_000),  # Adam steps on the captured error
     "learning_rate": Field("float", required=False, default=0.05, gt=0),
+    # "cosine": the learning rate falls from learning_rate to 0 over the iterations (late steps, whose gradient is
+    # mostly camera noise, stay small); "constant"
+    "schedule": Field("str", required=False, default="cosine", choices=("cosine", "constant")),
     "start": Field("str", required=False, default="dpac", choices=("dpac", "sgd")),  # the model hologram to start from
     "start_iterations": Field("int", required=False, default=100, ge=1),  # model-only SGD steps of an SGD start
     # disk policy: RAW frames kept for the first and last iteration and every Nth (0: first and last only)
@@ -114,6 +125,13 @@ def plan(context: Context) -> list[Step]:
 def _budget(params: dict[str, Any]) -> int:
     """Adam steps CITL's final phase has had: the SGD start's (if any) plus its own."""
     return params["iterations"] + (params["start_iterations"] if params["start"] == "sgd" else 0)
+
+
+def learning_rate(params: dict[str, Any], k: int) -> float:
+    """The learning rate of iteration k's Adam step (k = 0 .. iterations - 1)."""
+    if params["schedule"] == "constant":
+        return params["learning_rate"]
+    return params["learning_rate"] * 0.5 * (1 + math.cos(math.pi * k / params["iterations"]))
 
 
 def keeps_raw(k: int, iterations: int, every: int) -> bool:
@@ -256,6 +274,7 @@ def _iteration(target: torch.Tensor, channel: LaserChannel, k: int):
         captured, loss, score = _amplitude_error(plane, target_roi)
         if k < count:
             with torch.enable_grad():
+                optimiser.param_groups[0]["lr"] = learning_rate(params, k)
                 optimiser.zero_grad(set_to_none=True)
                 straight_through_loss(phase, captured, target_roi, _setup(context, channel)).backward()
                 optimiser.step()
