@@ -357,6 +357,11 @@ def citl_report(context: Context, summary: dict[str, Any]) -> dict[str, Any]:
             "decode + register + gradient.</p>"
             f"<h2>Disk</h2>{table([{'what': k, 'value': v} for k, v in disk.items()])}")
     warnings = slow + [w for m in (merged[0], merged[-1]) for w in m["warnings"]]
+    for name, rows in iterations.items():
+        clipped = max(r["saturated_fraction"] for r in rows)
+        if clipped > 0:
+            warnings.append(f"{name}: up to {clipped:.4%} of the sensor's pixels clipped in an iteration's capture "
+                            "(the captured error reads low there): lower the setpoint")
     write_json(record.folder / "metrics.json", {"procedure": "citl", **summary})
     write_csv(record.folder / "metrics.csv", csv_rows)
     write_report(context, f"Camera in the loop: {summary['target']}", body, list(iterations), warnings)
