@@ -11,6 +11,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from contextlib import ExitStack
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -90,33 +91,63 @@ class Bench:
         Returns what happened: file names, the read-back setpoint, the measured power, timings, the SLM frame
         shown and the one each lit frame saw; a lit frame that saw another SLM frame is a DeviceError.
         """
+        return self.expose_frames(folder, channel, power_w, frame, frames=frames, dark_frames=dark_frames).result
+
+    def expose_frames(self, folder: Path | None, channel: str, power_w: float, frame: np.ndarray, *, frames: int,
+                      dark_frames: int) -> Exposure:
+        """`expose`, also returning the frames themselves and where the time went; with `folder` None the
+        frames are kept in memory only (nothing is written)."""
         laser, slm, camera = self.laser, self.slm, self.camera
+        clock = time.perf_counter
+        start = clock()
         laser.all_off()
+        shown_at = clock()
         slm.show_gray(frame)  # waits the settle time while dark
+        display_s = clock() - shown_at
         shown = slm.shown_frame
         setpoint = laser.set_power(channel, power_w)
-        start = time.perf_counter()
+        start_emission = clock()
+        capture_s = 0.0
         try:
             laser.set_emission(channel, True)
             measured = laser.measured_w(channel)
+            captured_at = clock()
             lit = camera.capture(folder, frames, stem="frame")
+            capture_s += clock() - captured_at
         finally:
             laser.set_emission(channel, False)
-        exposed_s = time.perf_counter() - start
+        exposed_s = clock() - start_emission
         seen = [_slm_frame_seen(frame_, slm) for frame_ in lit]
         wrong = [(frame_, id_) for frame_, id_ in zip(lit, seen) if id_ != shown]
         if wrong:
             frame_, id_ = wrong[0]
             raise DeviceError(f"{frame_.path or frame_.file_name}: captured while the SLM showed frame {id_}, not "
                               f"frame {shown} that this step displayed (did another program change the SLM?)")
+        captured_at = clock()
         darks = camera.capture(folder, dark_frames, stem="dark") if dark_frames else []
-        return {
+        capture_s += clock() - captured_at
+        result = {
             "channel": channel, "slm_frame": shown, "slm_frames_seen": seen, "setpoint_w": setpoint,
             "measured_w": measured, "emission_s": round(exposed_s, 3),
             "frames": [frame_.path.name for frame_ in lit if frame_.path],
             "darks": [frame_.path.name for frame_ in darks if frame_.path],
             "camera": [frame_.metadata for frame_ in lit][:1],
         }
+        timing = {"display_s": display_s, "capture_s": capture_s,
+                  "laser_s": clock() - start - display_s - capture_s}
+        return Exposure(result, lit, darks, timing)
+
+
+@dataclass
+class Exposure:
+    """One exposure: `expose`'s JSON-ready result, the lit and dark frames (their bytes, and their paths when
+    saved), and seconds spent: display_s (showing the frame, settle included), capture_s (shutter release to
+    file received, every frame), laser_s (the rest: setpoint, emission on and off, read-backs)."""
+
+    result: dict[str, Any]
+    frames: list[RawFrame]
+    darks: list[RawFrame]
+    timing: dict[str, float]
 
 
 def _slm_frame_seen(frame: RawFrame, slm: SLM) -> int | None:

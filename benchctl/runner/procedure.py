@@ -53,6 +53,7 @@ BUILTINS = {
     "lut-calibration": "benchctl.runner.builtin.lut_calibration",
     "power-sweep": "benchctl.runner.builtin.power_sweep",
     "model-calibration": "benchctl.runner.builtin.model_calibration",
+    "citl": "benchctl.runner.builtin.citl",
 }
 
 MAX_STEPS = 100_000  # a plan longer than this is a mistake (repeats = 1000000), not an experiment

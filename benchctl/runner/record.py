@@ -11,6 +11,7 @@
       holograms/        SLM frames exactly as displayed (8-bit PNG)
       raw/              RAW frames exactly as the camera delivered them, never modified
       images/           decoded, registered and merged images (16-bit PNG)
+      state/            an iterative procedure's resumable state (CITL: phase and optimiser, the last two kept)
       metrics.json, metrics.csv, report.html
 
 Every file is written atomically and every step-log line is on disk before the next action. A folder is never

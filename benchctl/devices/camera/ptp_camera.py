@@ -199,9 +199,11 @@ class PtpCamera(Camera):
         if fmt not in RAW_OBJECT_FORMATS:
             raise DeviceError(f"{self._describe()} delivered {name}, not a RAW file (format {code_name(fmt)}): "
                               f"{RAW_HINT}")
+        started = time.perf_counter()
         data = eos.read_object(record.handle, record.size)
         eos.transfer_complete(record.handle)
-        metadata = {"captured_at": datetime.now(timezone.utc).isoformat(timespec="milliseconds"),
+        metadata = {"transfer_s": round(time.perf_counter() - started, 6),
+                    "captured_at": datetime.now(timezone.utc).isoformat(timespec="milliseconds"),
                     "camera": self._info.model, "serial": self._info.serial_number,
                     "object_handle": record.handle, "settings_written": bool(self._written), **self._written}
         return RawFrame(data, RAW_OBJECT_FORMATS[fmt], name, metadata)

@@ -68,6 +68,8 @@ class SimCamera(Camera):
         from benchctl.devices.sim.bench import render_capture  # torch physics: only a capture needs it
 
         self._check_cable()
+        start = time.perf_counter()
         frame = render_capture(self.profile, exposure_s=self.config.exposure_s, iso=self.config.iso)
+        frame.metadata["render_s"] = round(time.perf_counter() - start, 6)  # the simulator's own work, not a camera's
         time.sleep(frame.metadata["exposure_s"] + self.profile.sim.sensor.readout_s)
         return frame

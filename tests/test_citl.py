@@ -1,0 +1,209 @@
+"""Camera in the loop: the straight-through gradient, and the procedure on a small aberrated simulated bench (it
+raises captured PSNR, resumes bit for bit after a pulled cable with the laser off, keeps RAW as its disk policy
+says, logs one record per iteration with the timing split)."""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from conftest import SMALL_BENCH
+
+from benchctl.cgh.citl import straight_through_loss
+from benchctl.cgh.sgd import roi_loss
+from benchctl.cli import main
+from benchctl.devices.errors import DeviceError
+from benchctl.devices.sim import bench
+from benchctl.devices.sim.state import load_state
+from benchctl.optics import lsq_scale
+from benchctl.optics.setup import OpticalSetup
+from benchctl.profiles import Profile
+from benchctl.capture.colour_planes import merge_capture
+from benchctl.runner.builtin.citl import TIMING_KEYS, _load_state, _save_state, keeps_raw, merged_psnr
+from benchctl.runner.calibration import Calibration
+from benchctl.runner.engine import run_procedure
+
+# The small bench with hidden optics the model does not know: a wavefront error and an offset beam on green (the
+# panel's true response is its linear lookup table, so the optics alone differ from the model).
+ABERRATED = {"sim": {"slm": {"two_pi_nm": 520.0, "gamma": 1.0, "zero_order": 0.0},
+                     "beam": {"waist_mm": 0.5, "offset_mm": [0.05, -0.08]},
+                     "aberration": {"green": {"defocus": 0.25, "astigmatism_vertical": -0.15,
+                                              "coma_horizontal": -0.1}}}}
+
+PROCEDURE = """\
+name = "citl-test"
+procedure = "citl"
+
+[parameters]
+target = "chart:bars"
+colours = ["green"]
+iterations = %d
+learning_rate = 0.05
+keep_raw_every = %d
+baseline = %s
+registration = "stored"
+"""
+
+
+@pytest.fixture
+def profile(make_bench_profile: Callable[..., Profile]) -> Profile:
+    """The aberrated small bench with its true camera registration stored."""
+    profile = make_bench_profile(SMALL_BENCH, ABERRATED)
+    Calibration.store(profile).save_registration("green", {"homography": bench.camera_homography(profile).tolist(),
+                                                           "rms_px": 0.0})
+    return profile
+
+
+def run(tmp_path: Path, profile: Profile, out: str, iterations: int = 12, every: int = 10,
+        baseline: bool = False) -> Path:
+    procedure = tmp_path / "citl.toml"
+    procedure.write_text(PROCEDURE % (iterations, every, "true" if baseline else "false"))
+    outcome = run_procedure(procedure, profile=str(profile.path), out=tmp_path / out, say=lambda line: None)
+    assert outcome.folder is not None
+    return outcome.folder
+
+
+def done(folder: Path) -> dict[str, dict]:
+    events = [json.loads(line) for line in (folder / "steps.jsonl").read_text().splitlines()]
+    return {e["step"]: e["result"] for e in events if e["event"] == "done"}
+
+
+def final_phase(folder: Path, colour: str = "green") -> np.ndarray:
+    (state,) = (folder / "state" / colour).glob("*.npz")  # only the last one is left
+    with np.load(state) as data:
+        return data["phase"].copy()
+
+
+def laser_off() -> bool:
+    return all(not s.get("emission") for s in load_state("rgb-laser").get("channels", {}).values())
+
+
+def test_straight_through_gradient_is_the_models_with_the_captured_value(make_bench_profile) -> None:
+    """Captured = the model (any gain): exactly SGD's loss gradient. Captured elsewhere: the loss is the captured
+    image's error, and the gradient is the model's Jacobian applied to that error (checked against autograd of an
+    explicit formula)."""
+    setup = OpticalSetup.from_profile(make_bench_profile(SMALL_BENCH), "green")
+    rows, cols = setup.roi_slices
+    generator = torch.Generator().manual_seed(3)
+    target = torch.zeros(setup.shape)
+    target[rows, cols] = torch.rand(setup.roi, generator=generator)
+    phase = (torch.rand(setup.shape, generator=generator) * 6 - 3).requires_grad_()
+    model = setup.reconstruct(phase).detach()[rows, cols]
+
+    roi_loss(phase, target, setup).backward()
+    expected, phase.grad = phase.grad.clone(), None
+    straight_through_loss(phase, 3.7 * model, target[rows, cols], setup).backward()
+    torch.testing.assert_close(phase.grad, expected, rtol=1e-5, atol=1e-9)
+
+    captured = model * (1 + 0.3 * torch.rand(setup.roi, generator=generator))  # what a different bench shows
+    phase.grad = None
+    loss = straight_through_loss(phase, captured, target[rows, cols], setup)
+    seen = lsq_scale(captured, target[rows, cols]) * captured
+    assert float(loss.detach()) == pytest.approx(float(((seen - target[rows, cols]) ** 2).mean()), rel=1e-6)
+    loss.backward()
+    recon = setup.reconstruct(phase)[rows, cols]
+    weight = 2 * (seen - target[rows, cols]) * lsq_scale(model, target[rows, cols]) / seen.numel()
+    (explicit,) = torch.autograd.grad((weight.detach() * recon).sum(), phase)
+    torch.testing.assert_close(phase.grad, explicit, rtol=1e-5, atol=1e-9)
+
+
+def test_citl_raises_captured_psnr_and_logs_every_iteration(tmp_path: Path, profile: Profile) -> None:
+    """Six iterations lift the captured PSNR by about 2.5 dB over the DPAC start (15.4 -> 18.0 dB measured), where
+    model-only SGD with the same six steps captures about what DPAC does (15.0 dB)."""
+    folder = run(tmp_path, profile, "runs", iterations=6, baseline=True)
+    results = done(folder)
+    rows = [results[f"citl/green/{k:04d}"] for k in range(7)]
+    assert [r["iteration"] for r in rows] == list(range(7))
+    assert all(set(r["timing"]) == set(TIMING_KEYS) and r["timing"]["render_s"] > 0 for r in rows)
+    assert all(r["timing"]["gradient_s"] > 0 for r in rows[:-1])
+    first, last = rows[0]["psnr_amplitude_db"], rows[-1]["psnr_amplitude_db"]
+    baseline = results["citl/green/baseline"]["psnr_amplitude_db"]
+    assert last > first + 1.5, (first, last)
+    assert last > baseline + 1.5, (baseline, last)
+    metrics = json.loads((folder / "metrics.json").read_text())
+    assert metrics["merged"][-1]["scores"]["psnr_srgb_db"] > metrics["merged"][0]["scores"]["psnr_srgb_db"]
+    report = (folder / "report.html").read_text()
+    assert "Captured PSNR against iteration" in report and "last capture (iteration 6)" in report
+    assert laser_off()
+
+
+def test_disk_policy_keeps_exactly_the_first_last_and_every_nth_raw(tmp_path: Path, profile: Profile) -> None:
+    folder = run(tmp_path, profile, "runs", iterations=9, every=4)
+    assert [k for k in range(10) if keeps_raw(k, 9, 4)] == [0, 4, 8, 9]
+    kept = sorted(str(p.relative_to(folder / "raw")) for p in (folder / "raw").rglob("*") if p.is_file())
+    assert kept == [f"citl/green/{k:04d}/frame-000.dng" for k in (0, 4, 8, 9)]
+    assert len(list((folder / "images" / "citl" / "green").glob("*.png"))) == 10
+    assert [p.name for p in (folder / "state" / "green").iterdir()] == ["0009.npz"]
+    disk = json.loads((folder / "metrics.json").read_text())["disk"]
+    assert disk["kept_raw_iterations"] == 4 and disk["raw_bytes_per_kept_iteration"] > 0
+    assert [k for k in range(10) if keeps_raw(k, 9, 0)] == [0, 9]
+
+
+def test_resume_after_a_pulled_cable_continues_bit_for_bit_with_the_laser_off(
+        tmp_path: Path, profile: Profile, monkeypatch: pytest.MonkeyPatch) -> None:
+    reference = run(tmp_path, profile, "reference", iterations=8)
+    expected = done(reference)
+
+    # The same run on a fresh simulated bench (frame counter, cache), the cable pulled before the 6th frame:
+    # iteration 5 fails mid-step after iterations 0-4 finished.
+    monkeypatch.setenv("BENCHCTL_SIM_DIR", str(tmp_path / "second-sim"))
+    monkeypatch.setenv("BENCHCTL_CACHE_DIR", str(tmp_path / "second-cache"))
+    assert main(["sim", "fault", "sim-camera", "unplug_at=6"]) == 0
+    with pytest.raises(DeviceError, match="cable pulled before frame 6"):
+        run(tmp_path, profile, "runs", iterations=8)
+    (folder,) = (tmp_path / "runs").iterdir()
+    info = json.loads((folder / "run.json").read_text())
+    assert info["stop"]["status"] == "failed" and info["stop"]["step"] == "citl/green/0005"
+    assert laser_off()
+
+    assert main(["sim", "fault", "sim-camera", "--clear"]) == 0
+    outcome = run_procedure(None, resume=folder, say=lambda line: None)
+    assert outcome.ran[0] == "citl/green/0005" and "citl/green/0004" in outcome.skipped
+    assert laser_off()
+    assert np.array_equal(final_phase(folder), final_phase(reference))
+    resumed = done(folder)
+    for k in range(9):
+        key = f"citl/green/{k:04d}"
+        assert resumed[key]["loss"] == expected[key]["loss"], key
+    assert os.path.isdir(folder / "raw" / "citl" / "green" / "0008")
+
+
+def test_saved_optimiser_state_continues_exactly_as_an_uninterrupted_adam(tmp_path: Path) -> None:
+    """Saving and reloading the phase and Adam's state between every step gives the bits of one Adam run (a state
+    without the moments or the step count would not: Adam's first steps are bias-corrected)."""
+    generator = torch.Generator().manual_seed(0)
+    start, goal = torch.rand(8, 8, generator=generator), torch.rand(8, 8, generator=generator)
+
+    def loss(phase: torch.Tensor) -> torch.Tensor:
+        return (torch.cos(phase) - goal).square().sum()
+
+    phase = start.clone().requires_grad_()
+    optimiser = torch.optim.Adam([phase], lr=0.05)
+    for _ in range(5):
+        optimiser.zero_grad()
+        loss(phase).backward()
+        optimiser.step()
+    path = tmp_path / "state.npz"
+    _save_state(path, start, None)
+    for _ in range(5):
+        resumed, adam = _load_state(path, 0.05)
+        loss(resumed).backward()
+        adam.step()
+        _save_state(path, resumed, adam)
+    assert torch.equal(_load_state(path, 0.05)[0].detach(), phase.detach())
+
+
+def test_merged_psnr_per_iteration_is_merge_captures() -> None:
+    """The report scores every iteration's merged image without SSIM: the PSNRs must be merge_capture's."""
+    generator = np.random.default_rng(1)
+    target = torch.from_numpy(generator.uniform(0, 1, (3, 20, 30)).astype(np.float32))
+    target[2] = 0  # a colour not captured stays black
+    planes = {c: (generator.uniform(-0.01, 0.4, (20, 30))).astype(np.float32) for c in (0, 1)}
+    full = merge_capture(planes, target).merged_scores
+    fast = merged_psnr(planes, target)
+    assert fast == {k: pytest.approx(full[k], abs=1e-4) for k in ("psnr_linear_db", "psnr_srgb_db")}
