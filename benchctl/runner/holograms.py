@@ -134,7 +134,7 @@ def resolve_method(name: str, profile: Profile, checkpoint: Path | str | None = 
 
 
 @functools.lru_cache(maxsize=3)
-def _shared(setup: OpticalSetup) -> OpticalSetup:
+def shared_setup(setup: OpticalSetup) -> OpticalSetup:
     """The first setup equal to `setup`: its transfer functions are computed once, not in every frame's time."""
     return setup
 
@@ -181,7 +181,7 @@ def compute_scene(
         if not present[plane]:
             results.append(ColourResult(channel.name, channel.wavelength_nm, skipped=True))
             continue
-        setup = _shared(OpticalSetup.from_profile(profile, channel.name))
+        setup = shared_setup(OpticalSetup.from_profile(profile, channel.name))
         start = time.perf_counter()
         phase = generate(target_amplitude[plane], setup, iterations=iterations, seed=seed,
                          progress=progress(f"{method} {channel.name}") if progress else None)

@@ -28,10 +28,11 @@ import io
 import math
 import time
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, Literal
 
 import numpy as np
 import torch
+from msgspec import Meta
 
 from benchctl.capture.colour_planes import merge_capture, registered_plane
 from benchctl.capture.raw import RawImage, average_frames, decode_raw, subtract_dark
@@ -43,42 +44,51 @@ from benchctl.files import atomic_write_bytes, file_sha256
 from benchctl.images import read_image, write_png
 from benchctl.optics import crop_roi, linear_to_srgb, lsq_scale, psnr
 from benchctl.optics.setup import OpticalSetup
-from benchctl.profiles import LaserChannel
+from benchctl.profiles import LaserChannel, Positive
 from benchctl.runner.builtin import registration
 from benchctl.runner.hologram_cache import hologram
-from benchctl.runner.holograms import _shared, target_plane
+from benchctl.runner.holograms import shared_setup, target_plane
 from benchctl.runner.procedure import Context, Step
 from benchctl.runner.record import set_aside
 from benchctl.runner.report import citl_report
 from benchctl.runner.steps import (
-    EXPOSURE_PARAMETERS,
+    DarkFrames,
+    ExposureParameters,
+    Frames,
+    Registration,
+    carried,
     channels,
     power_w,
     prepared_target,
     unknown_setpoints,
     write_linear16,
 )
-from benchctl.schema import Field
 from benchctl.targets import active_channels
 
 DESCRIPTION = "camera in the loop: per colour, display, capture, register and step the phase on the captured error"
-PARAMETERS = {
-    "target": Field("str", required=False, default="chart:bars"),
-    **EXPOSURE_PARAMETERS,
-    "frames": Field("int", required=False, default=1, ge=1),  # RAW frames averaged per iteration
-    "dark_frames": Field("int", required=False, default=0, ge=0),  # per iteration (the decoder removes black level)
-    "iterations": Field("int", required=False, default=50, ge=1, le=10_000),  # Adam steps on the captured error
-    "learning_rate": Field("float", required=False, default=0.05, gt=0),
+
+
+class CitlParameters(ExposureParameters, kw_only=True):
+    """What to optimise on the bench, how long, how fast, and what to keep on disk."""
+
+    target: str = "chart:bars"
+    frames: Frames = 1  # RAW frames averaged per iteration
+    dark_frames: DarkFrames = 0  # per iteration (the decoder removes the black level)
+    iterations: Annotated[int, Meta(ge=1, le=10_000)] = 50  # Adam steps on the captured error
+    learning_rate: Positive = 0.05
     # "cosine": the learning rate falls from learning_rate to 0 over the iterations (late steps, whose gradient is
     # mostly camera noise, stay small); "constant"
-    "schedule": Field("str", required=False, default="cosine", choices=("cosine", "constant")),
-    "start": Field("str", required=False, default="dpac", choices=("dpac", "sgd")),  # the model hologram to start from
-    "start_iterations": Field("int", required=False, default=100, ge=1),  # model-only SGD steps of an SGD start
+    schedule: Literal["cosine", "constant"] = "cosine"
+    start: Literal["dpac", "sgd"] = "dpac"  # the model hologram to start from
+    start_iterations: Annotated[int, Meta(ge=1)] = 100  # model-only SGD steps of an SGD start
     # disk policy: RAW frames kept for the first and last iteration and every Nth (0: first and last only)
-    "keep_raw_every": Field("int", required=False, default=10, ge=0),
-    "baseline": Field("bool", required=False, default=True),  # capture model-only SGD at the same budget too
-    "registration": Field("str", required=False, default="auto", choices=("auto", "stored")),
-}
+    keep_raw_every: Annotated[int, Meta(ge=0)] = 10
+    baseline: bool = True  # capture model-only SGD at the same budget too
+    registration: Registration = "auto"
+
+
+PARAMETERS = CitlParameters
+
 TIMING_KEYS = ("display_s", "exposure_s", "transfer_s", "decode_s", "register_s", "gradient_s", "laser_s",
                "save_s", "render_s", "total_s")
 """Seconds per iteration: display_s (SLM frame shown, settle included), exposure_s (shutter release to image
@@ -89,49 +99,49 @@ read-backs), save_s (images, state), render_s (the simulated camera's rendering:
 
 def plan(context: Context) -> list[Step]:
     """Registration if needed; per colour: the start hologram, iterations + 1 captures, the baseline; the report."""
-    params = context.params
+    params = context.parameters(CitlParameters)
     unknown_setpoints(context)
-    target = prepared_target(context.profile, params["target"])
+    target = prepared_target(context.profile, params.target)
     present = active_channels(target)
     used = [c for c in channels(context) if present[target_plane(c)]]
     if not used:
-        raise BenchctlError(f"parameters.target: {params['target']!r} has none of the colours "
+        raise BenchctlError(f"parameters.target: {params.target!r} has none of the colours "
                             f"{[c.name for c in channels(context)]}")
     steps: list[Step] = []
     missing = [c for c in used if c.name not in context.calibration.registrations()]
-    if missing and params["registration"] == "stored":
+    if missing and params.registration == "stored":
         raise BenchctlError(f"no stored camera-SLM registration for {', '.join(c.name for c in missing)} on profile "
                             f"{context.profile.name!r}: run procedures/registration.toml first, or set "
                             "registration = \"auto\"")
     if missing:
-        steps += registration.registration_steps(context, missing)
-    count = params["iterations"]
+        steps += registration.registration_steps(context, missing, carried(params, registration.PARAMETERS))
+    count = params.iterations
     devices = ("laser", "slm", "camera")
     for channel in used:
         name = channel.name
-        steps.append(Step(f"citl/{name}/start", f"start hologram {name} ({params['start']})",
+        steps.append(Step(f"citl/{name}/start", f"start hologram {name} ({params.start})",
                           _starter(target, channel)))
         for k in range(count + 1):
             what = "capture the final phase" if k == count else "capture, register, step the phase"
             steps.append(Step(f"citl/{name}/{k:04d}", f"CITL {name} iteration {k}/{count}: {what}",
                               _iteration(target, channel, k), devices))
-        if params["baseline"]:
+        if params.baseline:
             steps.append(Step(f"citl/{name}/baseline", f"model-only SGD {name} at {_budget(params)} iterations, "
                               "captured", _baseline(target, channel), devices))
     steps.append(Step("report", "metrics.json, metrics.csv and report.html", _reporter(target, used)))
     return steps
 
 
-def _budget(params: dict[str, Any]) -> int:
+def _budget(params: CitlParameters) -> int:
     """Adam steps CITL's final phase has had: the SGD start's (if any) plus its own."""
-    return params["iterations"] + (params["start_iterations"] if params["start"] == "sgd" else 0)
+    return params.iterations + (params.start_iterations if params.start == "sgd" else 0)
 
 
-def learning_rate(params: dict[str, Any], k: int) -> float:
+def learning_rate(params: CitlParameters, k: int) -> float:
     """The learning rate of iteration k's Adam step (k = 0 .. iterations - 1)."""
-    if params["schedule"] == "constant":
-        return params["learning_rate"]
-    return params["learning_rate"] * 0.5 * (1 + math.cos(math.pi * k / params["iterations"]))
+    if params.schedule == "constant":
+        return params.learning_rate
+    return params.learning_rate * 0.5 * (1 + math.cos(math.pi * k / params.iterations))
 
 
 def keeps_raw(k: int, iterations: int, every: int) -> bool:
@@ -140,7 +150,7 @@ def keeps_raw(k: int, iterations: int, every: int) -> bool:
 
 
 def _setup(context: Context, channel: LaserChannel) -> OpticalSetup:
-    return _shared(OpticalSetup.from_profile(context.profile, channel.name))
+    return shared_setup(OpticalSetup.from_profile(context.profile, channel.name))
 
 
 def _target_roi(context: Context, target: torch.Tensor, channel: LaserChannel) -> torch.Tensor:
@@ -187,14 +197,14 @@ def _measure(context: Context, key: str, channel: LaserChannel, gray: np.ndarray
              keep: tuple[str, ...] | None) -> tuple[np.ndarray, dict[str, Any], dict[str, float]]:
     """Display `gray`, expose it (RAW saved under raw/<keep> when given, else only in memory), decode and register
     the colour's plane: (ROI linear signal, JSON-ready record, seconds per stage)."""
-    params, profile = context.params, context.profile
+    params, profile = context.parameters(CitlParameters), context.profile
     assert profile.slm is not None and profile.optics is not None
     where = context.path("raw", *keep) if keep else None
     attempt = context.record.attempts.get(key, 1) if context.record else 1
     if where is not None and attempt > 1:
         set_aside(where, attempt - 1)
     exposure = context.bench.expose_frames(where, channel.name, power_w(context, channel), gray,
-                                           frames=params["frames"], dark_frames=params["dark_frames"])
+                                           frames=params.frames, dark_frames=params.dark_frames)
     clock = time.perf_counter
     start = clock()
     image = _decoded(exposure.frames)
@@ -244,15 +254,15 @@ def _save_plane(context: Context, channel: LaserChannel, name: str, plane: np.nd
 
 def _starter(target: torch.Tensor, channel: LaserChannel):
     def action(context: Context) -> dict[str, Any]:
-        params = context.params
-        iterations = params["start_iterations"] if params["start"] == "sgd" else None
-        result = hologram(context.profile, target, channel.name, params["start"], iterations=iterations, seed=0,
+        params = context.parameters(CitlParameters)
+        iterations = params.start_iterations if params.start == "sgd" else None
+        result = hologram(context.profile, target, channel.name, params.start, iterations=iterations, seed=0,
                           checkpoint=None, progress=context.progress)
         file = Path("holograms", "citl", channel.name, "start.png")
         write_png(context.path(str(file)), result.gray)
         phase = slm_for(context.profile).decode(result.gray, channel.name)
         _save_state(_state_file(context, channel, 0), phase, None)
-        return {"file": str(file), "method": params["start"], "iterations": iterations,
+        return {"file": str(file), "method": params.start, "iterations": iterations,
                 "seconds": round(result.seconds, 4), "simulated": {k: round(v, 4) for k, v in result.scores.items()}}
 
     return action
@@ -260,12 +270,12 @@ def _starter(target: torch.Tensor, channel: LaserChannel):
 
 def _iteration(target: torch.Tensor, channel: LaserChannel, k: int):
     def action(context: Context) -> dict[str, Any]:
-        params, clock = context.params, time.perf_counter
+        params, clock = context.parameters(CitlParameters), time.perf_counter
         begin = clock()
-        count = params["iterations"]
-        phase, optimiser = _load_state(_state_file(context, channel, k), params["learning_rate"])
+        count = params.iterations
+        phase, optimiser = _load_state(_state_file(context, channel, k), params.learning_rate)
         gray = slm_for(context.profile).encode(phase.detach(), channel.name)
-        keep = keeps_raw(k, count, params["keep_raw_every"])
+        keep = keeps_raw(k, count, params.keep_raw_every)
         key = f"citl/{channel.name}/{k:04d}"
         plane, record, timing = _measure(context, key, channel, gray,
                                          ("citl", channel.name, f"{k:04d}") if keep else None)
@@ -300,7 +310,7 @@ def _iteration(target: torch.Tensor, channel: LaserChannel, k: int):
 
 def _baseline(target: torch.Tensor, channel: LaserChannel):
     def action(context: Context) -> dict[str, Any]:
-        budget = _budget(context.params)
+        budget = _budget(context.parameters(CitlParameters))
         result = hologram(context.profile, target, channel.name, "sgd", iterations=budget, seed=0, checkpoint=None,
                           progress=context.progress)
         key = f"citl/{channel.name}/baseline"
@@ -319,11 +329,11 @@ def _baseline(target: torch.Tensor, channel: LaserChannel):
 def _reporter(target: torch.Tensor, used: list[LaserChannel]):
     def action(context: Context) -> dict[str, Any]:
         assert context.profile.optics is not None
-        count, folder = context.params["iterations"], context.path()
+        count, folder = context.parameters(CitlParameters).iterations, context.path()
         target_roi = crop_roi(target, context.profile.optics.roi)
         iterations = {c.name: [context.result(f"citl/{c.name}/{k:04d}") for k in range(count + 1)] for c in used}
         baseline = ({c.name: context.result(f"citl/{c.name}/baseline") for c in used}
-                    if context.params["baseline"] else {})
+                    if context.parameters(CitlParameters).baseline else {})
 
         def planes(results: dict[str, dict[str, Any]]) -> dict[int, np.ndarray]:
             return {target_plane(c): read_image(folder / results[c.name]["file"]) / 65535.0
@@ -344,9 +354,9 @@ def _reporter(target: torch.Tensor, used: list[LaserChannel]):
         write_linear16(context.path("images", "citl", "target.png"), target_roi.square(), srgb=True)
         disk = _disk(folder, iterations, used)
         return citl_report(context, {
-            "target": context.params["target"], "iterations": iterations, "merged": per_k,
+            "target": context.parameters(CitlParameters).target, "iterations": iterations, "merged": per_k,
             "baseline": {"colours": baseline, "merged": merged(baseline, "merged-baseline.png"),
-                         "iterations": _budget(context.params)} if baseline else None,
+                         "iterations": _budget(context.parameters(CitlParameters))} if baseline else None,
             "start": {c.name: context.result(f"citl/{c.name}/start") for c in used},
             "timing_keys": list(TIMING_KEYS), "disk": disk, "target_image": "images/citl/target.png"})
 
