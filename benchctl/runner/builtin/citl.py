@@ -56,7 +56,6 @@ from benchctl.runner.steps import (
     ExposureParameters,
     Frames,
     Registration,
-    carried,
     channels,
     power_w,
     prepared_target,
@@ -107,14 +106,7 @@ def plan(context: Context) -> list[Step]:
     if not used:
         raise BenchctlError(f"parameters.target: {params.target!r} has none of the colours "
                             f"{[c.name for c in channels(context)]}")
-    steps: list[Step] = []
-    missing = [c for c in used if c.name not in context.calibration.registrations()]
-    if missing and params.registration == "stored":
-        raise BenchctlError(f"no stored camera-SLM registration for {', '.join(c.name for c in missing)} on profile "
-                            f"{context.profile.name!r}: run procedures/registration.toml first, or set "
-                            "registration = \"auto\"")
-    if missing:
-        steps += registration.registration_steps(context, missing, carried(params, registration.PARAMETERS))
+    steps = registration.registration_first(context, used, params, params.registration)
     count = params.iterations
     devices = ("laser", "slm", "camera")
     for channel in used:

@@ -35,7 +35,6 @@ from benchctl.runner.holograms import target_plane
 from benchctl.runner.steps import (
     HologramParameters,
     Registration,
-    carried,
     channels,
     check_method,
     displayed_frame,
@@ -89,14 +88,7 @@ def plan(context: Context) -> list[Step]:
     if uncalibrated and params.lut_calibration == "auto":
         steps += lut_calibration.lut_steps(context, uncalibrated,
                                            lut_calibration.PARAMETERS(gray_step=AUTO_LUT_GRAY_STEP))
-    missing = [c for c in used if c.name not in context.calibration.registrations()]
-    if missing and params.registration == "stored":
-        raise BenchctlError(f"no stored camera-SLM registration for {', '.join(c.name for c in missing)} on profile "
-                            f"{context.profile.name!r}: run procedures/registration.toml first, or set "
-                            "registration = \"auto\"")
-    if missing:
-        steps += registration.registration_steps(context, missing,
-                                                 carried(options[methods[0]], registration.PARAMETERS))
+    steps += registration.registration_first(context, used, options[methods[0]], params.registration)
     labels: set[str] = set()
     targets = []
     for spec in params.targets:

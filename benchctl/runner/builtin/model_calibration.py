@@ -31,7 +31,6 @@ from benchctl.runner.report import model_calibration_report
 from benchctl.runner.steps import (
     ExposureParameters,
     Registration,
-    carried,
     channels,
     exposure_step,
     load_exposure,
@@ -64,15 +63,8 @@ def plan(context: Context) -> list[Step]:
     """Registration if needed; per colour: patterns, one exposure per pattern, the fit; the report."""
     unknown_setpoints(context)
     used = channels(context)
-    steps: list[Step] = []
-    missing = [c for c in used if c.name not in context.calibration.registrations()]
     params = context.parameters(ModelCalibrationParameters)
-    if missing and params.registration == "stored":
-        raise BenchctlError(f"no stored camera-SLM registration for {', '.join(c.name for c in missing)} on profile "
-                            f"{context.profile.name!r}: run procedures/registration.toml first, or set "
-                            "registration = \"auto\"")
-    if missing:
-        steps += registration.registration_steps(context, missing, carried(params, registration.PARAMETERS))
+    steps = registration.registration_first(context, used, params, params.registration)
     count = params.patterns
     for channel in used:
         steps.append(Step(f"model/patterns/{channel.name}", f"{count} calibration patterns ({channel.name})",

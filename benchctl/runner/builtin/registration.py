@@ -21,6 +21,7 @@ from benchctl.capture.registration import (
     fit_registration,
 )
 from benchctl.devices.camera import camera_for
+from benchctl.errors import BenchctlError
 from benchctl.profiles import LaserChannel, Positive
 from benchctl.runner.calibration import Calibration
 from benchctl.runner.holograms import target_plane
@@ -28,6 +29,7 @@ from benchctl.runner.procedure import Context, Step
 from benchctl.runner.report import registration_report
 from benchctl.runner.steps import (
     HologramParameters,
+    carried,
     channels,
     displayed_frame,
     exposure_step,
@@ -58,6 +60,18 @@ def plan(context: Context) -> list[Step]:
     used = channels(context)
     steps = registration_steps(context, used, context.parameters(RegistrationParameters))
     return steps + [Step("report", "registration report", _reporter(used))]
+
+
+def registration_first(context: Context, used: list[LaserChannel], params: HologramParameters,
+                       when: str) -> list[Step]:
+    """The registration steps a procedure runs first for its colours without a stored registration, with the
+    parameters it shares with registration (`when` is its own `registration` choice: "stored" refuses instead)."""
+    missing = [c for c in used if c.name not in context.calibration.registrations()]
+    if missing and when == "stored":
+        raise BenchctlError(f"no stored camera-SLM registration for {', '.join(c.name for c in missing)} on profile "
+                            f"{context.profile.name!r}: run procedures/registration.toml first, or set "
+                            "registration = \"auto\"")
+    return registration_steps(context, missing, carried(params, RegistrationParameters)) if missing else []
 
 
 def registration_steps(context: Context, used: list[LaserChannel], params: RegistrationParameters) -> list[Step]:
