@@ -7,6 +7,7 @@ from __future__ import annotations
 import base64
 import html
 import json
+import statistics
 from pathlib import Path
 from collections.abc import Iterable
 from typing import Any
@@ -195,8 +196,7 @@ def method_front(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 
 def _mean(values: Iterable[float]) -> float:
-    items = list(values)
-    return round(sum(items) / len(items), 4)
+    return round(statistics.fmean(values), 4)
 
 
 def registration_report(context: Context, fits: dict[str, dict[str, Any]]) -> dict[str, Any]:
