@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import math
+import signal
+import threading
+import time
 
 import pytest
 from expected_protocol import ExpectedProtocol
@@ -13,6 +16,7 @@ from test_laser_sim import DIALECTS, RGB, saved_channel, sim_config
 
 from benchctl.devices.errors import DeviceError, DeviceTimeout, EmissionNotOff, SafetyError
 from benchctl.devices.laser import CoboltLaser, Laser, ObisLaser, TemplateLaser, open_laser
+from benchctl.devices.safety import TERMINATION_SIGNALS, TerminatedBySignal, signals_interrupt, wait
 from benchctl.devices.sim.state import save_state
 from benchctl.errors import BadValueError, BenchctlError
 
@@ -242,3 +246,47 @@ def test_every_laser_command_and_a_run_say_what_was_found_emitting(tmp_path, sma
     (folder,) = (tmp_path / "runs").iterdir()
     devices = json.loads((folder / "devices.json").read_text())
     assert devices["laser_found_emitting"] == ["green was emitting at 2 mW; switched off"]
+
+
+def signal_from_another_thread(signum: int, after_s: float) -> threading.Thread:
+    """A thread that, after `after_s`, receives `signum` itself: the C-level handler runs there, as when the
+    kernel hands a process-wide SIGTERM to one of torch's worker threads instead of the main thread."""
+    def deliver() -> None:
+        time.sleep(after_s)
+        signal.pthread_kill(threading.get_ident(), signum)
+
+    thread = threading.Thread(target=deliver, daemon=True)
+    thread.start()
+    return thread
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGHUP])
+def test_a_termination_signal_on_another_thread_ends_a_device_wait(signum: int) -> None:
+    # time.sleep(60) would run its full minute here: the main thread is never woken by the signal itself
+    start = time.monotonic()
+    with pytest.raises(TerminatedBySignal) as raised, signals_interrupt():
+        signal_from_another_thread(signum, after_s=0.2).join(timeout=0)
+        wait(60)
+    assert raised.value.signum == signum and time.monotonic() - start < 30
+
+
+def test_a_wait_outlasts_signals_whose_handler_returns() -> None:
+    seen: list[int] = []
+    previous = signal.signal(signal.SIGUSR1, lambda signum, frame: seen.append(signum))
+    try:
+        with signals_interrupt():
+            signal_from_another_thread(signal.SIGUSR1, after_s=0.05)
+            start = time.monotonic()
+            wait(0.5)
+            waited = time.monotonic() - start
+    finally:
+        signal.signal(signal.SIGUSR1, previous)
+    assert seen == [signal.SIGUSR1] and waited >= 0.5
+
+
+def test_signal_handlers_and_the_wakeup_descriptor_are_restored() -> None:
+    before = {sig: signal.getsignal(sig) for sig in TERMINATION_SIGNALS}
+    with signals_interrupt():
+        assert all(signal.getsignal(sig) is not before[sig] for sig in TERMINATION_SIGNALS)
+    assert {sig: signal.getsignal(sig) for sig in TERMINATION_SIGNALS} == before
+    assert signal.set_wakeup_fd(-1) == -1  # nothing left installed

@@ -3,16 +3,28 @@
 atexit handlers do not run on SIGTERM, and a process killed by an unhandled SIGTERM skips every `finally`,
 which would leave a laser emitting. Inside `signals_interrupt()` a SIGTERM or SIGHUP raises KeyboardInterrupt
 in the main thread instead, so the laser's context manager turns emission off on the way out.
+
+The kernel may hand a process-wide signal to any thread that does not block it (torch's worker threads, a
+simulator's thread). Python then runs the handler in the main thread only when that thread next runs Python
+code, and a plain `time.sleep` in the main thread is not woken: a 30 s camera readout, or `laser on` holding
+emission, would carry on. Device waits therefore use `wait()`, which also wakes on the signal wakeup file
+descriptor that the C-level handler writes to from whichever thread received the signal.
 """
 
 from __future__ import annotations
 
+import select
 import signal
+import socket
 import threading
+import time
 from contextlib import contextmanager
 from typing import Iterator
 
 TERMINATION_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
+
+_wakeup: socket.socket | None = None
+"""The reading end of the signal wakeup socket while `signals_interrupt()` is active in the main thread."""
 
 
 class TerminatedBySignal(KeyboardInterrupt):
@@ -29,13 +41,41 @@ def _raise(signum: int, _frame: object) -> None:
 
 @contextmanager
 def signals_interrupt() -> Iterator[None]:
-    """While the block runs, SIGTERM and SIGHUP raise TerminatedBySignal (a KeyboardInterrupt)."""
+    """While the block runs, SIGTERM and SIGHUP raise TerminatedBySignal (a KeyboardInterrupt), and `wait()`
+    returns early when any signal arrives, whichever thread the kernel delivered it to."""
+    global _wakeup
     if threading.current_thread() is not threading.main_thread():
         yield  # signal handlers can only be installed from the main thread
         return
+    reader, writer = socket.socketpair()
+    reader.setblocking(False)
+    writer.setblocking(False)
     previous = {sig: signal.signal(sig, _raise) for sig in TERMINATION_SIGNALS}
+    previous_fd = signal.set_wakeup_fd(writer.fileno(), warn_on_full_buffer=False)
+    outer, _wakeup = _wakeup, reader
     try:
         yield
     finally:
+        _wakeup = outer
+        signal.set_wakeup_fd(previous_fd)
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+        reader.close()
+        writer.close()
+
+
+def wait(seconds: float) -> None:
+    """Sleep `seconds`, returning early only to let a signal's handler run (it raises for SIGTERM, SIGHUP and
+    Ctrl-C); outside `signals_interrupt()`, or off the main thread, this is `time.sleep`."""
+    if _wakeup is None or threading.current_thread() is not threading.main_thread():
+        time.sleep(seconds)
+        return
+    end = time.monotonic() + seconds
+    while (left := end - time.monotonic()) > 0:
+        ready, _, _ = select.select([_wakeup], [], [], left)
+        if ready:
+            try:
+                while _wakeup.recv(64):
+                    pass
+            except BlockingIOError:
+                pass

@@ -11,7 +11,6 @@ import glob
 import os
 import re
 import signal
-import time
 from pathlib import Path
 from urllib.parse import urlsplit
 from typing import TYPE_CHECKING, Callable
@@ -22,6 +21,7 @@ from benchctl.devices.errors import EmissionNotOff
 from benchctl.devices.laser import ChannelStatus, open_laser
 from benchctl.devices.laser.base import UNKNOWN_EMISSION, port_lock
 from benchctl.devices.power import format_power
+from benchctl.devices.safety import wait
 from benchctl.devices.sim.laser_emulators import parse_faults
 from benchctl.devices.sim.state import list_states, load_state, reset_states, save_state, state_dir
 from benchctl.errors import BenchctlError
@@ -67,7 +67,7 @@ def laser_set(profile: Profile, channel: str, power: str) -> list[str]:
 
 
 def laser_on(profile: Profile, channel: str, duration_s: float | None, leave_on: bool,
-             out: Callable[[str], None] = print, sleep: Callable[[float], None] = time.sleep) -> list[str]:
+             out: Callable[[str], None] = print, sleep: Callable[[float], None] = wait) -> list[str]:
     """Emission on `channel` for `duration_s` (None: until Ctrl-C), then off unless `leave_on`."""
     try:
         with open_laser(profile.require("laser").laser) as laser:

@@ -58,6 +58,7 @@ from benchctl.devices.camera.ptp.eos import (
 from benchctl.devices.camera.ptp.session import PtpSession, ResponseBusy
 from benchctl.devices.camera.ptp.transport import Transport, UsbTransport
 from benchctl.devices.errors import DeviceBusy, DeviceError, DeviceTimeout
+from benchctl.devices.safety import wait
 from benchctl.profiles import CameraConfig
 
 
@@ -118,7 +119,7 @@ class PtpCamera(Camera):
         eos.pc_hdd_capacity()
         eos.set_event_mode(EVENT_MODE_EOS_M)
         eos.set_property(EosProperty.EVFOutputDevice, EVF_OUTPUT_PC)
-        time.sleep(self.timing.settle_s)
+        wait(self.timing.settle_s)
         if self.config.write_properties:
             self._write(EosProperty.ImageFormat, RAW_ONLY, "image format RAW")
 
@@ -219,7 +220,7 @@ class PtpCamera(Camera):
                     raise DeviceBusy(f"{self._describe()} stayed busy for {self.timing.busy_retry_s:g} s and "
                                      f"refused the shutter release (PTP DeviceBusy 0x2019): {BUSY_HINT}") from None
             eos.get_events()
-            time.sleep(self.timing.poll_interval_s)
+            wait(self.timing.poll_interval_s)
 
     def _poll(self, eos: Eos, within_s: float, wanted: Callable[[EosEvent], bool]) -> list[EosEvent]:
         """GetEvent until a batch holds a record satisfying `wanted` or `within_s` passes; all records seen."""
@@ -231,7 +232,7 @@ class PtpCamera(Camera):
             if any(wanted(event) for event in events) or time.monotonic() >= deadline:
                 return seen
             if not events:
-                time.sleep(self.timing.poll_interval_s)
+                wait(self.timing.poll_interval_s)
 
     def _name_and_format(self, session: PtpSession, record: ObjectRecord) -> tuple[str, int]:
         if record.name is not None:

@@ -10,6 +10,7 @@ import numpy as np
 from benchctl.devices.camera.base import Camera, RawFrame
 from benchctl.devices.errors import DeviceError
 from benchctl.devices.lock import DeviceLock
+from benchctl.devices.safety import wait
 from benchctl.devices.sim.state import CAMERA_STATE, load_state, sim_lock, state_dir
 from benchctl.files import ensure_dir
 from benchctl.profiles import CameraConfig, Profile
@@ -71,5 +72,5 @@ class SimCamera(Camera):
         start = time.perf_counter()
         frame = render_capture(self.profile, exposure_s=self.config.exposure_s, iso=self.config.iso)
         frame.metadata["render_s"] = round(time.perf_counter() - start, 6)  # the simulator's own work, not a camera's
-        time.sleep(frame.metadata["exposure_s"] + self.profile.sim.sensor.readout_s)
+        wait(frame.metadata["exposure_s"] + self.profile.sim.sensor.readout_s)
         return frame

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import math
 import sys
-import time
 from abc import abstractmethod
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any, ClassVar
@@ -20,6 +19,7 @@ import numpy as np
 from benchctl.devices.connection import Connection
 from benchctl.devices.errors import DeviceError
 from benchctl.devices.lock import DeviceLock
+from benchctl.devices.safety import wait
 from benchctl.devices.slm.lut import lut_for
 from benchctl.errors import BadValueError
 from benchctl.profiles import SLMConfig
@@ -41,7 +41,7 @@ class SLM(Connection):
         """`channels`: the profile's laser channel names, the valid `channel` arguments (with any in slm.lut)."""
         self.config = config
         self.channels: tuple[str, ...] = tuple(dict.fromkeys([*channels, *config.lut]))
-        self.sleep: Callable[[float], None] = time.sleep  # the settle wait; tests replace it
+        self.sleep: Callable[[float], None] = wait  # the settle wait; tests replace it
         self._luts: dict[str, PhaseLUT] = {}
         self._current: np.ndarray | None = None
         self._frames_shown = 0
