@@ -148,7 +148,8 @@ def test_gphoto2_error_without_text() -> None:
 
 
 def test_gphoto2_that_hangs(fake_gphoto2: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    with Gphoto2Camera(config(image_timeout_s=0.3)) as cam:
+    with Gphoto2Camera(config()) as cam:  # opening runs gphoto2 too: a loaded machine may take over 0.3 s
+        cam.config = config(image_timeout_s=0.3)
         monkeypatch.setenv("FAKE_GPHOTO2_MODE", "slow")
         with pytest.raises(DeviceTimeout, match=r"did not finish within 0.3 s \(camera.image_timeout_s\)"):
             cam.capture()
