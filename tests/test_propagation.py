@@ -324,8 +324,13 @@ def test_propagation_bench_returns_one_row_per_mode_with_ratios():
     lines: list[str] = []
     rows = run_propagation_bench(sizes=[(48, 64)], wavelengths=[("green", 520e-9)], distance_m=2e-3, pitch_m=8e-6,
                                  repeats=1, out=lines.append)
-    assert [r["mode"] for r in rows] == ["none", "2x", "auto"]
+    assert [r["mode"] for r in rows] == ["none", "2x", "auto", "auto+roi"]
     by_mode = {r["mode"]: r for r in rows}
+    # the ROI alone, on a smaller grid, with the error of the whole field's "auto" (the same outputs)
+    assert by_mode["auto+roi"]["roi_rel_l2"] == pytest.approx(by_mode["auto"]["roi_rel_l2"], rel=1e-3)
+    roi_rows, roi_cols = map(int, by_mode["auto+roi"]["padded"].split("x"))
+    auto_rows, auto_cols = map(int, by_mode["auto"]["padded"].split("x"))
+    assert roi_rows * roi_cols < auto_rows * auto_cols
     assert by_mode["2x"]["speedup_vs_2x"] == 1.0 and by_mode["2x"]["error_vs_2x"] == 1.0
     assert by_mode["2x"]["roi_rel_l2"] < by_mode["none"]["roi_rel_l2"]
     assert all(r["time_ms"] > 0 and r["bare_fft_ms"] > 0 and r["plan"] for r in rows)
@@ -396,3 +401,49 @@ def test_a_profiles_described_plans_are_its_setups_plans(name: str) -> None:
     for channel in profile.channels:
         plan = OpticalSetup.from_profile(profile, channel.name).target_propagator().plan
         assert f"    {channel.name}: {plan.describe()}" in text.splitlines()
+
+
+@pytest.mark.parametrize(("shape", "window", "padding", "aperture", "distance_m"), [
+    ((96, 128), (28, 40, 34, 60), "auto", None, 0.02),
+    ((97, 131), (33, 31, 27, 77), "auto", 0.5, 0.05),  # odd sizes, an iris
+    ((64, 96), (0, 10, 86, 10), "2x", 0.7, 0.02),  # a window in a corner
+    ((64, 96), (5, 40, 7, 50), "none", None, -0.03),  # the whole plan wraps; backwards
+])
+def test_a_windowed_propagation_gives_the_whole_fields_outputs_on_a_smaller_grid(shape, window, padding,
+                                                                                 aperture, distance_m) -> None:
+    field = torch.polar(torch.rand(shape, dtype=torch.float64) + 0.5,
+                        torch.rand(shape, dtype=torch.float64) * 2 * math.pi)
+    whole = Propagator(shape, distance_m, 520e-9, 8e-6, padding=padding, aperture=aperture)
+    windowed = Propagator(shape, distance_m, 520e-9, 8e-6, padding=padding, aperture=aperture, window=window)
+    row, rows, col, cols = window
+    expected = whole(field)[row:row + rows, col:col + cols]
+    got = windowed(field)
+    assert got.shape == (rows, cols) and got.dtype == torch.complex128
+    assert float((got - expected).abs().max()) < 1e-12 * float(expected.abs().max())
+    (ph, pw), (wh, ww) = whole.plan.padded_shape, windowed.plan.padded_shape
+    assert windowed.plan.kernel_shape == (ph, pw) and wh <= ph and ww <= pw
+    assert wh * ww < ph * pw or padding == "none"
+    single = windowed(field.to(torch.complex64))  # the folded kernel is built in float64, then cast
+    assert float((single - expected).abs().max()) < 1e-5 * float(expected.abs().max())
+
+
+def test_a_window_needs_rows_plus_field_minus_one_samples_per_axis() -> None:
+    plan = Propagator((100, 200), 0.05, 520e-9, 8e-6, padding="2x", window=(30, 40, 0, 200)).plan
+    assert plan.padded_shape == (140, 400)  # 100 + 40 - 1 = 139 -> 140; 200 + 200 - 1 > 2x's 400 -> 400
+    assert "output window 40x200" in plan.describe()
+    with pytest.raises(ValueError, match=r"window \(90, 20, 0, 10\) .* does not fit in the field \(100, 200\)"):
+        Propagator((100, 200), 0.05, 520e-9, 8e-6, window=(90, 20, 0, 10))
+
+
+def test_reconstruct_roi_is_the_roi_of_reconstruct_and_keeps_the_gradient() -> None:
+    setup = OpticalSetup(wavelength_m=520e-9, pitch_m=8e-6, distance_m=0.02, shape=(64, 96), roi=(30, 50),
+                         aperture=0.6)
+    phase = (torch.rand(64, 96, dtype=torch.float64) * 2 * math.pi).requires_grad_()
+    rows, cols = setup.roi_slices
+    whole = setup.reconstruct(phase)[rows, cols]
+    roi = setup.reconstruct_roi(phase)
+    assert torch.allclose(roi, whole, rtol=0, atol=1e-12)
+    (grad_whole,) = torch.autograd.grad(whole.square().sum(), phase)
+    (grad_roi,) = torch.autograd.grad(roi.square().sum(), phase)
+    assert torch.allclose(grad_roi, grad_whole, rtol=0, atol=1e-10)
+    assert setup.roi_propagator() is setup.roi_propagator()

@@ -40,7 +40,7 @@ def roi_loss(phase: torch.Tensor, target: torch.Tensor, setup: OpticalSetup) -> 
     The scale is computed from the reconstruction but held constant for autograd (exact at the optimum).
     """
     rows, cols = setup.roi_slices
-    recon = setup.reconstruct(phase)[..., rows, cols]
+    recon = setup.reconstruct_roi(phase)
     wanted = target[..., rows, cols]
     scale = lsq_scale(recon.detach(), wanted)
     return torch.nn.functional.mse_loss(scale * recon, wanted)

@@ -6,7 +6,7 @@ a profile's propagation (`benchctl profile check`) stays light.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from numbers import Integral
 from typing import TYPE_CHECKING, Union
 
@@ -34,6 +34,10 @@ class PropagationPlan:
     spread_px: tuple[float, float]  # K per axis in pixels (inf where the grid carries grazing light)
     passed_fraction: tuple[float, float]  # fraction of each axis' frequencies kept by the band limit
     aperture: float | None = None  # Fourier-plane iris radius as a fraction of the grid's Nyquist frequency
+    # Only the outputs in window = (row, rows, col, cols) are wanted (`window_plan`); the transfer function is
+    # then that of the grid `kernel_shape`, folded onto the smaller `padded_shape`.
+    window: tuple[int, int, int, int] | None = None
+    kernel_shape: tuple[int, int] | None = None
 
     @property
     def spread_fraction(self) -> tuple[float, float]:
@@ -51,6 +55,7 @@ class PropagationPlan:
             f"z={self.distance_m * 1e3:g} mm, lambda={self.wavelength_m * 1e9:g} nm, "
             f"spread K={ky:.0f}/{kx:.0f} px (K/N {ry:.2f}/{rx:.2f}), band limit keeps {fy:.2f} x {fx:.2f}"
             + (f", iris {self.aperture:g} x Nyquist" if self.aperture is not None else "")
+            + (f", output window {self.window[1]}x{self.window[3]}" if self.window is not None else "")
         )
 
 
@@ -218,6 +223,23 @@ def plan_propagation(
         passed_fraction=(fractions[0], fractions[1]),
         aperture=None if aperture is None else float(aperture),
     )
+
+
+def window_plan(plan: PropagationPlan, window: tuple[int, int, int, int]) -> PropagationPlan:
+    """The plan that computes only the outputs in `window` = (row, rows, col, cols), exactly as `plan` does
+    (its transfer function, band limit and wrap-around), on the smallest grid that allows it.
+
+    Outputs y of the window see inputs x through the offsets y - x, R + N - 1 of them per axis (R wanted, N
+    input samples). On a grid of at least that many samples no two of those offsets wrap onto one another, so
+    `plan`'s impulse response, kept at just those offsets and folded onto the smaller grid, gives the same
+    outputs. Per axis the grid is the fast FFT size >= R + N - 1, or `plan`'s own where that is not smaller.
+    """
+    row, rows, col, cols = (int(v) for v in window)
+    (h, w), (ph, pw) = plan.shape, plan.padded_shape
+    if rows < 1 or cols < 1 or row < 0 or col < 0 or row + rows > h or col + cols > w:
+        raise ValueError(f"window {window} (row, rows, col, cols) does not fit in the field {plan.shape}")
+    shape = (min(ph, _fft_size(h + rows - 1)), min(pw, _fft_size(w + cols - 1)))
+    return replace(plan, padded_shape=shape, window=(row, rows, col, cols), kernel_shape=plan.padded_shape)
 
 
 def describe_plans(profile: Profile) -> str:

@@ -20,15 +20,44 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
+from dataclasses import replace
 
 import torch
 
-from benchctl.optics.plan import Padding, PropagationPlan, band_limit_frequency, pitch_pair, plan_propagation
+from benchctl.optics.plan import (
+    Padding,
+    PropagationPlan,
+    band_limit_frequency,
+    pitch_pair,
+    plan_propagation,
+    window_plan,
+)
 
 
 def transfer_function(plan: PropagationPlan, dtype: torch.dtype = torch.complex64,
                       device: torch.device | str | None = None) -> torch.Tensor:
     """The band-limited ASM transfer function on the padded FFT grid (unshifted), as complex `dtype`.
+
+    For a windowed plan (`window_plan`): the transfer function of `plan.kernel_shape`, whose impulse response
+    (computed in float64) is folded onto the smaller padded grid at the offsets the window needs.
+    """
+    if plan.window is None or plan.kernel_shape == plan.padded_shape:
+        return _transfer_function(plan, dtype, device)
+    full = _transfer_function(replace(plan, padded_shape=plan.kernel_shape), torch.complex128, device)
+    response = torch.fft.ifft2(full)
+    del full
+    folded = response.new_zeros(plan.padded_shape)
+    (row, rows, col, cols), (h, w) = plan.window, plan.shape
+    offset_y = torch.arange(row - h + 1, row + rows, device=response.device)
+    offset_x = torch.arange(col - w + 1, col + cols, device=response.device)
+    (m_y, m_x), (k_y, k_x) = plan.padded_shape, plan.kernel_shape
+    folded[(offset_y % m_y)[:, None], (offset_x % m_x)[None, :]] = \
+        response[(offset_y % k_y)[:, None], (offset_x % k_x)[None, :]]
+    return torch.fft.fft2(folded).to(dtype)
+
+
+def _transfer_function(plan: PropagationPlan, dtype: torch.dtype, device: torch.device | str | None) -> torch.Tensor:
+    """The band-limited ASM transfer function on `plan.padded_shape`.
 
     With `plan.aperture` it also holds the Fourier-plane iris of a 4f relay between SLM and propagation.
 
@@ -94,9 +123,14 @@ class Propagator:
         padding: Padding = "auto",
         band_limit: bool = True,
         aperture: float | None = None,
+        window: tuple[int, int, int, int] | None = None,
     ) -> None:
+        """`window` = (row, rows, col, cols): compute only those outputs, on the smaller grid they need
+        (`window_plan`), exactly as the whole field's propagation would give them."""
         self.plan = plan_propagation(shape, distance_m, wavelength_m, pitch_m,
                                      padding=padding, band_limit=band_limit, aperture=aperture)
+        if window is not None:
+            self.plan = window_plan(self.plan, window)
         self._kernels: dict[tuple[torch.dtype, torch.device], torch.Tensor] = {}
         self._buffer: torch.Tensor | None = None
 
@@ -125,7 +159,7 @@ class Propagator:
         return buffer
 
     def __call__(self, field: torch.Tensor) -> torch.Tensor:
-        """The field after propagation, same shape and complex dtype as `field`."""
+        """The field after propagation, same shape and complex dtype as `field` (the window's shape, if any)."""
         field = _checked_field(field)
         if tuple(field.shape[-2:]) != self.plan.shape:
             raise ValueError(f"field is {tuple(field.shape[-2:])}, this propagator is for {self.plan.shape}")
@@ -134,9 +168,9 @@ class Propagator:
         spectrum = torch.fft.fft2(self._padded(field))
         # In place: the FFT's backward does not need its output, so autograd allows it.
         spectrum.mul_(self.kernel(spectrum.dtype, spectrum.device))
-        h, w = self.plan.shape
+        row, rows, col, cols = self.plan.window or (0, self.plan.shape[0], 0, self.plan.shape[1])
         # A copy, not a view: a view would keep the whole padded grid alive as long as the result lives.
-        return torch.fft.ifft2(spectrum)[..., :h, :w].contiguous()
+        return torch.fft.ifft2(spectrum)[..., row:row + rows, col:col + cols].contiguous()
 
 
 _CACHE: OrderedDict[tuple, Propagator] = OrderedDict()

@@ -108,6 +108,17 @@ class OpticalSetup:
         """The cached propagator SLM -> target plane (+z)."""
         return self._to_target
 
+    def roi_propagator(self) -> Propagator:
+        """The propagator SLM -> target plane (+z) that computes only the ROI, built on first use and cached."""
+        propagator = self.__dict__.get("_to_roi")
+        if propagator is None:
+            rows, cols = self.roi_slices
+            propagator = Propagator(self.shape, self.distance_m, self.wavelength_m, self.pitch_m,
+                                    padding=self.padding, aperture=self.aperture,
+                                    window=(rows.start, self.roi[0], cols.start, self.roi[1]))
+            object.__setattr__(self, "_to_roi", propagator)
+        return propagator
+
     def slm_propagator(self) -> Propagator:
         """The cached propagator target plane -> SLM (-z)."""
         return self._to_slm
@@ -124,10 +135,18 @@ class OpticalSetup:
         The one simulation of a hologram everyone uses; differentiable, and its gradient stays finite where the
         amplitude is exactly zero (complex abs, not a square root of the intensity).
         """
+        return self.target_propagator()(self._lit(phase)).abs()
+
+    def reconstruct_roi(self, phase: torch.Tensor) -> torch.Tensor:
+        """`reconstruct(phase)` on the ROI only, computed on the smaller grid that the ROI needs (`window_plan`):
+        what every loss and score that looks only at the ROI uses."""
+        return self.roi_propagator()(self._lit(phase)).abs()
+
+    def _lit(self, phase: torch.Tensor) -> torch.Tensor:
         field = torch.polar(torch.ones_like(phase), phase)
         if self.field_model is not None:
             field = field * self.slm_factor().to(field.device)
-        return self.target_propagator()(field).abs()
+        return field
 
     def without_wavefront(self, phase: torch.Tensor) -> torch.Tensor:
         """`phase` minus the fitted model's wavefront error W (unchanged without a model): what to display so that

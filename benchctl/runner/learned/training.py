@@ -210,7 +210,7 @@ def scaled_reconstruction(model: nn.Module, setup: OpticalSetup,
     error at the best brightness, which is what a phase-only hologram can be asked for. With a fitted optical
     model the network's phase is displayed without the model's wavefront, as at inference.
     """
-    recon = crop_roi(setup.reconstruct(setup.without_wavefront(model(amplitude))), setup.roi)
+    recon = setup.reconstruct_roi(setup.without_wavefront(model(amplitude)))
     target = crop_roi(amplitude, setup.roi)
     return recon * lsq_scale(recon, target), target
 
@@ -281,7 +281,7 @@ def dpac_reference(setups: Mapping[str, OpticalSetup], planes: Mapping[str, int]
 
     def score(colour: str, amplitude: torch.Tensor) -> dict[str, float]:
         setup = setups[colour]
-        recon = crop_roi(setup.reconstruct(dpac(amplitude[0, 0], setup)), setup.roi)
+        recon = setup.reconstruct_roi(dpac(amplitude[0, 0], setup))
         target = crop_roi(amplitude[0, 0], setup.roi)
         return amplitude_scores(recon * lsq_scale(recon, target), target)
 
