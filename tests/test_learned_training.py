@@ -193,6 +193,16 @@ def test_training_writes_checkpoints_and_an_interrupted_run_resumes_exactly(tmp_
         for key, value in whole.models[colour].state_dict().items():
             assert torch.allclose(resumed.models[colour].state_dict()[key], value, atol=1e-6), (colour, key)
 
+    # a resumed chunk may lower the learning rate (a schedule run in chunks): --lr wins over the saved state's
+    lines: list[str] = []
+    train(profile, _settings(max_steps=3), tmp_path / "lower", PLANES, out=quiet)
+    lowered = train(profile, _settings(lr=_settings().lr / 4, max_steps=4), tmp_path / "lower", PLANES,
+                    out=lines.append, resume=tmp_path / "lower" / "ccnn-dcm4.resume.pt")
+    assert lowered.steps == 4
+    saved = read_checkpoint(tmp_path / "lower" / "ccnn-dcm4.resume.pt").optimisers
+    assert {g["lr"] for state in saved.values() for g in state["param_groups"]} == {_settings().lr / 4}
+    assert any(f"learning rate {_settings().lr / 4:g} (was {_settings().lr:g})" in line for line in lines)
+
 
 def _run(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]:
     code = main(list(argv))

@@ -466,10 +466,16 @@ def _resume(path: Path, settings: TrainSettings, profile: Profile, setups: Mappi
         out(f"{path} holds weights only: continuing from them with a fresh Adam, from step 0 "
             f"(resume from {path.with_suffix('').name}{RESUME_SUFFIX} to continue exactly)")
         return {"epoch": 0, "batch": 0, "step": 0}, history
+    saved_lr = set()
     for colour, optimiser in optimisers.items():
         optimiser.load_state_dict(checkpoint.optimisers[colour])
+        for group in optimiser.param_groups:  # the saved state carries its lr: --lr is what this run asked for
+            saved_lr.add(group["lr"])
+            group["lr"] = settings.lr
     position = {k: int(v) for k, v in checkpoint.position.items()}
-    out(f"resuming from {path}: epoch {position['epoch'] + 1}, step {position['step']}")
+    changed = f"; learning rate {settings.lr:g} (was {', '.join(f'{lr:g}' for lr in sorted(saved_lr))})" \
+        if saved_lr != {settings.lr} else ""
+    out(f"resuming from {path}: epoch {position['epoch'] + 1}, step {position['step']}{changed}")
     return position, history
 
 
