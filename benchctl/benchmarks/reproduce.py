@@ -128,7 +128,8 @@ class HeldOut:
         with torch.no_grad():
             for amplitude, target in zip(self.inputs, self.targets):
                 gray = self.slm.encode(model(amplitude)[0, 0], self.name)
-                recon = crop_roi(self.setup.reconstruct(self.slm.decode(gray, self.name)), self.setup.roi)
+                decoded = torch.from_numpy(self.slm.decode(gray, self.name))
+                recon = crop_roi(self.setup.reconstruct(decoded), self.setup.roi)
                 scores = amplitude_scores(recon * lsq_scale(recon, target), target)
                 psnrs.append(scores["psnr_amplitude_db"])
                 ssims.append(scores["ssim_amplitude"])
