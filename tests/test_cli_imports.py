@@ -13,7 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from benchctl.devices.slm import read_displayed, slm_for
 from benchctl.images import write_png
+from benchctl.profiles import load_profile
 
 HEAVY = ("torch", "cv2", "benchctl.cgh", "benchctl.optics.propagation")
 TORCH = ("torch", "benchctl.cgh", "benchctl.optics.propagation")
@@ -48,7 +50,11 @@ def test_device_commands_never_import_torch(command: list[str]) -> None:
 
 
 def test_slm_frames_from_files_never_import_torch(tmp_path: Path) -> None:
-    frame = tmp_path / "frame.png"
+    frame, phase = tmp_path / "frame.png", tmp_path / "phase.npy"
     write_png(frame, np.full((1088, 1920), 7, np.uint8))
-    for command in (["slm", "blank"], ["slm", "show", str(frame)]):
+    np.save(phase, np.linspace(-3 * np.pi, 3 * np.pi, 1088 * 1920, dtype=np.float32).reshape(1088, 1920))
+    show_phase = ["slm", "show", str(phase), "--channel", "green", "--profile", "simulated"]  # a "sim" SLM driver
+    for command in (["slm", "blank"], ["slm", "show", str(frame)], show_phase):
         assert [m for m in _loaded(command) if m in TORCH] == [], command
+    shown, _ = read_displayed()
+    assert np.array_equal(shown, slm_for(load_profile("simulated")).encode(np.load(phase), "green"))

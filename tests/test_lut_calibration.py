@@ -10,7 +10,6 @@ from collections.abc import Callable
 
 import numpy as np
 import pytest
-import torch
 from conftest import SMALL_BENCH, sim_exposure
 
 from benchctl.capture.lut_calibration import (
@@ -144,7 +143,7 @@ def test_a_linear_response_gives_the_linear_table() -> None:
     grays = calibration_grays()
     lut = lut_from_response(grays, 0.3 + 2 * math.pi * np.array(grays) / 256, bit_depth=8)  # any phase(0)
     assert lut.levels == 256
-    assert torch.allclose(lut.phases, torch.arange(256, dtype=torch.float64) * (2 * math.pi / 256), atol=1e-12)
+    assert np.allclose(lut.phases, np.arange(256, dtype=np.float64) * (2 * math.pi / 256), atol=1e-12)
 
 
 def test_the_table_is_monotonic_and_follows_the_measured_points() -> None:
@@ -153,7 +152,7 @@ def test_the_table_is_monotonic_and_follows_the_measured_points() -> None:
     noisy = truth + np.random.default_rng(0).normal(0, 0.01, len(grays))
     noisy[0] = 0.0
     lut = lut_from_response(grays, noisy, bit_depth=8)
-    table = lut.phases.numpy()
+    table = lut.phases
     assert table[0] == 0.0 and (np.diff(table) >= 0).all()
     levels = np.arange(256)
     reference = 2 * math.pi * 1.33 * (levels / 256) ** 1.05
@@ -171,7 +170,7 @@ def test_calibration_recovers_the_simulators_true_response(profile: Profile, cha
     grays = calibration_grays()
     homography = bench.camera_homography(profile)
     signals = np.array(measured_signals(profile, channel, colour, grays, homography, POWERS_W[channel]))
-    true_table = bench.true_lut(profile.channel(channel).wavelength_m, 8, profile.sim.slm).phases.numpy()
+    true_table = bench.true_lut(profile.channel(channel).wavelength_m, 8, profile.sim.slm).phases
     assert true_table[-1] == pytest.approx(2 * math.pi * depth * (255 / 256) ** 1.05, rel=0.01)
 
     # The derivation's claim: the zero order follows (1 + f^2)/2 + (1 - f^2)/2 cos d exactly, leakage included.
@@ -180,7 +179,7 @@ def test_calibration_recovers_the_simulators_true_response(profile: Profile, cha
     assert signals / signals[0] == pytest.approx(model / model[0], abs=0.005)  # measured within 0.0015
 
     lut = calibrate_lut(grays, signals, bit_depth=8)
-    error = lut.phases.numpy() - true_table
+    error = lut.phases - true_table
     assert np.sqrt(np.mean(error**2)) < RMS_TOLERANCE_RAD
     assert np.abs(error).max() < MAX_TOLERANCE_RAD
 
@@ -190,8 +189,8 @@ def test_calibration_without_a_registration_reads_the_sensors_centre(profile: Pr
     grays = calibration_grays(8, 16)
     signals = measured_signals(profile, "blue", 2, grays, None, 1.5e-3)
     lut = calibrate_lut(grays, signals, bit_depth=8)
-    true_table = bench.true_lut(450e-9, 8, profile.sim.slm).phases.numpy()
-    error = lut.phases.numpy() - true_table
+    true_table = bench.true_lut(450e-9, 8, profile.sim.slm).phases
+    error = lut.phases - true_table
     assert np.sqrt(np.mean(error**2)) < RMS_TOLERANCE_RAD and np.abs(error).max() < MAX_TOLERANCE_RAD
 
 

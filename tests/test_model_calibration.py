@@ -50,9 +50,9 @@ def rendered(profile: Profile, phases: torch.Tensor) -> torch.Tensor:
     """What the simulated bench shows on the ROI for each phase (noiseless target-plane irradiance)."""
     setup = OpticalSetup.from_profile(profile, "green")
     rows, cols = setup.roi_slices
-    grays = phase_to_gray(phases.double(), PhaseLUT.linear(8))
+    grays = phase_to_gray(phases.detach().numpy(), PhaseLUT.linear(8))
     captured = torch.stack([bench._target_irradiance(profile, profile.channel("green"), g)[rows, cols] for g in grays])
-    return captured, gray_to_phase(grays, PhaseLUT.linear(8)).float()
+    return captured, torch.from_numpy(gray_to_phase(grays, PhaseLUT.linear(8)))
 
 
 def test_fit_recovers_the_hidden_wavefront_and_beam(profile: Profile) -> None:

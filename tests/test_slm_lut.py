@@ -8,7 +8,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
 from benchctl.devices.slm import SimSLM, load_lut, lut_for, save_lut
 from benchctl.errors import BenchctlError
@@ -33,7 +32,7 @@ def test_save_then_load_is_exact(tmp_path: Path) -> None:
     assert lines[0] == "gray,phase_rad" and len(lines) == 257
     assert lines[1] == "0,0.0" and lines[-1] == f"255,{1.9 * PI!r}"
     loaded = load_lut(path, 8)
-    assert loaded.phases.dtype == torch.float64
+    assert loaded.phases.dtype == np.float64
     assert loaded.phases.tolist() == MEASURED.tolist()
 
 

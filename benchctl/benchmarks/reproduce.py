@@ -128,7 +128,7 @@ class HeldOut:
         with torch.no_grad():
             for amplitude, target in zip(self.inputs, self.targets):
                 gray = self.slm.encode(model(amplitude)[0, 0], self.name)
-                recon = self.setup.reconstruct_roi(self.slm.decode(gray, self.name))
+                recon = self.setup.reconstruct_roi(torch.from_numpy(self.slm.decode(gray, self.name)))
                 scores = amplitude_scores(recon * lsq_scale(recon, target), target)
                 psnrs.append(scores["psnr_amplitude_db"])
                 ssims.append(scores["ssim_amplitude"])

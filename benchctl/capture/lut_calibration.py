@@ -38,7 +38,6 @@ import math
 from collections.abc import Sequence
 
 import numpy as np
-import torch
 
 from benchctl.capture.colour_planes import registered_plane, registered_saturation
 from benchctl.capture.raw import RawImage
@@ -245,7 +244,7 @@ def lut_from_response(grays: Sequence[int], phases: Sequence[float], bit_depth: 
     monotone = _isotonic(phase - phase[0])
     table = _pchip(g, monotone, np.arange(last + 1, dtype=np.float64))
     table = np.maximum.accumulate(table - table[0])  # rounding only: PCHIP of monotone data is monotone
-    return PhaseLUT(torch.from_numpy(table))
+    return PhaseLUT(table)
 
 
 def calibrate_lut(grays: Sequence[int], signals: Sequence[float], bit_depth: int) -> PhaseLUT:

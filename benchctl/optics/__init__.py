@@ -1,7 +1,8 @@
-"""Physics and metrics in torch: propagation, colour, metrics, phase encoding. Imports nothing else from benchctl.
+"""Physics and metrics: propagation, colour, metrics (torch), phase encoding (numpy). Imports nothing else from
+benchctl.
 
-The names below are loaded from their modules on first use, so a torch-free part (`plan`: what a propagation
-will compute) can be imported without loading torch.
+The names below are loaded from their modules on first use, so a torch-free part (`phase_encoding`; `plan`: what
+a propagation will compute) can be imported without loading torch.
 """
 
 from __future__ import annotations

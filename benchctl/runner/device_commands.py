@@ -161,7 +161,7 @@ def _open_camera(profile: Profile) -> Camera:
 
 
 def _open_slm(profile: Profile) -> SLM:
-    """The profile's SLM, imported here: the SLM layer encodes phases with torch, which only SLM commands load."""
+    """The profile's SLM, imported here so that laser and camera commands do not load the SLM drivers."""
     from benchctl.devices.slm import open_slm
 
     return open_slm(profile.require("slm"))

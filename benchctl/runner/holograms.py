@@ -187,7 +187,7 @@ def compute_scene(
                          progress=progress(f"{method} {channel.name}") if progress else None)
         seconds = time.perf_counter() - start
         gray = slm.encode(phase, channel.name)
-        recon = setup.reconstruct_roi(slm.decode(gray, channel.name))
+        recon = setup.reconstruct_roi(torch.from_numpy(slm.decode(gray, channel.name)))
         recon = recon * lsq_scale(recon, target_roi[plane])
         merged[plane] = recon.square().clamp(0, 1)
         results.append(ColourResult(channel.name, channel.wavelength_nm, skipped=False, seconds=seconds,

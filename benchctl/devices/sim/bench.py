@@ -58,8 +58,8 @@ def true_lut(wavelength_m: float, bit_depth: int, response: SimSLMConfig) -> Pha
     """The simulated panel's real gray -> phase table at one wavelength (what calibration should measure):
     2 pi (two_pi_nm / wavelength) (g / 2^bit_depth)^gamma."""
     depth = 2 * math.pi * response.two_pi_nm * 1e-9 / wavelength_m
-    levels = torch.arange(1 << bit_depth, dtype=torch.float64) / (1 << bit_depth)
-    return PhaseLUT(depth * levels.pow(response.gamma))
+    levels = np.arange(1 << bit_depth, dtype=np.float64) / (1 << bit_depth)
+    return PhaseLUT(depth * levels**response.gamma)
 
 
 def spectral_response(profile: Profile, channel: LaserChannel) -> np.ndarray:
@@ -142,15 +142,15 @@ def _beam_power(profile: Profile) -> torch.Tensor:
     return gaussian_beam_power(slm.shape, slm.pitch_m, beam.waist_mm * 1e-3, [v * 1e-3 for v in beam.offset_mm])
 
 
-def _target_irradiance(profile: Profile, channel: LaserChannel, gray: torch.Tensor) -> torch.Tensor:
+def _target_irradiance(profile: Profile, channel: LaserChannel, gray: np.ndarray) -> torch.Tensor:
     """Fraction of the beam's power on each target-plane pixel, (H, W) float64, for one channel.
 
     The driven phase (true response, blurred by crosstalk) modulates all but the pixel gaps' light; the beam's
     tilt and the channel's wavefront error act on all of it; stray light spreads a fraction evenly."""
     slm, sim = profile.slm, profile.sim
     assert slm is not None
-    phase = crosstalk_blur(gray_to_phase(gray, true_lut(channel.wavelength_m, slm.bit_depth, sim.slm)),
-                           sim.slm.crosstalk_px)
+    driven = gray_to_phase(gray, true_lut(channel.wavelength_m, slm.bit_depth, sim.slm))
+    phase = crosstalk_blur(torch.from_numpy(driven), sim.slm.crosstalk_px)
     gap = sim.slm.zero_order
     wavefront = (tilt_phase(slm.shape, slm.pitch_m, [v * 1e-3 for v in sim.beam.tilt_mrad], channel.wavelength_m)
                  + wavefront_phase(slm.shape, slm.pitch_m, sim.aberration.get(channel.name, {})))
@@ -190,12 +190,11 @@ def _mean_electrons(profile: Profile, gray: np.ndarray | None, powers_w: Mapping
     box = _lit_box(profile, homography)
     if box is None:
         return None
-    frame = torch.from_numpy(gray.astype(np.int64))
     electrons = np.zeros((*slm.shape, 3), dtype=np.float32)  # per target pixel, as seen by R, G and B pixels
     for name, watts in powers_w.items():
         channel = profile.channel(name)
         photons = watts * exposure_s * channel.wavelength_m / (PLANCK_J_S * LIGHT_M_S) * profile.sim.beam.efficiency
-        irradiance = _target_irradiance(profile, channel, frame).numpy() * photons
+        irradiance = _target_irradiance(profile, channel, gray).numpy() * photons
         electrons += (irradiance[..., None] * spectral_response(profile, channel)).astype(np.float32)
     top, bottom, left, right = box
     shift = np.array([[1.0, 0, -left], [0, 1.0, -top], [0, 0, 1.0]])

@@ -22,12 +22,11 @@ from benchctl.devices.lock import DeviceLock
 from benchctl.devices.safety import wait
 from benchctl.devices.slm.lut import lut_for
 from benchctl.errors import BadValueError
+from benchctl.optics.phase_encoding import PhaseLUT, gray_to_phase, phase_to_gray
 from benchctl.profiles import SLMConfig
 
-if TYPE_CHECKING:  # the encoding is torch; it is imported where a phase is encoded, so `slm info` stays light
+if TYPE_CHECKING:  # phases may come as tensors, but torch is never imported here: SLM commands stay light
     import torch
-
-    from benchctl.optics.phase_encoding import PhaseLUT
 
 TWO_PI = 2.0 * math.pi
 
@@ -147,55 +146,39 @@ class SLM(Connection):
 
     # -- showing ----------------------------------------------------------------------------------------------
 
-    def _added_phase(self, device: torch.device) -> torch.Tensor:
+    def _added_phase(self) -> np.ndarray:
         """Phase offset plus blazed carrier (float64, broadcastable to (H, W)) added before encoding."""
-        import torch
-
-        total = torch.full((1, 1), self.config.phase_offset_rad, dtype=torch.float64, device=device)
+        total = np.full((1, 1), self.config.phase_offset_rad, dtype=np.float64)
         for axis, period in enumerate(self.config.grating_period_px):
             if period:
-                ramp = torch.arange(self.shape[axis], dtype=torch.float64, device=device) * (TWO_PI / period)
+                ramp = np.arange(self.shape[axis], dtype=np.float64) * (TWO_PI / period)
                 total = total + (ramp[:, None] if axis == 0 else ramp)
         return total
 
-    def _flips(self) -> list[int]:
-        return [dim for dim, on in ((0, self.config.flip_y), (1, self.config.flip_x)) if on]
+    def _flipped(self, frame: np.ndarray) -> np.ndarray:
+        """`frame` mirrored as the optics require (flip_y: rows, flip_x: columns); a view."""
+        return np.flip(frame, [axis for axis, on in ((0, self.config.flip_y), (1, self.config.flip_x)) if on])
 
-    def encode(self, phase: torch.Tensor | np.ndarray, channel: str) -> np.ndarray:
+    def encode(self, phase: np.ndarray | torch.Tensor, channel: str) -> np.ndarray:
         """The gray frame `show_phase` would display for `phase` ((H, W) radians), without displaying it."""
-        import torch
+        phase = self._checked_phase(phase).astype(np.float64, copy=False)
+        gray = phase_to_gray(phase + self._added_phase(), self.lut(channel))
+        return np.ascontiguousarray(self._flipped(gray), dtype=self.gray_dtype)
 
-        from benchctl.optics.phase_encoding import phase_to_gray
-
-        phase = self._checked_phase(phase)
-        gray = phase_to_gray(phase.to(torch.float64) + self._added_phase(phase.device), self.lut(channel))
-        if self._flips():
-            gray = torch.flip(gray, self._flips())
-        return gray.cpu().numpy().astype(self.gray_dtype, copy=False)
-
-    def decode(self, gray: np.ndarray, channel: str) -> torch.Tensor:
+    def decode(self, gray: np.ndarray, channel: str) -> np.ndarray:
         """The hologram phase a displayed frame carries: undo flips, look up `channel`'s table, remove the
         offset and carrier (the optics compensate those). Float32 (H, W) radians in [-pi, pi)."""
-        import torch
+        phase = gray_to_phase(self._flipped(np.asarray(gray)), self.lut(channel)).astype(np.float64)
+        phase -= self._added_phase()
+        return (np.remainder(phase + math.pi, TWO_PI) - math.pi).astype(np.float32)
 
-        from benchctl.optics.phase_encoding import gray_to_phase
-
-        frame = torch.as_tensor(np.ascontiguousarray(gray).astype(np.int64))
-        if self._flips():
-            frame = torch.flip(frame, self._flips())
-        phase = gray_to_phase(frame, self.lut(channel)).to(torch.float64) - self._added_phase(frame.device)
-        return (torch.remainder(phase + math.pi, TWO_PI) - math.pi).to(torch.float32)
-
-    def show_phase(self, phase: torch.Tensor | np.ndarray, channel: str) -> np.ndarray:
+    def show_phase(self, phase: np.ndarray | torch.Tensor, channel: str) -> np.ndarray:
         """Display `phase` ((H, W) radians) encoded for `channel`'s wavelength; returns the frame as displayed."""
         return self._show(self.encode(phase, channel), channel)
 
     def show_gray(self, gray: np.ndarray | torch.Tensor) -> np.ndarray:
         """Display raw gray levels as they are (no offset, carrier, table or flip); returns the frame displayed."""
-        torch = sys.modules.get("torch")  # a tensor can only exist once torch is imported
-        if torch is not None and isinstance(gray, torch.Tensor):
-            gray = gray.detach().cpu().numpy()
-        gray = np.asarray(gray)
+        gray = _as_numpy(gray)
         if gray.shape != self.shape:
             raise BadValueError(
                 f"{self.label}: gray frame has shape {gray.shape}, expected (H, W) = {self.shape} "
@@ -228,22 +211,28 @@ class SLM(Connection):
         self.sleep(self.settle_s)
         return frame
 
-    def _checked_phase(self, phase: torch.Tensor | np.ndarray) -> torch.Tensor:
-        """`phase` as a tensor, refused unless it is real floating point, (H, W) and finite."""
-        import torch
-
-        tensor = phase if isinstance(phase, torch.Tensor) else torch.as_tensor(np.ascontiguousarray(phase))
-        if tensor.is_complex() or not tensor.is_floating_point():
+    def _checked_phase(self, phase: np.ndarray | torch.Tensor) -> np.ndarray:
+        """`phase` as a numpy array, refused unless it is real floating point, (H, W) and finite."""
+        array = _as_numpy(phase)
+        if array.dtype.kind != "f":
             raise BadValueError(
-                f"{self.label}: phase must be real radians (float), got {tensor.dtype}; "
+                f"{self.label}: phase must be real radians (float), got {array.dtype}; "
                 f"use show_gray for gray levels"
             )
-        if tuple(tensor.shape) != self.shape:
+        if array.shape != self.shape:
             raise BadValueError(
-                f"{self.label}: phase has shape {tuple(tensor.shape)}, expected (H, W) = {self.shape} "
+                f"{self.label}: phase has shape {array.shape}, expected (H, W) = {self.shape} "
                 f"(profile slm.height x slm.width)"
             )
-        bad = int((~torch.isfinite(tensor)).sum())
+        bad = int(np.count_nonzero(~np.isfinite(array)))
         if bad:
-            raise BadValueError(f"{self.label}: phase has {bad} NaN or infinite values of {tensor.numel()}")
-        return tensor
+            raise BadValueError(f"{self.label}: phase has {bad} NaN or infinite values of {array.size}")
+        return array
+
+
+def _as_numpy(array: np.ndarray | torch.Tensor) -> np.ndarray:
+    """`array` as numpy; a tensor is detached and brought to the CPU (displaying needs no gradient)."""
+    torch = sys.modules.get("torch")  # a tensor can only exist once torch is imported
+    if torch is not None and isinstance(array, torch.Tensor):
+        return array.detach().cpu().numpy()
+    return np.asarray(array)

@@ -17,16 +17,13 @@ from __future__ import annotations
 import re
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from benchctl.errors import BenchctlError
 from benchctl.files import atomic_write_bytes, ensure_dir
+from benchctl.optics.phase_encoding import PhaseLUT
 from benchctl.profiles import SLMConfig
-
-if TYPE_CHECKING:  # PhaseLUT is torch: imported when a table is built, so SLM commands that encode nothing stay light
-    from benchctl.optics.phase_encoding import PhaseLUT
 
 TEXT_SUFFIXES = (".csv", ".txt")
 _SEPARATORS = re.compile(r"[,;\s]+")
@@ -55,8 +52,6 @@ def save_lut(path: str | Path, lut: PhaseLUT) -> Path:
 
 def lut_for(config: SLMConfig, channel: str) -> PhaseLUT:
     """The table the SLM uses for `channel`: the profile's file for it, else linear with `two_pi_gray`."""
-    from benchctl.optics.phase_encoding import PhaseLUT
-
     path = config.lut.get(channel)
     if path is None:
         return PhaseLUT.linear(config.bit_depth, config.two_pi_gray)
@@ -157,8 +152,6 @@ def _table(path: Path, phases: np.ndarray, where: Callable[[int], str]) -> Phase
             f"{path}: {where(gray)}: phase of gray {gray} ({phases[gray]:.6g} rad) is below that of gray {gray - 1} "
             f"({phases[gray - 1]:.6g} rad); the table must be non-decreasing (unwrapped)"
         )
-    from benchctl.optics.phase_encoding import PhaseLUT
-
     return PhaseLUT(phases)
 
 

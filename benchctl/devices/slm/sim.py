@@ -60,7 +60,7 @@ class SimSLM(SLM):
         """The simulated panel's own response ([sim.slm]) at `wavelength_m`."""
         from benchctl.devices.sim.bench import true_lut
 
-        return true_lut(wavelength_m, self.bit_depth, self.response).phases.numpy()
+        return true_lut(wavelength_m, self.bit_depth, self.response).phases
 
     def _device_lock(self) -> DeviceLock:
         return sim_lock(STATE_NAME, self.label)

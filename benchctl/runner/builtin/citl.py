@@ -252,7 +252,7 @@ def _starter(target: torch.Tensor, channel: LaserChannel):
                           checkpoint=None, progress=context.progress)
         file = Path("holograms", "citl", channel.name, "start.png")
         write_png(context.path(str(file)), result.gray)
-        phase = slm_for(context.profile).decode(result.gray, channel.name)
+        phase = torch.from_numpy(slm_for(context.profile).decode(result.gray, channel.name))
         _save_state(_state_file(context, channel, 0), phase, None)
         return {"file": str(file), "method": params.start, "iterations": iterations,
                 "seconds": round(result.seconds, 4), "simulated": {k: round(v, 4) for k, v in result.scores.items()}}

@@ -102,7 +102,7 @@ def _fitter(channel: LaserChannel, grays: list[int]):
             calibration.record_lut(channel.name, {"grays": len(grays), "run": context.record.name if context.record
                                                   else None})
         context.recalibrated()
-        table = lut.phases.numpy()
+        table = lut.phases
         result = {"grays": grays, "signals": signals, "phases": [float(p) for p in phases],
                   "depth_rad": float(table[-1] - table[0]), "file": f"calibration/lut-{channel.name}.csv"}
         truth = slm_for(context.profile).ground_truth_lut(channel.wavelength_m)  # None on a real panel

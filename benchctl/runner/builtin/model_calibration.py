@@ -109,7 +109,7 @@ def _fitter(channel: LaserChannel):
         homography = np.asarray(context.calibration.registrations()[channel.name]["homography"], dtype=np.float64)
         shown, captured, saturated = [], [], 0.0
         for k, file in enumerate(context.result(f"model/patterns/{channel.name}")["files"]):
-            shown.append(slm.decode(read_image(context.path(file)), channel.name))
+            shown.append(torch.from_numpy(slm.decode(read_image(context.path(file)), channel.name)))
             image, _ = load_exposure(context, f"model/capture/{channel.name}/{k}")
             where = (target_plane(channel), homography, profile.slm.shape, profile.optics.roi)
             captured.append(torch.from_numpy(registered_plane(image, *where)))
