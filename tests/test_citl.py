@@ -23,7 +23,8 @@ from benchctl.devices.sim.state import load_state
 from benchctl.optics import lsq_scale
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import Profile
-from benchctl.capture.colour_planes import merge_capture
+from benchctl.capture.colour_planes import merge_capture, registered_plane
+from benchctl.capture.raw import decode_raw
 from benchctl.runner.builtin.citl import TIMING_KEYS, _load_state, _save_state, keeps_raw, merged_psnr
 from benchctl.runner.calibration import Calibration
 from benchctl.runner.engine import run_procedure
@@ -132,11 +133,34 @@ def test_citl_raises_captured_psnr_and_logs_every_iteration(tmp_path: Path, prof
     assert laser_off()
 
 
+def test_auto_exposure_probes_the_start_once_and_captures_every_iteration_at_its_power(tmp_path: Path,
+                                                                                       profile: Profile) -> None:
+    folder = run(tmp_path, profile, "runs", iterations=3, baseline=True)
+    results = done(folder)
+    choice = results["citl/green/probe"]["auto_exposure"]
+    setpoint_w = profile.channel("green").setpoint_mw * 1e-3
+    assert choice["probe_w"] == pytest.approx(setpoint_w)  # the probe runs at the profile's setpoint
+    assert choice["goal"] == 0.7 and not choice["probe_saturated"] and choice["power_w"] > 3 * choice["probe_w"]
+    captures = [results[f"citl/green/{k:04d}"] for k in range(4)] + [results["citl/green/baseline"]]
+    assert all(r["setpoint_w"] == pytest.approx(choice["power_w"], abs=1e-5) for r in captures)  # read back, 0.01 mW
+    first = decode_raw(folder / "raw" / "citl" / "green" / "0000" / "frame-000.dng")
+    assert first.saturation_fraction == 0
+    homography = np.asarray(Calibration.store(profile).registrations()["green"]["homography"])
+    plane = registered_plane(first, 1, homography, profile.slm.shape, profile.optics.roi)
+    assert 0.6 < float(np.percentile(plane, 99.9)) < 0.8  # the goal, 0.7, within the noise and the speckle
+
+    fixed = tmp_path / "fixed.toml"
+    fixed.write_text(PROCEDURE % (1, 10, "false") + 'exposure = "fixed"\n')
+    outcome = run_procedure(fixed, profile=str(profile.path), out=tmp_path / "fixed", say=lambda line: None)
+    assert "citl/green/probe" not in done(outcome.folder)
+    assert done(outcome.folder)["citl/green/0000"]["setpoint_w"] == pytest.approx(setpoint_w)
+
+
 def test_disk_policy_keeps_exactly_the_first_last_and_every_nth_raw(tmp_path: Path, profile: Profile) -> None:
     folder = run(tmp_path, profile, "runs", iterations=9, every=4)
     assert [k for k in range(10) if keeps_raw(k, 9, 4)] == [0, 4, 8, 9]
     kept = sorted(str(p.relative_to(folder / "raw")) for p in (folder / "raw").rglob("*") if p.is_file())
-    assert kept == [f"citl/green/{k:04d}/frame-000.dng" for k in (0, 4, 8, 9)]
+    assert kept == [f"citl/green/{k:04d}/frame-000.dng" for k in (0, 4, 8, 9)] + ["citl/green/probe/frame-000.dng"]
     assert len(list((folder / "images" / "citl" / "green").glob("*.png"))) == 10
     assert [p.name for p in (folder / "state" / "green").iterdir()] == ["0009.npz"]
     disk = json.loads((folder / "metrics.json").read_text())["disk"]
@@ -149,12 +173,12 @@ def test_resume_after_a_pulled_cable_continues_bit_for_bit_with_the_laser_off(
     reference = run(tmp_path, profile, "reference", iterations=8)
     expected = done(reference)
 
-    # The same run on a fresh simulated bench (frame counter, cache), the cable pulled before the 6th frame:
-    # iteration 5 fails mid-step after iterations 0-4 finished.
+    # The same run on a fresh simulated bench (frame counter, cache), the cable pulled before the 7th frame (the
+    # first is the exposure probe): iteration 5 fails mid-step after iterations 0-4 finished.
     monkeypatch.setenv("BENCHCTL_SIM_DIR", str(tmp_path / "second-sim"))
     monkeypatch.setenv("BENCHCTL_CACHE_DIR", str(tmp_path / "second-cache"))
-    assert main(["sim", "fault", "sim-camera", "unplug_at=6"]) == 0
-    with pytest.raises(DeviceError, match="cable pulled before frame 6"):
+    assert main(["sim", "fault", "sim-camera", "unplug_at=7"]) == 0
+    with pytest.raises(DeviceError, match="cable pulled before frame 7"):
         run(tmp_path, profile, "runs", iterations=8)
     (folder,) = (tmp_path / "runs").iterdir()
     info = json.loads((folder / "run.json").read_text())

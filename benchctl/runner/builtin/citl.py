@@ -18,6 +18,9 @@ The model is only the gradient's: where the bench departs far from it (the aberr
 fitted model) the gradient points elsewhere and the captured PSNR rises for a few iterations, then falls; run
 model calibration first (README, "Camera in the loop").
 
+With `exposure = "auto"` (default) one probe frame of the start hologram per colour sets the laser power that
+puts its peak at `peak_goal` of full scale; every iteration and the baseline are captured at that power.
+
 With `baseline` (default on), model-only SGD with the same number of Adam steps (start_iterations + iterations
 for an SGD start) is captured the same way, so the report compares both at one budget.
 """
@@ -48,6 +51,7 @@ from benchctl.profiles import LaserChannel, Positive
 from benchctl.runner.builtin import registration
 from benchctl.runner.hologram_cache import hologram
 from benchctl.runner.holograms import shared_setup, target_plane
+from benchctl.runner.auto_exposure import Exposure, PeakGoal, probe_step, probed_power
 from benchctl.runner.procedure import Context, Step
 from benchctl.runner.record import set_aside
 from benchctl.runner.report import citl_report
@@ -57,6 +61,7 @@ from benchctl.runner.steps import (
     Frames,
     Registration,
     channels,
+    displayed_frame,
     power_w,
     prepared_target,
     unknown_setpoints,
@@ -84,6 +89,8 @@ class CitlParameters(ExposureParameters, kw_only=True):
     keep_raw_every: Annotated[int, Meta(ge=0)] = 10
     baseline: bool = True  # capture model-only SGD at the same budget too
     registration: Registration = "auto"
+    exposure: Exposure = "auto"  # "auto": a probe frame of the start hologram sets the power for every capture
+    peak_goal: PeakGoal = 0.7  # fraction of full scale
 
 
 PARAMETERS = CitlParameters
@@ -113,6 +120,10 @@ def plan(context: Context) -> list[Step]:
         name = channel.name
         steps.append(Step(f"citl/{name}/start", f"start hologram {name} ({params.start})",
                           _starter(target, channel)))
+        if params.exposure == "auto":
+            steps.append(probe_step(context, f"citl/{name}/probe", ("citl", name, "probe"), channel,
+                                    lambda ctx, key=f"citl/{name}/start": displayed_frame(ctx, key),
+                                    "probe exposure of the start hologram", params.peak_goal))
         for k in range(count + 1):
             what = "capture the final phase" if k == count else "capture, register, step the phase"
             steps.append(Step(f"citl/{name}/{k:04d}", f"CITL {name} iteration {k}/{count}: {what}",
@@ -195,7 +206,9 @@ def _measure(context: Context, key: str, channel: LaserChannel, gray: np.ndarray
     attempt = context.record.attempts.get(key, 1) if context.record else 1
     if where is not None and attempt > 1:
         set_aside(where, attempt - 1)
-    exposure = context.bench.expose_frames(where, channel.name, power_w(context, channel), gray,
+    power = (probed_power(f"citl/{channel.name}/probe")(context) if params.exposure == "auto"
+             else power_w(context, channel))
+    exposure = context.bench.expose_frames(where, channel.name, power, gray,
                                            frames=params.frames, dark_frames=params.dark_frames)
     clock = time.perf_counter
     start = clock()

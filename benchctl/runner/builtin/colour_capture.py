@@ -21,14 +21,11 @@ import torch
 from msgspec import Meta
 
 from benchctl.capture.colour_planes import PEAK_PERCENTILE, merge_capture, registered_plane, roi_saturation
-from benchctl.capture.exposure import choose_power
-from benchctl.capture.raw import decode_raw
-from benchctl.devices.power import format_power
 from benchctl.errors import BenchctlError
 from benchctl.optics import colour_scores, crop_roi
 from benchctl.profiles import LaserChannel
 from benchctl.runner.builtin import lut_calibration, registration
-from benchctl.runner.builtin.power_sweep import signal_stats
+from benchctl.runner.auto_exposure import Exposure, PeakGoal, probe_step, probed_power
 from benchctl.runner.procedure import Context, Step
 from benchctl.runner.report import colour_capture_report
 from benchctl.runner.holograms import target_plane
@@ -63,9 +60,8 @@ class ColourCaptureParameters(HologramParameters, kw_only=True):
     registration: Registration = "auto"
     # "auto": measure the SLM's lookup table first for colours that have none; "skip": use what there is
     lut_calibration: Literal["auto", "skip"] = "auto"
-    # "auto": a probe frame per colour sets the laser power so the peak lands at peak_goal; "fixed": setpoints
-    exposure: Literal["auto", "fixed"] = "auto"
-    peak_goal: Annotated[float, Meta(gt=0.05, le=0.95)] = 0.7  # fraction of full scale
+    exposure: Exposure = "auto"  # "auto": a probe frame per colour sets the power (peak at peak_goal); "fixed"
+    peak_goal: PeakGoal = 0.7  # fraction of full scale
 
 
 PARAMETERS = ColourCaptureParameters
@@ -113,8 +109,11 @@ def _capture_steps(context: Context, spec: str, label: str, lit: list[LaserChann
     powers = {c.name: power_w(context, c) for c in lit}
     if options.exposure == "auto":
         for channel in lit:
-            steps.append(_probe_step(context, label, channel))
-            powers[channel.name] = _probed_power(f"probe/{label}/{channel.name}")
+            key = f"probe/{label}/{channel.name}"
+            steps.append(probe_step(context, key, (label, "probe", channel.name), channel,
+                                    _shown(f"hologram/{label}/{channel.name}"), f"probe exposure {label}",
+                                    options.peak_goal))
+            powers[channel.name] = probed_power(key)
     for repeat in _repeats(options.repeats):
         for channel in lit:
             steps.append(exposure_step(
@@ -131,32 +130,6 @@ def _repeats(count: int) -> list[str]:
 
 def _shown(hologram_key: str):
     return lambda context: displayed_frame(context, hologram_key)
-
-
-def _probe_step(context: Context, label: str, channel: LaserChannel) -> Step:
-    """One frame of `label`'s hologram at the working setpoint, no dark; its result says which power the
-    capture will use (kept in the step log, so a resumed run captures at the same power)."""
-    key = f"probe/{label}/{channel.name}"
-    exposure = exposure_step(context, key, (label, "probe", channel.name), channel, power_w(context, channel),
-                             _shown(f"hologram/{label}/{channel.name}"), f"probe exposure {label}", frames=1,
-                             dark_frames=0)
-
-    def action(context: Context) -> dict[str, Any]:
-        result = exposure.action(context)
-        image = decode_raw(context.path(result["folder"], result["frames"][0]))
-        stats = signal_stats(context, image, channel)
-        choice = choose_power(result["setpoint_w"], stats["peak"], stats["saturated_fraction"] > 0,
-                              context.parameters(ColourCaptureParameters).peak_goal, channel.max_power_mw * 1e-3)
-        limit = " (the channel's max_power_mw)" if choice.limited_by_max else ""
-        context.say(f"      auto exposure {channel.name}: peak {stats['peak']:.1%} at {format_power(choice.probe_w)}"
-                    f" -> {format_power(choice.power_w)}{limit}")
-        return {**result, "auto_exposure": choice.as_dict()}
-
-    return Step(key, exposure.description, action, exposure.devices)
-
-
-def _probed_power(probe_key: str):
-    return lambda context: context.result(probe_key)["auto_exposure"]["power_w"]
 
 
 def _processor(spec: str, label: str, repeat: str, lit: list[LaserChannel], target: torch.Tensor, method: str):

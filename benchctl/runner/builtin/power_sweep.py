@@ -14,13 +14,10 @@ from typing import Annotated, Any
 import numpy as np
 from msgspec import Meta
 
-from benchctl.capture.colour_planes import registered_plane
-from benchctl.capture.raw import RawImage
-from benchctl.capture.registration import cfa_planes
 from benchctl.devices.power import parse_power
 from benchctl.errors import BenchctlError
 from benchctl.profiles import LaserChannel
-from benchctl.runner.holograms import target_plane
+from benchctl.runner.auto_exposure import signal_stats
 from benchctl.runner.procedure import Context, Step
 from benchctl.runner.report import power_sweep_report
 from benchctl.runner.steps import (
@@ -50,7 +47,6 @@ class PowerSweepParameters(HologramParameters, kw_only=True):
 
 PARAMETERS = PowerSweepParameters
 PEAK_GOAL = 0.8  # fraction of full scale the recommended exposure puts the peak at
-PEAK_PERCENTILE = 99.9
 
 
 def plan(context: Context) -> list[Step]:
@@ -80,22 +76,6 @@ def _levels(context: Context, channel: LaserChannel) -> list[float]:
                                 f"{channel.max_power_mw:g} mW")
         levels.append(watts)
     return levels
-
-
-def signal_stats(context: Context, image: RawImage, channel: LaserChannel) -> dict[str, float]:
-    """Mean, peak and saturated fraction of `channel`'s CFA plane on the ROI's image (or the whole frame)."""
-    colour = target_plane(channel)
-    registration = context.calibration.registrations().get(channel.name)
-    saturated = float(np.mean([plane.mean() for plane, _ in cfa_planes(image.saturated, image.cfa, colour)]))
-    if registration is not None:
-        profile = context.profile
-        assert profile.slm is not None and profile.optics is not None
-        values = registered_plane(image, colour, np.asarray(registration["homography"]), profile.slm.shape,
-                                  profile.optics.roi)
-    else:
-        values = np.concatenate([plane.ravel() for plane, _ in cfa_planes(image.mosaic, image.cfa, colour)])
-    return {"mean": float(values.mean()), "peak": float(np.percentile(values, PEAK_PERCENTILE)),
-            "saturated_fraction": saturated}
 
 
 def linear_fit(x: np.ndarray, y: np.ndarray) -> dict[str, float]:

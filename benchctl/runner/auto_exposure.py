@@ -1,0 +1,68 @@
+"""Automatic exposure as procedure steps: one probe frame of the hologram about to be captured, at the working
+setpoint, decides the laser power that puts the colour's peak at a fraction of full scale
+(`benchctl.capture.exposure.choose_power`). The choice is the probe step's result, kept in the step log, so a
+resumed run captures at the same power."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Callable, Literal
+
+import numpy as np
+from msgspec import Meta
+
+from benchctl.capture.colour_planes import PEAK_PERCENTILE, registered_plane
+from benchctl.capture.exposure import choose_power
+from benchctl.capture.raw import RawImage, decode_raw
+from benchctl.capture.registration import cfa_planes
+from benchctl.devices.power import format_power
+from benchctl.profiles import LaserChannel
+from benchctl.runner.holograms import target_plane
+from benchctl.runner.procedure import Context, Step
+from benchctl.runner.steps import exposure_step, power_w
+
+Exposure = Literal["auto", "fixed"]
+""""auto": a probe frame per colour sets the laser power so the peak lands at peak_goal; "fixed": setpoints."""
+PeakGoal = Annotated[float, Meta(gt=0.05, le=0.95)]
+"""The fraction of full scale automatic exposure aims the peak at."""
+
+
+def signal_stats(context: Context, image: RawImage, channel: LaserChannel) -> dict[str, float]:
+    """Mean, peak and saturated fraction of `channel`'s CFA plane on the ROI's image (or the whole frame)."""
+    colour = target_plane(channel)
+    registration = context.calibration.registrations().get(channel.name)
+    saturated = float(np.mean([plane.mean() for plane, _ in cfa_planes(image.saturated, image.cfa, colour)]))
+    if registration is not None:
+        profile = context.profile
+        assert profile.slm is not None and profile.optics is not None
+        values = registered_plane(image, colour, np.asarray(registration["homography"]), profile.slm.shape,
+                                  profile.optics.roi)
+    else:
+        values = np.concatenate([plane.ravel() for plane, _ in cfa_planes(image.mosaic, image.cfa, colour)])
+    return {"mean": float(values.mean()), "peak": float(np.percentile(values, PEAK_PERCENTILE)),
+            "saturated_fraction": saturated}
+
+
+def probe_step(context: Context, key: str, folder: tuple[str, ...], channel: LaserChannel,
+               frame: Callable[[Context], np.ndarray], description: str, peak_goal: float) -> Step:
+    """One frame of `frame` at the working setpoint, no dark; its result's "auto_exposure" holds the power
+    chosen for the captures that follow (`probed_power`)."""
+    exposure = exposure_step(context, key, folder, channel, power_w(context, channel), frame, description,
+                             frames=1, dark_frames=0)
+
+    def action(context: Context) -> dict[str, Any]:
+        result = exposure.action(context)
+        image = decode_raw(context.path(result["folder"], result["frames"][0]))
+        stats = signal_stats(context, image, channel)
+        choice = choose_power(result["setpoint_w"], stats["peak"], stats["saturated_fraction"] > 0, peak_goal,
+                              channel.max_power_mw * 1e-3)
+        limit = " (the channel's max_power_mw)" if choice.limited_by_max else ""
+        context.say(f"      auto exposure {channel.name}: peak {stats['peak']:.1%} at {format_power(choice.probe_w)}"
+                    f" -> {format_power(choice.power_w)}{limit}")
+        return {**result, "auto_exposure": choice.as_dict()}
+
+    return Step(key, exposure.description, action, exposure.devices)
+
+
+def probed_power(probe_key: str) -> Callable[[Context], float]:
+    """The power the probe step `probe_key` chose, read when the capture runs."""
+    return lambda context: context.result(probe_key)["auto_exposure"]["power_w"]
