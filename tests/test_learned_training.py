@@ -16,6 +16,7 @@ from benchctl.cli import main
 from benchctl.errors import BenchctlError
 from benchctl.profiles import load_profile
 from benchctl.runner.holograms import resolve_method
+from benchctl.runner.learned.averaging import WeightAverage
 from benchctl.runner.learned.checkpoint import Checkpoint, read_checkpoint
 from benchctl.runner.learned.data import ImageSource, image_sources, procedural_image, split_sources
 from benchctl.runner.learned.geometry import geometry_of, grid_profile
@@ -282,3 +283,50 @@ def test_a_small_grid_training_run_beats_dpac_on_its_own_validation_images(tmp_p
     epoch_lines = [line for line in lines if line.startswith("epoch ")]
     assert len(epoch_lines) == 6 and all("(DPAC 20.02)" in line for line in epoch_lines), epoch_lines  # 5 + a part
     assert "(DPAC on the same images: 20.02 dB" in lines[-2], lines
+
+
+def test_the_weight_average_is_the_bias_corrected_exponential_average_of_the_steps() -> None:
+    model = torch.nn.Linear(2, 1)
+    average = WeightAverage(model, decay=0.6)
+    assert torch.equal(average.state_dict(model)["weight"], model.weight)  # no step yet: the weights themselves
+    seen = []
+    for value in (1.0, 3.0, -2.0, 5.0):
+        with torch.no_grad():
+            model.weight.fill_(value)
+        average.update(model)
+        seen.append(value)
+    t = len(seen)
+    expected = sum(0.4 * 0.6 ** (t - 1 - i) * w for i, w in enumerate(seen)) / (1 - 0.6 ** t)
+    assert torch.allclose(average.state_dict(model)["weight"], torch.full((1, 2), expected))
+    twin = average.averaged(model)
+    assert torch.allclose(twin.weight, torch.full((1, 2), expected))
+    assert torch.equal(model.weight, torch.full((1, 2), 5.0))  # the model itself trains on
+    restored = WeightAverage(model, decay=0.6)
+    restored.load_state(average.to_state())
+    assert torch.equal(restored.state_dict(model)["weight"], average.state_dict(model)["weight"])
+    with pytest.raises(ValueError, match="decay 0.6, this run 0.9"):
+        WeightAverage(model, decay=0.9).load_state(average.to_state())
+
+
+def test_training_with_a_weight_average_checkpoints_the_average_and_resumes_it_exactly(
+        tmp_path: Path, small_profile_path: Path) -> None:
+    profile = load_profile(small_profile_path)
+    def quiet(_: str) -> None:
+        pass
+
+    whole = train(profile, _settings(ema=0.9), tmp_path / "whole", PLANES, out=quiet)
+    checkpoint = read_checkpoint(whole.checkpoint)
+    state = read_checkpoint(tmp_path / "whole" / "ccnn-dcm4.resume.pt")
+    assert checkpoint.training["weight_average"]["decay"] == 0.9 and "--ema 0.9" in checkpoint.training["command"]
+    assert state.averages is not None and state.averages["green"]["count"] == 8
+    key = next(k for k, v in checkpoint.weights["green"].items() if v.is_floating_point())
+    # the checkpoint holds the average, the resume state the weights that train on; they differ
+    assert not torch.allclose(checkpoint.weights["green"][key], state.weights["green"][key])
+    assert torch.allclose(checkpoint.weights["green"][key], whole.models["green"].state_dict()[key])
+
+    train(profile, _settings(ema=0.9, max_steps=3), tmp_path / "part", PLANES, out=quiet)
+    resumed = train(profile, _settings(ema=0.9), tmp_path / "part", PLANES, out=quiet,
+                    resume=tmp_path / "part" / "ccnn-dcm4.resume.pt")
+    for colour in ("red", "green", "blue"):
+        for name, value in whole.models[colour].state_dict().items():
+            assert torch.allclose(resumed.models[colour].state_dict()[name], value, atol=1e-6), (colour, name)

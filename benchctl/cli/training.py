@@ -16,7 +16,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
                              colours=tuple(args.colours) if args.colours else None, epochs=args.epochs, lr=args.lr,
                              loss=args.loss, vgg_weights=args.vgg_weights, batch_size=args.batch_size, seed=args.seed,
                              val_fraction=args.val_fraction, max_steps=args.max_steps,
-                             weights_dtype=args.weights_dtype, model_calibration=args.model_calibration)
+                             weights_dtype=args.weights_dtype, model_calibration=args.model_calibration,
+                             ema=args.ema)
     run_train(load_profile(args.profile), settings, args.out, resume=args.resume)
     return 0
 
@@ -44,6 +45,10 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     train.add_argument("--epochs", type=positive_int, default=10, help="passes over the training images (default: 10)")
     train.add_argument("--max-steps", type=positive_int, metavar="N", help="stop after N steps in all")
     train.add_argument("--lr", type=float, default=5e-4, help="Adam learning rate (default: 5e-4, the paper's)")
+    train.add_argument("--ema", type=float, metavar="DECAY",
+                       help="keep an exponential moving average of the weights with this per-step decay (e.g. 0.99: "
+                            "about the last 100 steps); validation and the checkpoint use the average, the raw "
+                            "weights train on (.resume.pt holds both) (default: off, the paper's)")
     train.add_argument("--loss", choices=("mse", "l2-perceptual"), default="mse",
                        help="mse, or l2-perceptual (MSE + 0.025 VGG19 perceptual, the paper's 1080p loss; needs "
                             "--vgg-weights) (default: mse)")

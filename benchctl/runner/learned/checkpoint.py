@@ -57,6 +57,7 @@ class Checkpoint:
     weights_dtype: str = "float32"
     optimisers: dict[str, dict[str, Any]] | None = None  # resume state only
     position: dict[str, int] | None = None  # resume state only: epoch, batch (within it), step
+    averages: dict[str, dict[str, Any]] | None = None  # resume state only, with --ema: each colour's weight average
     path: Path | None = None
 
     @property
@@ -87,7 +88,7 @@ class Checkpoint:
             weights[colour] = converted
         data = self.metadata() | {"weights_dtype": "float32" if resume else weights_dtype, "weights": weights}
         if resume:
-            data |= {"optimisers": self.optimisers, "position": self.position}
+            data |= {"optimisers": self.optimisers, "position": self.position, "averages": self.averages}
         buffer = io.BytesIO()
         torch.save(data, buffer)
         return buffer.getvalue()
@@ -196,6 +197,7 @@ def read_checkpoint(path: Path | str) -> Checkpoint:
         weights_dtype=str(data.get("weights_dtype", "float32")),
         optimisers=data.get("optimisers"),
         position=data.get("position"),
+        averages=data.get("averages"),
         path=path,
     )
 

@@ -21,6 +21,7 @@ import os
 import shlex
 import time
 from collections.abc import Callable, Mapping, Sequence
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
@@ -44,6 +45,7 @@ from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import Profile
 from benchctl.runner.calibration import Calibration
 from benchctl.runner.holograms import target_plane
+from benchctl.runner.learned.averaging import WeightAverage
 from benchctl.runner.learned.checkpoint import RESUME_SUFFIX, WEIGHT_DTYPES, Checkpoint, read_checkpoint
 from benchctl.runner.learned.data import ImageSource, describe_sources, image_sources, split_sources
 from benchctl.runner.learned.geometry import geometry_of, grid_profile
@@ -70,6 +72,7 @@ class TrainSettings:
     max_steps: int | None = None
     weights_dtype: str = "float32"
     model_calibration: str | None = None  # "stored" or an optical-model.json: train through that fitted model
+    ema: float | None = None  # decay of a weight average (averaging.py) that validation and the checkpoint use
 
     def validate(self) -> None:
         """BadValueError naming the flag for every setting a user can get wrong."""
@@ -88,6 +91,8 @@ class TrainSettings:
             raise BadValueError(f"--max-steps must be >= 1, got {self.max_steps}")
         if not (math.isfinite(self.lr) and self.lr > 0):
             raise BadValueError(f"--lr must be a positive number, got {self.lr}")
+        if self.ema is not None and not 0 < self.ema < 1:
+            raise BadValueError(f"--ema must lie between 0 and 1 (e.g. 0.99), got {self.ema}")
         if self.weights_dtype not in WEIGHT_DTYPES:
             raise BadValueError(f"--weights-dtype {self.weights_dtype!r}: expected one of {', '.join(WEIGHT_DTYPES)}")
 
@@ -109,6 +114,8 @@ class TrainSettings:
             words += ["--weights-dtype", self.weights_dtype]
         if self.model_calibration:
             words += ["--model-calibration", self.model_calibration]
+        if self.ema is not None:
+            words += ["--ema", f"{self.ema:g}"]
         return shlex.join(words + ["--out", str(out_dir)])
 
 
@@ -349,10 +356,11 @@ def _train(profile: Profile, settings: TrainSettings, out_dir: Path, planes: Map
         torch.manual_seed(settings.seed)  # every colour, and every process, starts from the same weights
         models[colour] = build_model(settings.method, setup).to(device)
     optimisers = {c: torch.optim.Adam(m.parameters(), lr=settings.lr, betas=(0.9, 0.999)) for c, m in models.items()}
+    averages = {c: WeightAverage(m, settings.ema) for c, m in models.items()} if settings.ema else {}
     position = {"epoch": 0, "batch": 0, "step": 0}
     history: list[dict[str, Any]] = []
     if resume is not None:
-        position, history = _resume(resume, settings, profile, setups, models, optimisers, out)
+        position, history = _resume(resume, settings, profile, setups, models, optimisers, averages, out)
     wrapped = {c: job.wrap(m) for c, m in models.items()}
 
     per_step = settings.batch_size * job.world_size
@@ -375,6 +383,7 @@ def _train(profile: Profile, settings: TrainSettings, out_dir: Path, planes: Map
         "loss_region": "ROI, least-squares scaled", "perceptual_weight": PERCEPTUAL_WEIGHT
         if settings.loss == "l2-perceptual" else None,
         "optical_model": {c: s.field_model.to_dict() for c, s in setups.items() if s.field_model is not None} or None,
+        "weight_average": {"decay": settings.ema, "kind": "exponential, bias-corrected"} if settings.ema else None,
     }
     reference = dpac_reference(setups, planes, val_set) if job.main else {}
     progress = Progress(settings.method, stream=progress_stream) if job.main else None
@@ -396,6 +405,8 @@ def _train(profile: Profile, settings: TrainSettings, out_dir: Path, planes: Map
             for colour, model in wrapped.items():
                 amplitude = peak_normalised(targets[:, planes[colour]:planes[colour] + 1])
                 loss, psnr_db = training_step(model, optimisers[colour], setups[colour], amplitude, loss_fn)
+                if averages:
+                    averages[colour].update(models[colour])
                 sums[colour][0] += loss
                 sums[colour][1] += psnr_db
             batch += 1
@@ -413,25 +424,32 @@ def _train(profile: Profile, settings: TrainSettings, out_dir: Path, planes: Map
                        for i, c in enumerate(setups)}
         position = {"epoch": epoch + 1 if epoch_done else epoch, "batch": 0 if epoch_done else batch, "step": step}
         if job.main:
-            scores = evaluate(models, setups, planes, val_set, loss_fn, device)
+            kept = {c: averages[c].averaged(m) for c, m in models.items()} if averages else models
+            scores = evaluate(kept, setups, planes, val_set, loss_fn, device)
             metrics = {c: train_stats[c] | {f"val_{k}": v for k, v in scores.get(c, {}).items()}
                        | {f"val_dpac_{k}": v for k, v in reference.get(c, {}).items()} for c in setups}
             history.append({"epoch": epoch + 1, "step": step, "complete": epoch_done,
                             "seconds": round(time.perf_counter() - started, 1), "metrics": metrics})
             checkpoint = Checkpoint(
                 method=settings.method, geometry={c: geometry_of(s) for c, s in setups.items()},
-                weights={c: m.state_dict() for c, m in models.items()},
+                weights={c: m.state_dict() for c, m in kept.items()},
                 training=meta | {"steps": step, "epochs_done": position["epoch"], "history": history,
                                  "seconds": round(time.perf_counter() - started, 1)},
-                metrics=metrics, weights_dtype=settings.weights_dtype,
-                optimisers={c: o.state_dict() for c, o in optimisers.items()}, position=position)
+                metrics=metrics, weights_dtype=settings.weights_dtype)
             saved = checkpoint.save(out_dir / f"{settings.method}.pt", settings.weights_dtype)
-            checkpoint.save_resume(out_dir / f"{settings.method}{RESUME_SUFFIX}")
+            # the resume state carries the weights that train on, and the averages to continue
+            resume_state = dataclasses.replace(
+                checkpoint, weights={c: m.state_dict() for c, m in models.items()},
+                optimisers={c: o.state_dict() for c, o in optimisers.items()}, position=position,
+                averages={c: a.to_state() for c, a in averages.items()} or None)
+            resume_state.save_resume(out_dir / f"{settings.method}{RESUME_SUFFIX}")
             out(_epoch_line(epoch, settings.epochs, epoch_done, step, metrics, saved))
         job.barrier()
         epoch = position["epoch"]
         if not epoch_done:
             break
+    if averages:
+        models = {c: averages[c].averaged(m) for c, m in models.items()}
     return TrainResult(models=models, steps=step, epochs_done=position["epoch"], metrics=metrics,
                        checkpoint=saved, rank=job.rank, world_size=job.world_size)
 
@@ -449,8 +467,10 @@ def _epoch_line(epoch: int, epochs: int, complete: bool, step: int, metrics: Map
 
 def _resume(path: Path, settings: TrainSettings, profile: Profile, setups: Mapping[str, OpticalSetup],
             models: Mapping[str, nn.Module], optimisers: Mapping[str, torch.optim.Optimizer],
-            out: Callable[[str], None]) -> tuple[dict[str, int], list[dict[str, Any]]]:
-    """Load weights (and, from a .resume.pt file, Adam's state and the position) into this run."""
+            averages: Mapping[str, WeightAverage], out: Callable[[str], None]) -> tuple[dict[str, int],
+                                                                                    list[dict[str, Any]]]:
+    """Load weights (and, from a .resume.pt file, Adam's state, the weight averages and the position) into this
+    run."""
     checkpoint = read_checkpoint(path)
     if checkpoint.method != settings.method:
         raise BadValueError(f"--resume {path} holds a {checkpoint.method} model, not --method {settings.method}")
@@ -473,6 +493,13 @@ def _resume(path: Path, settings: TrainSettings, profile: Profile, setups: Mappi
             saved_lr.add(group["lr"])
             group["lr"] = settings.lr
     position = {k: int(v) for k, v in checkpoint.position.items()}
+    if averages and checkpoint.averages:
+        for colour, average in averages.items():
+            average.load_state(checkpoint.averages[colour])
+    elif averages:
+        out(f"{path} holds no weight average: --ema {settings.ema:g} averages from this step on")
+    elif checkpoint.averages:
+        out(f"{path} holds a weight average; without --ema this run continues the weights alone")
     changed = f"; learning rate {settings.lr:g} (was {', '.join(f'{lr:g}' for lr in sorted(saved_lr))})" \
         if saved_lr != {settings.lr} else ""
     out(f"resuming from {path}: epoch {position['epoch'] + 1}, step {position['step']}{changed}")
