@@ -19,7 +19,9 @@ from benchctl.devices.errors import DeviceError
 from benchctl.devices.sim.state import load_state
 from benchctl.errors import BenchctlError
 from benchctl.images import read_image
+from benchctl.profiles import load_profile
 from benchctl.runner.engine import run_procedure
+from benchctl.runner.learned.training import TrainSettings, train
 from benchctl.runner.record import create_run, open_run
 
 REPO = Path(__file__).resolve().parents[1]
@@ -377,3 +379,25 @@ def test_colour_capture_method_must_name_methods(tmp_path: Path, bench_profile_p
     write(capture_procedure, CAPTURE + f"method = {value}\n")
     with pytest.raises(BenchctlError, match=f"parameters.method: {problem}"):
         run_procedure(capture_procedure, profile=str(bench_profile_path), out=tmp_path / "runs", say=lambda _: None)
+
+
+def test_several_methods_give_the_checkpoint_to_the_learned_ones(tmp_path: Path, bench_profile_path: Path,
+                                                                 capture_procedure: Path) -> None:
+    settings = TrainSettings(method="ccnn", data="procedural:2", epochs=1, lr=1e-3, val_fraction=0.5)
+    checkpoint = train(load_profile(bench_profile_path), settings, tmp_path / "ckpt", {"red": 0, "green": 1, "blue": 2},
+                       out=lambda _: None).checkpoint
+    write(capture_procedure, CAPTURE + 'method = ["dpac", "ccnn", "sgd"]\niterations = 5\n'
+          + f'checkpoint = "{checkpoint}"\n')
+    lines: list[str] = []
+    outcome = run_procedure(capture_procedure, profile=str(bench_profile_path), out=tmp_path / "runs", dry_run=True,
+                            say=lines.append)
+    assert outcome.folder is None and any("hologram/bars-ccnn/green" in line for line in lines)
+    write(capture_procedure, CAPTURE + f'method = ["dpac", "sgd"]\ncheckpoint = "{checkpoint}"\n')
+    with pytest.raises(BenchctlError, match=r"parameters.checkpoint: none of the methods \['dpac', 'sgd'\] is a "
+                                            "learned method that takes one"):
+        run_procedure(capture_procedure, profile=str(bench_profile_path), out=tmp_path / "runs", dry_run=True,
+                      say=lambda _: None)
+    write(capture_procedure, CAPTURE + 'method = ["dpac", "nope"]\n')
+    with pytest.raises(BenchctlError, match="parameters.method: unknown hologram method 'nope'"):
+        run_procedure(capture_procedure, profile=str(bench_profile_path), out=tmp_path / "runs", dry_run=True,
+                      say=lambda _: None)

@@ -65,13 +65,14 @@ def carried(params: Parameters, kind: type[P]) -> P:
     return kind(**{name: getattr(params, name) for name in shared})
 
 
-def check_method(context: Context, used: list[LaserChannel], method: str | None = None) -> Method:
-    """A hologram method (default: the procedure's) and its checkpoint (the file and the geometry it was trained
-    for), checked when planning, so a dry run reports what the run would otherwise fail on at its first hologram."""
-    params = context.parameters(HologramParameters)
+def check_method(context: Context, used: list[LaserChannel], params: HologramParameters | None = None) -> Method:
+    """The hologram method of `params` (default: the procedure's) and its checkpoint (the file and the geometry it
+    was trained for), checked when planning, so a dry run reports what the run would otherwise fail on at its
+    first hologram."""
+    params = params or context.parameters(HologramParameters)
     try:
-        return resolve_method(method or params.method, context.profile, params.checkpoint,
-                           [channel.name for channel in used])[0]
+        return resolve_method(params.method, context.profile, params.checkpoint,
+                              [channel.name for channel in used])[0]
     except BenchctlError as exc:
         raise BenchctlError(f"parameters.method / checkpoint: {exc}") from None
 

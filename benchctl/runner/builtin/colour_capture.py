@@ -20,6 +20,7 @@ import numpy as np
 import torch
 from msgspec import Meta
 
+from benchctl.cgh.method import get_method
 from benchctl.capture.colour_planes import PEAK_PERCENTILE, merge_capture, registered_plane, roi_saturation
 from benchctl.errors import BenchctlError
 from benchctl.optics import colour_scores, crop_roi
@@ -74,11 +75,11 @@ def plan(context: Context) -> list[Step]:
     used = channels(context)
     steps: list[Step] = []
     methods = list(dict.fromkeys([params.method] if isinstance(params.method, str) else params.method))
-    iterative = {method: check_method(context, used, method).default_iterations is not None for method in methods}
-    # with several methods, `iterations` is the budget of the iterative ones
-    options = {method: msgspec.structs.replace(params, method=method, iterations=params.iterations
-                                               if len(methods) == 1 or iterative[method] else None)
-               for method in methods}
+    options = {method: _options(params, method, several=len(methods) > 1) for method in methods}
+    if len(methods) > 1 and params.checkpoint and not any(o.checkpoint for o in options.values()):
+        raise BenchctlError(f"parameters.checkpoint: none of the methods {methods} is a learned method that takes one")
+    for method in methods:
+        check_method(context, used, options[method])
     calibrated = {*context.calibration.lut_files(), *(context.profile.slm.lut if context.profile.slm else {})}
     uncalibrated = [c for c in used if c.name not in calibrated]
     if uncalibrated and params.lut_calibration == "auto":
@@ -99,6 +100,20 @@ def plan(context: Context) -> list[Step]:
             steps += _capture_steps(context, spec, label, lit, target, options[method])
     steps.append(Step("report", "metrics.json, metrics.csv and report.html", _reporter(targets, used)))
     return steps
+
+
+def _options(params: ColourCaptureParameters, method: str, several: bool) -> ColourCaptureParameters:
+    """The parameters one of the methods runs with. With several, `iterations` is the budget of the iterative
+    ones and `checkpoint` the model of the learned ones; the others use their own defaults."""
+    if not several:
+        return msgspec.structs.replace(params, method=method)
+    try:
+        chosen = get_method(method)
+    except BenchctlError as exc:
+        raise BenchctlError(f"parameters.method: {exc}") from None
+    return msgspec.structs.replace(
+        params, method=method, iterations=params.iterations if chosen.default_iterations is not None else None,
+        checkpoint=params.checkpoint if chosen.network is not None else None)
 
 
 def _capture_steps(context: Context, spec: str, label: str, lit: list[LaserChannel], target: torch.Tensor,
