@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -22,6 +23,7 @@ from benchctl.images import read_image
 from benchctl.profiles import load_profile
 from benchctl.runner.engine import run_procedure
 from benchctl.runner.learned.training import TrainSettings, train
+from benchctl.runner.plots import front_plot
 from benchctl.runner.record import create_run, open_run
 
 REPO = Path(__file__).resolve().parents[1]
@@ -401,3 +403,18 @@ def test_several_methods_give_the_checkpoint_to_the_learned_ones(tmp_path: Path,
     with pytest.raises(BenchctlError, match="parameters.method: unknown hologram method 'nope'"):
         run_procedure(capture_procedure, profile=str(bench_profile_path), out=tmp_path / "runs", dry_run=True,
                       say=lambda _: None)
+
+
+def test_front_plot_labels_stay_inside_the_frame() -> None:
+    def labels(svg: str) -> dict[str, tuple[float, str | None]]:
+        found = re.finditer(r'<text x="([\d.]+)" y="[\d.]+" fill="#\w+"( text-anchor="end")?>([\w-]+)</text>', svg)
+        return {m.group(3): (float(m.group(1)), m.group(2)) for m in found}
+
+    two = labels(front_plot([("dpac", 2.85, 28.3, True), ("ccnn-dcm4", 3.87, 30.3, True)], "seconds", "PSNR"))
+    assert two["dpac"][1] is None  # left half: the label starts right of its marker
+    assert two["ccnn-dcm4"][1] and two["ccnn-dcm4"][0] < 560 - 8  # right edge: it ends left of its marker
+    svg = front_plot([("dpac", 2.85, 28.3, True), ("ccnn-dcm4", 3.87, 30.3, True), ("slow", 40.0, 20.0, False)],
+                     "seconds", "PSNR")
+    three = labels(svg)
+    assert three["ccnn-dcm4"][1] is None and three["slow"][1]  # now left of centre / at the right edge
+    assert svg.count('fill="white"') == 1  # off the front: a hollow marker

@@ -85,7 +85,9 @@ def front_plot(points: Sequence[tuple[str, float, float, bool]], xlabel: str, yl
         colour = COLOURS[n % len(COLOURS)]
         x, y = (float(v) for v in px(math.log10(seconds), score).split(","))
         fill = colour if on_front else "white"
+        # a label right of its marker, or left of it in the right half, so that it stays inside the frame
+        label_x, anchor = (x - 8, ' text-anchor="end"') if x > (LEFT + width) / 2 else (x + 8, "")
         parts.append(f'<circle cx="{x:.1f}" cy="{y:.1f}" r="5" fill="{fill}" stroke="{colour}" stroke-width="2"/>'
-                     f'<text x="{x + 8:.1f}" y="{y - 6:.1f}" fill="{colour}">{html.escape(name)}</text>')
+                     f'<text x="{label_x:.1f}" y="{y - 6:.1f}" fill="{colour}"{anchor}>{html.escape(name)}</text>')
     parts.append("</svg>")
     return "".join(parts)
