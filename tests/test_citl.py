@@ -168,6 +168,30 @@ def test_disk_policy_keeps_exactly_the_first_last_and_every_nth_raw(tmp_path: Pa
     assert [k for k in range(10) if keeps_raw(k, 9, 0)] == [0, 9]
 
 
+def test_a_damaged_kept_raw_is_reported_on_resume_and_its_iteration_stands(tmp_path: Path,
+                                                                         profile: Profile) -> None:
+    """A kept RAW is a record that no later step reads (the iteration's result is its saved phase), and re-doing
+    an iteration could not reproduce it: resume reports the damage and re-runs nothing."""
+    folder = run(tmp_path, profile, "runs", iterations=5, every=2)
+    phase = final_phase(folder)
+    for name in ("citl/green/0002/frame-000.dng", "citl/green/probe/frame-000.dng"):
+        frame = folder / "raw" / name
+        damaged = bytearray(frame.read_bytes())
+        damaged[-100] ^= 0xFF
+        frame.write_bytes(bytes(damaged))
+
+    said: list[str] = []
+    outcome = run_procedure(None, resume=folder, say=said.append)
+    assert outcome.ran == []
+    notes = [line for line in said if "only a record, read by no later step: the step stands" in line]
+    assert [note.split(":")[0] for note in notes] == ["step 'citl/green/probe'", "step 'citl/green/0002'"]
+    assert "raw/citl/green/0002/frame-000.dng changed since it was captured" in notes[1]
+    events = [json.loads(line) for line in (folder / "steps.jsonl").read_text().splitlines()]
+    assert [(e["event"], e["step"]) for e in events if e["event"] in ("damaged", "invalid")] == [
+        ("damaged", "citl/green/probe"), ("damaged", "citl/green/0002")]
+    assert np.array_equal(final_phase(folder), phase)
+
+
 def test_resume_after_a_pulled_cable_continues_bit_for_bit_with_the_laser_off(
         tmp_path: Path, profile: Profile, monkeypatch: pytest.MonkeyPatch) -> None:
     reference = run(tmp_path, profile, "reference", iterations=8)

@@ -58,7 +58,8 @@ def probe_step(context: Context, key: str, folder: tuple[str, ...], channel: Las
         limit = " (the channel's max_power_mw)" if choice.limited_by_max else ""
         context.say(f"      auto exposure {channel.name}: peak {stats['peak']:.1%} at {format_power(choice.probe_w)}"
                     f" -> {format_power(choice.power_w)}{limit}")
-        return {**result, "auto_exposure": choice.as_dict()}
+        archived = result.pop("checksums")  # the frame is read here only: later steps use the power chosen
+        return {**result, "archived": archived, "auto_exposure": choice.as_dict()}
 
     return Step(key, exposure.description, action, exposure.devices)
 

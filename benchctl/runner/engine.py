@@ -111,7 +111,7 @@ def run_procedure(path: Path | None, *, profile: str | None = None, out: Path = 
             calibration = Calibration.store(bench_profile).copy_to(record.folder / CALIBRATION_COPY)
             context.calibration, context.record = calibration, record
         say(f"run folder: {record.folder}")
-        for reason in record.invalidated:
+        for reason in [*record.invalidated, *record.damaged]:
             say(reason)
         return _execute(steps, context, record)
 

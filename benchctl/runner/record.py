@@ -7,7 +7,8 @@
       calibration/      the camera-SLM registration and lookup tables the run used (copied at its start)
       devices.json      identity of every device the run opened
       steps.jsonl       one JSON line per event: a step started, finished (with its result and the checksums
-                        of the files it captured), failed, or became invalid (a file it captured changed)
+                        of the files it captured), failed, became invalid (a file later steps read changed) or
+                        was found with a damaged record (a file kept only as a record changed)
       holograms/        SLM frames exactly as displayed (8-bit PNG)
       raw/              RAW frames exactly as the camera delivered them, never modified
       images/           decoded, registered and merged images (16-bit PNG)
@@ -16,7 +17,7 @@
 
 Every file is written atomically and every step-log line is on disk before the next action. A folder is never
 reused for a new run; `open_run` reopens one to resume it: it repairs a log line cut by a crash, and a step
-recorded as finished is never run again unless a file it captured no longer matches its checksum.
+recorded as finished is never run again unless a file it captured for later steps no longer matches its checksum.
 """
 
 from __future__ import annotations
@@ -64,6 +65,7 @@ class RunRecord:
     done: dict[str, dict[str, Any]] = field(default_factory=dict)  # finished step key -> its result
     attempts: dict[str, int] = field(default_factory=dict)  # step key -> times it was started
     invalidated: list[str] = field(default_factory=list)  # why finished steps must be re-done (open_run)
+    damaged: list[str] = field(default_factory=list)  # records found changed, their steps standing (open_run)
 
     @property
     def name(self) -> str:
@@ -113,12 +115,13 @@ class RunRecord:
                    "error": f"{type(error).__name__}: {error}"})
 
     def recheck_files(self) -> list[str]:
-        """Compare the files finished steps captured with the checksums they recorded (result "checksums":
-        run-relative path -> SHA-256). The first step with a missing or changed file, and every step that
-        finished after it (it may have used the file), is logged "invalid" and so re-done. Returns why."""
+        """Compare the files finished steps captured for later steps to read with the checksums they recorded
+        (result "checksums": run-relative path -> SHA-256). The first step with a missing or changed file, and
+        every step that finished after it (it may have used the file), is logged "invalid" and so re-done.
+        Returns why."""
         steps = list(self.done)
         for index, key in enumerate(steps):
-            problem = self._damaged(self.done[key])
+            problem = _damaged(self.folder, self.done[key].get("checksums", {}))
             if problem:
                 reasons = [f"step {key!r}: {problem}; it is done again"]
                 reasons += [f"step {later!r} finished after it; it is done again" for later in steps[index + 1:]]
@@ -128,15 +131,18 @@ class RunRecord:
                 return reasons
         return []
 
-    def _damaged(self, result: dict[str, Any]) -> str | None:
-        for name, digest in result.get("checksums", {}).items():
-            try:
-                actual = file_sha256(self.folder / name)
-            except OSError as exc:
-                return f"{name}: {exc.strerror or exc}"
-            if actual != digest:
-                return f"{name} changed since it was captured (SHA-256 {actual[:12]}..., recorded {digest[:12]}...)"
-        return None
+    def recheck_records(self) -> list[str]:
+        """Compare the files finished steps kept only as a record (result "archived": path -> SHA-256, read by no
+        later step, as a CITL iteration's RAW frames) with their checksums. A changed one is logged "damaged"
+        and reported; its step stands, since re-doing it could not reproduce what the record recorded."""
+        notes = []
+        for key, result in self.done.items():
+            problem = _damaged(self.folder, result.get("archived", {}))
+            if problem:
+                note = f"step {key!r}: {problem}; only a record, read by no later step: the step stands"
+                self._log({"event": "damaged", "step": key, "reason": note})
+                notes.append(note)
+        return notes
 
     def events(self) -> list[dict[str, Any]]:
         """Every logged event, in order."""
@@ -149,6 +155,18 @@ class RunRecord:
             log.write(line)
             log.flush()
             os.fsync(log.fileno())
+
+
+def _damaged(folder: Path, checksums: dict[str, str]) -> str | None:
+    """Why the first of `checksums`' files (relative to `folder`) is missing or changed; None if all match."""
+    for name, digest in checksums.items():
+        try:
+            actual = file_sha256(folder / name)
+        except OSError as exc:
+            return f"{name}: {exc.strerror or exc}"
+        if actual != digest:
+            return f"{name} changed since it was captured (SHA-256 {actual[:12]}..., recorded {digest[:12]}...)"
+    return None
 
 
 def repair_log(path: Path) -> Path | None:
@@ -246,6 +264,7 @@ def open_run(folder: Path) -> RunRecord:
         elif event.get("event") == "invalid":
             record.done.pop(key, None)
     record.invalidated = record.recheck_files()
+    record.damaged = record.recheck_records()
     info = record.info()
     info.setdefault("resumed", []).append({"time": _now(), "command": sys.argv, "finished_steps": len(record.done)})
     info.pop("stop", None)

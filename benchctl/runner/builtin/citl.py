@@ -230,7 +230,7 @@ def _measure(context: Context, key: str, channel: LaserChannel, gray: np.ndarray
     if where is not None:
         names = [*exposure.result["frames"], *exposure.result["darks"]]
         record["raw"] = str(Path("raw", *keep))
-        record["checksums"] = {str(Path("raw", *keep, name)): file_sha256(where / name) for name in names}
+        record["archived"] = {str(Path("raw", *keep, name)): file_sha256(where / name) for name in names}
     return plane, record, timing
 
 
@@ -391,7 +391,7 @@ def _disk(folder: Path, iterations: dict[str, list[dict[str, Any]]], used: list[
 
     rows = [row for rows in iterations.values() for row in rows]
     kept = [row for row in rows if "raw" in row]
-    raw = sum(size(name) for row in kept for name in row["checksums"])
+    raw = sum(size(name) for row in kept for name in row["archived"])
     frames = sum(size(row["hologram"]) for row in kept)
     planes = sum(size(row["file"]) for row in rows)
     states = [p.stat().st_size for c in used for p in (folder / "state" / c.name).glob("*.npz")]
