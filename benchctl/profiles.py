@@ -43,8 +43,8 @@ NonNegativeInt = Annotated[int, Meta(ge=0)]
 RowsCols = tuple[float, float]  # [rows, cols]
 CFALayout = Literal[tuple(CFA_LAYOUTS)]  # type: ignore[valid-type]  # the layouts benchctl.dng writes
 # The Zernike terms of optics.aberration.ZERNIKE_TERMS (not imported: it imports torch; a test keeps them equal).
-ZernikeTerm = Literal["astigmatism_oblique", "defocus", "astigmatism_vertical", "coma_vertical", "coma_horizontal",
-                      "spherical"]
+ZernikeTerm = Literal["tilt_vertical", "tilt_horizontal", "astigmatism_oblique", "defocus", "astigmatism_vertical",
+                      "coma_vertical", "coma_horizontal", "spherical"]
 
 
 class OpticsConfig(Model, kw_only=True):

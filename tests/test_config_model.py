@@ -169,7 +169,7 @@ def edited_profile(tmp_path: Path, small_profile_path: Path, old: str, new: str)
     ("[laser]", "[sim.aberation.green]\ndefocus = 0.1\n\n[laser]",
      "sim.aberation: unknown section (did you mean 'aberration'? known: seed, slm, beam, imaging, aberration, sensor)"),
     ("[laser]", "[sim.aberration.green]\nfocus = 0.1\n\n[laser]",
-     "sim.aberration.green.focus: unknown key (did you mean 'defocus'? known: astigmatism_oblique, defocus"),
+     "sim.aberration.green.focus: unknown key (did you mean 'defocus'? known: tilt_vertical, tilt_horizontal"),
     ("roi = [48, 80]", 'roi = [48, 80]\nmodel = 3', "optics.model: expected a file path (a string), got 3 (int)"),
     ("roi = [48, 80]", "roi = [48, 80.5]", "optics.roi[1]: expected an integer, got 80.5 (float)"),
     ("[laser]", "[sim.sensor]\nbit_depth = 7\n\n[laser]", "sim.sensor.bit_depth: must be >= 8, got 7"),

@@ -16,8 +16,11 @@ from collections.abc import Mapping, Sequence
 
 import torch
 
-# Term name -> (n, m), in ANSI order. Tilt is left to the beam (a tilted beam is a tilted wavefront).
+# Term name -> (n, m), in ANSI order. Tilt moves the image by distance x tan(angle), angle = 2 c lambda / R for c
+# waves over the pupil radius R: a registration made on the same bench absorbs it, one made elsewhere does not.
 ZERNIKE_TERMS: dict[str, tuple[int, int]] = {
+    "tilt_vertical": (1, -1),
+    "tilt_horizontal": (1, 1),
     "astigmatism_oblique": (2, -2),
     "defocus": (2, 0),
     "astigmatism_vertical": (2, 2),

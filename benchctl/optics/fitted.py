@@ -131,7 +131,8 @@ def fit_optics(propagator: Propagator, roi: tuple[int, int], phases: torch.Tenso
 
     `phases` (N, H, W) are the displayed phases, `captured` (N, rows, cols) the registered captured intensity on
     the ROI (any scale). Adam on the mean relative residual; coarse to fine: the first stage compares the images
-    blurred by `smoothing_px[0]` pixels (a smoother landscape for large aberrations), the last unblurred.
+    blurred by `smoothing_px[0]` pixels (a smoother landscape for large aberrations), the last unblurred, its
+    learning rate falling to zero (cosine).
     """
     shape = propagator.plan.shape
     rows, cols = centred_slices(shape, roi)
@@ -142,9 +143,11 @@ def fit_optics(propagator: Propagator, roi: tuple[int, int], phases: torch.Tenso
     stages = [(sigma, iterations // len(smoothing_px)) for sigma in smoothing_px]
     losses: list[float] = []
     initial = None
-    for sigma, steps in stages:
+    for stage, (sigma, steps) in enumerate(stages):
         target = _blurred(captured, sigma)
-        for _ in range(steps):
+        for step in range(steps):
+            if stage == len(stages) - 1:  # the last stage settles: cosine to zero (constant Adam steps jitter)
+                optimiser.param_groups[0]["lr"] = learning_rate * 0.5 * (1 + math.cos(math.pi * step / steps))
             optimiser.zero_grad()
             intensity = propagator(slm_fields * model.factor()).abs().square()[..., rows, cols]
             loss = _residual(_blurred(intensity, sigma), target).mean()
