@@ -174,6 +174,7 @@ def test_colour_capture_from_a_fresh_profile(tmp_path: Path, bench_profile_path:
         p.name for p in (Path(os.environ["BENCHCTL_CALIBRATION_DIR"]) / "bench").iterdir()}
     stored = json.loads((Path(os.environ["BENCHCTL_CALIBRATION_DIR"]) / "bench" / "registration.json").read_text())
     assert set(stored["colours"]) == {"red", "green", "blue"}
+    assert not any(entry["through_model"] for entry in stored["colours"].values())  # no optical model fitted
     assert (folder / "calibration" / "registration.json").is_file()
     fits = {e["step"]: e["result"] for e in events if e["event"] == "done" and e["step"].startswith("registration/fit")}
     for fit in fits.values():

@@ -106,7 +106,8 @@ def _fitter(channel: LaserChannel):
         assert profile.slm is not None and profile.optics is not None
         setup = OpticalSetup.from_profile(profile, channel.name)
         slm = slm_for(profile)
-        homography = np.asarray(context.calibration.registrations()[channel.name]["homography"], dtype=np.float64)
+        registration_entry = context.calibration.registrations()[channel.name]
+        homography = np.asarray(registration_entry["homography"], dtype=np.float64)
         shown, captured, saturated = [], [], 0.0
         for k, file in enumerate(context.result(f"model/patterns/{channel.name}")["files"]):
             shown.append(torch.from_numpy(slm.decode(read_image(context.path(file)), channel.name)))
@@ -130,7 +131,12 @@ def _fitter(channel: LaserChannel):
         waves = ", ".join(f"{name} {value:+.3f}" for name, value in fit.model.zernike_waves)
         context.say(f"      {channel.name}: {waves} waves; residual {fit.initial_residual:.3f} -> {fit.residual:.3f} "
                     f"({seconds:.1f} s)")
-        return {**entry, "seconds": round(seconds, 2), "losses": [round(v, 6) for v in fit.losses]}
+        if not registration_entry.get("through_model"):
+            context.say(f"      {channel.name}: the registration was made without a fitted model, so it holds any "
+                        "distortion the aberrations gave its dots: register again now (the dots are then displayed "
+                        "through this model), then run this calibration once more")
+        return {**entry, "seconds": round(seconds, 2), "losses": [round(v, 6) for v in fit.losses],
+                "registration_through_model": bool(registration_entry.get("through_model"))}
 
     return action
 

@@ -22,6 +22,7 @@ from benchctl.capture.registration import (
 )
 from benchctl.devices.camera import camera_for
 from benchctl.errors import BenchctlError
+from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import LaserChannel, Positive
 from benchctl.runner.calibration import Calibration
 from benchctl.runner.holograms import target_plane
@@ -97,7 +98,10 @@ def _fitter(channel: LaserChannel, points: np.ndarray, grid: tuple[int, int], ma
         image, _ = load_exposure(context, f"registration/capture/{channel.name}")
         found = dots_in_capture(image, target_plane(channel), grid)
         fit = fit_registration(points, found, max_rms_target_px=max_rms_target_px)
-        entry = fit.to_dict()
+        # Dots displayed through a fitted optical model land where they were meant to; through the ideal model an
+        # aberrated bench scales and moves them, and the homography absorbs that (docs/model_calibration.md).
+        through_model = OpticalSetup.from_profile(context.profile, channel.name).field_model is not None
+        entry = {**fit.to_dict(), "through_model": through_model}
         context.calibration.save_registration(channel.name, entry)
         Calibration.store(context.calibration.profile).save_registration(channel.name, entry)
         context.say(f"      {channel.name}: {fit.inliers}/{fit.points} dots, RMS {fit.rms_px:.3f} px, "
