@@ -95,7 +95,8 @@ registration = "stored"
 """
 
 
-def test_the_procedure_fits_stores_and_hands_the_model_to_generation(tmp_path: Path, profile: Profile) -> None:
+def test_the_procedure_fits_stores_and_hands_the_model_to_generation(tmp_path: Path, profile: Profile,
+                                                                    capsys: pytest.CaptureFixture[str]) -> None:
     """Display, capture (RAW, dark-subtracted), register with the stored registration and fit: the same recovery
     through the camera's noise and resampling; the model is stored per profile and copied into the run, and the
     profile a later run uses carries it to OpticalSetup."""
@@ -109,6 +110,7 @@ def test_the_procedure_fits_stores_and_hands_the_model_to_generation(tmp_path: P
     assert folder is not None
     assert any("the registration was made without a fitted model" in line and "register again now" in line
                for line in said), said
+    assert "fit green: 90/90" in capsys.readouterr().err  # the fit shows its progress
     store = Path(os.environ["BENCHCTL_CALIBRATION_DIR"]) / profile.name
     stored = json.loads((store / "optical-model.json").read_text())
     assert stored == json.loads((folder / "calibration" / "optical-model.json").read_text())

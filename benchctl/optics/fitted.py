@@ -12,7 +12,7 @@ from __future__ import annotations
 import functools
 import json
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -126,13 +126,14 @@ def _residual(model_intensity: torch.Tensor, captured: torch.Tensor) -> torch.Te
 
 def fit_optics(propagator: Propagator, roi: tuple[int, int], phases: torch.Tensor, captured: torch.Tensor, *,
                terms: Sequence[str] = tuple(ZERNIKE_TERMS), beam: bool = True, iterations: int = 200,
-               learning_rate: float = 0.02, smoothing_px: Sequence[float] = (2.0, 0.0)) -> FitResult:
+               learning_rate: float = 0.02, smoothing_px: Sequence[float] = (2.0, 0.0),
+               progress: Callable[[int, int], None] | None = None) -> FitResult:
     """Fit wavefront error and beam so that |P(A e^(iW) e^(i phase))|^2 on the ROI matches `captured`.
 
     `phases` (N, H, W) are the displayed phases, `captured` (N, rows, cols) the registered captured intensity on
     the ROI (any scale). Adam on the mean relative residual; coarse to fine: the first stage compares the images
     blurred by `smoothing_px[0]` pixels (a smoother landscape for large aberrations), the last unblurred, its
-    learning rate falling to zero (cosine).
+    learning rate falling to zero (cosine). `progress(done, total)` is called after every step.
     """
     shape = propagator.plan.shape
     rows, cols = centred_slices(shape, roi)
@@ -157,6 +158,8 @@ def fit_optics(propagator: Propagator, roi: tuple[int, int], phases: torch.Tenso
             loss.backward()
             optimiser.step()
             losses.append(float(loss.detach()))
+            if progress is not None:
+                progress(len(losses), sum(count for _, count in stages))
     with torch.no_grad():
         intensity = propagator(slm_fields * model.factor()).abs().square()[..., rows, cols]
         residual = float(_residual(intensity, captured).mean())

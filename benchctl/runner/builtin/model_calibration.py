@@ -121,7 +121,8 @@ def _fitter(channel: LaserChannel):
         start = time.perf_counter()
         params = context.parameters(ModelCalibrationParameters)
         fit = fit_optics(setup.target_propagator(), setup.roi, torch.stack(shown), torch.stack(captured),
-                         beam=params.beam, iterations=params.fit_steps, learning_rate=params.learning_rate)
+                         beam=params.beam, iterations=params.fit_steps, learning_rate=params.learning_rate,
+                         progress=context.progress(f"      fit {channel.name}"))
         seconds = time.perf_counter() - start
         entry = {**fit.model.to_dict(), "residual": round(fit.residual, 5),
                  "initial_residual": round(fit.initial_residual, 5), "patterns": len(shown)}
