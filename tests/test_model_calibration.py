@@ -108,7 +108,7 @@ def test_the_procedure_fits_stores_and_hands_the_model_to_generation(tmp_path: P
     outcome = run_procedure(procedure, profile=str(profile.path), out=tmp_path / "runs", say=said.append)
     folder = outcome.folder
     assert folder is not None
-    assert any("the registration was made without a fitted model" in line and "register again now" in line
+    assert any("green: the registration was made without a fitted model" in line and "register again (" in line
                for line in said), said
     assert "fit green: 90/90" in capsys.readouterr().err  # the fit shows its progress
     store = Path(os.environ["BENCHCTL_CALIBRATION_DIR"]) / profile.name
@@ -127,6 +127,7 @@ def test_the_procedure_fits_stores_and_hands_the_model_to_generation(tmp_path: P
     assert OpticalSetup.from_profile(profile, "green").field_model is None
     report = (folder / "report.html").read_text()
     assert "Model calibration" in report and "defocus (waves)" in report and "fitted 20" in report
+    assert "<b>Warnings</b>" in report and "green: the registration was made without a fitted model" in report
     assert all(not state.get("emission") for state in load_state("rgb-laser").get("channels", {}).values())
 
 

@@ -277,23 +277,27 @@ def lut_report(context: Context, fits: dict[str, dict[str, Any]]) -> dict[str, A
                             if r["RMS vs simulator rad"] is not None else "") for r in rows]}
 
 
-def model_calibration_report(context: Context, fits: dict[str, dict[str, Any]], terms: list[str]) -> dict[str, Any]:
+def model_calibration_report(context: Context, fits: dict[str, dict[str, Any]], terms: list[str],
+                             warnings: list[str]) -> dict[str, Any]:
     """Per colour: fitted Zernike coefficients (waves), beam, residual before and after; the fit's loss curves."""
     record = context.record
     assert record is not None
     rows = [{"colour": name, **{f"{t} (waves)": f["zernike_waves"].get(t) for t in terms},
              "waist mm": round(f["waist_mm"], 4), "offset mm": [round(v, 4) for v in f["offset_mm"]],
              "residual before": f["initial_residual"], "residual after": f["residual"], "patterns": f["patterns"],
-             "fit s": f["seconds"]} for name, f in fits.items()]
+             "fit s": f["seconds"], "registered through a model": "yes" if f["registration_through_model"] else "no"}
+            for name, f in fits.items()]
+    by_quantity = [{"": key, **{row["colour"]: row[key] for row in rows}} for key in rows[0] if key != "colour"]
     curves = {name: (list(range(1, len(f["losses"]) + 1)), f["losses"]) for name, f in fits.items()}
-    body = (f"<h2>Fitted model</h2>{table(rows)}<p>Wavefront error at the SLM: ANSI/OSA Zernike terms, RMS-normalised "
-            "over the disc circumscribing the panel. Residual: RMS misfit of the registered captures relative to their "
-            "RMS, after the best gain and offset, with the ideal model (before) and the fitted one (after). The model "
-            "is stored per profile and used by generation, SGD and the simulated scores of later runs.</p>"
+    body = (f"<h2>Fitted model</h2>{table(by_quantity)}<p>Wavefront error at the SLM: ANSI/OSA Zernike terms, "
+            "RMS-normalised over the disc circumscribing the panel. Residual: RMS misfit of the registered captures "
+            "relative to their RMS, after the best gain and offset, with the ideal model (before) and the fitted one "
+            "(after). The model is stored per profile and used by generation, SGD and the simulated scores of later "
+            "runs.</p>"
             f"<h2>Fit</h2>{line_plot(curves, 'Adam step', 'relative residual (first half blurred)')}")
     write_json(record.folder / "metrics.json", {"procedure": "model-calibration", "colours": fits})
     write_csv(record.folder / "metrics.csv", rows)
-    write_report(context, "Model calibration", body, list(fits), [])
+    write_report(context, "Model calibration", body, list(fits), warnings)
     return {"headline": [f"{r['colour']}: residual {r['residual before']:.3f} -> {r['residual after']:.3f}"
                          for r in rows]}
 

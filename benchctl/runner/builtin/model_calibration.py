@@ -133,18 +133,23 @@ def _fitter(channel: LaserChannel):
         context.say(f"      {channel.name}: {waves} waves; residual {fit.initial_residual:.3f} -> {fit.residual:.3f} "
                     f"({seconds:.1f} s)")
         if not registration_entry.get("through_model"):
-            context.say(f"      {channel.name}: the registration was made without a fitted model, so it holds any "
-                        "distortion the aberrations gave its dots: register again now (the dots are then displayed "
-                        "through this model), then run this calibration once more")
+            context.say(f"      {_registration_note(channel.name)}")
         return {**entry, "seconds": round(seconds, 2), "losses": [round(v, 6) for v in fit.losses],
                 "registration_through_model": bool(registration_entry.get("through_model"))}
 
     return action
 
 
+def _registration_note(colour: str) -> str:
+    return (f"{colour}: the registration was made without a fitted model, so it holds any distortion the aberrations "
+            "gave its dots: register again (the dots are then displayed through this model), then calibrate again "
+            "(docs/model_calibration.md)")
+
+
 def _reporter(used: list[LaserChannel]):
     def action(context: Context) -> dict[str, Any]:
         fits = {c.name: context.result(f"model/fit/{c.name}") for c in used}
-        return model_calibration_report(context, fits, list(ZERNIKE_TERMS))
+        notes = [_registration_note(name) for name, fit in fits.items() if not fit["registration_through_model"]]
+        return model_calibration_report(context, fits, list(ZERNIKE_TERMS), notes)
 
     return action
