@@ -285,7 +285,8 @@ def model_calibration_report(context: Context, fits: dict[str, dict[str, Any]], 
     rows = [{"colour": name, **{f"{t} (waves)": f["zernike_waves"].get(t) for t in terms},
              "waist mm": round(f["waist_mm"], 4), "offset mm": [round(v, 4) for v in f["offset_mm"]],
              "residual before": f["initial_residual"], "residual after": f["residual"], "patterns": f["patterns"],
-             "fit s": f["seconds"], "registered through a model": "yes" if f["registration_through_model"] else "no"}
+             "fit s": f["seconds"],
+             "registered through a model": "yes" if f.get("registration_through_model") else "no"}
             for name, f in fits.items()]
     by_quantity = [{"": key, **{row["colour"]: row[key] for row in rows}} for key in rows[0] if key != "colour"]
     curves = {name: (list(range(1, len(f["losses"]) + 1)), f["losses"]) for name, f in fits.items()}

@@ -149,7 +149,7 @@ def _registration_note(colour: str) -> str:
 def _reporter(used: list[LaserChannel]):
     def action(context: Context) -> dict[str, Any]:
         fits = {c.name: context.result(f"model/fit/{c.name}") for c in used}
-        notes = [_registration_note(name) for name, fit in fits.items() if not fit["registration_through_model"]]
+        notes = [_registration_note(name) for name, fit in fits.items() if not fit.get("registration_through_model")]
         return model_calibration_report(context, fits, list(ZERNIKE_TERMS), notes)
 
     return action
