@@ -142,6 +142,7 @@ def fit_optics(propagator: Propagator, roi: tuple[int, int], phases: torch.Tenso
     slm_fields = torch.polar(torch.ones_like(phases, dtype=torch.float32), phases.float())
     captured = captured.double()
     stages = [(sigma, iterations // len(smoothing_px)) for sigma in smoothing_px]
+    total = sum(count for _, count in stages)
     losses: list[float] = []
     initial = None
     for stage, (sigma, steps) in enumerate(stages):
@@ -159,7 +160,7 @@ def fit_optics(propagator: Propagator, roi: tuple[int, int], phases: torch.Tenso
             optimiser.step()
             losses.append(float(loss.detach()))
             if progress is not None:
-                progress(len(losses), sum(count for _, count in stages))
+                progress(len(losses), total)
     with torch.no_grad():
         intensity = propagator(slm_fields * model.factor()).abs().square()[..., rows, cols]
         residual = float(_residual(intensity, captured).mean())

@@ -47,7 +47,7 @@ def probe_step(context: Context, key: str, folder: tuple[str, ...], channel: Las
     """One frame of `frame` at the working setpoint, no dark; its result's "auto_exposure" holds the power
     chosen for the captures that follow (`probed_power`)."""
     exposure = exposure_step(context, key, folder, channel, power_w(context, channel), frame, description,
-                             frames=1, dark_frames=0)
+                             frames=1, dark_frames=0, read_later=False)  # later steps use the power chosen
 
     def action(context: Context) -> dict[str, Any]:
         result = exposure.action(context)
@@ -58,8 +58,7 @@ def probe_step(context: Context, key: str, folder: tuple[str, ...], channel: Las
         limit = " (the channel's max_power_mw)" if choice.limited_by_max else ""
         context.say(f"      auto exposure {channel.name}: peak {stats['peak']:.1%} at {format_power(choice.probe_w)}"
                     f" -> {format_power(choice.power_w)}{limit}")
-        archived = result.pop("checksums")  # the frame is read here only: later steps use the power chosen
-        return {**result, "archived": archived, "auto_exposure": choice.as_dict()}
+        return {**result, "auto_exposure": choice.as_dict()}
 
     return Step(key, exposure.description, action, exposure.devices)
 

@@ -150,12 +150,14 @@ def displayed_frame(context: Context, hologram_key: str) -> np.ndarray:
 
 def exposure_step(context: Context, key: str, folder: tuple[str, ...], channel: LaserChannel,
                   watts: float | Callable[[Context], float], frame: Callable[[Context], np.ndarray],
-                  description: str, *, frames: int | None = None, dark_frames: int | None = None) -> Step:
+                  description: str, *, frames: int | None = None, dark_frames: int | None = None,
+                  read_later: bool = True) -> Step:
     """Show a frame, expose it with `channel` alone at `watts` (a number, or a function of the context that
     decides when the step runs, as automatic exposure does), keep the RAW frames and the dark frames in
     raw/<folder>/ (counts: as given, else the procedure's `frames` / `dark_frames`). A retried step first moves
     what its unfinished attempt left aside (kept, never deleted). The result records each file's checksum, which
-    a resumed run verifies before using it."""
+    a resumed run verifies: under "checksums" for files later steps read (a changed one is captured again), under
+    "archived" with `read_later=False` for a record no later step reads (a changed one is reported)."""
     def action(context: Context) -> dict[str, Any]:
         where = context.path("raw", *folder)
         attempt = context.record.attempts.get(key, 1) if context.record else 1
@@ -166,7 +168,7 @@ def exposure_step(context: Context, key: str, folder: tuple[str, ...], channel: 
                                       dark_frames=darks)
         checksums = {str(Path("raw", *folder, name)): file_sha256(where / name)
                      for name in [*result["frames"], *result["darks"]]}
-        return {**result, "folder": str(Path("raw", *folder)), "checksums": checksums}
+        return {**result, "folder": str(Path("raw", *folder)), "checksums" if read_later else "archived": checksums}
 
     params = context.parameters(ExposureParameters)
     frames = params.frames if frames is None else frames

@@ -132,10 +132,11 @@ def _fitter(channel: LaserChannel):
         waves = ", ".join(f"{name} {value:+.3f}" for name, value in fit.model.zernike_waves)
         context.say(f"      {channel.name}: {waves} waves; residual {fit.initial_residual:.3f} -> {fit.residual:.3f} "
                     f"({seconds:.1f} s)")
-        if not registration_entry.get("through_model"):
+        through_model = bool(registration_entry.get("through_model"))
+        if not through_model:
             context.say(f"      {_registration_note(channel.name)}")
         return {**entry, "seconds": round(seconds, 2), "losses": [round(v, 6) for v in fit.losses],
-                "registration_through_model": bool(registration_entry.get("through_model"))}
+                "registration_through_model": through_model}
 
     return action
 
