@@ -270,6 +270,21 @@ def test_a_termination_signal_on_another_thread_ends_a_device_wait(signum: int) 
     assert raised.value.signum == signum and time.monotonic() - start < 30
 
 
+@pytest.mark.parametrize("signum, raised", [(signal.SIGTERM, TerminatedBySignal), (signal.SIGHUP, TerminatedBySignal),
+                                             (signal.SIGINT, KeyboardInterrupt)])
+def test_a_signal_whose_exception_was_swallowed_still_ends_the_next_wait(signum: int,
+                                                                        raised: type[BaseException]) -> None:
+    """C code that calls Python code may discard the handler's exception (a SIGTERM in an import's ABC
+    registration did, in a capture's render); the next device wait must not then sleep its 30 s out."""
+    with pytest.raises(raised) as caught, signals_interrupt():
+        try:
+            signal.raise_signal(signum)
+        except KeyboardInterrupt:
+            pass  # what the C code did
+        wait(60)
+    assert getattr(caught.value, "signum", signal.SIGINT) == signum
+
+
 def test_a_wait_outlasts_signals_whose_handler_returns() -> None:
     seen: list[int] = []
     previous = signal.signal(signal.SIGUSR1, lambda signum, frame: seen.append(signum))

@@ -66,7 +66,13 @@ def signals_interrupt() -> Iterator[None]:
 
 def wait(seconds: float) -> None:
     """Sleep `seconds`, returning early only to let a signal's handler run (it raises for SIGTERM, SIGHUP and
-    Ctrl-C); outside `signals_interrupt()`, or off the main thread, this is `time.sleep`."""
+    Ctrl-C); outside `signals_interrupt()`, or off the main thread, this is `time.sleep`.
+
+    A termination signal or Ctrl-C that arrived since the last wait always ends it, even when its handler's
+    exception was lost: a handler runs at whatever Python code the main thread is executing, and C code that
+    called that Python code may discard the exception (seen: a SIGTERM landing in the ABC registration of a
+    lazily imported numpy.random). The wakeup descriptor still holds the signal's number, so it is raised here.
+    """
     if _wakeup is None or threading.current_thread() is not threading.main_thread():
         time.sleep(seconds)
         return
@@ -74,8 +80,26 @@ def wait(seconds: float) -> None:
     while (left := end - time.monotonic()) > 0:
         ready, _, _ = select.select([_wakeup], [], [], left)
         if ready:
-            try:
-                while _wakeup.recv(64):
-                    pass
-            except BlockingIOError:
-                pass
+            arrived = _drain(_wakeup)
+            signal.pthread_kill(threading.get_ident(), 0)  # runs the handlers still pending, before raising here
+            _raise_lost(arrived)
+
+
+def _drain(reader: socket.socket) -> bytes:
+    """Everything the signal wakeup descriptor holds: one byte per signal, its number."""
+    arrived = bytearray()
+    try:
+        while chunk := reader.recv(64):
+            arrived += chunk
+    except BlockingIOError:
+        pass
+    return bytes(arrived)
+
+
+def _raise_lost(arrived: bytes) -> None:
+    """Raise what the handler of a termination signal or Ctrl-C among `arrived` should have raised."""
+    for signum in arrived:
+        if signum in TERMINATION_SIGNALS:
+            raise TerminatedBySignal(signum)
+        if signum == signal.SIGINT and signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+            raise KeyboardInterrupt
