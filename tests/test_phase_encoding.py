@@ -28,6 +28,13 @@ def test_gray_phase_gray_is_exact_for_the_linear_table(bit_depth: int) -> None:
     assert np.array_equal(encoded.astype(np.int64), gray)
 
 
+def test_widest_gap_is_one_gray_step_or_the_missing_stroke() -> None:
+    assert PhaseLUT.linear(8).widest_gap == pytest.approx(2 * math.pi / 256)
+    short = PhaseLUT.linear(8, two_pi_gray=256 / 0.88)  # 0.88 x 2 pi: a red laser on a panel made for 600 nm
+    assert short.widest_gap == pytest.approx(2 * math.pi - short.phases[-1])
+    assert PhaseLUT.linear(8, two_pi_gray=200).widest_gap == pytest.approx(2 * math.pi / 200)  # levels past 2 pi
+
+
 def test_linear_table_spans_zero_to_two_pi() -> None:
     lut = PhaseLUT.linear()
     assert lut.levels == 256 and lut.bit_depth == 8

@@ -10,6 +10,9 @@ Choices, measured on the Fresnel-scaled simulated bench (272 x 480, ROI 220 x 40
   good solution (16-33 dB there), so the first iterations refine it instead of building one from a flat phase.
   `init="random"` keeps that uniform start; `init` may also be any `Method` (a trained network's output).
 - Adam with lr 0.05 on the phase (neural-holography: 8e-3, plus 2e-3 on a learned scale).
+- Where the SLM cannot show every phase (`setup.display`: a measured lookup table whose levels leave a gap, such
+  as red on a panel with 2 pi at 600 nm), the loss scores the phase as shown, its gradient passed straight
+  through the quantisation: +3.6 dB for red SGD-70 at 1088 x 1920 (29.17 against 25.59 dB on chart:bars).
 - The best phase seen is returned, so SGD never ends worse (in its loss) than the phase it started from.
 - Early stop: once the best loss fell by less than `tolerance` (relative) over the last `STOP_WINDOW`
   iterations, further iterations would change the result by less than that: stop and report the
@@ -35,12 +38,13 @@ INITS = ("dpac", "random")
 
 
 def roi_loss(phase: torch.Tensor, target: torch.Tensor, setup: OpticalSetup) -> torch.Tensor:
-    """MSE over the ROI between the least-squares-scaled reconstruction of `phase` and `target` (SLM grid).
+    """MSE over the ROI between the least-squares-scaled reconstruction of `phase` as the SLM shows it
+    (`setup.displayed`) and `target` (SLM grid).
 
     The scale is computed from the reconstruction but held constant for autograd (exact at the optimum).
     """
     rows, cols = setup.roi_slices
-    recon = setup.reconstruct_roi(phase)
+    recon = setup.reconstruct_roi(setup.displayed(phase))
     wanted = target[..., rows, cols]
     scale = lsq_scale(recon.detach(), wanted)
     return torch.nn.functional.mse_loss(scale * recon, wanted)

@@ -64,6 +64,13 @@ class PhaseLUT:
         """Number of gray levels, 2^bit_depth."""
         return self.phases.size
 
+    @property
+    def widest_gap(self) -> float:
+        """The widest phase interval (radians, modulo 2 pi) that no gray level shows: one gray step for an
+        ideal table, the missing stroke for a panel whose levels span less than 2 pi at this wavelength."""
+        ring = np.sort(np.remainder(self.phases[self.phases < self.phases[0] + TWO_PI], TWO_PI))
+        return float(np.diff(ring, append=ring[0] + TWO_PI).max())
+
     def _nearest_levels(self) -> np.ndarray:
         """For each bin centre of a fine grid over [0, 2 pi), the gray level nearest in phase modulo 2 pi.
 

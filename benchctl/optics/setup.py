@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import copy
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from numbers import Integral, Real
 from typing import TYPE_CHECKING, Union
@@ -65,6 +67,8 @@ class OpticalSetup:
     aperture: float | None = None  # Fourier-plane iris radius in units of the SLM's Nyquist frequency
     # The bench as measured (model calibration): beam amplitude and wavefront error applied to every SLM field.
     field_model: FittedOptics | None = None
+    # What the SLM shows of a hologram phase (its lookup table's quantisation), when optimisers should see it.
+    display: Callable[[torch.Tensor], torch.Tensor] | None = None
     _to_target: Propagator = field(init=False, repr=False, compare=False)
     _to_slm: Propagator = field(init=False, repr=False, compare=False)
 
@@ -99,6 +103,17 @@ class OpticalSetup:
         return cls(wavelength_m=laser.wavelength_m, pitch_m=profile.slm.pitch_m, distance_m=profile.optics.distance_m,
                    shape=profile.slm.shape, roi=profile.optics.roi, padding=padding,
                    aperture=profile.optics.iris_fraction, field_model=model)
+
+    def with_display(self, display: Callable[[torch.Tensor], torch.Tensor] | None) -> "OpticalSetup":
+        """This setup with `display` (the SLM's `display_model`), sharing its propagators, their cached transfer
+        functions and the SLM factor (built here first, so that a setup reused across frames keeps them)."""
+        if display is None:
+            return self
+        self.roi_propagator()
+        self.slm_factor()
+        twin = copy.copy(self)
+        object.__setattr__(twin, "display", display)
+        return twin
 
     def _propagator(self, distance_m: float) -> Propagator:
         return Propagator(self.shape, distance_m, self.wavelength_m, self.pitch_m, padding=self.padding,
@@ -141,6 +156,13 @@ class OpticalSetup:
         """`reconstruct(phase)` on the ROI only, computed on the smaller grid that the ROI needs (`window_plan`):
         what every loss and score that looks only at the ROI uses."""
         return self.roi_propagator()(self._lit(phase)).abs()
+
+    def displayed(self, phase: torch.Tensor) -> torch.Tensor:
+        """`phase` as the SLM shows it (`display`), its gradient passed straight through the quantisation, so an
+        optimiser moves the phase it asked for while scoring the one shown; `phase` itself without `display`."""
+        if self.display is None:
+            return phase
+        return phase + (self.display(phase.detach()) - phase).detach()
 
     def _lit(self, phase: torch.Tensor) -> torch.Tensor:
         field = torch.polar(torch.ones_like(phase), phase)

@@ -181,7 +181,8 @@ def compute_scene(
         if not present[plane]:
             results.append(ColourResult(channel.name, channel.wavelength_nm, skipped=True))
             continue
-        setup = shared_setup(OpticalSetup.from_profile(profile, channel.name))
+        setup = shared_setup(OpticalSetup.from_profile(profile, channel.name)).with_display(
+            slm.display_model(channel.name))
         start = time.perf_counter()
         phase = generate(target_amplitude[plane], setup, iterations=iterations, seed=seed,
                          progress=progress(f"{method} {channel.name}") if progress else None)
