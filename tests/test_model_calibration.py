@@ -80,6 +80,26 @@ def test_fit_recovers_the_hidden_wavefront_beam_and_tilt(make_bench_profile: Cal
     assert fit.residual < 0.1 * fit.initial_residual
 
 
+@pytest.mark.parametrize("crosstalk_px", [0.0, 0.05, 0.15, 0.3])
+def test_fit_recovers_the_slm_crosstalk(make_bench_profile: Callable[..., Profile], crosstalk_px: float) -> None:
+    """The panel blurs the phase it drives (its table's phase, jumping where the gray levels wrap) by a Gaussian of
+    sigma crosstalk_px; the fit, given the driven phases, finds sigma beside the wavefront and the beam."""
+    sim = ABERRATED["sim"]
+    profile = make_bench_profile(SMALL_BENCH, {"sim": {**sim, "slm": {**sim["slm"], "crosstalk_px": crosstalk_px}}})
+    setup = OpticalSetup.from_profile(profile, "green")
+    phases = calibration_patterns(setup.slm_propagator(), setup.roi, 3, seed=1)
+    captured, driven = rendered(profile, phases)
+    fit = fit_optics(setup.target_propagator(), setup.roi, driven, captured, iterations=90, learning_rate=0.03)
+    assert fit.model.crosstalk_px == pytest.approx(crosstalk_px, abs=0.015)  # measured 0.012, 0.0497, 0.1506, 0.3004
+    for name, value in HIDDEN.items():
+        assert dict(fit.model.zernike_waves)[name] == pytest.approx(value, abs=max(0.02, 0.1 * abs(value))), name
+    # a setup carrying the fit shows what the bench shows, from the driven phase
+    model = OpticalSetup.from_profile(profile, "green")
+    model = dataclasses.replace(model, field_model=fit.model)
+    shown = model.reconstruct_roi(driven[0]).square()
+    assert float(torch.corrcoef(torch.stack([shown.flatten(), captured[0].flatten().float()]))[0, 1]) > 0.99
+
+
 PROCEDURE = """\
 name = "model-test"
 procedure = "model-calibration"

@@ -144,11 +144,18 @@ def test_display_model_only_where_the_table_leaves_phases_out(tmp_path: Path) ->
     path = save_lut(tmp_path / "red.csv", PhaseLUT.linear(8, two_pi_gray=256 / 0.88))
     slm = SimSLM(config(width=64, height=8, lut={"red": path}, phase_offset_rad=0.7), ["red", "green"])
     assert slm.display_model("green") is None  # linear 8 bit: every phase within half a step
+    assert slm.display_model("green", always=True) is not None  # a fitted crosstalk needs the driven phase
     shown = slm.display_model("red")
     assert shown is not None
     phase = torch.linspace(-PI, PI, 512).reshape(slm.shape)
-    assert torch.equal(shown(phase), torch.from_numpy(slm.decode(slm.encode(phase, "red"), "red")))
-    assert (shown(phase) - phase).abs().max() > 0.3  # phases in the 0.75 rad gap move to its edges
+    gray = slm.encode(phase, "red")
+    assert torch.equal(shown(phase), torch.from_numpy(slm.driven(gray, "red")))
+    # the driven phase is the table's, offset removed, unwrapped: it jumps where the gray levels wrap, not at pi
+    driven = slm.driven(gray, "red")
+    assert np.allclose(driven, slm.lut("red").phases[gray] - 0.7, atol=1e-6)
+    assert np.allclose(np.remainder(driven + PI, 2 * PI) - PI, slm.decode(gray, "red"), atol=1e-6)
+    wrapped = np.angle(np.exp(1j * (shown(phase) - phase).numpy()))
+    assert np.abs(wrapped).max() > 0.3  # phases in the 0.75 rad gap move to its edges
 
 
 def test_generated_sgd_optimises_what_a_short_stroke_panel_shows(tmp_path: Path, small_profile_path: Path) -> None:

@@ -25,8 +25,9 @@ def straight_through_loss(phase: torch.Tensor, captured: torch.Tensor, target: t
                           setup: OpticalSetup) -> torch.Tensor:
     """MSE over the ROI of the least-squares-scaled captured amplitude `captured` (roi_h, roi_w) against the
     target amplitude `target` (ROI, same shape), with the gradient of the model's reconstruction of `phase`
-    (H, W) in its place (module docstring). Scales are held constant for autograd, as in SGD."""
-    model = setup.reconstruct_roi(phase)
+    (H, W), as the SLM shows it (`setup.displayed`), in its place (module docstring). Scales are held constant
+    for autograd, as in SGD."""
+    model = setup.reconstruct_roi(setup.displayed(phase))
     if captured.shape != model.shape or target.shape != model.shape:
         raise ValueError(f"captured {tuple(captured.shape)} and target {tuple(target.shape)} must be the ROI "
                          f"{tuple(model.shape)}")

@@ -119,14 +119,20 @@ def tilt_phase(shape: tuple[int, int], pitch_m: Pitch, tilt_rad: Sequence[float]
 
 def crosstalk_blur(phase: torch.Tensor, sigma_px: torch.Tensor | float) -> torch.Tensor:
     """SLM pixel crosstalk (fringing fields): the phase the panel drives, blurred by a Gaussian of `sigma_px`
-    pixels before it modulates the light. Applied in frequency (exactly exp(-2 pi^2 sigma^2 f^2) at f cycles per
-    pixel), periodic at the panel's edges, where the error is confined to about one blur width."""
-    sigma = torch.as_tensor(sigma_px, dtype=torch.float64)
-    if not sigma.requires_grad and float(sigma) == 0:
-        return phase
-    h, w = phase.shape[-2:]
+    pixels before it modulates the light (`gaussian_blur` with variance sigma^2)."""
+    return gaussian_blur(phase, torch.as_tensor(sigma_px, dtype=torch.float64).square())
+
+
+def gaussian_blur(images: torch.Tensor, variance_px2: torch.Tensor | float) -> torch.Tensor:
+    """(..., H, W) blurred by a Gaussian of `variance_px2` square pixels, in the input's dtype; unchanged at 0.
+    Applied in frequency (exactly exp(-2 pi^2 variance f^2) at f cycles per pixel), periodic at the edges, where
+    the error is confined to about one blur width. Differentiable in the variance, also at 0."""
+    variance = torch.as_tensor(variance_px2, dtype=torch.float64)
+    if not variance.requires_grad and float(variance) == 0:
+        return images
+    h, w = images.shape[-2:]
     fy = torch.fft.fftfreq(h, dtype=torch.float64)[:, None]
     fx = torch.fft.rfftfreq(w, dtype=torch.float64)[None, :]
-    response = torch.exp(-2 * math.pi**2 * sigma.square() * (fy.square() + fx.square()))
-    spectrum = torch.fft.rfft2(phase.to(torch.float64)) * response
-    return torch.fft.irfft2(spectrum, s=(h, w)).to(phase.dtype)
+    response = torch.exp(-2 * math.pi**2 * variance * (fy.square() + fx.square()))
+    spectrum = torch.fft.rfft2(images.to(torch.float64)) * response
+    return torch.fft.irfft2(spectrum, s=(h, w)).to(images.dtype)

@@ -1,10 +1,13 @@
 """A propagation model fitted to captures: per colour, the wavefront error at the SLM (Zernike terms of
-optics.aberration) and the beam's amplitude (a Gaussian with waist and offset), found by gradient descent through
+optics.aberration), the beam's amplitude (a Gaussian with waist and offset) and the SLM's pixel crosstalk (a
+Gaussian blur of the phase the panel drives), found by gradient descent through
 the differentiable propagation so that the model's target-plane intensity of known phase patterns matches what
 the camera recorded of them (registered onto the target plane).
 
-`FittedOptics` is the result: an `OpticalSetup` carrying one (field_model) multiplies every SLM field by
-A e^(i W) before propagating, so SGD and every simulated score see the bench as measured.
+`FittedOptics` is the result: an `OpticalSetup` carrying one (field_model) blurs the phase by the crosstalk and
+multiplies the SLM field by A e^(i W) before propagating, so SGD and every simulated score see the bench as
+measured. Crosstalk acts where the driven phase jumps, i.e. where the gray levels wrap: it applies to the phase
+the panel drives (`SLM.driven`), not to a hologram phase wrapped elsewhere.
 """
 
 from __future__ import annotations
@@ -18,7 +21,8 @@ from pathlib import Path
 
 import torch
 
-from benchctl.optics.aberration import ZERNIKE_TERMS, Pitch, gaussian_beam_power, pupil_radius_m, zernike_basis
+from benchctl.optics.aberration import (ZERNIKE_TERMS, Pitch, crosstalk_blur, gaussian_beam_power, gaussian_blur,
+                                        pupil_radius_m, zernike_basis)
 from benchctl.optics.metrics import centred_slices
 from benchctl.optics.propagation import Propagator
 
@@ -30,6 +34,7 @@ class FittedOptics:
     zernike_waves: tuple[tuple[str, float], ...] = ()  # (term, waves) pairs, ANSI/OSA RMS-normalised
     waist_m: float = 0.0  # Gaussian 1/e^2 radius of the beam; 0: uniform illumination
     offset_m: tuple[float, float] = (0.0, 0.0)  # (rows, cols) from the panel's centre to the beam's centre
+    crosstalk_px: float = 0.0  # Gaussian blur (sigma, SLM pixels) of the driven phase: fringing fields
 
     def slm_factor(self, shape: tuple[int, int], pitch_m: Pitch) -> torch.Tensor:
         """A e^(i W) on the SLM grid, complex64 (H, W): beam amplitude (mean power 1) and wavefront error."""
@@ -44,10 +49,14 @@ class FittedOptics:
             phase = 2 * math.pi * torch.einsum("k,khw->hw", waves, zernike_basis(shape, pitch_m, names))
         return torch.polar(amplitude, phase).to(torch.complex64)
 
+    def modulating(self, driven: torch.Tensor) -> torch.Tensor:
+        """The phase that modulates the light for the phase the panel drives: blurred by the crosstalk."""
+        return crosstalk_blur(driven, self.crosstalk_px)
+
     def to_dict(self) -> dict[str, object]:
         """Profile units (waves, mm), as stored in calibration/<profile>/optical-model.json."""
         return {"zernike_waves": dict(self.zernike_waves), "waist_mm": self.waist_m * 1e3,
-                "offset_mm": [v * 1e3 for v in self.offset_m]}
+                "offset_mm": [v * 1e3 for v in self.offset_m], "crosstalk_px": self.crosstalk_px}
 
     @classmethod
     def from_dict(cls, data: Mapping[str, object]) -> FittedOptics:
@@ -58,7 +67,8 @@ class FittedOptics:
             raise ValueError(f"unknown Zernike terms {sorted(unknown)} (known: {', '.join(ZERNIKE_TERMS)})")
         offset = data.get("offset_mm", (0.0, 0.0))
         return cls(tuple((name, float(waves[name])) for name in ZERNIKE_TERMS if name in waves),
-                   float(data.get("waist_mm", 0.0)) * 1e-3, (float(offset[0]) * 1e-3, float(offset[1]) * 1e-3))
+                   float(data.get("waist_mm", 0.0)) * 1e-3, (float(offset[0]) * 1e-3, float(offset[1]) * 1e-3),
+                   float(data.get("crosstalk_px", 0.0)))
 
     @staticmethod
     def load(path: Path, channel: str) -> FittedOptics | None:
@@ -83,17 +93,27 @@ class FitResult:
     losses: list[float]
 
 
-class _Model(torch.nn.Module):
-    """The differentiable bench: zernike waves, log-waist and offset (both in units of the pupil radius)."""
+# The crosstalk parameter is its variance in units of CROSSTALK_UNIT_PX2, so that Adam's steps (of about the
+# learning rate) move it by a fraction of a realistic value (sigma 0.05-0.3 px); a variance, so that its gradient
+# does not vanish at 0 as sigma's does.
+CROSSTALK_UNIT_PX2 = 0.1
 
-    def __init__(self, shape: tuple[int, int], pitch_m: Pitch, terms: Sequence[str], beam: bool) -> None:
+
+class _Model(torch.nn.Module):
+    """The differentiable bench: zernike waves, log-waist and offset (both in units of the pupil radius), and the
+    crosstalk's variance."""
+
+    def __init__(self, shape: tuple[int, int], pitch_m: Pitch, terms: Sequence[str], beam: bool,
+                 crosstalk: bool) -> None:
         super().__init__()
-        self.shape, self.pitch_m, self.terms, self.beam = shape, pitch_m, list(terms), beam
+        self.shape, self.pitch_m, self.terms, self.beam, self.crosstalk = shape, pitch_m, list(terms), beam, crosstalk
         self.radius = pupil_radius_m(shape, pitch_m)
         self.register_buffer("basis", zernike_basis(shape, pitch_m, self.terms))
         self.waves = torch.nn.Parameter(torch.zeros(len(self.terms), dtype=torch.float64))
         self.log_waist = torch.nn.Parameter(torch.tensor(math.log(4.0), dtype=torch.float64))  # nearly uniform
         self.offset = torch.nn.Parameter(torch.zeros(2, dtype=torch.float64))
+        # |p| is the variance: clamped at 0 it could stick there; started off 0, where |p|'s gradient vanishes
+        self.crosstalk_variance = torch.nn.Parameter(torch.tensor(0.01, dtype=torch.float64), requires_grad=crosstalk)
 
     def factor(self) -> torch.Tensor:
         phase = 2 * math.pi * torch.einsum("k,khw->hw", self.waves, self.basis)
@@ -104,13 +124,21 @@ class _Model(torch.nn.Module):
             amplitude = (power / power.mean()).sqrt()
         return torch.polar(amplitude, phase).to(torch.complex64)
 
+    def fields(self, driven: torch.Tensor) -> torch.Tensor:
+        """The SLM fields of the driven phases (N, H, W): blurred by the crosstalk, lit through `factor`."""
+        if self.crosstalk:
+            driven = gaussian_blur(driven.double(), self.crosstalk_variance.abs() * CROSSTALK_UNIT_PX2)
+        return torch.polar(torch.ones_like(driven, dtype=torch.float32), driven.float()) * self.factor()
+
     def result(self) -> FittedOptics:
         waves = tuple((name, round(float(w), 5)) for name, w in zip(self.terms, self.waves.detach()))
+        crosstalk = round(math.sqrt(abs(float(self.crosstalk_variance.detach())) * CROSSTALK_UNIT_PX2), 5) \
+            if self.crosstalk else 0.0
         if not self.beam:
-            return FittedOptics(waves)
+            return FittedOptics(waves, crosstalk_px=crosstalk)
         offset = self.offset.detach() * self.radius
         waist = float(self.log_waist.detach().exp()) * self.radius
-        return FittedOptics(waves, waist, (float(offset[0]), float(offset[1])))
+        return FittedOptics(waves, waist, (float(offset[0]), float(offset[1])), crosstalk)
 
 
 def _residual(model_intensity: torch.Tensor, captured: torch.Tensor) -> torch.Tensor:
@@ -125,34 +153,37 @@ def _residual(model_intensity: torch.Tensor, captured: torch.Tensor) -> torch.Te
 
 
 def fit_optics(propagator: Propagator, roi: tuple[int, int], phases: torch.Tensor, captured: torch.Tensor, *,
-               terms: Sequence[str] = tuple(ZERNIKE_TERMS), beam: bool = True, iterations: int = 200,
+               terms: Sequence[str] = tuple(ZERNIKE_TERMS), beam: bool = True, crosstalk: bool = True,
+               iterations: int = 200,
                learning_rate: float = 0.02, smoothing_px: Sequence[float] = (2.0, 0.0),
                progress: Callable[[int, int], None] | None = None) -> FitResult:
-    """Fit wavefront error and beam so that |P(A e^(iW) e^(i phase))|^2 on the ROI matches `captured`.
+    """Fit wavefront error, beam and crosstalk so that |P(A e^(iW) e^(i blur(phase)))|^2 on the ROI matches
+    `captured`.
 
-    `phases` (N, H, W) are the displayed phases, `captured` (N, rows, cols) the registered captured intensity on
+    `phases` (N, H, W) are the driven phases of the displayed frames (`SLM.driven`: unwrapped where the gray levels
+    do not wrap, so that the crosstalk blurs the jumps the panel has), `captured` (N, rows, cols) the registered
+    captured intensity on
     the ROI (any scale). Adam on the mean relative residual; coarse to fine: the first stage compares the images
     blurred by `smoothing_px[0]` pixels (a smoother landscape for large aberrations), the last unblurred, its
     learning rate falling to zero (cosine). `progress(done, total)` is called after every step.
     """
     shape = propagator.plan.shape
     rows, cols = centred_slices(shape, roi)
-    model = _Model(shape, propagator.plan.pitch_m, terms, beam)
-    optimiser = torch.optim.Adam(model.parameters(), lr=learning_rate)
-    slm_fields = torch.polar(torch.ones_like(phases, dtype=torch.float32), phases.float())
+    model = _Model(shape, propagator.plan.pitch_m, terms, beam, crosstalk)
+    optimiser = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=learning_rate)
     captured = captured.double()
     stages = [(sigma, iterations // len(smoothing_px)) for sigma in smoothing_px]
     total = sum(count for _, count in stages)
     losses: list[float] = []
     initial = None
     for stage, (sigma, steps) in enumerate(stages):
-        target = _blurred(captured, sigma)
+        target = gaussian_blur(captured, sigma**2)
         for step in range(steps):
             if stage == len(stages) - 1:  # the last stage settles: cosine to zero (constant Adam steps jitter)
                 optimiser.param_groups[0]["lr"] = learning_rate * 0.5 * (1 + math.cos(math.pi * step / steps))
             optimiser.zero_grad()
-            intensity = propagator(slm_fields * model.factor()).abs().square()[..., rows, cols]
-            loss = _residual(_blurred(intensity, sigma), target).mean()
+            intensity = propagator(model.fields(phases)).abs().square()[..., rows, cols]
+            loss = _residual(gaussian_blur(intensity.double(), sigma**2), target).mean()
             if initial is None:
                 with torch.no_grad():
                     initial = float(_residual(intensity, captured).mean())
@@ -162,20 +193,9 @@ def fit_optics(propagator: Propagator, roi: tuple[int, int], phases: torch.Tenso
             if progress is not None:
                 progress(len(losses), total)
     with torch.no_grad():
-        intensity = propagator(slm_fields * model.factor()).abs().square()[..., rows, cols]
+        intensity = propagator(model.fields(phases)).abs().square()[..., rows, cols]
         residual = float(_residual(intensity, captured).mean())
     return FitResult(model.result(), residual, initial if initial is not None else residual, losses)
-
-
-def _blurred(images: torch.Tensor, sigma_px: float) -> torch.Tensor:
-    """Images (N, h, w) blurred by a Gaussian of sigma pixels (in frequency, periodic); unchanged at 0."""
-    if not sigma_px:
-        return images
-    h, w = images.shape[-2:]
-    fy = torch.fft.fftfreq(h, dtype=torch.float64)[:, None]
-    fx = torch.fft.rfftfreq(w, dtype=torch.float64)[None, :]
-    response = torch.exp(-2 * math.pi**2 * sigma_px**2 * (fy.square() + fx.square()))
-    return torch.fft.irfft2(torch.fft.rfft2(images.double()) * response, s=(h, w))
 
 
 def calibration_patterns(propagator_to_slm: Propagator, roi: tuple[int, int], count: int, seed: int,

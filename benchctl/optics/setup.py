@@ -145,7 +145,8 @@ class OpticalSetup:
 
     def reconstruct(self, phase: torch.Tensor) -> torch.Tensor:
         """Amplitude at the target plane of a phase-only hologram lit by a unit plane wave: |P_{+z}(exp(i phase))|;
-        with a fitted model, lit by its beam through its wavefront error: |P_{+z}(A e^(i W) exp(i phase))|.
+        with a fitted model, lit by its beam through its wavefront error, the phase blurred by its crosstalk C:
+        |P_{+z}(A e^(i W) exp(i C(phase)))|, where `phase` should be what the panel drives (`SLM.driven`).
 
         The one simulation of a hologram everyone uses; differentiable, and its gradient stays finite where the
         amplitude is exactly zero (complex abs, not a square root of the intensity).
@@ -165,10 +166,10 @@ class OpticalSetup:
         return phase + (self.display(phase.detach()) - phase).detach()
 
     def _lit(self, phase: torch.Tensor) -> torch.Tensor:
-        field = torch.polar(torch.ones_like(phase), phase)
-        if self.field_model is not None:
-            field = field * self.slm_factor().to(field.device)
-        return field
+        if self.field_model is None:
+            return torch.polar(torch.ones_like(phase), phase)
+        phase = self.field_model.modulating(phase)
+        return torch.polar(torch.ones_like(phase), phase) * self.slm_factor().to(phase.device)
 
     def without_wavefront(self, phase: torch.Tensor) -> torch.Tensor:
         """`phase` minus the fitted model's wavefront error W (unchanged without a model): what to display so that

@@ -16,7 +16,7 @@ import torch
 
 from benchctl.cgh import Method, OpticalSetup, get_method, method_names
 from benchctl.cgh.learned import LEARNED_METHODS, model_info
-from benchctl.devices.slm import slm_for
+from benchctl.devices.slm import SLM, slm_for
 from benchctl.errors import BadValueError, BenchctlError
 from benchctl.optics import amplitude_scores, colour_scores, crop_roi, lsq_scale
 from benchctl.profiles import LaserChannel, Profile
@@ -139,6 +139,14 @@ def shared_setup(setup: OpticalSetup) -> OpticalSetup:
     return setup
 
 
+def optimised_setup(profile: Profile, channel: str, slm: SLM) -> OpticalSetup:
+    """`channel`'s shared setup as optimisers see it: through what `slm` drives where its table leaves phases out,
+    or always when the fitted model has crosstalk (which blurs the driven phase's jumps)."""
+    setup = shared_setup(OpticalSetup.from_profile(profile, channel))
+    crosstalk = setup.field_model is not None and setup.field_model.crosstalk_px > 0
+    return setup.with_display(slm.display_model(channel, always=crosstalk))
+
+
 def select_channels(profile: Profile, names: list[str] | None) -> list[LaserChannel]:
     """The profile's channels in profile order, or the named ones (unknown names are an error)."""
     if not names:
@@ -181,14 +189,13 @@ def compute_scene(
         if not present[plane]:
             results.append(ColourResult(channel.name, channel.wavelength_nm, skipped=True))
             continue
-        setup = shared_setup(OpticalSetup.from_profile(profile, channel.name)).with_display(
-            slm.display_model(channel.name))
+        setup = optimised_setup(profile, channel.name, slm)
         start = time.perf_counter()
         phase = generate(target_amplitude[plane], setup, iterations=iterations, seed=seed,
                          progress=progress(f"{method} {channel.name}") if progress else None)
         seconds = time.perf_counter() - start
         gray = slm.encode(phase, channel.name)
-        recon = setup.reconstruct_roi(torch.from_numpy(slm.decode(gray, channel.name)))
+        recon = setup.reconstruct_roi(torch.from_numpy(slm.driven(gray, channel.name)))
         recon = recon * lsq_scale(recon, target_roi[plane])
         merged[plane] = recon.square().clamp(0, 1)
         results.append(ColourResult(channel.name, channel.wavelength_nm, skipped=False, seconds=seconds,

@@ -279,12 +279,14 @@ def lut_report(context: Context, fits: dict[str, dict[str, Any]]) -> dict[str, A
 
 def model_calibration_report(context: Context, fits: dict[str, dict[str, Any]], terms: list[str],
                              warnings: list[str]) -> dict[str, Any]:
-    """Per colour: fitted Zernike coefficients (waves), beam, residual before and after; the fit's loss curves."""
+    """Per colour: fitted Zernike coefficients (waves), beam, crosstalk, residual before and after; the fit's loss
+    curves."""
     record = context.record
     assert record is not None
     rows = [{"colour": name, **{f"{t} (waves)": f["zernike_waves"].get(t) for t in terms},
              "waist mm": round(f["waist_mm"], 4), "offset mm": [round(v, 4) for v in f["offset_mm"]],
-             "residual before": f["initial_residual"], "residual after": f["residual"], "patterns": f["patterns"],
+             "crosstalk px": f.get("crosstalk_px", 0.0), "residual before": f["initial_residual"],
+             "residual after": f["residual"], "patterns": f["patterns"],
              "fit s": f["seconds"],
              "registered through a model": "yes" if f.get("registration_through_model") else "no"}
             for name, f in fits.items()]

@@ -172,20 +172,28 @@ class SLM(Connection):
     def decode(self, gray: np.ndarray, channel: str) -> np.ndarray:
         """The hologram phase a displayed frame carries: undo flips, look up `channel`'s table, remove the
         offset and carrier (the optics compensate those). Float32 (H, W) radians in [-pi, pi)."""
-        phase = gray_to_phase(self._flipped(np.asarray(gray)), self.lut(channel)).astype(np.float64)
-        phase -= self._added_phase()
-        return (np.remainder(phase + math.pi, TWO_PI) - math.pi).astype(np.float32)
+        return (np.remainder(self._driven(gray, channel) + math.pi, TWO_PI) - math.pi).astype(np.float32)
 
-    def display_model(self, channel: str) -> Callable[[torch.Tensor], torch.Tensor] | None:
-        """What the panel shows of a hologram phase at `channel` (encoded and decoded: torch in, torch out), for
-        optimisers to see through; None when its table leaves no phase more than GAP_STEPS gray steps away
-        (there rounding to a level is noise that a straight-through gradient only blurs)."""
+    def driven(self, gray: np.ndarray, channel: str) -> np.ndarray:
+        """`decode` without the wrap into [-pi, pi): the table's phases (offset and carrier removed), which jump
+        where the gray levels wrap, as the panel's do. Pixel crosstalk blurs these jumps (`FittedOptics`)."""
+        return self._driven(gray, channel).astype(np.float32)
+
+    def _driven(self, gray: np.ndarray, channel: str) -> np.ndarray:
+        table_phase = gray_to_phase(self._flipped(np.asarray(gray)), self.lut(channel)).astype(np.float64)
+        return table_phase - self._added_phase()
+
+    def display_model(self, channel: str, always: bool = False) -> Callable[[torch.Tensor], torch.Tensor] | None:
+        """What the panel drives for a hologram phase at `channel` (encoded, then `driven`: torch in, torch out),
+        for optimisers to see through. Unless `always` (a model with crosstalk needs the driven phase's jumps),
+        None when the table leaves no phase more than GAP_STEPS gray steps away: there rounding to a level is
+        noise that a straight-through gradient only blurs."""
         lut = self.lut(channel)
-        if lut.widest_gap <= GAP_STEPS * TWO_PI / lut.levels:
+        if not always and lut.widest_gap <= GAP_STEPS * TWO_PI / lut.levels:
             return None
 
         def shown(phase: torch.Tensor) -> torch.Tensor:
-            return phase.new_tensor(self.decode(self.encode(phase.detach(), channel), channel))
+            return phase.new_tensor(self.driven(self.encode(phase.detach(), channel), channel))
 
         return shown
 

@@ -50,7 +50,7 @@ from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import LaserChannel, Positive
 from benchctl.runner.builtin import registration
 from benchctl.runner.hologram_cache import hologram
-from benchctl.runner.holograms import shared_setup, target_plane
+from benchctl.runner.holograms import optimised_setup, target_plane
 from benchctl.runner.auto_exposure import Exposure, PeakGoal, probe_step, probed_power
 from benchctl.runner.procedure import Context, Step
 from benchctl.runner.record import set_aside
@@ -153,7 +153,7 @@ def keeps_raw(k: int, iterations: int, every: int) -> bool:
 
 
 def _setup(context: Context, channel: LaserChannel) -> OpticalSetup:
-    return shared_setup(OpticalSetup.from_profile(context.profile, channel.name))
+    return optimised_setup(context.profile, channel.name, slm_for(context.profile))
 
 
 def _target_roi(context: Context, target: torch.Tensor, channel: LaserChannel) -> torch.Tensor:

@@ -1,8 +1,8 @@
 """Model calibration: per colour, display phase patterns that focus random sparse points over the ROI, capture
 each, register it onto the target plane (the stored registration) and fit the propagation model's wavefront error
-(Zernike terms at the SLM) and beam (Gaussian waist and offset) by gradient descent through the differentiable
-propagation (optics.fitted). The fit is stored per profile (calibration/<profile>/optical-model.json), where
-generation, SGD and the simulated scores of later runs find it (OpticalSetup.field_model).
+(Zernike terms at the SLM), beam (Gaussian waist and offset) and SLM crosstalk by gradient descent through the
+differentiable propagation (optics.fitted). The fit is stored per profile (calibration/<profile>/optical-model.json),
+where generation, SGD and the simulated scores of later runs find it (OpticalSetup.field_model).
 """
 
 from __future__ import annotations
@@ -39,7 +39,8 @@ from benchctl.runner.steps import (
 )
 
 MAX_SATURATED = 1e-3  # fraction of ROI pixels clipped in a capture above which the fit is refused
-DESCRIPTION = "random-point phase patterns per colour, captured, registered; wavefront and beam fitted and stored"
+DESCRIPTION = ("random-point phase patterns per colour, captured, registered; wavefront, beam and crosstalk fitted "
+               "and stored")
 
 
 class ModelCalibrationParameters(ExposureParameters, kw_only=True):
@@ -52,6 +53,7 @@ class ModelCalibrationParameters(ExposureParameters, kw_only=True):
     fit_steps: Annotated[int, Meta(ge=2)] = 120  # Adam steps of the fit (half blurred, half sharp)
     learning_rate: Positive = 0.03
     beam: bool = True  # fit the beam's waist and offset too
+    crosstalk: bool = True  # fit the SLM's pixel crosstalk too (a blur of the driven phase)
     seed: NonNegativeInt = 0  # of the random points
     registration: Registration = "auto"
 
@@ -74,7 +76,8 @@ def plan(context: Context) -> list[Step]:
                                        channel, power_w(context, channel),
                                        lambda ctx, c=channel.name, n=k: _pattern_frame(ctx, c, n),
                                        f"expose calibration pattern {k + 1}/{count}"))
-        steps.append(Step(f"model/fit/{channel.name}", f"fit wavefront and beam ({channel.name})", _fitter(channel)))
+        steps.append(Step(f"model/fit/{channel.name}", f"fit wavefront, beam and crosstalk ({channel.name})",
+                          _fitter(channel)))
     steps.append(Step("report", "metrics.json, metrics.csv and report.html", _reporter(used)))
     return steps
 
@@ -110,7 +113,7 @@ def _fitter(channel: LaserChannel):
         homography = np.asarray(registration_entry["homography"], dtype=np.float64)
         shown, captured, saturated = [], [], 0.0
         for k, file in enumerate(context.result(f"model/patterns/{channel.name}")["files"]):
-            shown.append(torch.from_numpy(slm.decode(read_image(context.path(file)), channel.name)))
+            shown.append(torch.from_numpy(slm.driven(read_image(context.path(file)), channel.name)))
             image, _ = load_exposure(context, f"model/capture/{channel.name}/{k}")
             where = (target_plane(channel), homography, profile.slm.shape, profile.optics.roi)
             captured.append(torch.from_numpy(registered_plane(image, *where)))
@@ -121,7 +124,8 @@ def _fitter(channel: LaserChannel):
         start = time.perf_counter()
         params = context.parameters(ModelCalibrationParameters)
         fit = fit_optics(setup.target_propagator(), setup.roi, torch.stack(shown), torch.stack(captured),
-                         beam=params.beam, iterations=params.fit_steps, learning_rate=params.learning_rate,
+                         beam=params.beam, crosstalk=params.crosstalk, iterations=params.fit_steps,
+                         learning_rate=params.learning_rate,
                          progress=context.progress(f"      fit {channel.name}"))
         seconds = time.perf_counter() - start
         entry = {**fit.model.to_dict(), "residual": round(fit.residual, 5),
@@ -130,7 +134,8 @@ def _fitter(channel: LaserChannel):
         Calibration.store(context.calibration.profile).save_model(channel.name, entry)
         context.recalibrated()
         waves = ", ".join(f"{name} {value:+.3f}" for name, value in fit.model.zernike_waves)
-        context.say(f"      {channel.name}: {waves} waves; residual {fit.initial_residual:.3f} -> {fit.residual:.3f} "
+        context.say(f"      {channel.name}: {waves} waves; crosstalk {fit.model.crosstalk_px:.3f} px; "
+                    f"residual {fit.initial_residual:.3f} -> {fit.residual:.3f} "
                     f"({seconds:.1f} s)")
         through_model = bool(registration_entry.get("through_model"))
         if not through_model:
