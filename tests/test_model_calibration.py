@@ -11,6 +11,7 @@ import os
 from collections.abc import Callable
 from pathlib import Path
 
+import msgspec
 import numpy as np
 import pytest
 import torch
@@ -33,6 +34,8 @@ from benchctl.runner.calibration import Calibration
 from benchctl.runner.engine import run_procedure
 from benchctl.runner.generate import run_generate
 from benchctl.runner.hologram_cache import _key
+from benchctl.runner.holograms import optimised_setup
+from benchctl.devices.slm import slm_for
 
 HIDDEN = {"astigmatism_oblique": 0.12, "defocus": 0.3, "astigmatism_vertical": -0.15, "coma_vertical": 0.08,
           "coma_horizontal": -0.1, "spherical": 0.06}
@@ -198,6 +201,18 @@ def test_sgd_through_a_model_with_crosstalk_shows_closer_to_the_target(make_benc
         amplitude = amplitude * lsq_scale(amplitude, target[rows, cols])
         scores.append(float(psnr(amplitude, target[rows, cols], data_range=1.0)))
     assert scores[1] > scores[0] + 10, scores
+
+
+@pytest.mark.parametrize("crosstalk_px, sees_driven", [(0.0, False), (0.004, False), (0.05, True)])
+def test_optimisers_see_the_driven_phase_only_when_the_model_has_crosstalk(
+        tmp_path: Path, profile: Profile, crosstalk_px: float, sees_driven: bool) -> None:
+    """The profile's table (linear, 8 bit) shows every phase, so only a model's crosstalk makes SGD see what the
+    panel drives; a fitted sigma of a few thousandths of a pixel is noise around none."""
+    path = tmp_path / "optical-model.json"
+    path.write_text(json.dumps({"colours": {"green": {**FittedOptics(crosstalk_px=crosstalk_px).to_dict()}}}))
+    calibrated = msgspec.structs.replace(profile, optics=msgspec.structs.replace(profile.optics, model=path))
+    setup = optimised_setup(calibrated, "green", slm_for(calibrated))
+    assert setup.field_model is not None and (setup.display is not None) == sees_driven
 
 
 def test_generate_uses_the_stored_model(tmp_path: Path, profile: Profile) -> None:

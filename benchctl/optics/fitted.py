@@ -27,6 +27,10 @@ from benchctl.optics.metrics import centred_slices
 from benchctl.optics.propagation import Propagator
 
 
+# Below this blur (sigma, pixels) no spatial frequency of the driven phase changes by more than 0.05 %.
+NEGLIGIBLE_CROSSTALK_PX = 0.01
+
+
 @dataclass(frozen=True)
 class FittedOptics:
     """One colour's fitted departure from the ideal model (hashable, so setups carrying it stay comparable)."""
@@ -48,6 +52,11 @@ class FittedOptics:
             waves = torch.tensor([w for _, w in self.zernike_waves], dtype=torch.float64)
             phase = 2 * math.pi * torch.einsum("k,khw->hw", waves, zernike_basis(shape, pitch_m, names))
         return torch.polar(amplitude, phase).to(torch.complex64)
+
+    @property
+    def has_crosstalk(self) -> bool:
+        """Whether the crosstalk matters: below NEGLIGIBLE_CROSSTALK_PX it is a fit's noise around none."""
+        return self.crosstalk_px >= NEGLIGIBLE_CROSSTALK_PX
 
     def modulating(self, driven: torch.Tensor) -> torch.Tensor:
         """The phase that modulates the light for the phase the panel drives: blurred by the crosstalk."""

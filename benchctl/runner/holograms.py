@@ -143,7 +143,7 @@ def optimised_setup(profile: Profile, channel: str, slm: SLM) -> OpticalSetup:
     """`channel`'s shared setup as optimisers see it: through what `slm` drives where its table leaves phases out,
     or always when the fitted model has crosstalk (which blurs the driven phase's jumps)."""
     setup = shared_setup(OpticalSetup.from_profile(profile, channel))
-    crosstalk = setup.field_model is not None and setup.field_model.crosstalk_px > 0
+    crosstalk = setup.field_model is not None and setup.field_model.has_crosstalk
     return setup.with_display(slm.display_model(channel, always=crosstalk))
 
 
