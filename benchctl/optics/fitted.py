@@ -121,7 +121,7 @@ class _Model(torch.nn.Module):
         self.waves = torch.nn.Parameter(torch.zeros(len(self.terms), dtype=torch.float64))
         self.log_waist = torch.nn.Parameter(torch.tensor(math.log(4.0), dtype=torch.float64))  # nearly uniform
         self.offset = torch.nn.Parameter(torch.zeros(2, dtype=torch.float64))
-        # |p| is the variance: clamped at 0 it could stick there; started off 0, where |p|'s gradient vanishes
+        # The variance is |p| (a clamp at 0 could hold it there for good), started at 0.01: |p|'s gradient is 0 at 0.
         self.crosstalk_variance = torch.nn.Parameter(torch.tensor(0.01, dtype=torch.float64), requires_grad=crosstalk)
 
     def factor(self) -> torch.Tensor:
@@ -141,8 +141,8 @@ class _Model(torch.nn.Module):
 
     def result(self) -> FittedOptics:
         waves = tuple((name, round(float(w), 5)) for name, w in zip(self.terms, self.waves.detach()))
-        crosstalk = round(math.sqrt(abs(float(self.crosstalk_variance.detach())) * CROSSTALK_UNIT_PX2), 5) \
-            if self.crosstalk else 0.0
+        variance = abs(float(self.crosstalk_variance.detach())) * CROSSTALK_UNIT_PX2 if self.crosstalk else 0.0
+        crosstalk = round(math.sqrt(variance), 5)
         if not self.beam:
             return FittedOptics(waves, crosstalk_px=crosstalk)
         offset = self.offset.detach() * self.radius
@@ -163,16 +163,14 @@ def _residual(model_intensity: torch.Tensor, captured: torch.Tensor) -> torch.Te
 
 def fit_optics(propagator: Propagator, roi: tuple[int, int], phases: torch.Tensor, captured: torch.Tensor, *,
                terms: Sequence[str] = tuple(ZERNIKE_TERMS), beam: bool = True, crosstalk: bool = True,
-               iterations: int = 200,
-               learning_rate: float = 0.02, smoothing_px: Sequence[float] = (2.0, 0.0),
+               iterations: int = 200, learning_rate: float = 0.02, smoothing_px: Sequence[float] = (2.0, 0.0),
                progress: Callable[[int, int], None] | None = None) -> FitResult:
     """Fit wavefront error, beam and crosstalk so that |P(A e^(iW) e^(i blur(phase)))|^2 on the ROI matches
     `captured`.
 
     `phases` (N, H, W) are the driven phases of the displayed frames (`SLM.driven`: unwrapped where the gray levels
     do not wrap, so that the crosstalk blurs the jumps the panel has), `captured` (N, rows, cols) the registered
-    captured intensity on
-    the ROI (any scale). Adam on the mean relative residual; coarse to fine: the first stage compares the images
+    captured intensity on the ROI (any scale). Adam on the mean relative residual; coarse to fine: the first stage compares the images
     blurred by `smoothing_px[0]` pixels (a smoother landscape for large aberrations), the last unblurred, its
     learning rate falling to zero (cosine). `progress(done, total)` is called after every step.
     """
