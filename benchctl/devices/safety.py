@@ -8,7 +8,8 @@ The kernel may hand a process-wide signal to any thread that does not block it (
 simulator's thread). Python then runs the handler in the main thread only when that thread next runs Python
 code, and a plain `time.sleep` in the main thread is not woken: a 30 s camera readout, or `laser on` holding
 emission, would carry on. Device waits therefore use `wait()`, which also wakes on the signal wakeup file
-descriptor that the C-level handler writes to from whichever thread received the signal.
+descriptor that the C-level handler writes to from whichever thread received the signal, and which raises a
+termination signal found there even when its handler's exception was lost in C code (`wait`'s docstring).
 """
 
 from __future__ import annotations
