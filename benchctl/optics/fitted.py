@@ -170,9 +170,9 @@ def fit_optics(propagator: Propagator, roi: tuple[int, int], phases: torch.Tenso
 
     `phases` (N, H, W) are the driven phases of the displayed frames (`SLM.driven`: unwrapped where the gray levels
     do not wrap, so that the crosstalk blurs the jumps the panel has), `captured` (N, rows, cols) the registered
-    captured intensity on the ROI (any scale). Adam on the mean relative residual; coarse to fine: the first stage compares the images
-    blurred by `smoothing_px[0]` pixels (a smoother landscape for large aberrations), the last unblurred, its
-    learning rate falling to zero (cosine). `progress(done, total)` is called after every step.
+    captured intensity on the ROI (any scale). Adam on the mean relative residual; coarse to fine: the first stage
+    compares the images blurred by `smoothing_px[0]` pixels (a smoother landscape for large aberrations), the last
+    unblurred, its learning rate falling to zero (cosine). `progress(done, total)` is called after every step.
     """
     shape = propagator.plan.shape
     rows, cols = centred_slices(shape, roi)
