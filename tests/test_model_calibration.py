@@ -213,6 +213,9 @@ def test_optimisers_see_the_driven_phase_only_when_the_model_has_crosstalk(
     calibrated = msgspec.structs.replace(profile, optics=msgspec.structs.replace(profile.optics, model=path))
     setup = optimised_setup(calibrated, "green", slm_for(calibrated))
     assert setup.field_model is not None and (setup.display is not None) == sees_driven
+    driven = torch.zeros(setup.shape)
+    driven[:, : setup.shape[1] // 2] = 5.0  # a jump, as where the gray levels wrap
+    assert (setup.field_model.modulating(driven) is driven) == (not sees_driven)  # negligible: not even computed
 
 
 def test_generate_uses_the_stored_model(tmp_path: Path, profile: Profile) -> None:

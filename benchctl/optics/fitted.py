@@ -59,8 +59,9 @@ class FittedOptics:
         return self.crosstalk_px >= NEGLIGIBLE_CROSSTALK_PX
 
     def modulating(self, driven: torch.Tensor) -> torch.Tensor:
-        """The phase that modulates the light for the phase the panel drives: blurred by the crosstalk."""
-        return crosstalk_blur(driven, self.crosstalk_px)
+        """The phase that modulates the light for the phase the panel drives: blurred by the crosstalk (`driven`
+        itself when it is negligible, as optimisers then treat it: no FFTs on every reconstruction for nothing)."""
+        return crosstalk_blur(driven, self.crosstalk_px) if self.has_crosstalk else driven
 
     def to_dict(self) -> dict[str, object]:
         """Profile units (waves, mm), as stored in calibration/<profile>/optical-model.json."""
