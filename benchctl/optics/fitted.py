@@ -1,13 +1,13 @@
 """A propagation model fitted to captures: per colour, the wavefront error at the SLM (Zernike terms of
-optics.aberration), the beam's amplitude (a Gaussian with waist and offset) and the SLM's pixel crosstalk (a
-Gaussian blur of the phase the panel drives), found by gradient descent through
-the differentiable propagation so that the model's target-plane intensity of known phase patterns matches what
-the camera recorded of them (registered onto the target plane).
+optics.aberration), the beam's amplitude (a Gaussian with waist and offset), the SLM's pixel crosstalk (a
+Gaussian blur of the phase the panel drives) and its zero order (the fraction of the light it leaves unmodulated),
+found by gradient descent through the differentiable propagation so that the model's target-plane intensity of
+known phase patterns matches what the camera recorded of them (registered onto the target plane).
 
-`FittedOptics` is the result: an `OpticalSetup` carrying one (field_model) blurs the phase by the crosstalk and
-multiplies the SLM field by A e^(i W) before propagating, so SGD and every simulated score see the bench as
-measured. Crosstalk acts where the driven phase jumps, i.e. where the gray levels wrap: it applies to the phase
-the panel drives (`SLM.driven`), not to a hologram phase wrapped elsewhere.
+`FittedOptics` is the result: an `OpticalSetup` carrying one (field_model) modulates the light by
+(1 - f) e^(i C(phase)) + f and multiplies it by A e^(i W) before propagating, so SGD and every simulated score see
+the bench as measured. Crosstalk acts where the driven phase jumps, i.e. where the gray levels wrap: it applies to
+the phase the panel drives (`SLM.driven`), not to a hologram phase wrapped elsewhere.
 """
 
 from __future__ import annotations
@@ -39,6 +39,7 @@ class FittedOptics:
     waist_m: float = 0.0  # Gaussian 1/e^2 radius of the beam; 0: uniform illumination
     offset_m: tuple[float, float] = (0.0, 0.0)  # (rows, cols) from the panel's centre to the beam's centre
     crosstalk_px: float = 0.0  # Gaussian blur (sigma, SLM pixels) of the driven phase: fringing fields
+    zero_order: float = 0.0  # amplitude fraction the panel leaves unmodulated (pixel gaps)
 
     def slm_factor(self, shape: tuple[int, int], pitch_m: Pitch) -> torch.Tensor:
         """A e^(i W) on the SLM grid, complex64 (H, W): beam amplitude (mean power 1) and wavefront error."""
@@ -58,15 +59,18 @@ class FittedOptics:
         """Whether the crosstalk matters: below NEGLIGIBLE_CROSSTALK_PX it is a fit's noise around none."""
         return self.crosstalk_px >= NEGLIGIBLE_CROSSTALK_PX
 
-    def modulating(self, driven: torch.Tensor) -> torch.Tensor:
-        """The phase that modulates the light for the phase the panel drives: blurred by the crosstalk (`driven`
-        itself when it is negligible, as optimisers then treat it: no FFTs on every reconstruction for nothing)."""
-        return crosstalk_blur(driven, self.crosstalk_px) if self.has_crosstalk else driven
+    def modulated(self, driven: torch.Tensor) -> torch.Tensor:
+        """The panel's field under unit light for the phase it drives, (1 - f) e^(i C(driven)) + f: blurred by the
+        crosstalk only when it matters (as optimisers then treat it: no FFTs on every reconstruction for nothing)."""
+        phase = crosstalk_blur(driven, self.crosstalk_px) if self.has_crosstalk else driven
+        field = torch.polar(torch.ones_like(phase), phase)
+        return (1 - self.zero_order) * field + self.zero_order if self.zero_order else field
 
     def to_dict(self) -> dict[str, object]:
         """Profile units (waves, mm), as stored in calibration/<profile>/optical-model.json."""
         return {"zernike_waves": dict(self.zernike_waves), "waist_mm": self.waist_m * 1e3,
-                "offset_mm": [v * 1e3 for v in self.offset_m], "crosstalk_px": self.crosstalk_px}
+                "offset_mm": [v * 1e3 for v in self.offset_m], "crosstalk_px": self.crosstalk_px,
+                "zero_order": self.zero_order}
 
     @classmethod
     def from_dict(cls, data: Mapping[str, object]) -> FittedOptics:
@@ -78,7 +82,7 @@ class FittedOptics:
         offset = data.get("offset_mm", (0.0, 0.0))
         return cls(tuple((name, float(waves[name])) for name in ZERNIKE_TERMS if name in waves),
                    float(data.get("waist_mm", 0.0)) * 1e-3, (float(offset[0]) * 1e-3, float(offset[1]) * 1e-3),
-                   float(data.get("crosstalk_px", 0.0)))
+                   float(data.get("crosstalk_px", 0.0)), float(data.get("zero_order", 0.0)))
 
     @staticmethod
     def load(path: Path, channel: str) -> FittedOptics | None:
@@ -107,16 +111,18 @@ class FitResult:
 # learning rate) move it by a fraction of a realistic value (sigma 0.05-0.3 px); a variance, so that its gradient
 # does not vanish at 0 as sigma's does.
 CROSSTALK_UNIT_PX2 = 0.1
+ZERO_ORDER_UNIT = 0.1  # likewise for the zero order (realistic: 0.01-0.05 of the amplitude)
 
 
 class _Model(torch.nn.Module):
-    """The differentiable bench: zernike waves, log-waist and offset (both in units of the pupil radius), and the
-    crosstalk's variance."""
+    """The differentiable bench: zernike waves, log-waist and offset (both in units of the pupil radius), the
+    crosstalk's variance and the zero order."""
 
     def __init__(self, shape: tuple[int, int], pitch_m: Pitch, terms: Sequence[str], beam: bool,
-                 crosstalk: bool) -> None:
+                 crosstalk: bool, zero_order: bool) -> None:
         super().__init__()
-        self.shape, self.pitch_m, self.terms, self.beam, self.crosstalk = shape, pitch_m, list(terms), beam, crosstalk
+        self.shape, self.pitch_m, self.terms, self.beam = shape, pitch_m, list(terms), beam
+        self.crosstalk, self.unmodulated = crosstalk, zero_order
         self.radius = pupil_radius_m(shape, pitch_m)
         self.register_buffer("basis", zernike_basis(shape, pitch_m, self.terms))
         self.waves = torch.nn.Parameter(torch.zeros(len(self.terms), dtype=torch.float64))
@@ -124,6 +130,7 @@ class _Model(torch.nn.Module):
         self.offset = torch.nn.Parameter(torch.zeros(2, dtype=torch.float64))
         # The variance is |p| (a clamp at 0 could hold it there for good), started at 0.01: |p|'s gradient is 0 at 0.
         self.crosstalk_variance = torch.nn.Parameter(torch.tensor(0.01, dtype=torch.float64), requires_grad=crosstalk)
+        self.zero_order = torch.nn.Parameter(torch.tensor(0.01, dtype=torch.float64), requires_grad=zero_order)
 
     def factor(self) -> torch.Tensor:
         phase = 2 * math.pi * torch.einsum("k,khw->hw", self.waves, self.basis)
@@ -135,28 +142,36 @@ class _Model(torch.nn.Module):
         return torch.polar(amplitude, phase).to(torch.complex64)
 
     def fields(self, driven: torch.Tensor) -> torch.Tensor:
-        """The SLM fields of the driven phases (N, H, W): blurred by the crosstalk, lit through `factor`."""
+        """The SLM fields of the driven phases (N, H, W): blurred by the crosstalk, modulating all but the zero
+        order, lit through `factor`."""
         if self.crosstalk:
             driven = gaussian_blur(driven.double(), self.crosstalk_variance.abs() * CROSSTALK_UNIT_PX2)
-        return torch.polar(torch.ones_like(driven, dtype=torch.float32), driven.float()) * self.factor()
+        field = torch.polar(torch.ones_like(driven, dtype=torch.float32), driven.float())
+        if self.unmodulated:
+            fraction = (self.zero_order.abs() * ZERO_ORDER_UNIT).float()
+            field = (1 - fraction) * field + fraction
+        return field * self.factor()
 
     def result(self) -> FittedOptics:
         waves = tuple((name, round(float(w), 5)) for name, w in zip(self.terms, self.waves.detach()))
         variance = abs(float(self.crosstalk_variance.detach())) * CROSSTALK_UNIT_PX2 if self.crosstalk else 0.0
         crosstalk = round(math.sqrt(variance), 5)
+        zero_order = round(abs(float(self.zero_order.detach())) * ZERO_ORDER_UNIT, 5) if self.unmodulated else 0.0
         if not self.beam:
-            return FittedOptics(waves, crosstalk_px=crosstalk)
+            return FittedOptics(waves, crosstalk_px=crosstalk, zero_order=zero_order)
         offset = self.offset.detach() * self.radius
         waist = float(self.log_waist.detach().exp()) * self.radius
-        return FittedOptics(waves, waist, (float(offset[0]), float(offset[1])), crosstalk)
+        return FittedOptics(waves, waist, (float(offset[0]), float(offset[1])), crosstalk, zero_order)
 
 
-def _residual(model_intensity: torch.Tensor, captured: torch.Tensor) -> torch.Tensor:
-    """Relative RMS misfit per image after the best gain and offset (exposure, stray light): closed-form least
-    squares of captured ~ g model + b, differentiable in the model."""
+def _residual(model_intensity: torch.Tensor, captured: torch.Tensor, offset: torch.Tensor) -> torch.Tensor:
+    """Relative RMS misfit per image after the best gain and offset (exposure, stray light), or the best gain
+    alone where `offset` (N,) is False: closed-form least squares of captured ~ g model (+ b), differentiable in the
+    model."""
     m = model_intensity.flatten(1).double()
     c = captured.flatten(1).double()
-    m0, c0 = m - m.mean(1, keepdim=True), c - c.mean(1, keepdim=True)
+    keep = offset.to(m.device).double()[:, None]
+    m0, c0 = m - keep * m.mean(1, keepdim=True), c - keep * c.mean(1, keepdim=True)
     gain = (m0 * c0).sum(1, keepdim=True) / (m0.square().sum(1, keepdim=True) + 1e-30)
     misfit = (gain * m0 - c0).square().mean(1)
     return (misfit / c.square().mean(1)).sqrt()
@@ -164,20 +179,26 @@ def _residual(model_intensity: torch.Tensor, captured: torch.Tensor) -> torch.Te
 
 def fit_optics(propagator: Propagator, roi: tuple[int, int], phases: torch.Tensor, captured: torch.Tensor, *,
                terms: Sequence[str] = tuple(ZERNIKE_TERMS), beam: bool = True, crosstalk: bool = True,
-               iterations: int = 200, learning_rate: float = 0.02, smoothing_px: Sequence[float] = (2.0, 0.0),
+               zero_order: bool = True, dark_background: Sequence[bool] | None = None, iterations: int = 200,
+               learning_rate: float = 0.02, smoothing_px: Sequence[float] = (2.0, 0.0),
                progress: Callable[[int, int], None] | None = None) -> FitResult:
-    """Fit wavefront error, beam and crosstalk so that |P(A e^(iW) e^(i blur(phase)))|^2 on the ROI matches
-    `captured`.
+    """Fit wavefront error, beam, crosstalk and zero order so that |P(A e^(iW) ((1 - f) e^(i blur(phase)) + f))|^2
+    on the ROI matches `captured`.
 
     `phases` (N, H, W) are the driven phases of the displayed frames (`SLM.driven`: unwrapped where the gray levels
     do not wrap, so that the crosstalk blurs the jumps the panel has), `captured` (N, rows, cols) the registered
-    captured intensity on the ROI (any scale). Adam on the mean relative residual; coarse to fine: the first stage
+    captured intensity on the ROI (any scale, dark frame subtracted). Each image is compared after its best gain and
+    offset, or gain alone where `dark_background` says so (a constant phase, whose light is the beam itself: a
+    free offset would absorb the beam's curvature, which pins its waist). Adam on the mean relative residual;
+    coarse to fine: the first stage
     compares the images blurred by `smoothing_px[0]` pixels (a smoother landscape for large aberrations), the last
     unblurred, its learning rate falling to zero (cosine). `progress(done, total)` is called after every step.
     """
     shape = propagator.plan.shape
     rows, cols = centred_slices(shape, roi)
-    model = _Model(shape, propagator.plan.pitch_m, terms, beam, crosstalk)
+    model = _Model(shape, propagator.plan.pitch_m, terms, beam, crosstalk, zero_order)
+    offset = torch.tensor([not dark for dark in dark_background] if dark_background is not None
+                          else [True] * len(phases))
     optimiser = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=learning_rate)
     captured = captured.double()
     stages = [(sigma, iterations // len(smoothing_px)) for sigma in smoothing_px]
@@ -191,10 +212,10 @@ def fit_optics(propagator: Propagator, roi: tuple[int, int], phases: torch.Tenso
                 optimiser.param_groups[0]["lr"] = learning_rate * 0.5 * (1 + math.cos(math.pi * step / steps))
             optimiser.zero_grad()
             intensity = propagator(model.fields(phases)).abs().square()[..., rows, cols]
-            loss = _residual(gaussian_blur(intensity.double(), sigma**2), target).mean()
+            loss = _residual(gaussian_blur(intensity.double(), sigma**2), target, offset).mean()
             if initial is None:
                 with torch.no_grad():
-                    initial = float(_residual(intensity, captured).mean())
+                    initial = float(_residual(intensity, captured, offset).mean())
             loss.backward()
             optimiser.step()
             losses.append(float(loss.detach()))
@@ -202,7 +223,7 @@ def fit_optics(propagator: Propagator, roi: tuple[int, int], phases: torch.Tenso
                 progress(len(losses), total)
     with torch.no_grad():
         intensity = propagator(model.fields(phases)).abs().square()[..., rows, cols]
-        residual = float(_residual(intensity, captured).mean())
+        residual = float(_residual(intensity, captured, offset).mean())
     return FitResult(model.result(), residual, initial if initial is not None else residual, losses)
 
 

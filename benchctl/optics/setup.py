@@ -145,8 +145,9 @@ class OpticalSetup:
 
     def reconstruct(self, phase: torch.Tensor) -> torch.Tensor:
         """Amplitude at the target plane of a phase-only hologram lit by a unit plane wave: |P_{+z}(exp(i phase))|;
-        with a fitted model, lit by its beam through its wavefront error, the phase blurred by its crosstalk C:
-        |P_{+z}(A e^(i W) exp(i C(phase)))|, where `phase` should be what the panel drives (`SLM.driven`).
+        with a fitted model, lit by its beam through its wavefront error, the phase blurred by its crosstalk C and
+        a fraction f of the light unmodulated: |P_{+z}(A e^(i W) ((1 - f) exp(i C(phase)) + f))|, where `phase`
+        should be what the panel drives (`SLM.driven`).
 
         The one simulation of a hologram everyone uses; differentiable, and its gradient stays finite where the
         amplitude is exactly zero (complex abs, not a square root of the intensity).
@@ -168,8 +169,7 @@ class OpticalSetup:
     def _lit(self, phase: torch.Tensor) -> torch.Tensor:
         if self.field_model is None:
             return torch.polar(torch.ones_like(phase), phase)
-        phase = self.field_model.modulating(phase)
-        return torch.polar(torch.ones_like(phase), phase) * self.slm_factor().to(phase.device)
+        return self.field_model.modulated(phase) * self.slm_factor().to(phase.device)
 
     def without_wavefront(self, phase: torch.Tensor) -> torch.Tensor:
         """`phase` minus the fitted model's wavefront error W (unchanged without a model): what to display so that

@@ -180,7 +180,8 @@ class Calibration:
             model_text = (f"fitted {model['created']}, residual {model['residual']:.3f}: "
                           + ", ".join(f"{k} {v:+.3f}" for k, v in model["zernike_waves"].items())
                           + f" waves; beam waist {model['waist_mm']:.2f} mm"
-                          + f"; crosstalk {model.get('crosstalk_px', 0.0):.3f} px" if model else "none: ideal model")
+                          + f"; crosstalk {model.get('crosstalk_px', 0.0):.3f} px"
+                          + f"; zero order {model.get('zero_order', 0.0):.3f}" if model else "none: ideal model")
             rows.append({"colour": colour, "registration": reg_text, "lookup_table": lut_text,
                          "optical_model": model_text})
         return rows, warnings

@@ -279,14 +279,15 @@ def lut_report(context: Context, fits: dict[str, dict[str, Any]]) -> dict[str, A
 
 def model_calibration_report(context: Context, fits: dict[str, dict[str, Any]], terms: list[str],
                              warnings: list[str]) -> dict[str, Any]:
-    """Per colour: fitted Zernike coefficients (waves), beam, crosstalk, residual before and after; the fit's loss
-    curves."""
+    """Per colour: fitted Zernike coefficients (waves), beam, crosstalk, zero order, residual before and after; the
+    fit's loss curves."""
     record = context.record
     assert record is not None
     rows = [{"colour": name, **{f"{t} (waves)": f["zernike_waves"].get(t) for t in terms},
              "waist mm": round(f["waist_mm"], 4), "offset mm": [round(v, 4) for v in f["offset_mm"]],
-             "crosstalk px": f.get("crosstalk_px", 0.0), "residual before": f["initial_residual"],
-             "residual after": f["residual"], "patterns": f["patterns"],
+             "crosstalk px": f.get("crosstalk_px", 0.0), "zero order": f.get("zero_order", 0.0),
+             "residual before": f["initial_residual"], "residual after": f["residual"],
+             "patterns": f"{f['patterns']}{' + flat' if f.get('flat') else ''}",
              "fit s": f["seconds"],
              "registered through a model": "yes" if f.get("registration_through_model") else "no"}
             for name, f in fits.items()]
@@ -294,9 +295,9 @@ def model_calibration_report(context: Context, fits: dict[str, dict[str, Any]], 
     curves = {name: (list(range(1, len(f["losses"]) + 1)), f["losses"]) for name, f in fits.items()}
     body = (f"<h2>Fitted model</h2>{table(by_quantity)}<p>Wavefront error at the SLM: ANSI/OSA Zernike terms, "
             "RMS-normalised over the disc circumscribing the panel. Residual: RMS misfit of the registered captures "
-            "relative to their RMS, after the best gain and offset, with the ideal model (before) and the fitted one "
-            "(after). The model is stored per profile and used by generation, SGD and the simulated scores of later "
-            "runs.</p>"
+            "relative to their RMS, after the best gain and offset (gain alone for the flat pattern), with the ideal "
+            "model (before) and the fitted one (after). The model is stored per profile and used by generation, SGD "
+            "and the simulated scores of later runs.</p>"
             f"<h2>Fit</h2>{line_plot(curves, 'Adam step', 'relative residual (first half blurred)')}")
     write_json(record.folder / "metrics.json", {"procedure": "model-calibration", "colours": fits})
     write_csv(record.folder / "metrics.csv", rows)

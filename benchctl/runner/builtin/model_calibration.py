@@ -1,8 +1,9 @@
-"""Model calibration: per colour, display phase patterns that focus random sparse points over the ROI, capture
-each, register it onto the target plane (the stored registration) and fit the propagation model's wavefront error
-(Zernike terms at the SLM), beam (Gaussian waist and offset) and SLM crosstalk by gradient descent through the
-differentiable propagation (optics.fitted). The fit is stored per profile (calibration/<profile>/optical-model.json),
-where generation, SGD and the simulated scores of later runs find it (OpticalSetup.field_model).
+"""Model calibration: per colour, display phase patterns that focus random sparse points over the ROI and a constant
+phase (which shows the beam itself), capture each, register it onto the target plane (the stored registration) and
+fit the propagation model's wavefront error (Zernike terms at the SLM), beam (Gaussian waist and offset), SLM
+crosstalk and zero order by gradient descent through the differentiable propagation (optics.fitted). The fit is
+stored per profile (calibration/<profile>/optical-model.json), where generation, SGD and the simulated scores of
+later runs find it (OpticalSetup.field_model).
 """
 
 from __future__ import annotations
@@ -39,8 +40,8 @@ from benchctl.runner.steps import (
 )
 
 MAX_SATURATED = 1e-3  # fraction of ROI pixels clipped in a capture above which the fit is refused
-DESCRIPTION = ("random-point phase patterns per colour, captured, registered; wavefront, beam and crosstalk fitted "
-               "and stored")
+DESCRIPTION = ("random-point and flat phase patterns per colour, captured, registered; wavefront, beam, crosstalk and "
+               "zero order fitted and stored")
 
 
 class ModelCalibrationParameters(ExposureParameters, kw_only=True):
@@ -53,7 +54,11 @@ class ModelCalibrationParameters(ExposureParameters, kw_only=True):
     fit_steps: Annotated[int, Meta(ge=2)] = 120  # Adam steps of the fit (half blurred, half sharp)
     learning_rate: Positive = 0.03
     beam: bool = True  # fit the beam's waist and offset too
+    # also show a constant phase: its capture is the beam itself, fitted by gain alone, which pins the waist that
+    # the point patterns leave loose (and with it the zero order and crosstalk: docs/model_calibration.md)
+    flat: bool = True
     crosstalk: bool = True  # fit the SLM's pixel crosstalk too (a blur of the driven phase)
+    zero_order: bool = True  # fit the fraction of the light the panel leaves unmodulated too
     seed: NonNegativeInt = 0  # of the random points
     registration: Registration = "auto"
 
@@ -67,7 +72,7 @@ def plan(context: Context) -> list[Step]:
     used = channels(context)
     params = context.parameters(ModelCalibrationParameters)
     steps = registration.registration_first(context, used, params, params.registration)
-    count = params.patterns
+    count = params.patterns + params.flat
     for channel in used:
         steps.append(Step(f"model/patterns/{channel.name}", f"{count} calibration patterns ({channel.name})",
                           _patterns(channel)))
@@ -75,9 +80,10 @@ def plan(context: Context) -> list[Step]:
             steps.append(exposure_step(context, f"model/capture/{channel.name}/{k}", ("model", channel.name, str(k)),
                                        channel, power_w(context, channel),
                                        lambda ctx, c=channel.name, n=k: _pattern_frame(ctx, c, n),
-                                       f"expose calibration pattern {k + 1}/{count}"))
-        steps.append(Step(f"model/fit/{channel.name}", f"fit wavefront, beam and crosstalk ({channel.name})",
-                          _fitter(channel)))
+                                       f"expose calibration pattern {k + 1}/{count}"
+                                       + (" (flat)" if k == params.patterns else "")))
+        steps.append(Step(f"model/fit/{channel.name}", f"fit wavefront, beam, crosstalk and zero order "
+                          f"({channel.name})", _fitter(channel)))
     steps.append(Step("report", "metrics.json, metrics.csv and report.html", _reporter(used)))
     return steps
 
@@ -88,13 +94,15 @@ def _patterns(channel: LaserChannel):
         params = context.parameters(ModelCalibrationParameters)
         phases = calibration_patterns(setup.slm_propagator(), setup.roi, params.patterns, seed=params.seed,
                                       spacing_px=params.spacing_px)
+        if params.flat:
+            phases = torch.cat([phases, torch.zeros_like(phases[:1])])
         slm = slm_for(context.profile)
         files = []
         for k, phase in enumerate(phases):
-            file = Path("holograms") / f"model-{channel.name}-{k}.png"
+            file = Path("holograms") / f"model-{channel.name}-{'flat' if k == params.patterns else k}.png"
             write_png(context.path(str(file)), slm.encode(phase, channel.name))
             files.append(str(file))
-        return {"files": files}
+        return {"files": files, "flat": params.flat}
 
     return action
 
@@ -123,18 +131,20 @@ def _fitter(channel: LaserChannel):
                                 "capture (the fit needs linear images): lower the setpoint or the exposure")
         start = time.perf_counter()
         params = context.parameters(ModelCalibrationParameters)
+        flat = bool(context.result(f"model/patterns/{channel.name}").get("flat"))
         fit = fit_optics(setup.target_propagator(), setup.roi, torch.stack(shown), torch.stack(captured),
-                         beam=params.beam, crosstalk=params.crosstalk, iterations=params.fit_steps,
-                         learning_rate=params.learning_rate,
-                         progress=context.progress(f"      fit {channel.name}"))
+                         beam=params.beam, crosstalk=params.crosstalk, zero_order=params.zero_order,
+                         dark_background=[False] * (len(shown) - flat) + [True] * flat, iterations=params.fit_steps,
+                         learning_rate=params.learning_rate, progress=context.progress(f"      fit {channel.name}"))
         seconds = time.perf_counter() - start
         entry = {**fit.model.to_dict(), "residual": round(fit.residual, 5),
-                 "initial_residual": round(fit.initial_residual, 5), "patterns": len(shown)}
+                 "initial_residual": round(fit.initial_residual, 5), "patterns": len(shown) - flat, "flat": flat}
         context.calibration.save_model(channel.name, entry)
         Calibration.store(context.calibration.profile).save_model(channel.name, entry)
         context.recalibrated()
         waves = ", ".join(f"{name} {value:+.3f}" for name, value in fit.model.zernike_waves)
-        context.say(f"      {channel.name}: {waves} waves; crosstalk {fit.model.crosstalk_px:.3f} px; "
+        context.say(f"      {channel.name}: {waves} waves; waist {fit.model.waist_m * 1e3:.2f} mm; crosstalk "
+                    f"{fit.model.crosstalk_px:.3f} px; zero order {fit.model.zero_order:.3f}; "
                     f"residual {fit.initial_residual:.3f} -> {fit.residual:.3f} "
                     f"({seconds:.1f} s)")
         through_model = bool(registration_entry.get("through_model"))
