@@ -29,7 +29,7 @@ from benchctl.devices.sim.state import reset_states
 from benchctl.devices.slm import open_slm, slm_for
 from benchctl.errors import BenchctlError
 from benchctl.optics import PhaseLUT, propagation
-from benchctl.optics.aberration import ZERNIKE_TERMS, defocus_focal_length_m, zernike_basis
+from benchctl.optics.aberration import ZERNIKE_TERMS, defocus_focal_length_m, gaussian_blur, zernike_basis
 from benchctl.profiles import LaserConfig, Profile, SimConfig, ZernikeTerm, load_profile
 from benchctl.runner.holograms import compute_scene
 
@@ -486,6 +486,21 @@ def test_crosstalk_lowers_a_fine_gratings_efficiency_as_predicted(profile: Profi
     zero_order = ((1 + math.cos(modulation)) / 2) ** 2
     ratio = irradiance(profile, gray).sum() / irradiance(profile, np.zeros((64, 96), np.int64)).sum()
     assert ratio == pytest.approx(zero_order, rel=0.01, abs=1e-4)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_blur_scales_a_sinusoid_by_its_analytic_response(dtype: torch.dtype) -> None:
+    """A sinusoid of f cycles per pixel blurred by a Gaussian of variance s^2 keeps its form, its amplitude times
+    exp(-2 pi^2 s^2 f^2): to float32 precision when given float32 (computed in it: the crosstalk blur on every
+    model evaluation of SGD and CITL), to float64 precision when given float64 (the fit)."""
+    y, x = torch.meshgrid(torch.arange(48, dtype=torch.float64), torch.arange(64, dtype=torch.float64), indexing="ij")
+    fy, fx, variance = 5 / 48, 12 / 64, 0.7**2
+    wave = 3.0 + 2.0 * torch.cos(2 * math.pi * (fy * y + fx * x) + 0.4)
+    expected = 3.0 + 2.0 * math.exp(-2 * math.pi**2 * variance * (fy**2 + fx**2)) * (wave - 3.0) / 2.0
+    blurred = gaussian_blur(wave.to(dtype)[None], variance)[0]
+    assert blurred.dtype == dtype
+    tolerance = 2e-6 if dtype == torch.float32 else 1e-12
+    assert float((blurred.double() - expected).abs().max()) < tolerance
 
 
 def test_stray_light_spreads_its_fraction_evenly(profile: Profile) -> None:

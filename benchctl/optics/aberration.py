@@ -124,15 +124,17 @@ def crosstalk_blur(phase: torch.Tensor, sigma_px: torch.Tensor | float) -> torch
 
 
 def gaussian_blur(images: torch.Tensor, variance_px2: torch.Tensor | float) -> torch.Tensor:
-    """(..., H, W) blurred by a Gaussian of `variance_px2` square pixels, in the input's dtype; unchanged at 0.
-    Applied in frequency (exactly exp(-2 pi^2 variance f^2) at f cycles per pixel), periodic at the edges, where
-    the error is confined to about one blur width. Differentiable in the variance, also at 0."""
+    """(..., H, W) blurred by a Gaussian of `variance_px2` square pixels, computed in the input's precision (float32
+    or float64, other dtypes in float64) and returned in its dtype; unchanged at 0. Applied in frequency (exactly
+    exp(-2 pi^2 variance f^2) at f cycles per pixel), periodic at the edges, where the error is confined to about
+    one blur width. Differentiable in the variance, also at 0."""
     variance = torch.as_tensor(variance_px2, dtype=torch.float64)
     if not variance.requires_grad and float(variance) == 0:
         return images
+    real = images.dtype if images.dtype in (torch.float32, torch.float64) else torch.float64
     h, w = images.shape[-2:]
     fy = torch.fft.fftfreq(h, dtype=torch.float64)[:, None]
     fx = torch.fft.rfftfreq(w, dtype=torch.float64)[None, :]
-    response = torch.exp(-2 * math.pi**2 * variance * (fy.square() + fx.square()))
-    spectrum = torch.fft.rfft2(images.to(torch.float64)) * response
+    response = torch.exp(-2 * math.pi**2 * variance * (fy.square() + fx.square())).to(real)
+    spectrum = torch.fft.rfft2(images.to(real)) * response
     return torch.fft.irfft2(spectrum, s=(h, w)).to(images.dtype)
