@@ -99,12 +99,14 @@ def _load(path: str, mtime_ns: int, size: int) -> dict[str, FittedOptics]:
 
 @dataclass
 class FitResult:
-    """A fit's outcome: the model, the relative RMS residual of the captures before and after, and the loss curve."""
+    """A fit's outcome: the model, the relative RMS residual of the captures before and after, the loss curve, and
+    the camera's blur (sigma, SLM pixels: part of the measurement, not of the bench that holograms see)."""
 
     model: FittedOptics
     residual: float
     initial_residual: float
     losses: list[float]
+    camera_blur_px: float = 0.0
 
 
 # The crosstalk parameter is its variance in units of CROSSTALK_UNIT_PX2, so that Adam's steps (of about the
@@ -112,6 +114,7 @@ class FitResult:
 # does not vanish at 0 as sigma's does.
 CROSSTALK_UNIT_PX2 = 0.1
 ZERO_ORDER_UNIT = 0.1  # likewise for the zero order (realistic: 0.01-0.05 of the amplitude)
+CAMERA_UNIT_PX2 = 1.0  # and the camera's blur (realistic: sigma 0.3-1 SLM pixel)
 
 
 class _Model(torch.nn.Module):
@@ -119,10 +122,10 @@ class _Model(torch.nn.Module):
     crosstalk's variance and the zero order."""
 
     def __init__(self, shape: tuple[int, int], pitch_m: Pitch, terms: Sequence[str], beam: bool,
-                 crosstalk: bool, zero_order: bool) -> None:
+                 crosstalk: bool, zero_order: bool, camera_blur: bool) -> None:
         super().__init__()
         self.shape, self.pitch_m, self.terms, self.beam = shape, pitch_m, list(terms), beam
-        self.crosstalk, self.unmodulated = crosstalk, zero_order
+        self.crosstalk, self.unmodulated, self.camera_blur = crosstalk, zero_order, camera_blur
         self.radius = pupil_radius_m(shape, pitch_m)
         self.register_buffer("basis", zernike_basis(shape, pitch_m, self.terms))
         self.waves = torch.nn.Parameter(torch.zeros(len(self.terms), dtype=torch.float64))
@@ -131,6 +134,7 @@ class _Model(torch.nn.Module):
         # The variance is |p| (a clamp at 0 could hold it there for good), started at 0.01: |p|'s gradient is 0 at 0.
         self.crosstalk_variance = torch.nn.Parameter(torch.tensor(0.01, dtype=torch.float64), requires_grad=crosstalk)
         self.zero_order = torch.nn.Parameter(torch.tensor(0.01, dtype=torch.float64), requires_grad=zero_order)
+        self.camera_variance = torch.nn.Parameter(torch.tensor(0.01, dtype=torch.float64), requires_grad=camera_blur)
 
     def factor(self) -> torch.Tensor:
         phase = 2 * math.pi * torch.einsum("k,khw->hw", self.waves, self.basis)
@@ -151,6 +155,17 @@ class _Model(torch.nn.Module):
             fraction = (self.zero_order.abs() * ZERO_ORDER_UNIT).float()
             field = (1 - fraction) * field + fraction
         return field * self.factor()
+
+    def seen(self, intensity: torch.Tensor, smoothing_px2: float = 0.0) -> torch.Tensor:
+        """The target-plane intensity as the registered capture shows it, blurred by the camera's optics, sampling
+        and resampling (nuisance, not the bench's: holograms never see it); further smoothed by `smoothing_px2`."""
+        variance = self.camera_variance.abs() * CAMERA_UNIT_PX2 if self.camera_blur else 0.0
+        return gaussian_blur(intensity.double(), variance + smoothing_px2)
+
+    def camera_blur_px(self) -> float:
+        if not self.camera_blur:
+            return 0.0
+        return round(math.sqrt(abs(float(self.camera_variance.detach())) * CAMERA_UNIT_PX2), 5)
 
     def result(self) -> FittedOptics:
         waves = tuple((name, round(float(w), 5)) for name, w in zip(self.terms, self.waves.detach()))
@@ -179,7 +194,8 @@ def _residual(model_intensity: torch.Tensor, captured: torch.Tensor, offset: tor
 
 def fit_optics(propagator: Propagator, roi: tuple[int, int], phases: torch.Tensor, captured: torch.Tensor, *,
                terms: Sequence[str] = tuple(ZERNIKE_TERMS), beam: bool = True, crosstalk: bool = True,
-               zero_order: bool = True, dark_background: Sequence[bool] | None = None, iterations: int = 200,
+               zero_order: bool = True, camera_blur: bool = True, dark_background: Sequence[bool] | None = None,
+               iterations: int = 200,
                learning_rate: float = 0.02, smoothing_px: Sequence[float] = (2.0, 0.0),
                progress: Callable[[int, int], None] | None = None) -> FitResult:
     """Fit wavefront error, beam, crosstalk and zero order so that |P(A e^(iW) ((1 - f) e^(i blur(phase)) + f))|^2
@@ -189,14 +205,16 @@ def fit_optics(propagator: Propagator, roi: tuple[int, int], phases: torch.Tenso
     do not wrap, so that the crosstalk blurs the jumps the panel has), `captured` (N, rows, cols) the registered
     captured intensity on the ROI (any scale, dark frame subtracted). Each image is compared after its best gain and
     offset, or gain alone where `dark_background` says so (a constant phase, whose light is the beam itself: a
-    free offset would absorb the beam's curvature, which pins its waist). Adam on the mean relative residual;
-    coarse to fine: the first stage
-    compares the images blurred by `smoothing_px[0]` pixels (a smoother landscape for large aberrations), the last
-    unblurred, its learning rate falling to zero (cosine). `progress(done, total)` is called after every step.
+    free offset would absorb the beam's curvature, which pins its waist). With `camera_blur` the model's intensity is
+    blurred by a fitted Gaussian first, as the camera's optics, Bayer sampling and the registration's resampling
+    blur the capture (left out, the crosstalk, which also softens the finest speckle, grows to imitate it). Adam on
+    the mean relative residual; coarse to fine: the first stage compares the images blurred by `smoothing_px[0]`
+    pixels (a smoother landscape for large aberrations), the last unblurred, its learning rate falling to zero
+    (cosine). `progress(done, total)` is called after every step.
     """
     shape = propagator.plan.shape
     rows, cols = centred_slices(shape, roi)
-    model = _Model(shape, propagator.plan.pitch_m, terms, beam, crosstalk, zero_order)
+    model = _Model(shape, propagator.plan.pitch_m, terms, beam, crosstalk, zero_order, camera_blur)
     offset = torch.tensor([not dark for dark in dark_background] if dark_background is not None
                           else [True] * len(phases))
     optimiser = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=learning_rate)
@@ -212,7 +230,7 @@ def fit_optics(propagator: Propagator, roi: tuple[int, int], phases: torch.Tenso
                 optimiser.param_groups[0]["lr"] = learning_rate * 0.5 * (1 + math.cos(math.pi * step / steps))
             optimiser.zero_grad()
             intensity = propagator(model.fields(phases)).abs().square()[..., rows, cols]
-            loss = _residual(gaussian_blur(intensity.double(), sigma**2), target, offset).mean()
+            loss = _residual(model.seen(intensity, sigma**2), target, offset).mean()
             if initial is None:
                 with torch.no_grad():
                     initial = float(_residual(intensity, captured, offset).mean())
@@ -223,8 +241,9 @@ def fit_optics(propagator: Propagator, roi: tuple[int, int], phases: torch.Tenso
                 progress(len(losses), total)
     with torch.no_grad():
         intensity = propagator(model.fields(phases)).abs().square()[..., rows, cols]
-        residual = float(_residual(intensity, captured, offset).mean())
-    return FitResult(model.result(), residual, initial if initial is not None else residual, losses)
+        residual = float(_residual(model.seen(intensity), captured, offset).mean())
+    return FitResult(model.result(), residual, initial if initial is not None else residual, losses,
+                     model.camera_blur_px())
 
 
 def calibration_patterns(propagator_to_slm: Propagator, roi: tuple[int, int], count: int, seed: int,

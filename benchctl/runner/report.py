@@ -286,6 +286,7 @@ def model_calibration_report(context: Context, fits: dict[str, dict[str, Any]], 
     rows = [{"colour": name, **{f"{t} (waves)": f["zernike_waves"].get(t) for t in terms},
              "waist mm": round(f["waist_mm"], 4), "offset mm": [round(v, 4) for v in f["offset_mm"]],
              "crosstalk px": f.get("crosstalk_px", 0.0), "zero order": f.get("zero_order", 0.0),
+             "camera blur px": f.get("camera_blur_px", 0.0),
              "residual before": f["initial_residual"], "residual after": f["residual"],
              "patterns": f"{f['patterns']}{' + flat' if f.get('flat') else ''}",
              "fit s": f["seconds"],
@@ -296,7 +297,9 @@ def model_calibration_report(context: Context, fits: dict[str, dict[str, Any]], 
     body = (f"<h2>Fitted model</h2>{table(by_quantity)}<p>Wavefront error at the SLM: ANSI/OSA Zernike terms, "
             "RMS-normalised over the disc circumscribing the panel. Residual: RMS misfit of the registered captures "
             "relative to their RMS, after the best gain and offset (gain alone for the flat pattern), with the ideal "
-            "model (before) and the fitted one (after). The model is stored per profile and used by generation, SGD "
+            "model (before) and the fitted one (after). Camera blur: the blur of the registered captures (camera "
+            "optics, sampling, resampling), fitted so that it is not taken for the bench's; holograms do not use "
+            "it. The model is stored per profile and used by generation, SGD "
             "and the simulated scores of later runs.</p>"
             f"<h2>Fit</h2>{line_plot(curves, 'Adam step', 'relative residual (first half blurred)')}")
     write_json(record.folder / "metrics.json", {"procedure": "model-calibration", "colours": fits})

@@ -59,6 +59,7 @@ class ModelCalibrationParameters(ExposureParameters, kw_only=True):
     flat: bool = True
     crosstalk: bool = True  # fit the SLM's pixel crosstalk too (a blur of the driven phase)
     zero_order: bool = True  # fit the fraction of the light the panel leaves unmodulated too
+    camera_blur: bool = True  # compare through a fitted blur of the captures (camera optics, sampling, registration)
     seed: NonNegativeInt = 0  # of the random points
     registration: Registration = "auto"
 
@@ -134,11 +135,13 @@ def _fitter(channel: LaserChannel):
         flat = bool(context.result(f"model/patterns/{channel.name}").get("flat"))
         fit = fit_optics(setup.target_propagator(), setup.roi, torch.stack(shown), torch.stack(captured),
                          beam=params.beam, crosstalk=params.crosstalk, zero_order=params.zero_order,
+                         camera_blur=params.camera_blur,
                          dark_background=[False] * (len(shown) - flat) + [True] * flat, iterations=params.fit_steps,
                          learning_rate=params.learning_rate, progress=context.progress(f"      fit {channel.name}"))
         seconds = time.perf_counter() - start
         entry = {**fit.model.to_dict(), "residual": round(fit.residual, 5),
-                 "initial_residual": round(fit.initial_residual, 5), "patterns": len(shown) - flat, "flat": flat}
+                 "initial_residual": round(fit.initial_residual, 5), "patterns": len(shown) - flat, "flat": flat,
+                 "camera_blur_px": fit.camera_blur_px}
         context.calibration.save_model(channel.name, entry)
         Calibration.store(context.calibration.profile).save_model(channel.name, entry)
         context.recalibrated()
