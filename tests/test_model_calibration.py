@@ -28,6 +28,7 @@ from benchctl.optics import lsq_scale, psnr
 from benchctl.optics.aberration import pupil_radius_m
 from benchctl.optics.fitted import FittedOptics, _residual, calibration_patterns, fit_optics
 from benchctl.optics.phase_encoding import PhaseLUT, gray_to_phase, phase_to_gray
+from benchctl.optics.propagation import Propagator
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import Profile
 from benchctl.runner.calibration import Calibration
@@ -139,6 +140,9 @@ def test_a_flat_pattern_is_compared_by_gain_alone() -> None:
     captured = 3 * model + 1.0
     with_offset, gain_only = _residual(model, captured, torch.tensor([True, False]))
     assert float(with_offset) < 1e-6 and float(gain_only) > 0.05
+    propagator = Propagator((16, 24), 0.02, 520e-9, 8e-6)
+    with pytest.raises(ValueError, match="dark_background has 1 entries for 2 patterns"):
+        fit_optics(propagator, (8, 12), torch.zeros(2, 16, 24), captured[:, 4:12, 6:18], dark_background=[True])
 
 
 PROCEDURE = """\

@@ -195,8 +195,7 @@ def _residual(model_intensity: torch.Tensor, captured: torch.Tensor, offset: tor
 def fit_optics(propagator: Propagator, roi: tuple[int, int], phases: torch.Tensor, captured: torch.Tensor, *,
                terms: Sequence[str] = tuple(ZERNIKE_TERMS), beam: bool = True, crosstalk: bool = True,
                zero_order: bool = True, camera_blur: bool = True, dark_background: Sequence[bool] | None = None,
-               iterations: int = 200,
-               learning_rate: float = 0.02, smoothing_px: Sequence[float] = (2.0, 0.0),
+               iterations: int = 200, learning_rate: float = 0.02, smoothing_px: Sequence[float] = (2.0, 0.0),
                progress: Callable[[int, int], None] | None = None) -> FitResult:
     """Fit wavefront error, beam, crosstalk and zero order so that |P(A e^(iW) ((1 - f) e^(i blur(phase)) + f))|^2
     on the ROI matches `captured`.
@@ -212,11 +211,13 @@ def fit_optics(propagator: Propagator, roi: tuple[int, int], phases: torch.Tenso
     pixels (a smoother landscape for large aberrations), the last unblurred, its learning rate falling to zero
     (cosine). `progress(done, total)` is called after every step.
     """
+    if dark_background is not None and len(dark_background) != len(phases):
+        raise ValueError(f"dark_background has {len(dark_background)} entries for {len(phases)} patterns")
+    offset = torch.tensor([not dark for dark in dark_background] if dark_background is not None
+                          else [True] * len(phases))
     shape = propagator.plan.shape
     rows, cols = centred_slices(shape, roi)
     model = _Model(shape, propagator.plan.pitch_m, terms, beam, crosstalk, zero_order, camera_blur)
-    offset = torch.tensor([not dark for dark in dark_background] if dark_background is not None
-                          else [True] * len(phases))
     optimiser = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=learning_rate)
     captured = captured.double()
     stages = [(sigma, iterations // len(smoothing_px)) for sigma in smoothing_px]
