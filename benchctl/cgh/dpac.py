@@ -1,5 +1,6 @@
 """Double-phase amplitude coding (DPAC): a one-shot phase-only encoding of the target's field at the SLM (with a
-fitted optical model, of the field that bench must be given: its wavefront removed, its beam divided out)."""
+fitted optical model, of the field that bench must be given: its wavefront removed, its beam divided out, its
+unmodulated zero order subtracted)."""
 
 from __future__ import annotations
 
@@ -37,17 +38,32 @@ def through_fitted_bench(field: torch.Tensor, factor: torch.Tensor) -> torch.Ten
     return field * torch.exp(-1j * factor.angle()) / torch.clamp(amplitude, min=BEAM_FLOOR * float(amplitude.max()))
 
 
+def without_zero_order(field: torch.Tensor, fraction: float) -> torch.Tensor:
+    """The field e, |e| <= 1, to encode so that a panel leaving `fraction` f of the light unmodulated shows
+    (1 - f) e + f = s * field, with the largest s for which every pixel stays within reach: `field` normalised to
+    a peak of 1, s is the smallest positive root over the pixels of |s field - f| = 1 - f."""
+    if not fraction:
+        return field
+    f = float(fraction)
+    power, real = field.abs().square(), field.real
+    lit = power > 0
+    roots = (f * real + torch.sqrt(f * f * real.square() + power * (1 - 2 * f))) / torch.where(lit, power, 1.0)
+    scale = roots[lit].min() if bool(lit.any()) else roots.new_tensor(1.0)
+    return (scale * field - f) / (1 - f)
+
+
 def _dpac(target: torch.Tensor, setup: OpticalSetup, _iterations: Optional[int], _seed: int,
           _progress: Optional[Progress]) -> torch.Tensor:
     with torch.no_grad():
         field = setup.slm_propagator()(target)
         if setup.field_model is not None:
             field = through_fitted_bench(field, setup.slm_factor().to(field.device))
-        amplitude = field.abs()
-        peak = amplitude.max()
+        peak = field.abs().max()
         # An all-black target back-propagates to zero: divide by 1 there instead of by 0.
-        normalised = amplitude / torch.where(peak > 0, peak, torch.ones_like(peak))
-        phase = double_phase(normalised, field.angle())
+        normalised = field / torch.where(peak > 0, peak, torch.ones_like(peak))
+        if setup.field_model is not None:
+            normalised = without_zero_order(normalised, setup.field_model.zero_order)
+        phase = double_phase(normalised.abs(), normalised.angle())
         return phase - phase.mean()
 
 

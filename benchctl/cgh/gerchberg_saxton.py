@@ -12,8 +12,9 @@ Choices (documented because they change results):
 - 50 iterations by default: on a 96 x 128 test grid the ROI error falls ~70 % in the first 50 iterations and
   only 3-7 % more in the next 50 (0.1-0.3 % per iteration at 50). It stops earlier once the ROI error (after
   a least-squares scale) stopped improving, by SGD's rule (`stopped_improving`, same tolerance).
-- With a fitted optical model (model calibration), the SLM field is lit by its beam and wavefront error going
-  forward and that wavefront is removed coming back.
+- With a fitted optical model (model calibration), the SLM field is the model's going forward (beam, wavefront
+  error, crosstalk, zero order); coming back, the zero order's share of the field is subtracted and the
+  wavefront removed.
 - Tried on the Fresnel-scaled simulated bench and not kept (worse or no better at 10-200 iterations,
   chart:siemens and photo:coffee): the DPAC hologram as the start, the whole target plane constrained,
   mixed-region amplitude freedom (MRAF, m = 0.6 / 0.8), weighted GS, and double-phase encoding in place of
@@ -46,14 +47,16 @@ def _gerchberg_saxton(target: torch.Tensor, setup: OpticalSetup, iterations: Opt
     generator = torch.Generator(device=target.device).manual_seed(seed)
     start = torch.rand(target.shape, generator=generator, device=target.device) * (2.0 * math.pi)
     errors: list[float] = []
-    # A fitted bench lights the SLM with A e^(i W): forward through it, and back by removing its phase W (the
-    # phase-only projection; A > 0 does not change the angle).
-    factor = setup.slm_factor().to(target.device) if setup.field_model is not None else None
+    # A fitted bench shows A e^(i W) ((1 - f) e^(i phase) + f): back from it, the zero order f A e^(i W) is
+    # subtracted and the phase W removed (the phase-only projection; A > 0 does not change the angle). The
+    # diffuser start has no scale to subtract f at.
+    model = setup.field_model
+    factor = setup.slm_factor().to(target.device) if model is not None else None
+    unmodulated = factor * model.zero_order if factor is not None and model.zero_order else None
     with torch.no_grad():
         phase = _slm_phase(to_slm(torch.polar(target, start)), factor)
         for done in range(1, iterations + 1):
-            lit = torch.polar(torch.ones_like(phase), phase)
-            field = to_target(lit if factor is None else lit * factor)
+            field = to_target(setup.slm_field(phase))
             roi = field[rows, cols]
             amplitude = roi.abs()
             errors.append(float((lsq_scale(amplitude, target_roi) * amplitude - target_roi).square().mean()))
@@ -63,7 +66,8 @@ def _gerchberg_saxton(target: torch.Tensor, setup: OpticalSetup, iterations: Opt
                 break
             scale = torch.sqrt(amplitude.square().sum() / target_energy)
             field[rows, cols] = torch.polar(scale * target_roi, roi.angle())
-            phase = _slm_phase(to_slm(field), factor)
+            back = to_slm(field)
+            phase = _slm_phase(back if unmodulated is None else back - unmodulated, factor)
             if progress is not None:
                 progress(done, iterations)
     return phase

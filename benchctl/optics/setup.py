@@ -152,12 +152,12 @@ class OpticalSetup:
         The one simulation of a hologram everyone uses; differentiable, and its gradient stays finite where the
         amplitude is exactly zero (complex abs, not a square root of the intensity).
         """
-        return self.target_propagator()(self._lit(phase)).abs()
+        return self.target_propagator()(self.slm_field(phase)).abs()
 
     def reconstruct_roi(self, phase: torch.Tensor) -> torch.Tensor:
         """`reconstruct(phase)` on the ROI only, computed on the smaller grid that the ROI needs (`window_plan`):
         what every loss and score that looks only at the ROI uses."""
-        return self.roi_propagator()(self._lit(phase)).abs()
+        return self.roi_propagator()(self.slm_field(phase)).abs()
 
     def displayed(self, phase: torch.Tensor) -> torch.Tensor:
         """`phase` as the SLM shows it (`display`), its gradient passed straight through the quantisation, so an
@@ -166,7 +166,9 @@ class OpticalSetup:
             return phase
         return phase + (self.display(phase.detach()) - phase).detach()
 
-    def _lit(self, phase: torch.Tensor) -> torch.Tensor:
+    def slm_field(self, phase: torch.Tensor) -> torch.Tensor:
+        """The complex field leaving the SLM that shows `phase`: exp(i phase), or with a fitted model
+        A e^(i W) ((1 - f) exp(i C(phase)) + f)."""
         if self.field_model is None:
             return torch.polar(torch.ones_like(phase), phase)
         return self.field_model.modulated(phase) * self.slm_factor().to(phase.device)
