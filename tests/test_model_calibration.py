@@ -392,3 +392,42 @@ def test_a_learned_checkpoint_fine_tuned_through_the_fitted_model_shows_better(
     assert main([*common[:-6], "--colours", "red", "--model-calibration", "stored", "--out", str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err
     assert "--model-calibration stored: " in err and "has no fitted model for 'red'" in err, err
+
+
+def test_two_colours_share_one_panel_crosstalk(tmp_path: Path, make_bench_profile: Callable[..., Profile]) -> None:
+    """The panel's crosstalk (its liquid crystal's fringing) is the same in pixels at every wavelength, so with
+    several colours fitted the procedure stores the median of their fits for all of them (what generation then
+    uses), keeps each colour's own fit beside it and leaves the rest of each colour's model as fitted;
+    `panel_crosstalk = false` keeps each colour's own."""
+    sim = ABERRATED["sim"]
+    profile = make_bench_profile(SMALL_BENCH, {"sim": {
+        **sim, "slm": {**sim["slm"], "zero_order": 0.02, "crosstalk_px": 0.05}, "imaging": {"stray_light": 0.005},
+        "aberration": {"green": HIDDEN, "blue": HIDDEN}}})
+    store = Calibration.store(profile)
+    for colour in ("green", "blue"):
+        store.save_registration(colour, {"homography": bench.camera_homography(profile).tolist(), "rms_px": 0.0})
+    fits, said = {}, []
+    for panel in (False, True):
+        procedure = tmp_path / f"model-{panel}.toml"
+        procedure.write_text(PROCEDURE.replace('colours = ["green"]', 'colours = ["green", "blue"]')
+                             .replace('{ green = "%s" }', '{ green = "0.4mW", blue = "0.4mW" }')
+                             + f"panel_crosstalk = {str(panel).lower()}\n")
+        outcome = run_procedure(procedure, profile=str(profile.path), out=tmp_path / "runs", say=said.append)
+        assert outcome.folder is not None
+        fits[panel] = json.loads((outcome.folder / "calibration" / "optical-model.json").read_text())["colours"]
+    alone, shared = fits[False], fits[True]
+    assert "crosstalk_fitted_px" not in alone["green"]
+    assert alone["green"]["crosstalk_px"] != alone["blue"]["crosstalk_px"]
+    own = {colour: shared[colour]["crosstalk_fitted_px"] for colour in ("green", "blue")}
+    median = float(np.median(list(own.values())))
+    assert own["green"] != own["blue"]
+    assert shared["green"]["crosstalk_px"] == shared["blue"]["crosstalk_px"] == pytest.approx(median, abs=1e-5)
+    assert shared["green"]["zernike_waves"]["defocus"] == pytest.approx(HIDDEN["defocus"], abs=0.02)
+    assert json.loads((store.folder / "optical-model.json").read_text())["colours"] == shared
+    for colour in ("green", "blue"):
+        model = OpticalSetup.from_profile(store.applied(profile), colour).field_model
+        assert model is not None and model.crosstalk_px == pytest.approx(median, abs=1e-5)
+    assert any(line.startswith("      crosstalk ") and "px for every colour (fitted: green" in line
+               for line in said), said
+    report = (outcome.folder / "report.html").read_text()
+    assert "crosstalk px, this colour" in report and "one value for the panel" in report

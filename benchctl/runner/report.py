@@ -285,7 +285,9 @@ def model_calibration_report(context: Context, fits: dict[str, dict[str, Any]], 
     assert record is not None
     rows = [{"colour": name, **{f"{t} (waves)": f["zernike_waves"].get(t) for t in terms},
              "waist mm": round(f["waist_mm"], 4), "offset mm": [round(v, 4) for v in f["offset_mm"]],
-             "crosstalk px": f.get("crosstalk_px", 0.0), "zero order": f.get("zero_order", 0.0),
+             "crosstalk px": f.get("crosstalk_px", 0.0),
+             **({"crosstalk px, this colour's fit": f["crosstalk_fitted_px"]} if "crosstalk_fitted_px" in f else {}),
+             "zero order": f.get("zero_order", 0.0),
              "camera blur px": f.get("camera_blur_px", 0.0),
              "residual before": f["initial_residual"], "residual after": f["residual"],
              "patterns": f"{f['patterns']}{' + flat' if f.get('flat') else ''}",
@@ -297,7 +299,9 @@ def model_calibration_report(context: Context, fits: dict[str, dict[str, Any]], 
     body = (f"<h2>Fitted model</h2>{table(by_quantity)}<p>Wavefront error at the SLM: ANSI/OSA Zernike terms, "
             "RMS-normalised over the disc circumscribing the panel. Residual: RMS misfit of the registered captures "
             "relative to their RMS, after the best gain and offset (gain alone for the flat pattern), with the ideal "
-            "model (before) and the fitted one (after). Camera blur: the blur of the registered captures (camera "
+            "model (before) and the fitted one (after). Crosstalk: one value for the panel where several colours "
+            "were fitted (the median of their fits: the liquid crystal's fringing is the same in pixels at every "
+            "wavelength). Camera blur: the blur of the registered captures (camera "
             "optics, sampling, resampling), fitted so that it is not taken for the bench's; holograms do not use "
             "it. The model is stored per profile and used by generation, SGD and the simulated scores of later "
             "runs.</p>"
