@@ -6,6 +6,7 @@ import math
 import signal
 import threading
 import time
+from collections.abc import Iterator
 
 import pytest
 from expected_protocol import ExpectedProtocol
@@ -270,10 +271,18 @@ def test_a_termination_signal_on_another_thread_ends_a_device_wait(signum: int) 
     assert raised.value.signum == signum and time.monotonic() - start < 30
 
 
+@pytest.fixture
+def ctrl_c_raises() -> Iterator[None]:
+    """Python's own SIGINT handler, which a shell's background job (SIGINT ignored) would not have installed."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
 @pytest.mark.parametrize("signum, raised", [(signal.SIGTERM, TerminatedBySignal), (signal.SIGHUP, TerminatedBySignal),
                                              (signal.SIGINT, KeyboardInterrupt)])
-def test_a_signal_whose_exception_was_swallowed_still_ends_the_next_wait(signum: int,
-                                                                        raised: type[BaseException]) -> None:
+def test_a_signal_whose_exception_was_swallowed_still_ends_the_next_wait(signum: int, raised: type[BaseException],
+                                                                        ctrl_c_raises: None) -> None:
     """C code that calls Python code may discard the handler's exception (a SIGTERM in an import's ABC
     registration did, in a capture's render); the next device wait must not then sleep its 30 s out."""
     with pytest.raises(raised) as caught, signals_interrupt():
