@@ -301,10 +301,10 @@ def model_calibration_report(context: Context, fits: dict[str, dict[str, Any]], 
             "relative to their RMS, after the best gain and offset (gain alone for the flat pattern), with the ideal "
             "model (before) and the fitted one (after). Crosstalk: one value for the panel where several colours "
             "were fitted (the median of their fits: the liquid crystal's fringing is the same in pixels at every "
-            "wavelength; the residuals are those of each colour's own fit). Camera blur: the blur of the registered captures (camera "
-            "optics, sampling, resampling), fitted so that it is not taken for the bench's; holograms do not use "
-            "it. The model is stored per profile and used by generation, SGD and the simulated scores of later "
-            "runs.</p>"
+            "wavelength; the residuals are those of each colour's own fit). Camera blur: the blur of the registered "
+            "captures (camera optics, sampling, resampling), fitted so that it is not taken for the bench's; "
+            "holograms do not use it. The model is stored per profile and used by generation, SGD and the "
+            "simulated scores of later runs.</p>"
             f"<h2>Fit</h2>{line_plot(curves, 'Adam step', 'relative residual (first half blurred)')}")
     write_json(record.folder / "metrics.json", {"procedure": "model-calibration", "colours": fits})
     write_csv(record.folder / "metrics.csv", rows)
