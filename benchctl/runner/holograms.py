@@ -200,5 +200,8 @@ def compute_scene(
         merged[plane] = recon.square().clamp(0, 1)
         results.append(ColourResult(channel.name, channel.wavelength_nm, skipped=False, seconds=seconds,
                                     gray=gray, reconstruction=recon, scores=amplitude_scores(recon, target_roi[plane])))
-    return SceneResult(method, iterations, results, target_roi, merged, colour_scores(merged, target_roi),
+    # the colour scores cover the planes computed: a --colours subset is not penalised for the planes it left out
+    computed = torch.zeros(3, 1, 1, dtype=target_roi.dtype)
+    computed[[target_plane(channel) for channel in channels]] = 1
+    return SceneResult(method, iterations, results, target_roi, merged, colour_scores(merged, target_roi * computed),
                        checkpoint=used_checkpoint)
