@@ -178,9 +178,9 @@ def _panel(used: list[LaserChannel]):
         fitted = {c.name: context.result(f"model/fit/{c.name}")["crosstalk_px"] for c in used}
         shared = round(float(np.median(list(fitted.values()))), 5)
         store = Calibration.store(context.calibration.profile)
+        models = context.calibration.models()
         for name, value in fitted.items():
-            entry = {key: item for key, item in context.calibration.models()[name].items()
-                     if key not in ("geometry", "created")}
+            entry = {key: item for key, item in models[name].items() if key not in ("geometry", "created")}
             entry.update(crosstalk_px=shared, crosstalk_fitted_px=value)
             context.calibration.save_model(name, entry)
             store.save_model(name, entry)
