@@ -20,12 +20,14 @@ from benchctl.cli import main
 from benchctl.devices.errors import DeviceError
 from benchctl.devices.sim import bench
 from benchctl.devices.sim.state import load_state
+from benchctl.errors import BenchctlError
 from benchctl.optics import lsq_scale
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import Profile
 from benchctl.capture.colour_planes import merge_capture, registered_plane
 from benchctl.capture.raw import decode_raw
-from benchctl.runner.builtin.citl import TIMING_KEYS, _load_state, _save_state, keeps_raw, merged_psnr
+from benchctl.runner.builtin.citl import (TIMING_KEYS, _load_state, _save_state, gradient_device, keeps_raw,
+                                         merged_psnr)
 from benchctl.runner.calibration import Calibration
 from benchctl.runner.engine import run_procedure
 
@@ -61,9 +63,9 @@ def profile(make_bench_profile: Callable[..., Profile]) -> Profile:
 
 
 def run(tmp_path: Path, profile: Profile, out: str, iterations: int = 12, every: int = 10,
-        baseline: bool = False) -> Path:
+        baseline: bool = False, extra: str = "") -> Path:
     procedure = tmp_path / "citl.toml"
-    procedure.write_text(PROCEDURE % (iterations, every, "true" if baseline else "false"))
+    procedure.write_text(PROCEDURE % (iterations, every, "true" if baseline else "false") + extra)
     outcome = run_procedure(procedure, profile=str(profile.path), out=tmp_path / out, say=lambda line: None)
     assert outcome.folder is not None
     return outcome.folder
@@ -122,6 +124,7 @@ def test_citl_raises_captured_psnr_and_logs_every_iteration(tmp_path: Path, prof
     assert [r["iteration"] for r in rows] == list(range(7))
     assert all(set(r["timing"]) == set(TIMING_KEYS) and r["timing"]["render_s"] > 0 for r in rows)
     assert all(r["timing"]["gradient_s"] > 0 for r in rows[:-1])
+    assert {r["device"] for r in rows} == {str(gradient_device("auto"))}
     first, last = rows[0]["psnr_amplitude_db"], rows[-1]["psnr_amplitude_db"]
     baseline = results["citl/green/baseline"]["psnr_amplitude_db"]
     assert last > first + 1.5, (first, last)
@@ -130,7 +133,17 @@ def test_citl_raises_captured_psnr_and_logs_every_iteration(tmp_path: Path, prof
     assert metrics["merged"][-1]["scores"]["psnr_srgb_db"] > metrics["merged"][0]["scores"]["psnr_srgb_db"]
     report = (folder / "report.html").read_text()
     assert "Captured PSNR against iteration" in report and "last capture (iteration 6)" in report
+    assert "<th>gradient on</th>" in report
     assert laser_off()
+
+
+def test_a_gpu_asked_for_where_torch_sees_none_is_refused_before_anything_runs(
+        tmp_path: Path, profile: Profile, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(BenchctlError, match=r"parameters.device: 'cuda', but torch .* sees no CUDA GPU"):
+        run(tmp_path, profile, "runs", iterations=2, extra='device = "cuda"\n')
+    assert not (tmp_path / "runs").exists() or not any((tmp_path / "runs").glob("*/steps.jsonl"))
+    assert gradient_device("auto") == torch.device("cpu") and gradient_device("cpu") == torch.device("cpu")
 
 
 def test_auto_exposure_probes_the_start_once_and_captures_every_iteration_at_its_power(tmp_path: Path,

@@ -30,6 +30,7 @@ from benchctl.devices.slm import open_slm, slm_for
 from benchctl.errors import BenchctlError
 from benchctl.optics import PhaseLUT, propagation
 from benchctl.optics.aberration import ZERNIKE_TERMS, defocus_focal_length_m, gaussian_blur, zernike_basis
+from benchctl.optics.fitted import FittedOptics
 from benchctl.profiles import LaserConfig, Profile, SimConfig, ZernikeTerm, load_profile
 from benchctl.runner.holograms import compute_scene
 
@@ -501,6 +502,17 @@ def test_the_blur_scales_a_sinusoid_by_its_analytic_response(dtype: torch.dtype)
     assert blurred.dtype == dtype
     tolerance = 2e-6 if dtype == torch.float32 else 1e-12
     assert float((blurred.double() - expected).abs().max()) < tolerance
+
+
+def test_the_blur_and_the_fitted_panel_run_on_the_device_of_their_input() -> None:
+    """A GPU computes the crosstalk blur of CITL's and training's model where the phase is: every tensor the blur
+    and the fitted panel make must follow their input's device (the meta device stands in for a GPU here: mixing
+    it with a CPU tensor fails as CUDA would)."""
+    phase = torch.zeros(2, 48, 64, device="meta")
+    assert gaussian_blur(phase, 0.3).device.type == "meta"
+    panel = FittedOptics(crosstalk_px=0.05, zero_order=0.02)
+    modulated = panel.modulated(phase)
+    assert modulated.device.type == "meta" and modulated.shape == (2, 48, 64) and modulated.is_complex()
 
 
 def test_stray_light_spreads_its_fraction_evenly(profile: Profile) -> None:

@@ -180,6 +180,8 @@ def average_frames(images: list[RawImage]) -> RawImage:
     if not images:
         raise BadValueError("average_frames needs at least one frame")
     first = images[0]
+    if len(images) == 1:  # the mean of one frame is that frame: no float64 copy of a sensor-sized mosaic
+        return first
     total = np.zeros(first.mosaic.shape, dtype=np.float64)
     saturated = np.zeros(first.mosaic.shape, dtype=bool)
     for image in images:

@@ -135,6 +135,6 @@ def gaussian_blur(images: torch.Tensor, variance_px2: torch.Tensor | float) -> t
     h, w = images.shape[-2:]
     fy = torch.fft.fftfreq(h, dtype=torch.float64)[:, None]
     fx = torch.fft.rfftfreq(w, dtype=torch.float64)[None, :]
-    response = torch.exp(-2 * math.pi**2 * variance * (fy.square() + fx.square())).to(real)
+    response = torch.exp(-2 * math.pi**2 * variance * (fy.square() + fx.square())).to(images.device, real)
     spectrum = torch.fft.rfft2(images.to(real)) * response
     return torch.fft.irfft2(spectrum, s=(h, w)).to(images.dtype)

@@ -133,13 +133,21 @@ def _propagator(setup: OpticalSetup) -> Propagator:
     return setup.target_propagator()
 
 
-def _beam_power(profile: Profile) -> torch.Tensor:
-    """Fraction of the beam's power falling on each SLM pixel: uniform over the panel, or a Gaussian."""
-    slm, beam = profile.slm, profile.sim.beam
-    assert slm is not None
-    if not beam.waist_mm:
-        return torch.full(slm.shape, 1.0 / (slm.height * slm.width), dtype=torch.float64)
-    return gaussian_beam_power(slm.shape, slm.pitch_m, beam.waist_mm * 1e-3, [v * 1e-3 for v in beam.offset_mm])
+@functools.lru_cache(maxsize=3)
+def _illumination(shape: tuple[int, int], pitch_m: float | tuple[float, float], waist_mm: float,
+                  offset_mm: tuple[float, ...], tilt_mrad: tuple[float, ...], wavelength_m: float,
+                  waves: tuple[tuple[str, float], ...]) -> tuple[torch.Tensor, torch.Tensor]:
+    """The light one channel brings to the panel, computed once (its Zernike terms take half a second at full
+    size): the amplitude on each pixel (float32, the square root of the beam's power fraction there: uniform, or a
+    Gaussian) and e^(i (tilt + wavefront error)) (complex64). Callers must not modify them."""
+    if waist_mm:
+        power = gaussian_beam_power(shape, pitch_m, waist_mm * 1e-3, [v * 1e-3 for v in offset_mm])
+    else:
+        power = torch.full(shape, 1.0 / (shape[0] * shape[1]), dtype=torch.float64)
+    amplitude = power.sqrt().to(torch.float32)
+    wavefront = (tilt_phase(shape, pitch_m, [v * 1e-3 for v in tilt_mrad], wavelength_m)
+                 + wavefront_phase(shape, pitch_m, dict(waves)))
+    return amplitude, torch.polar(torch.ones_like(amplitude), wavefront.to(torch.float32))
 
 
 def _target_irradiance(profile: Profile, channel: LaserChannel, gray: np.ndarray) -> torch.Tensor:
@@ -152,11 +160,11 @@ def _target_irradiance(profile: Profile, channel: LaserChannel, gray: np.ndarray
     driven = gray_to_phase(gray, true_lut(channel.wavelength_m, slm.bit_depth, sim.slm))
     phase = crosstalk_blur(torch.from_numpy(driven), sim.slm.crosstalk_px)
     gap = sim.slm.zero_order
-    wavefront = (tilt_phase(slm.shape, slm.pitch_m, [v * 1e-3 for v in sim.beam.tilt_mrad], channel.wavelength_m)
-                 + wavefront_phase(slm.shape, slm.pitch_m, sim.aberration.get(channel.name, {})))
-    amplitude = _beam_power(profile).sqrt().to(torch.float32)
-    field = (torch.polar(amplitude * (1 - gap), phase) + amplitude * gap) * torch.polar(
-        torch.ones_like(amplitude), wavefront.to(torch.float32))
+    beam = sim.beam
+    amplitude, wavefront = _illumination(slm.shape, slm.pitch_m, beam.waist_mm, tuple(beam.offset_mm),
+                                         tuple(beam.tilt_mrad), channel.wavelength_m,
+                                         tuple(sim.aberration.get(channel.name, {}).items()))
+    field = (torch.polar(amplitude * (1 - gap), phase) + amplitude * gap) * wavefront
     with torch.inference_mode():
         out = _propagator(OpticalSetup.from_profile(profile, channel.name))(field)
     irradiance = out.abs().square().to(torch.float64)
