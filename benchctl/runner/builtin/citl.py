@@ -22,8 +22,8 @@ With `exposure = "auto"` (default) one probe frame of the start hologram per col
 puts its peak at `peak_goal` of full scale; every iteration and the baseline are captured at that power.
 
 The gradient runs where `device` says: "auto" (default) takes a CUDA GPU when torch sees one, else the CPU. At full
-size on a 2-core CPU the gradient (about 0.3 s) is most of an iteration's software time; a GPU takes it to
-milliseconds, leaving the decode (LibRaw's unpacking) as the largest part. A run resumed on another device
+size on a 2-core CPU the gradient (0.3-0.5 s, four FFTs of the ROI's padded grid) is most of an iteration's
+software time, and the part a GPU speeds up; decoding and registering stay on the CPU. A run resumed on another device
 continues from the saved state, equal to float32 rounding rather than bit for bit.
 
 With `baseline` (default on), model-only SGD with the same number of Adam steps (start_iterations + iterations
