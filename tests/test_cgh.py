@@ -39,6 +39,7 @@ from benchctl.cgh import (
 from benchctl.cgh.learned import LEARNED_METHODS
 from benchctl.optics import propagate
 from benchctl.optics.phase_encoding import PhaseLUT, gray_to_phase, phase_to_gray
+from benchctl.optics.setup import REACH_TOLERANCE_RAD
 
 FEW = {"dpac": None, "gs": 5, "sgd": 5}  # iteration counts that keep interface tests fast
 
@@ -431,6 +432,39 @@ def test_displayed_shows_the_quantised_phase_and_passes_the_gradient_straight_th
     out.sum().backward()
     assert torch.equal(phase.grad, torch.ones_like(phase))
     assert setup.displayed(phase) is phase
+
+
+def test_a_phase_the_panel_cannot_show_is_moved_to_the_one_it_shows(setup: OpticalSetup) -> None:
+    _, shown = short_stroke_display(0.88)
+    quantised = setup.with_display(shown)
+    phase = torch.linspace(-math.pi, math.pi, math.prod(setup.shape)).reshape(setup.shape)
+    moved = quantised.within_reach(phase)
+
+    def wrapped(angle: torch.Tensor) -> torch.Tensor:
+        return torch.remainder(angle + math.pi, 2 * math.pi) - math.pi
+
+    far = wrapped(shown(phase) - phase).abs() > REACH_TOLERANCE_RAD
+    assert 0.10 < float(far.float().mean()) < 0.12  # most of the 0.75 rad gap, of 2 pi
+    assert torch.equal(moved[~far], phase[~far])  # rounding to a level is left to the display
+    assert float(wrapped(moved - shown(phase))[far].abs().max()) < 1e-5
+    assert float(wrapped(shown(moved) - moved).abs().max()) <= REACH_TOLERANCE_RAD
+    assert setup.within_reach(phase) is phase  # every phase shown: nothing to move
+
+
+@pytest.mark.parametrize(("stroke", "make", "ratio"), [(0.88, "smooth", 0.2), (0.75, "smooth", 0.1),
+                                                       (0.75, "sharp", 0.95)])
+def test_sgd_keeps_its_phase_where_the_panel_can_show_it(setup: OpticalSetup, monkeypatch: pytest.MonkeyPatch,
+                                                          stroke: float, make: str, ratio: float) -> None:
+    """The straight-through gradient alone leaves phases in a table's gap (shown at its edge, whatever small step
+    they take); moving them after each step cuts SGD's error. Measured at 50 iterations, MSE with / without:
+    0.88 smooth 1.1e-5 / 1.3e-4, 0.75 smooth 1.9e-5 / 4.7e-4, 0.75 sharp 9.9e-3 / 1.14e-2."""
+    _, shown = short_stroke_display(stroke)
+    quantised = setup.with_display(shown)
+    target = {"smooth": smooth_target, "sharp": sharp_target}[make](setup)
+    seeing = roi_mse(setup, shown(SGD(target, quantised, iterations=50)), target)
+    monkeypatch.setattr(OpticalSetup, "within_reach", lambda self, phase: phase)
+    stuck = roi_mse(setup, shown(SGD(target, quantised, iterations=50)), target)
+    assert seeing < ratio * stuck, (seeing, stuck)
 
 
 def test_sgd_through_a_short_stroke_panel_beats_sgd_that_ignores_it(setup: OpticalSetup) -> None:

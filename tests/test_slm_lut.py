@@ -202,3 +202,34 @@ def test_table_spanning_less_than_two_pi_encodes_monotonically(tmp_path: Path) -
 def test_table_spanning_more_than_two_pi_encodes_monotonically(tmp_path: Path) -> None:
     gray = show_ramp(tmp_path, 2.4)
     assert cyclic_descents(gray) == 1
+
+
+def test_generate_and_slm_show_encode_through_the_measured_table(tmp_path: Path, small_profile_path: Path) -> None:
+    """A table measured by lut_calibration (calibration/<profile>/) is used by `generate` and `slm show` as by a
+    run: the same frames as with the table named in the profile, not the linear one's."""
+    from benchctl.cli import main
+    from benchctl.devices.slm.sim import read_displayed
+    from benchctl.images import read_image
+    from benchctl.runner.calibration import Calibration
+    from benchctl.runner.generate import run_generate
+
+    table = PhaseLUT.linear(8, two_pi_gray=256 / 0.88)
+    named = tmp_path / "named.toml"
+    named.write_text(small_profile_path.read_text() + f'[slm.lut]\nred = "{save_lut(tmp_path / "red.csv", table)}"\n')
+    phase = np.linspace(-3.0, 3.0, 64 * 96, dtype=np.float32).reshape(64, 96)
+    np.save(tmp_path / "phase.npy", phase)
+
+    def frames(profile_path: Path, name: str) -> tuple[np.ndarray, np.ndarray]:
+        run_generate("chart:bars", load_profile(profile_path), tmp_path / name, method="dpac", colours=["red"])
+        assert main(["slm", "show", str(tmp_path / "phase.npy"), "--channel", "red", "-p", str(profile_path)]) == 0
+        return read_image(tmp_path / name / "phase_red.png"), read_displayed()[0]
+
+    linear = frames(small_profile_path, "linear")
+    expected = frames(named, "named")
+    store = Calibration.store(load_profile(small_profile_path))
+    save_lut(store.lut_path("red"), table)
+    store.record_lut("red", {"gray_step": 8})
+    measured = frames(small_profile_path, "measured")
+    for seen, wanted, before in zip(measured, expected, linear):
+        assert np.array_equal(seen, wanted) and not np.array_equal(seen, before)
+    assert np.array_equal(measured[1], slm_for(load_profile(named)).encode(phase, "red"))

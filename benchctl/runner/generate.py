@@ -56,12 +56,13 @@ def run_generate(
 ) -> dict[str, Any]:
     """Generate one hologram per colour present in `target`, write PNGs and metrics.json to `out_dir`.
 
-    A learned method uses `checkpoint`, else the one shipped for the profile (see `compute_scene`). The profile's
-    fitted optical model (model calibration, calibration/<profile>/) is used when one is stored.
+    A learned method uses `checkpoint`, else the one shipped for the profile (see `compute_scene`). What
+    calibration/<profile>/ holds is used as a run uses it: the measured lookup tables (for the channels whose
+    table the profile does not name) and the fitted optical model.
     """
     started = time.time()
     profile.require("slm", "optics", "laser")  # the laser's channels are the colours generated
-    profile = Calibration.store(profile).with_model(profile)
+    profile = Calibration.store(profile).applied(profile)
     srgb = load_target(target, size=profile.optics.roi)
     amplitude = prepare_target(srgb, profile.slm.shape, profile.optics.roi)
     scene = compute_scene(amplitude, profile, method, iterations=iterations, colours=colours, seed=seed,

@@ -312,9 +312,11 @@ def _iteration(target: torch.Tensor, channel: LaserChannel, k: int):
             with torch.enable_grad():
                 optimiser.param_groups[0]["lr"] = learning_rate(params, k)
                 optimiser.zero_grad(set_to_none=True)
-                straight_through_loss(phase, captured.to(device), target_roi.to(device),
-                                      _setup(context, channel)).backward()
+                setup = _setup(context, channel)
+                straight_through_loss(phase, captured.to(device), target_roi.to(device), setup).backward()
                 optimiser.step()
+                with torch.no_grad():
+                    phase.copy_(setup.within_reach(phase))
             _synchronised(device)
         timing["gradient_s"] = clock() - start
         start = clock()
