@@ -21,10 +21,10 @@ model calibration first (README, "Camera in the loop").
 With `exposure = "auto"` (default) one probe frame of the start hologram per colour sets the laser power that
 puts its peak at `peak_goal` of full scale; every iteration and the baseline are captured at that power.
 
-The gradient runs where `device` says: "auto" (default) takes a CUDA GPU when torch sees one, else the CPU. At full
-size on a 2-core CPU the gradient (0.3-0.5 s, four FFTs of the ROI's padded grid) is most of an iteration's
-software time, and the part a GPU speeds up; decoding and registering stay on the CPU. A run resumed on another device
-continues from the saved state, equal to float32 rounding rather than bit for bit.
+The gradient runs where `device` says: "auto" (default) takes a CUDA GPU when torch sees one, else the CPU. At
+full size on a 2-core CPU the gradient (0.3-0.5 s, four FFTs of the ROI's padded grid) is most of an iteration's
+software time, and the part a GPU speeds up; decoding and registering stay on the CPU. A run resumed on another
+device continues from the saved state, equal to float32 rounding rather than bit for bit.
 
 With `baseline` (default on), model-only SGD with the same number of Adam steps (start_iterations + iterations
 for an SGD start) is captured the same way, so the report compares both at one budget.
@@ -149,10 +149,12 @@ def _budget(params: CitlParameters) -> int:
 
 def gradient_device(choice: str) -> torch.device:
     """The device of parameters.device ("auto": CUDA when torch sees a GPU, else the CPU)."""
-    if choice == "cuda" and not torch.cuda.is_available():
+    if choice == "auto":
+        choice = "cuda" if torch.cuda.is_available() else "cpu"
+    elif choice == "cuda" and not torch.cuda.is_available():
         raise BenchctlError(f"parameters.device: 'cuda', but torch {torch.__version__} sees no CUDA GPU "
                             "(use 'auto' or 'cpu')")
-    return torch.device("cuda" if choice == "cuda" or (choice == "auto" and torch.cuda.is_available()) else "cpu")
+    return torch.device(choice)
 
 
 def _synchronised(device: torch.device) -> None:
