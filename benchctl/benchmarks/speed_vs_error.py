@@ -33,7 +33,7 @@ DEFAULT_BUDGETS = (10, 50, 200, 500)
 FULL_BUDGETS = (10, 50)
 """Budgets at the profile's full geometry, where one SGD iteration costs ~16x what it costs scaled."""
 
-Progress = Callable[[str], Callable[[int, int], None]]
+ProgressFactory = Callable[[str], Callable[[int, int], None]]
 
 
 def resized_profile(profile: Profile, size: tuple[int, int]) -> Profile:
@@ -111,7 +111,7 @@ def _load_targets(targets: Sequence[str], profile: Profile, out: Callable[[str],
     return amplitudes
 
 
-def _recording(progress: Progress | None, last: dict[str, int]) -> Progress:
+def _recording(progress: ProgressFactory | None, last: dict[str, int]) -> ProgressFactory:
     """A progress factory that remembers the last `done` per colour (the iterations an early stop ran)."""
     def factory(label: str) -> Callable[[int, int], None]:
         inner = progress(label) if progress is not None else None
@@ -134,7 +134,7 @@ def run_speed_vs_error(
     seed: int = 0,
     out_dir: Path | None = None,
     out: Callable[[str], None] = print,
-    progress: Progress | None = None,
+    progress: ProgressFactory | None = None,
 ) -> list[dict[str, Any]]:
     """Run each method at each budget on each target; print the per-target table and the front, write CSVs
     (+ a PNG plot with matplotlib). Returns the front's rows (one per method and budget)."""

@@ -17,7 +17,7 @@ def _cmd_bench_speed(args: argparse.Namespace) -> int:
         resized_profile,
         run_speed_vs_error,
     )
-    from benchctl.console import Progress
+    from benchctl.terminal import ProgressLine
     from benchctl.errors import BadValueError
     from benchctl.profiles import load_profile
 
@@ -28,7 +28,7 @@ def _cmd_bench_speed(args: argparse.Namespace) -> int:
     run_speed_vs_error(resized_profile(profile, size), targets=tuple(args.targets or DEFAULT_TARGETS),
                        methods=tuple(args.methods) if args.methods else None,
                        budgets=args.iterations or (FULL_BUDGETS if args.full else DEFAULT_BUDGETS),
-                       colours=args.colours, seed=args.seed, out_dir=Path(args.out), progress=Progress)
+                       colours=args.colours, seed=args.seed, out_dir=Path(args.out), progress=ProgressLine)
     return 0
 
 

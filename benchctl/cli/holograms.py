@@ -9,13 +9,13 @@ from benchctl.cli.args import EPILOG, add_profile, grid_size, name_list, positiv
 
 
 def _cmd_generate(args: argparse.Namespace) -> int:
-    from benchctl.console import Progress
+    from benchctl.terminal import ProgressLine
     from benchctl.profiles import load_profile
     from benchctl.runner.generate import run_generate
 
     profile = load_profile(args.profile)
     metrics = run_generate(args.target, profile, Path(args.out), method=args.method, iterations=args.iterations,
-                           colours=args.colours, seed=args.seed, progress=Progress, checkpoint=args.checkpoint)
+                           colours=args.colours, seed=args.seed, progress=ProgressLine, checkpoint=args.checkpoint)
     if metrics["checkpoint"]:
         print(f"{args.method}: trained models from {metrics['checkpoint']}")
     if metrics["optical_model"]:

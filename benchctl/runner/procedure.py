@@ -34,7 +34,7 @@ from typing import Any, TypeVar
 
 import msgspec
 
-from benchctl.console import Progress
+from benchctl.terminal import ProgressLine
 from benchctl.errors import BenchctlError
 from benchctl.profiles import Profile
 from benchctl.runner.bench import Bench
@@ -126,8 +126,8 @@ class Context:
             raise BenchctlError("no run folder during a dry run")
         return self.record.path(*parts)
 
-    def progress(self, label: str) -> Progress:
-        return Progress(label)
+    def progress(self, label: str) -> ProgressLine:
+        return ProgressLine(label)
 
 
 @dataclass(frozen=True)

@@ -36,7 +36,7 @@ from torch import nn
 from benchctl.cgh.learned.models import LEARNED_METHODS, build_model
 from benchctl.cgh.method import get_method
 from benchctl.cgh.learned.vgg import PERCEPTUAL_WEIGHT, PerceptualLoss, load_vgg19
-from benchctl.console import Progress
+from benchctl.terminal import ProgressLine
 from benchctl.errors import BadValueError, BenchctlError
 from benchctl.files import ensure_dir
 from benchctl.optics.fitted import FittedOptics
@@ -386,7 +386,7 @@ def _train(profile: Profile, settings: TrainSettings, out_dir: Path, planes: Map
         "weight_average": {"decay": settings.ema, "kind": "exponential, bias-corrected"} if settings.ema else None,
     }
     reference = dpac_reference(setups, planes, val_set) if job.main else {}
-    progress = Progress(settings.method, stream=progress_stream) if job.main else None
+    progress = ProgressLine(settings.method, stream=progress_stream) if job.main else None
     started = time.perf_counter()
     metrics: dict[str, dict[str, float]] = {}
     saved: Path | None = None

@@ -7,7 +7,7 @@ import time
 from typing import TextIO
 
 
-class Progress:
+class ProgressLine:
     """Callable `progress(done, total)` that redraws one line on a terminal, or logs every 25 % otherwise."""
 
     def __init__(self, label: str, stream: TextIO | None = None, width: int = 30) -> None:
