@@ -94,9 +94,10 @@ def test_one_training_step_lowers_the_loss(name: str) -> None:
             return float(loss_fn(*scaled_reconstruction(model, setup, amplitude)))
 
     before = loss_now()
-    loss, psnr_db = training_step(model, optimiser, setup, amplitude, loss_fn)
-    assert loss == pytest.approx(before, rel=1e-4)  # the step reports the loss it started from
-    assert 0 < psnr_db < 100
+    stats = training_step(model, optimiser, setup, amplitude, loss_fn)
+    assert stats.loss == pytest.approx(before, rel=1e-4)  # the step reports the loss it started from
+    assert 0 < stats.psnr_db < 100
+    assert stats.grad_norm > 0 and stats.clamped < 0.5
     assert loss_now() < 0.98 * before
 
 

@@ -58,16 +58,28 @@ def _cmd_bench_learned(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_reproduce(args: argparse.Namespace) -> int:
-    from benchctl.benchmarks.reproduce import DEFAULT_METHODS, reproduce_command, run_reproduction
+    from benchctl.benchmarks.reproduce import DEFAULT_METHODS, new_plan, reproduce_command, run_reproduction
+    from benchctl.benchmarks.reproduce_report import write_report
+    from benchctl.errors import BadValueError
     from benchctl.profiles import load_profile
 
+    if args.report:
+        write_report(args.report)
+        return 0
+    if args.resume:
+        if args.out:
+            raise BadValueError("--resume continues the run in its own folder; leave out --out")
+        run_reproduction(args.resume, jobs=args.jobs, memory=not args.no_memory)
+        return 0
+    if not args.out:
+        raise BadValueError("give --out DIR for a new run (or --resume DIR / --report DIR for an existing one)")
     methods = args.methods or list(DEFAULT_METHODS)
-    command = reproduce_command(args.profile, args.size, args.minutes, args.steps, methods, args.colour, args.data,
-                                args.evaluations, args.lr, args.seed, args.threads, args.out)
-    run_reproduction(load_profile(args.profile), size=args.size, cpu_seconds=None if args.minutes is None
-                     else args.minutes * 60, steps=args.steps, methods=methods, colour=args.colour, data=args.data,
-                     evaluations=args.evaluations, lr=args.lr, seed=args.seed, memory=not args.no_memory,
-                     threads=args.threads, out_dir=args.out, command=command)
+    settings = dict(size=args.size, methods=methods, seeds=args.seeds, ablation_seeds=args.ablation_seeds,
+                    colour=args.colour, data=args.data, lr=args.lr, max_steps=args.max_steps, min_steps=args.min_steps,
+                    min_gain_db=args.min_gain, iris_test=not args.no_iris_test, threads=args.threads)
+    command = reproduce_command(args.profile, args.out, jobs=args.jobs, **settings)  # type: ignore[arg-type]
+    new_plan(args.out, load_profile(args.profile), command=command, **settings)  # type: ignore[arg-type]
+    run_reproduction(args.out, jobs=args.jobs, memory=not args.no_memory)
     return 0
 
 
@@ -127,31 +139,44 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     add_profile(learned)
     learned.set_defaults(func=_cmd_bench_learned)
 
-    reproduce = bench.add_parser("reproduce", help="the paper's quality tables at a CPU-trainable scale: every learned "
-                                                   "method trained with the same data, seed and budget",
-                                 description="Trains each learned method on a Fresnel-scaled bench with the same "
-                                             "data, seed and budget, scores it on the held-out photographs (8-bit "
-                                             "displayed phase) at equal time and equal steps next to the paper's "
-                                             "figures; writes reproduction.md/.csv, curves.csv and PSNR plots.")
-    budget = reproduce.add_mutually_exclusive_group(required=True)
-    budget.add_argument("--minutes", type=float, metavar="M",
-                        help="training CPU time per method (this process's CPU time, so other users' load does not "
-                             "count)")
-    budget.add_argument("--steps", type=positive_int, metavar="N", help="training steps per method")
-    reproduce.add_argument("--size", type=grid_size, default=(272, 480), metavar="HxW",
-                           help="SLM grid; ROI and distance scaled to keep the Fresnel number (default: 272x480)")
+    reproduce = bench.add_parser(
+        "reproduce", help="the paper's quality tables: every learned method trained until its curve flattens, "
+                          "several seeds, resumable",
+        description="Trains each learned method of the paper's Tables 1, 2 and 4 on a Fresnel-scaled bench (same "
+                    "data and recipe: Adam at the paper's lr 5e-4, batch 1, flips) until its validation score gains "
+                    "less than --min-gain dB per doubling of steps (or --max-steps), with every seed of --seeds "
+                    "for the main networks and --ablation-seeds for the ablations, --jobs subprocesses at a time. "
+                    "Scores on the held-out photographs (8-bit displayed phase) where training ended, at equal "
+                    "steps and at equal time, next to the paper's figures; training-step memory and inference "
+                    "time per method; writes reproduction.md/.csv, comparisons.csv, curves.csv and plots into the "
+                    "run folder. Interrupted, `--resume DIR` continues it: finished jobs are never retrained.")
+    reproduce.add_argument("--out", "-o", type=Path, metavar="DIR", help="folder of a new run")
+    reproduce.add_argument("--resume", type=Path, metavar="DIR", help="continue the run in DIR (its own settings)")
+    reproduce.add_argument("--report", type=Path, metavar="DIR",
+                           help="write the report from the finished jobs in DIR and exit (trains nothing)")
+    reproduce.add_argument("--size", type=grid_size, default=(136, 240), metavar="HxW",
+                           help="SLM grid; ROI and distance scaled to keep the Fresnel number (default: 136x240)")
     reproduce.add_argument("--methods", type=name_list, metavar="LIST",
-                           help="comma-separated learned methods, slowest first (default: those of Tables 1, 2, 4)")
+                           help="comma-separated learned methods (default: those of Tables 1, 2, 4)")
+    reproduce.add_argument("--seeds", type=int_list, default=(42, 43, 44), metavar="LIST",
+                           help="seeds of holonet, its x2 / x4 / pyramid, ccnn and ccnn-dcm4 (default: 42,43,44)")
+    reproduce.add_argument("--ablation-seeds", type=int_list, metavar="LIST",
+                           help="seeds of the ablations (default: the first of --seeds)")
     reproduce.add_argument("--colour", "--color", default="red", help="laser channel (default: red, as Table 4)")
     reproduce.add_argument("--data", default="procedural:32+photos:train",
                            help="training images, as for train --data (default: procedural:32+photos:train)")
-    reproduce.add_argument("--evaluations", type=positive_int, default=6,
-                           help="evaluations on the held-out photos per method, evenly over the budget (default: 6)")
-    reproduce.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate (default: 1e-3)")
-    reproduce.add_argument("--seed", type=int, default=42)
-    reproduce.add_argument("--threads", type=positive_int, metavar="N", help="torch threads (default: torch's)")
+    reproduce.add_argument("--lr", type=float, default=5e-4, help="Adam learning rate (default: 5e-4, the paper's)")
+    reproduce.add_argument("--max-steps", type=positive_int, default=8192, metavar="N",
+                           help="step cap per job (default: 8192)")
+    reproduce.add_argument("--min-steps", type=positive_int, default=1024, metavar="N",
+                           help="no convergence test before this step (default: 1024)")
+    reproduce.add_argument("--min-gain", type=float, default=0.2, metavar="DB",
+                           help="stop once the validation score gains less than this per doubling of steps "
+                                "(default: 0.2)")
+    reproduce.add_argument("--no-iris-test", action="store_true",
+                           help="skip training holonet-dcm2 and holonet-lowdef2 again on the bench without its iris")
+    reproduce.add_argument("--jobs", type=positive_int, default=2, help="jobs trained at a time (default: 2)")
+    reproduce.add_argument("--threads", type=positive_int, default=1, help="torch threads per job (default: 1)")
     reproduce.add_argument("--no-memory", action="store_true", help="skip the training-step memory subprocesses")
-    reproduce.add_argument("--out", "-o", default="bench-out", type=Path, metavar="DIR",
-                           help="output folder (default: bench-out)")
     add_profile(reproduce)
     reproduce.set_defaults(func=_cmd_bench_reproduce)

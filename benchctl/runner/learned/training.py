@@ -49,6 +49,7 @@ from benchctl.runner.learned.averaging import WeightAverage
 from benchctl.runner.learned.checkpoint import RESUME_SUFFIX, WEIGHT_DTYPES, Checkpoint, read_checkpoint
 from benchctl.runner.learned.data import ImageSource, describe_sources, image_sources, split_sources
 from benchctl.runner.learned.geometry import geometry_of, grid_profile
+from benchctl.runner.learned.health import StepStats, TrainingHealth, clamped_fraction, gradient_norm
 from benchctl.targets import prepare_target
 
 LOSSES = ("mse", "l2-perceptual")
@@ -217,21 +218,32 @@ def scaled_reconstruction(model: nn.Module, setup: OpticalSetup,
     error at the best brightness, which is what a phase-only hologram can be asked for. With a fitted optical
     model the network's phase is displayed without the model's wavefront, as at inference.
     """
-    recon = setup.reconstruct_roi(setup.without_wavefront(model(amplitude)))
+    return _scaled(model(amplitude), setup, amplitude)
+
+
+def _scaled(phase: torch.Tensor, setup: OpticalSetup, amplitude: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    recon = setup.reconstruct_roi(setup.without_wavefront(phase))
     target = crop_roi(amplitude, setup.roi)
     return recon * lsq_scale(recon, target), target
 
 
 def training_step(model: nn.Module, optimiser: torch.optim.Optimizer, setup: OpticalSetup,
-                  amplitude: torch.Tensor, loss_fn: nn.Module) -> tuple[float, float]:
-    """One Adam step on a batch of targets (B, 1, H, W); returns (loss, mean PSNR in dB of the amplitude)."""
+                  amplitude: torch.Tensor, loss_fn: nn.Module) -> StepStats:
+    """One Adam step on a batch of targets (B, 1, H, W), with what it measured (`health.StepStats`).
+
+    A step whose gradient is not finite changes no weight (the optimiser is not stepped), so the
+    state before it stays the one to resume from."""
     model.train()
     optimiser.zero_grad(set_to_none=True)
-    recon, target = scaled_reconstruction(model, setup, amplitude)
+    phase = model(amplitude)
+    recon, target = _scaled(phase, setup, amplitude)
     loss = loss_fn(recon, target)
     loss.backward()
-    optimiser.step()
-    return float(loss.detach()), float(psnr(recon.detach(), target, data_range=1.0).mean())
+    stats = StepStats(float(loss.detach()), float(psnr(recon.detach(), target, data_range=1.0).mean()),
+                      gradient_norm(model), clamped_fraction(phase))
+    if math.isfinite(stats.grad_norm):  # the same on every rank of a DDP job: all step or none
+        optimiser.step()
+    return stats
 
 
 def peak_normalised(planes: torch.Tensor) -> torch.Tensor:
@@ -387,6 +399,7 @@ def _train(profile: Profile, settings: TrainSettings, out_dir: Path, planes: Map
     }
     reference = dpac_reference(setups, planes, val_set) if job.main else {}
     progress = ProgressLine(settings.method, stream=progress_stream) if job.main else None
+    health = {c: TrainingHealth() for c in setups}
     started = time.perf_counter()
     metrics: dict[str, dict[str, float]] = {}
     saved: Path | None = None
@@ -404,11 +417,16 @@ def _train(profile: Profile, settings: TrainSettings, out_dir: Path, planes: Map
                                    epoch_flips(settings.seed, epoch, positions)).to(device)
             for colour, model in wrapped.items():
                 amplitude = peak_normalised(targets[:, planes[colour]:planes[colour] + 1])
-                loss, psnr_db = training_step(model, optimisers[colour], setups[colour], amplitude, loss_fn)
+                stats = training_step(model, optimisers[colour], setups[colour], amplitude, loss_fn)
+                verdict = health[colour].update(StepStats(*job.mean(
+                    [stats.loss, stats.psnr_db, stats.grad_norm, stats.clamped])))
+                if verdict is not None:
+                    raise BenchctlError(f"training {settings.method} for {colour} {verdict}. "
+                                        + _last_good(out_dir, settings.method, step))
                 if averages:
                     averages[colour].update(models[colour])
-                sums[colour][0] += loss
-                sums[colour][1] += psnr_db
+                sums[colour][0] += stats.loss
+                sums[colour][1] += stats.psnr_db
             batch += 1
             batches += 1
             step += 1
@@ -452,6 +470,16 @@ def _train(profile: Profile, settings: TrainSettings, out_dir: Path, planes: Map
         models = {c: averages[c].averaged(m) for c, m in models.items()}
     return TrainResult(models=models, steps=step, epochs_done=position["epoch"], metrics=metrics,
                        checkpoint=saved, rank=job.rank, world_size=job.world_size)
+
+
+def _last_good(out_dir: Path, method: str, step: int) -> str:
+    """Where a stopped run's last good state is (nothing of the failing epoch is written)."""
+    resume = out_dir / f"{method}{RESUME_SUFFIX}"
+    if not resume.is_file():
+        return f"Nothing was written (it stopped in the first epoch, at step {step + 1})."
+    position = read_checkpoint(resume).position or {}
+    return (f"The last good state is {resume} (step {position.get('step', '?')}): continue from it with "
+            "--resume and a lower --lr.")
 
 
 def _epoch_line(epoch: int, epochs: int, complete: bool, step: int, metrics: Mapping[str, Mapping[str, float]],

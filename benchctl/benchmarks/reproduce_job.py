@@ -1,0 +1,227 @@
+"""One training job of `benchctl bench reproduce`: one method, one seed, one bench variant, trained until its
+validation score flattens, resumable exactly at any interruption.
+
+A job trains with the `benchctl train` recipe (seeded image order and flips per step, Adam, MSE on the ROI
+after the least-squares scale, batch 1) and is evaluated on a schedule of half-octave steps (32, 45, 64, 91,
+128, ...): on validation images never trained on (procedural images from VALIDATION_FIRST on), which decide
+when it stops, and on the held-out photographs, which the tables report. It stops at the first power-of-two
+step from `min_steps` on where the validation score gained less than `min_gain_db` over the last doubling of
+steps (each side the mean of its two half-octave evaluations, to halve the noise of batch-1 training), at the
+step cap, or when the network stops learning or diverges (`health.TrainingHealth`); `done.json` says which.
+
+Its state (weights, Adam's state, step, clocks and the curve) is written atomically at every evaluation and
+every `SAVE_EVERY_S` seconds; the data order depends on the step alone, so a resumed job continues exactly.
+
+    python -m benchctl.benchmarks.reproduce_job RUN_DIR JOB_NAME
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import statistics
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import msgspec
+import torch
+
+from benchctl.benchmarks.learned import inference_seconds
+from benchctl.benchmarks.speed_vs_error import resized_profile
+from benchctl.cgh import OpticalSetup
+from benchctl.cgh.learned import build_model
+from benchctl.devices.slm import slm_for
+from benchctl.files import atomic_write_bytes, ensure_dir, write_json
+from benchctl.optics import amplitude_scores, crop_roi, lsq_scale
+from benchctl.profiles import Profile, load_profile
+from benchctl.runner.holograms import target_plane
+from benchctl.runner.learned.data import ImageSource, image_sources
+from benchctl.runner.learned.health import TrainingHealth
+from benchctl.runner.learned.training import (
+    ReconstructionLoss,
+    epoch_flips,
+    epoch_order,
+    load_targets,
+    peak_normalised,
+    training_step,
+)
+from benchctl.targets import load_target, photo_specs, prepare_target
+
+VALIDATION_FIRST = 100_000  # procedural images from here on are nobody's training data (procedural:N starts at 0)
+VALIDATION_COUNT = 8
+SAVE_EVERY_S = 120.0
+
+
+@dataclass
+class Evaluation:
+    """Scores at one step: validation (stopping rule) and held-out photographs (the tables), amplitude."""
+
+    step: int
+    cpu_seconds: float  # this job's CPU time in training steps so far (all threads; evaluation excluded)
+    wall_seconds: float  # wall-clock time in training steps so far
+    val_psnr: float
+    psnr: float
+    ssim: float
+
+
+def schedule(first: int, last: int) -> list[int]:
+    """Evaluation steps: half-octaves from `first` (round(first * 2^(k/2))) up to and including `last`."""
+    steps: list[int] = []
+    k = 0
+    while (step := round(first * 2 ** (k / 2))) < last:
+        steps.append(step)
+        k += 1
+    return steps + [last]
+
+
+def doubling_gain(curve: Sequence[Evaluation]) -> float | None:
+    """Validation dB gained over the last doubling of steps: mean of the last two half-octave evaluations minus
+    the mean of the two an octave earlier; None before there are four."""
+    if len(curve) < 4:
+        return None
+    return (curve[-1].val_psnr + curve[-2].val_psnr - curve[-3].val_psnr - curve[-4].val_psnr) / 2
+
+
+def bench_for(plan: dict[str, Any], job: dict[str, Any]) -> Profile:
+    """The Fresnel-scaled bench of the plan, without the iris for a job that asks so."""
+    bench = resized_profile(load_profile(plan["profile"]), tuple(plan["size"]))
+    if not job.get("iris", True):
+        bench = msgspec.structs.replace(bench, optics=msgspec.structs.replace(bench.optics, iris_fraction=None))
+    return bench
+
+
+class Scorer:
+    """Amplitude PSNR / SSIM of a model's 8-bit displayed holograms over a set of images, as `benchctl
+    generate` scores a hologram (through the SLM's lookup table, ROI, least-squares scale)."""
+
+    def __init__(self, bench: Profile, colour: str, images: Sequence[ImageSource | str]) -> None:
+        channel = bench.channel(colour)
+        self.name = channel.name
+        self.setup = OpticalSetup.from_profile(bench, channel.name)
+        self.slm = slm_for(bench)
+        grid, roi = self.setup.shape, self.setup.roi
+        plane = target_plane(channel)
+        planes = [prepare_target(image.load(roi) if isinstance(image, ImageSource) else load_target(image, size=roi),
+                                 grid, roi)[plane] for image in images]
+        self.inputs = [peak_normalised(p[None, None]) for p in planes]
+        self.targets = [crop_roi(p, roi) for p in planes]
+
+    def score(self, model: torch.nn.Module) -> tuple[float, float]:
+        """Mean amplitude PSNR (dB) and SSIM over the images."""
+        model.eval()
+        psnrs, ssims = [], []
+        with torch.no_grad():
+            for amplitude, target in zip(self.inputs, self.targets):
+                gray = self.slm.encode(model(amplitude)[0, 0], self.name)
+                recon = self.setup.reconstruct_roi(torch.from_numpy(self.slm.decode(gray, self.name)))
+                scores = amplitude_scores(recon * lsq_scale(recon, target), target)
+                psnrs.append(scores["psnr_amplitude_db"])
+                ssims.append(scores["ssim_amplitude"])
+        return statistics.mean(psnrs), statistics.mean(ssims)
+
+
+def job_dir(run_dir: Path, name: str) -> Path:
+    return Path(run_dir) / "jobs" / name
+
+
+def read_done(run_dir: Path, name: str) -> dict[str, Any] | None:
+    """A finished job's record (reason, steps, clocks, curve, inference time), None while it is not finished."""
+    path = job_dir(run_dir, name) / "done.json"
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def read_progress(run_dir: Path, name: str) -> list[dict[str, Any]]:
+    """The curve an unfinished job has recorded so far (empty before its first evaluation)."""
+    path = job_dir(run_dir, name) / "curve.json"
+    return json.loads(path.read_text()) if path.is_file() else []
+
+
+def run_job(run_dir: Path, name: str, out: Any = print) -> dict[str, Any]:
+    """Train job `name` of the plan in `run_dir` to its end (resuming its saved state); its done record."""
+    run_dir = Path(run_dir)
+    plan = json.loads((run_dir / "plan.json").read_text())
+    job = next(j for j in plan["jobs"] if j["name"] == name)
+    folder = ensure_dir(job_dir(run_dir, name))
+    torch.set_num_threads(int(plan["threads"]))
+    bench = bench_for(plan, job)
+    colour = bench.channel(plan["colour"]).name
+    setup = OpticalSetup.from_profile(bench, colour)
+    plane = target_plane(bench.channel(colour))
+    train_images = load_targets(image_sources(plan["data"]), setup.shape, setup.roi)
+    validation = Scorer(bench, colour, [ImageSource(f"procedural-{i}", index=i)
+                                        for i in range(VALIDATION_FIRST, VALIDATION_FIRST + VALIDATION_COUNT)])
+    held_out = Scorer(bench, colour, photo_specs("eval"))
+    torch.manual_seed(job["seed"])
+    model = build_model(job["method"], setup)
+    optimiser = torch.optim.Adam(model.parameters(), lr=plan["lr"], betas=(0.9, 0.999))
+    step, cpu, clock, curve = 0, 0.0, 0.0, []
+    state_path = folder / "state.pt"
+    if state_path.is_file():
+        state = torch.load(state_path, weights_only=True)
+        model.load_state_dict(state["model"])
+        optimiser.load_state_dict(state["optimiser"])
+        step, cpu, clock = int(state["step"]), float(state["cpu"]), float(state["wall"])
+        curve = [Evaluation(**e) for e in json.loads(state["curve"])]
+        out(f"{name}: resuming at step {step}")
+
+    def save() -> None:
+        buffer = io.BytesIO()
+        torch.save({"model": model.state_dict(), "optimiser": optimiser.state_dict(), "step": step, "cpu": cpu,
+                    "wall": clock, "curve": json.dumps([asdict(e) for e in curve])}, buffer)
+        atomic_write_bytes(state_path, buffer.getvalue())
+        write_json(folder / "curve.json", [asdict(e) for e in curve])
+
+    evaluations = [s for s in schedule(plan["first_evaluation"], plan["max_steps"]) if s > step]
+    health = TrainingHealth()
+    loss_fn = ReconstructionLoss()
+    n = train_images.shape[0]
+    reason = None
+    saved_at = time.perf_counter()
+    while reason is None:
+        epoch, position = divmod(step, n)
+        image = train_images[int(epoch_order(n, job["seed"], epoch, n)[position]), plane]
+        horizontal, vertical = epoch_flips(job["seed"], epoch, [position])[0]
+        dims = [d for d, flip in ((-1, horizontal), (-2, vertical)) if flip]
+        amplitude = peak_normalised((image.flip(dims) if dims else image)[None, None])
+        start, start_cpu = time.perf_counter(), time.process_time()
+        stats = training_step(model, optimiser, setup, amplitude, loss_fn)
+        clock += time.perf_counter() - start
+        cpu += time.process_time() - start_cpu
+        step += 1
+        verdict = health.update(stats)
+        if verdict is not None:
+            reason = f"{verdict.split(':')[0]}"
+            out(f"{name}: {verdict}")
+        if evaluations and step == evaluations[0] or reason is not None:
+            evaluations = evaluations[1:] if evaluations and step == evaluations[0] else evaluations
+            curve.append(Evaluation(step, round(cpu, 2), round(clock, 2), validation.score(model)[0],
+                                    *held_out.score(model)))
+            gain = doubling_gain(curve)
+            out(f"{name}: step {step}, validation {curve[-1].val_psnr:.2f} dB, held-out {curve[-1].psnr:.2f} dB"
+                + (f", {gain:+.2f} dB over the last doubling" if gain is not None else ""))
+            if reason is None and step >= plan["max_steps"]:
+                reason = "step cap"
+            elif (reason is None and step >= plan["min_steps"] and math.log2(step).is_integer() and gain is not None
+                  and gain < plan["min_gain_db"]):
+                reason = "converged"
+            save()
+            saved_at = time.perf_counter()
+        elif time.perf_counter() - saved_at > SAVE_EVERY_S:
+            save()
+            saved_at = time.perf_counter()
+    done = {"name": name, "method": job["method"], "seed": job["seed"], "iris": job.get("iris", True),
+            "reason": reason, "steps": step, "cpu_seconds": round(cpu, 2), "wall_seconds": round(clock, 2),
+            "curve": [asdict(e) for e in curve],
+            "inference_seconds": inference_seconds(model, held_out.inputs[0], repeats=5)}
+    write_json(folder / "done.json", done)
+    state_path.unlink(missing_ok=True)  # the weights are no longer needed: done.json holds the result
+    return done
+
+
+if __name__ == "__main__":
+    run_job(Path(sys.argv[1]), sys.argv[2], out=lambda line: print(line, flush=True))
