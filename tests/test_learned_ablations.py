@@ -9,9 +9,13 @@ from pathlib import Path
 
 import pytest
 
-from benchctl.benchmarks.reproduce import DEFAULT_METHODS, PAPER, reproduce_command
+from benchctl.benchmarks import reproduce_job
+from benchctl.benchmarks.reproduce import DEFAULT_METHODS, new_plan, reproduce_command
+from benchctl.benchmarks.reproduce_job import run_job
+from benchctl.benchmarks.reproduce_report import PAPER
 from benchctl.cli import main
-from benchctl.errors import BadValueError
+from benchctl.errors import BadValueError, BenchctlError
+from benchctl.profiles import load_profile
 from benchctl.runner.learned.checkpoint import read_checkpoint
 from benchctl.runner.learned.data import image_sources
 from benchctl.targets import photo_specs
@@ -58,45 +62,104 @@ def test_training_data_combines_procedural_images_and_training_photographs() -> 
             image_sources(bad)
 
 
-def test_reproduce_runs_end_to_end_and_writes_table_curves_and_plots(capsys, tmp_path: Path,
-                                                                     small_profile_path: Path) -> None:
+def test_reproduce_runs_end_to_end_and_writes_table_comparisons_curves_and_plots(capsys, tmp_path: Path,
+                                                                                 small_profile_path: Path) -> None:
     out = tmp_path / "repro"
     code, stdout, err = _run(capsys, "bench", "reproduce", "--profile", str(small_profile_path), "--size", "32x48",
-                             "--steps", "2", "--methods", "holonet-ps2,ccnn", "--data", "procedural:2",
-                             "--evaluations", "2", "--out", str(out))
+                             "--methods", "holonet-ps2,ccnn,ccnn-dcm4", "--seeds", "1,2", "--max-steps", "3",
+                             "--min-steps", "2", "--data", "procedural:2", "--jobs", "2", "--out", str(out))
     assert code == 0, err
-    rows = list(csv.DictReader((out / "reproduction.csv").open()))
-    assert [r["method"] for r in rows] == ["holonet-ps2", "ccnn"]
-    for row in rows:
-        assert int(row["steps"]) == 2 and int(row["equal_steps"]) == 2
-        assert 0 < float(row["time_psnr_db"]) < 60 and 0 < float(row["time_ssim"]) <= 1
+    plan = json.loads((out / "plan.json").read_text())
+    assert [j["name"] for j in plan["jobs"]] == ["holonet-ps2-s1", "ccnn-s1", "ccnn-dcm4-s1", "ccnn-s2",
+                                                 "ccnn-dcm4-s2"]  # first seeds first; the ablation once
+    rows = {r["method"]: r for r in csv.DictReader((out / "reproduction.csv").open())}
+    assert list(rows) == ["holonet-ps2", "ccnn", "ccnn-dcm4"]
+    assert [rows[m]["seeds"] for m in rows] == ["1", "2", "2"]
+    for row in rows.values():
+        assert row["ended_by"] == "step cap" and int(row["steps"]) == 3
+        assert 0 < float(row["psnr_db"]) < 60 and 0 < float(row["ssim"]) <= 1
         assert float(row["paper_psnr_db"]) == PAPER[row["method"]][0]
         assert float(row["train_step_peak_mib"]) > 0 and float(row["inference_seconds"]) > 0
-    assert rows[1]["baseline"] == "ccnn" and float(rows[1]["time_delta_db"]) == 0.0
-    assert rows[0]["baseline"] == ""  # holonet, its baseline, was not run
+    assert float(rows["ccnn-dcm4"]["psnr_db_sd"]) > 0  # two seeds train two different networks
+    assert rows["ccnn"]["baseline"] == "ccnn" and float(rows["ccnn"]["delta_db"]) == 0.0
+    assert rows["holonet-ps2"]["baseline"] == ""  # holonet, its baseline, was not run
+    comparison = next(csv.DictReader((out / "comparisons.csv").open()))
+    assert comparison["method"] == "ccnn-dcm4" and int(comparison["pairs"]) == 2
+    assert float(comparison["here_db"]) == pytest.approx(float(rows["ccnn-dcm4"]["psnr_db"])
+                                                         - float(rows["ccnn"]["psnr_db"]), abs=2e-3)
     curves = list(csv.DictReader((out / "curves.csv").open()))
-    assert [(c["method"], int(c["step"])) for c in curves] == [("holonet-ps2", 1), ("holonet-ps2", 2), ("ccnn", 1),
-                                                               ("ccnn", 2)]
+    assert [(c["job"], int(c["step"])) for c in curves] == [(j["name"], 3) for j in plan["jobs"]]  # the cap
     report = (out / "reproduction.md").read_text()
-    assert "| method | paper PSNR / SSIM |" in report and "| dpac (classical reference) |" in report
-    assert "benchctl bench reproduce" in report
+    assert "| method | seeds | ended by |" in report and "| dpac (classical reference) |" in report
+    assert "benchctl bench reproduce" in report and "| CCNN x4 about equal to CCNN |" in report
     for name in ("psnr_vs_step.png", "psnr_vs_seconds.png"):
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert "DPAC on the held-out photographs" in stdout
+    code, stdout, err = _run(capsys, "bench", "reproduce", "--resume", str(out), "--no-memory")
+    assert code == 0, err
+    assert "5 of 5 jobs finished; training 0" in stdout  # a finished job is never retrained
+    code, _, err = _run(capsys, "bench", "reproduce", "--profile", str(small_profile_path), "--out", str(out))
+    assert code == 2 and "--resume" in err  # a run folder is never started twice
 
 
-def test_reproduce_user_mistakes_are_one_line_errors(capsys, small_profile_path: Path) -> None:
+def test_an_interrupted_reproduction_job_continues_exactly(tmp_path: Path, small_profile_path: Path,
+                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    settings = dict(size=(32, 48), methods=["ccnn-dcm4"], seeds=[3], data="procedural:2", max_steps=6, min_steps=4,
+                    first_evaluation=2, iris_test=False)
+    whole, parts = tmp_path / "whole", tmp_path / "parts"
+    profile = load_profile(str(small_profile_path))
+    for folder in (whole, parts):
+        new_plan(folder, profile, **settings)
+    expected = run_job(whole, "ccnn-dcm4-s3", out=lambda _: None)
+    monkeypatch.setattr(reproduce_job, "SAVE_EVERY_S", 0.0)  # a state after every step
+    calls = {"n": 0}
+    step = reproduce_job.training_step
+
+    def interrupted(*args: object, **kwargs: object) -> object:
+        calls["n"] += 1
+        if calls["n"] == 5:
+            raise KeyboardInterrupt
+        return step(*args, **kwargs)
+
+    monkeypatch.setattr(reproduce_job, "training_step", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        run_job(parts, "ccnn-dcm4-s3", out=lambda _: None)
+    monkeypatch.setattr(reproduce_job, "training_step", step)
+    lines: list[str] = []
+    resumed = run_job(parts, "ccnn-dcm4-s3", out=lines.append)
+    assert lines[0] == "ccnn-dcm4-s3: resuming at step 4"
+    assert [e | {"cpu_seconds": 0, "wall_seconds": 0} for e in resumed["curve"]] == \
+        [e | {"cpu_seconds": 0, "wall_seconds": 0} for e in expected["curve"]]
+    assert resumed["reason"] == expected["reason"] == "step cap" and resumed["steps"] == 6
+
+
+def test_reproduction_settings_are_checked_before_anything_trains(tmp_path: Path, small_profile_path: Path) -> None:
+    profile = load_profile(str(small_profile_path))
+    for kwargs, match in (({"lr": float("nan")}, "--lr"), ({"lr": 1e10}, "--lr"), ({"size": (9000, 9000)}, "--size"),
+                          ({"methods": ["holonet-dcm3"]}, "holonet-dcm3"), ({"min_steps": 10, "max_steps": 5},
+                                                                           "--min-steps"),
+                          ({"colour": "purple"}, "purple"), ({"min_gain_db": float("inf")}, "--min-gain")):
+        with pytest.raises(BenchctlError, match=match):
+            new_plan(tmp_path / "x", profile, **kwargs)
+        assert not (tmp_path / "x" / "plan.json").exists()
+
+
+def test_reproduce_user_mistakes_are_one_line_errors(capsys, small_profile_path: Path, tmp_path: Path) -> None:
     assert set(DEFAULT_METHODS) <= set(PAPER)
-    code, _, err = _run(capsys, "bench", "reproduce", "--profile", str(small_profile_path), "--steps", "1",
-                        "--methods", "holonet-dcm3")
+    code, _, err = _run(capsys, "bench", "reproduce", "--profile", str(small_profile_path), "--methods",
+                        "holonet-dcm3", "--out", str(tmp_path / "r"))
     assert code != 0 and "holonet-dcm3" in err and len(err.strip().splitlines()) == 1
+    code, _, err = _run(capsys, "bench", "reproduce", "--resume", str(tmp_path / "nothing"))
+    assert code == 2 and "no plan.json" in err
 
 
 def test_the_recorded_reproduction_command_names_every_setting_and_only_a_given_profile() -> None:
-    default = reproduce_command(None, (136, 240), 0.5, None, ["ccnn", "ccnn-dcm4"], "red", "procedural:2", 5, 1e-3,
-                                42, 1, Path("out dir"))
-    assert default == ("benchctl bench reproduce --size 136x240 --minutes 0.5 --methods ccnn,ccnn-dcm4 --colour red "
-                       "--data procedural:2 --evaluations 5 --lr 0.001 --seed 42 --threads 1 --out 'out dir'")
-    named = reproduce_command("simulated", (136, 240), None, 3, ["ccnn"], "red", "procedural:2", 1, 1e-3, 0, None,
-                              None)
-    assert named.startswith("benchctl bench reproduce --profile simulated --size 136x240 --steps 3 ")
+    settings = dict(size=(136, 240), methods=["ccnn", "ccnn-dcm4"], seeds=[42, 43], ablation_seeds=None, colour="red",
+                    data="procedural:2", lr=5e-4, max_steps=8192, min_steps=1024, min_gain_db=0.2, iris_test=True,
+                    jobs=2, threads=1)
+    default = reproduce_command(None, Path("out dir"), **settings)
+    assert default == ("benchctl bench reproduce --size 136x240 --methods ccnn,ccnn-dcm4 --seeds 42,43 --colour red "
+                       "--data procedural:2 --lr 0.0005 --max-steps 8192 --min-steps 1024 --min-gain 0.2 --jobs 2 "
+                       "--threads 1 --out 'out dir'")
+    named = reproduce_command("simulated", Path("o"), **settings | {"iris_test": False, "ablation_seeds": [7]})
+    assert named.startswith("benchctl bench reproduce --profile simulated --size 136x240 ")
+    assert "--ablation-seeds 7 " in named and "--no-iris-test" in named

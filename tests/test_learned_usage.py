@@ -161,3 +161,24 @@ def test_bench_learned_measures_side_by_side_with_ratios(capsys, tmp_path, train
     assert float(base["train_step_peak_mib"]) > 0 and float(dcm["train_step_peak_mib"]) > 0
     assert 0 < float(dcm["psnr_amplitude_db"]) < 100 and dcm["checkpoint"] == str(checkpoint)
     assert base["psnr_amplitude_db"] == ""  # no checkpoint for the baseline: no quality figures
+
+
+def test_the_memory_table_reports_a_step_above_the_cap_as_out_of_memory(capsys, tmp_path) -> None:
+    """Each step runs in a subprocess whose address space is capped: one that fits gives its peak and time, one
+    that does not gives a line saying so (and larger grids are not tried), never a traceback or a killed machine."""
+    profile = tmp_path / "small.toml"
+    profile.write_text(SMALL_PROFILE)
+    code, stdout, err = _run(capsys, "bench", "learned", "--grids", "32x48", "64x96", "--methods", "ccnn",
+                             "--memory-cap", "8", "-p", str(profile), "-o", str(tmp_path / "ok"))
+    assert code == 0, err
+    rows = list(csv.DictReader((tmp_path / "ok" / "learned_memory.csv").open()))
+    assert [(r["grid"], r["result"]) for r in rows] == [("32x48", "ok"), ("64x96", "ok")]
+    assert all(0 < float(r["peak_mib"]) < 1024 and float(r["step_seconds"]) > 0 for r in rows)
+    # 1 GiB of address space is about what torch's libraries map: holonet's step at 256 x 448 cannot fit
+    code, stdout, err = _run(capsys, "bench", "learned", "--grids", "512x896", "256x448", "--methods", "holonet",
+                             "--memory-cap", "1", "-p", str(profile), "-o", str(tmp_path / "oom"))
+    assert code == 0, err
+    rows = list(csv.DictReader((tmp_path / "oom" / "learned_memory.csv").open()))
+    assert [(r["grid"], r["result"]) for r in rows] == [
+        ("256x448", "out of memory above 1 GiB"), ("512x896", "out of memory (at 256x448 already)")]
+    assert "holonet             256x448: out of memory above 1 GiB" in stdout

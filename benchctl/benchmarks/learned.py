@@ -117,10 +117,10 @@ def training_step_memory(method: str, geometry: dict[str, Any], device: str) -> 
         torch.cuda.synchronize(dev)
         before = torch.cuda.memory_allocated(dev)
         torch.cuda.reset_peak_memory_stats(dev)
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         training_step(model, optimiser, setup, amplitude, loss_fn)
         torch.cuda.synchronize(dev)
-        seconds = time.perf_counter() - start
+        seconds, cpu_seconds = time.perf_counter() - start, time.process_time() - start_cpu
         peak = torch.cuda.max_memory_allocated(dev) - before
         how = "torch.cuda.max_memory_allocated during the step minus memory allocated before it"
     else:
@@ -128,24 +128,97 @@ def training_step_memory(method: str, geometry: dict[str, Any], device: str) -> 
         if status is None or not _reset_peak():
             raise BenchctlError("peak resident memory needs Linux's /proc/self/status and /proc/self/clear_refs")
         before = _proc_status()["VmRSS"]  # type: ignore[index]
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         training_step(model, optimiser, setup, amplitude, loss_fn)
-        seconds = time.perf_counter() - start
+        seconds, cpu_seconds = time.perf_counter() - start, time.process_time() - start_cpu
         peak = _proc_status()["VmHWM"] - before  # type: ignore[index]
         how = "peak resident set (VmHWM, reset before the step) minus resident set before the step"
-    return {"peak_bytes": int(peak), "baseline_bytes": int(before), "step_seconds": seconds, "measure": how}
+    return {"peak_bytes": int(peak), "baseline_bytes": int(before), "step_seconds": seconds,
+            "step_cpu_seconds": cpu_seconds, "measure": how}
 
 
-def measure_training_step(method: str, setup: OpticalSetup, device: torch.device) -> dict[str, Any]:
-    """`training_step_memory` for `method` in a fresh Python subprocess; its JSON result."""
-    request = json.dumps({"method": method, "geometry": geometry_of(setup), "device": str(device)})
+OUT_OF_MEMORY = "out of memory"
+
+
+def measure_training_step(method: str, setup: OpticalSetup, device: torch.device,
+                          memory_cap: int | None = None) -> dict[str, Any]:
+    """`training_step_memory` for `method` in a fresh Python subprocess; its JSON result.
+
+    `memory_cap` (bytes) limits the subprocess's address space (CPU; the kernel's out-of-memory killer is told to
+    pick it first): a step that would need more gives {"out_of_memory": True} instead of a traceback or a machine
+    that swaps or kills its neighbours."""
+    request = json.dumps({"method": method, "geometry": geometry_of(setup), "device": str(device),
+                          "memory_cap": memory_cap})
     proc = subprocess.run([sys.executable, "-m", "benchctl.benchmarks.learned", request], capture_output=True,
                           text=True, env=os.environ.copy(), check=False)
+    if memory_cap and proc.returncode in (-9, 137):  # killed by the kernel's out-of-memory killer
+        return {"out_of_memory": True, "cap_bytes": memory_cap}
     if proc.returncode != 0:
         tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
         raise BenchctlError(f"training-step subprocess for {method} failed (exit {proc.returncode}): "
                             + " | ".join(tail))
-    return json.loads(proc.stdout.strip().splitlines()[-1])
+    return json.loads(proc.stdout.strip().splitlines()[-1]) | ({"cap_bytes": memory_cap} if memory_cap else {})
+
+
+PAPER_MEMORY_MIB: dict[str, dict[str, float | None]] = {
+    "holonet": {"1088x1920": 9355, "2176x3840": None},
+    "holonet-dcm2": {"1088x1920": 5647, "2176x3840": 14455},
+    "holonet-dcm4": {"1088x1920": 3337, "2176x3840": 7299},
+    "holonet-pyramid": {"1088x1920": 5351, "2176x3840": 12083},
+    "ccnn": {"2176x3840": 5957, "4352x7680": 19573},
+    "ccnn-dcm4": {"2176x3840": 5265, "4352x7680": 17041},
+}
+"""The paper's training memory (MiB, RTX 3090 with 24 GB; None: out of memory) per network and grid (Tables 1
+and 2); the paper trains CCNN only at 4K and 8K and HoloNet's family at 1080p and 4K."""
+MEMORY_TABLE_METHODS = tuple(PAPER_MEMORY_MIB)
+MEMORY_TABLE_GRIDS = ((1088, 1920), (2176, 3840), (4352, 7680))
+
+
+def run_memory_table(profile: Profile, *, grids: Sequence[tuple[int, int]] = MEMORY_TABLE_GRIDS,
+                     methods: Sequence[str] = MEMORY_TABLE_METHODS, memory_cap_gib: float = 20.0,
+                     out_dir: Path | None = None, out: Callable[[str], None] = print) -> list[dict[str, Any]]:
+    """One training step per method and grid (the paper's geometry: pitch and distance kept, ROI scaled), each in
+    a fresh subprocess whose address space is capped at `memory_cap_gib`: the peak memory and the time of the
+    step, or "out of memory above the cap"; a method out of memory on a grid is not tried on larger ones."""
+    unknown = [m for m in methods if m not in LEARNED_METHODS]
+    if unknown:
+        raise BadValueError(f"unknown learned method(s) {', '.join(unknown)}; known: {', '.join(LEARNED_METHODS)}")
+    if not 1 <= memory_cap_gib <= 4096:
+        raise BadValueError(f"--memory-cap must lie between 1 and 4096 GiB, got {memory_cap_gib:g}")
+    cap = int(memory_cap_gib * 2**30)
+    device = _device()
+    out(f"one training step (batch 1, forward, propagation, ROI loss, backward, Adam) per method and grid, on "
+        f"{device} ({torch.get_num_threads()} threads), each in a fresh subprocess with its address space capped "
+        f"at {memory_cap_gib:g} GiB")
+    rows = []
+    for method in methods:
+        too_big = None
+        for grid in sorted(grids, key=lambda g: g[0] * g[1]):
+            label = f"{grid[0]}x{grid[1]}"
+            row: dict[str, Any] = {"method": method, "grid": label, "device": str(device),
+                                   "cap_gib": memory_cap_gib,
+                                   "paper_mib": PAPER_MEMORY_MIB.get(method, {}).get(label, "")}
+            if too_big is not None:
+                row |= {"result": f"{OUT_OF_MEMORY} (at {too_big} already)"}
+            else:
+                bench = grid_profile(profile.require("slm", "optics", "laser"), grid)
+                setup = OpticalSetup.from_profile(bench, bench.channels[0].name)
+                measured = measure_training_step(method, setup, device, cap)
+                if measured.get("out_of_memory"):
+                    too_big = label
+                    row |= {"result": f"{OUT_OF_MEMORY} above {memory_cap_gib:g} GiB"}
+                else:
+                    row |= {"result": "ok", "peak_mib": round(measured["peak_bytes"] / 2**20),
+                            "step_seconds": round(measured["step_seconds"], 2),
+                            "step_cpu_seconds": round(measured["step_cpu_seconds"], 2),
+                            "before_mib": round(measured["baseline_bytes"] / 2**20)}
+            rows.append(row)
+            out(f"  {method:<16} {label:>10}: " + (f"{row['peak_mib']:>7,} MiB, {row['step_seconds']:.1f} s "
+                                                   f"({row['step_cpu_seconds']:.1f} CPU-s)"
+                                                   if row["result"] == "ok" else row["result"]))
+    if out_dir is not None:
+        out(f"wrote {write_csv(ensure_dir(Path(out_dir)) / 'learned_memory.csv', rows)}")
+    return rows
 
 
 def _checkpoints(paths: Sequence[Path], methods: list[str], bench: Profile) -> dict[str, Path]:
@@ -270,9 +343,29 @@ def format_table(rows: Sequence[dict[str, Any]]) -> list[str]:
     return lines
 
 
+def _limit_memory(cap: int) -> None:
+    """Cap this process's address space at `cap` bytes and make it the out-of-memory killer's first choice."""
+    import resource
+
+    resource.setrlimit(resource.RLIMIT_AS, (cap, cap))
+    try:
+        Path("/proc/self/oom_score_adj").write_text("1000")
+    except OSError:
+        pass
+
+
 def _child(argv: Sequence[str]) -> int:
     request = json.loads(argv[0])
-    result = training_step_memory(request["method"], request["geometry"], request["device"])
+    if request.get("memory_cap"):
+        _limit_memory(int(request["memory_cap"]))
+    try:
+        result = training_step_memory(request["method"], request["geometry"], request["device"])
+    except MemoryError:
+        result = {"out_of_memory": True}
+    except RuntimeError as exc:  # torch's allocators say so in their message
+        if "memory" not in str(exc).lower() and "allocate" not in str(exc).lower():
+            raise
+        result = {"out_of_memory": True}
     print(json.dumps(result))
     return 0
 

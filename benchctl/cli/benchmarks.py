@@ -49,9 +49,16 @@ def _cmd_bench_propagation(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_learned(args: argparse.Namespace) -> int:
-    from benchctl.benchmarks.learned import run_learned_bench
+    from benchctl.benchmarks.learned import MEMORY_TABLE_METHODS, run_learned_bench, run_memory_table
+    from benchctl.errors import BadValueError
     from benchctl.profiles import load_profile
 
+    if args.grids:
+        if args.size:
+            raise BadValueError("--grids measures training memory on several grids; leave out --size")
+        run_memory_table(load_profile(args.profile), grids=args.grids, methods=args.methods or MEMORY_TABLE_METHODS,
+                         memory_cap_gib=args.memory_cap, out_dir=args.out)
+        return 0
     run_learned_bench(load_profile(args.profile), size=args.size, methods=args.methods, checkpoints=args.checkpoint,
                       repeats=args.repeats, training_memory=not args.inference_only, out_dir=args.out)
     return 0
@@ -134,6 +141,13 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                          help="trained checkpoints to score (default: the shipped ones that fit the grid)")
     learned.add_argument("--repeats", type=positive_int, default=3, help="timed inference runs (default: 3)")
     learned.add_argument("--inference-only", action="store_true", help="skip the training-step memory subprocesses")
+    learned.add_argument("--grids", type=grid_size, nargs="+", metavar="HxW",
+                         help="instead: the training-step memory and time of each method on each of these grids (e.g. "
+                              "1088x1920 2176x3840 4352x7680, the paper's), each step in a subprocess capped at "
+                              "--memory-cap; writes learned_memory.csv")
+    learned.add_argument("--memory-cap", type=float, default=20.0, metavar="GIB",
+                         help="address-space cap of each --grids subprocess, in GiB: a step that needs more is "
+                              "reported as out of memory (default: 20)")
     learned.add_argument("--out", "-o", default="bench-out", type=Path, metavar="DIR",
                          help="output folder (default: bench-out)")
     add_profile(learned)
