@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import json
+import re
 from pathlib import Path
 
 import cv2
+import msgspec
 import numpy as np
 import pytest
 import torch
@@ -13,8 +16,10 @@ from benchctl.cgh import OpticalSetup
 from benchctl.cgh.learned import build_model
 from benchctl.cgh.learned.vgg import PerceptualLoss, load_vgg19
 from benchctl.cli import main
-from benchctl.errors import BenchctlError
-from benchctl.profiles import load_profile
+from benchctl.errors import BadValueError, BenchctlError
+from benchctl.optics.fitted import FittedOptics
+from benchctl.profiles import Profile, load_profile
+from benchctl.runner.calibration import geometry as calibration_geometry
 from benchctl.runner.holograms import resolve_method
 from benchctl.runner.learned.averaging import WeightAverage
 from benchctl.runner.learned.checkpoint import Checkpoint, read_checkpoint
@@ -29,6 +34,7 @@ from benchctl.runner.learned.training import (
     train,
     run_train,
     training_step,
+    with_model_calibration,
 )
 from benchctl.targets import prepare_target
 
@@ -204,6 +210,62 @@ def test_training_writes_checkpoints_and_an_interrupted_run_resumes_exactly(tmp_
     saved = read_checkpoint(tmp_path / "lower" / "ccnn-dcm4.resume.pt").optimisers
     assert {g["lr"] for state in saved.values() for g in state["param_groups"]} == {_settings().lr / 4}
     assert any(f"learning rate {_settings().lr / 4:g} (was {_settings().lr:g})" in line for line in lines)
+
+
+def test_an_exact_resume_refuses_other_data_seed_batch_or_optical_model(tmp_path: Path,
+                                                                        small_profile_path: Path) -> None:
+    """`.resume.pt` continues a run exactly: changing what it trains on is refused, naming both values; the weights
+    alone (`.pt`) start a new run that may change them (fine-tuning)."""
+    profile = load_profile(small_profile_path)
+    train(profile, _settings(max_steps=1, colours=("red",)), tmp_path, PLANES, out=lambda _: None)
+    resume = tmp_path / "ccnn-dcm4.resume.pt"
+    for change, said in (({"data": "procedural:6"}, "--data procedural:6 (the run used procedural:5)"),
+                         ({"seed": 7}, "--seed 7 (the run used 42)"),
+                         ({"batch_size": 2}, "--batch-size 2 (the run used 1)")):
+        with pytest.raises(BadValueError, match=re.escape(said)):
+            train(profile, _settings(max_steps=2, colours=("red",), **change), tmp_path, PLANES, out=lambda _: None,
+                  resume=resume)
+    fitted = msgspec.structs.replace(profile, optics=msgspec.structs.replace(profile.optics, model=_model_file(
+        tmp_path, profile)))
+    with pytest.raises(BadValueError, match=r"--model-calibration \(the fitted optical model\) a fitted model "
+                                            r"\(the run used none\)"):
+        train(fitted, _settings(max_steps=2, colours=("red",)), tmp_path, PLANES, out=lambda _: None, resume=resume)
+    tuned = train(fitted, _settings(max_steps=1, colours=("red",), data="procedural:6"), tmp_path / "tuned", PLANES,
+                  out=lambda _: None, resume=tmp_path / "ccnn-dcm4.pt")
+    assert tuned.steps == 1
+
+
+def _model_file(folder: Path, profile: Profile, geometry: dict[str, object] | None = None) -> Path:
+    entry = {**FittedOptics(waist_m=5e-3).to_dict(), "geometry": geometry or calibration_geometry(profile)}
+    path = folder / "optical-model.json"
+    path.write_text(json.dumps({"colours": {"red": entry}}))
+    return path
+
+
+def test_training_through_a_model_fitted_for_another_geometry_is_refused(tmp_path: Path,
+                                                                        small_profile_path: Path) -> None:
+    profile = load_profile(small_profile_path)
+    other = calibration_geometry(profile) | {"distance_mm": 70.0}
+    path = _model_file(tmp_path, profile, other)
+    settings = _settings(colours=("red",), model_calibration=str(path))
+    with pytest.raises(BadValueError, match="fitted for another geometry than profile 'small' "
+                                            r"\(distance_mm 70.0 there, 20.0 here\)"):
+        with_model_calibration(profile, settings)
+    _model_file(tmp_path, profile)
+    assert with_model_calibration(profile, settings).optics.model == path.resolve()
+
+
+def test_learning_rates_and_data_sizes_outside_their_bounds_are_refused(capsys, tmp_path: Path,
+                                                                       small_profile_path: Path) -> None:
+    common = ("train", "--method", "ccnn", "--profile", str(small_profile_path), "--out", str(tmp_path))
+    for lr in ("1e10", "0", "nan", "-1e-3"):
+        code, _, err = _run(capsys, *common, "--data", "procedural:4", f"--lr={lr}")
+        assert code == 2 and "--lr must lie in (0, 0.1]" in err, err
+    code, _, err = _run(capsys, *common, "--data", "procedural:2000000")
+    assert code == 2 and "1 <= N <= 1,000,000" in err
+    train_set, val_set = split_sources(image_sources("procedural:100000"), 0.1, 0)
+    assert len(val_set) == 256 and len(train_set) == 100_000 - 256  # validation never dwarfs training
+    assert not list(tmp_path.glob("*.pt"))
 
 
 def _run(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]:

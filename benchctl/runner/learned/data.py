@@ -33,6 +33,8 @@ PROCEDURAL_PREFIX = "procedural:"
 PHOTOS_PREFIX = "photos:"
 JOIN = "+"
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")
+MAX_PROCEDURAL = 1_000_000  # a million distinct images: more than any run here trains on, and a list that fits
+MAX_VALIDATION = 256  # images validated after every epoch, whatever the fraction: validation must not dwarf training
 PROCEDURAL_SEED = 20240607  # fixed: procedural image i is the same picture in every install and version
 
 
@@ -68,8 +70,9 @@ def image_sources(spec: str) -> list[ImageSource]:
         return [ImageSource(name, path=name) for name in photo_specs(split)]
     if spec.startswith(PROCEDURAL_PREFIX):
         count = spec[len(PROCEDURAL_PREFIX):]
-        if not count.isdigit() or int(count) < 1:
-            raise BadValueError(f"--data {spec!r}: expected procedural:N with N >= 1 images, e.g. procedural:64")
+        if not count.isdigit() or not 1 <= int(count) <= MAX_PROCEDURAL:
+            raise BadValueError(f"--data {spec!r}: expected procedural:N with 1 <= N <= {MAX_PROCEDURAL:,} images, "
+                                "e.g. procedural:64")
         return [ImageSource(f"procedural-{i:05d}", index=i) for i in range(int(count))]
     folder = Path(spec)
     if not folder.is_dir():
@@ -84,13 +87,13 @@ def split_sources(sources: Sequence[ImageSource], val_fraction: float,
                   seed: int) -> tuple[list[ImageSource], list[ImageSource]]:
     """(training, validation): a seeded random `val_fraction` of the images is held out for validation.
 
-    At least one image is held out when the fraction is > 0 and there are two or more images; at least one
-    is always left for training.
+    At least one image is held out when the fraction is > 0 and there are two or more images, at most
+    MAX_VALIDATION; at least one is always left for training.
     """
     if not 0.0 <= val_fraction < 1.0:
         raise BadValueError(f"--val-fraction must be in [0, 1), got {val_fraction}")
     n = len(sources)
-    n_val = min(n - 1, max(1 if val_fraction > 0 else 0, round(n * val_fraction)))
+    n_val = min(n - 1, MAX_VALIDATION, max(1 if val_fraction > 0 else 0, round(n * val_fraction)))
     order = np.random.default_rng(seed).permutation(n)
     held_out = set(order[:n_val].tolist())
     return ([s for i, s in enumerate(sources) if i not in held_out],

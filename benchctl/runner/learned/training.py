@@ -16,6 +16,7 @@ the weights stay identical; only rank 0 validates, prints and writes checkpoints
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import shlex
@@ -44,6 +45,7 @@ from benchctl.optics.metrics import amplitude_scores, crop_roi, lsq_scale, psnr
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import Profile
 from benchctl.runner.calibration import Calibration
+from benchctl.runner.calibration import geometry as calibration_geometry
 from benchctl.runner.holograms import target_plane
 from benchctl.runner.learned.averaging import WeightAverage
 from benchctl.runner.learned.checkpoint import RESUME_SUFFIX, WEIGHT_DTYPES, Checkpoint, read_checkpoint
@@ -53,6 +55,7 @@ from benchctl.runner.learned.health import StepStats, TrainingHealth, clamped_fr
 from benchctl.targets import prepare_target
 
 LOSSES = ("mse", "l2-perceptual")
+MAX_LR = 0.1  # Adam on these networks diverges far below this; above it a value is a typo
 
 
 @dataclass(frozen=True)
@@ -90,8 +93,8 @@ class TrainSettings:
                 raise BadValueError(f"{flag} must be >= 1, got {value}")
         if self.max_steps is not None and self.max_steps < 1:
             raise BadValueError(f"--max-steps must be >= 1, got {self.max_steps}")
-        if not (math.isfinite(self.lr) and self.lr > 0):
-            raise BadValueError(f"--lr must be a positive number, got {self.lr}")
+        if not (math.isfinite(self.lr) and 0 < self.lr <= MAX_LR):
+            raise BadValueError(f"--lr must lie in (0, {MAX_LR:g}] (the paper's is 5e-4), got {self.lr:g}")
         if self.ema is not None and not 0 < self.ema < 1:
             raise BadValueError(f"--ema must lie between 0 and 1 (e.g. 0.99), got {self.ema}")
         if self.weights_dtype not in WEIGHT_DTYPES:
@@ -514,6 +517,7 @@ def _resume(path: Path, settings: TrainSettings, profile: Profile, setups: Mappi
         out(f"{path} holds weights only: continuing from them with a fresh Adam, from step 0 "
             f"(resume from {path.with_suffix('').name}{RESUME_SUFFIX} to continue exactly)")
         return {"epoch": 0, "batch": 0, "step": 0}, history
+    _refuse_changes(path, checkpoint.training, settings, setups)
     saved_lr = set()
     for colour, optimiser in optimisers.items():
         optimiser.load_state_dict(checkpoint.optimisers[colour])
@@ -532,6 +536,28 @@ def _resume(path: Path, settings: TrainSettings, profile: Profile, setups: Mappi
         if saved_lr != {settings.lr} else ""
     out(f"resuming from {path}: epoch {position['epoch'] + 1}, step {position['step']}{changed}")
     return position, history
+
+
+def _refuse_changes(path: Path, recorded: Mapping[str, Any], settings: TrainSettings,
+                    setups: Mapping[str, OpticalSetup]) -> None:
+    """An exact resume continues the same run: refuse (naming both values) data, seed, batch size, loss or fitted
+    optical model that differ from the recorded ones (start from the weights alone, a .pt file, to change them)."""
+    model = {c: s.field_model.to_dict() for c, s in setups.items() if s.field_model is not None} or None
+    asked = {"--data": settings.data, "--seed": settings.seed, "--batch-size": settings.batch_size,
+             "--loss": settings.loss, "--model-calibration (the fitted optical model)": model}
+    recorded_values = {"--data": (recorded.get("data") or {}).get("spec"), "--seed": recorded.get("seed"),
+                       "--batch-size": recorded.get("batch_size"), "--loss": recorded.get("loss"),
+                       "--model-calibration (the fitted optical model)": recorded.get("optical_model")}
+    changed = [f"{flag} {_shown(asked[flag])} (the run used {_shown(recorded_values[flag])})"
+               for flag in asked if recorded_values[flag] != asked[flag]]
+    if changed:
+        raise BadValueError(f"--resume {path} continues a run exactly, but " + "; ".join(changed) + ": give the "
+                            f"run's values, or start from its weights alone (--resume {path.with_suffix('').name}"
+                            ".pt) to train differently")
+
+
+def _shown(value: Any) -> str:
+    return "none" if value is None else "a fitted model" if isinstance(value, dict) else str(value)
 
 
 def run_train(profile: Profile, settings: TrainSettings, out_dir: Path, *, resume: Path | None = None,
@@ -578,7 +604,12 @@ def with_model_calibration(profile: Profile, settings: TrainSettings) -> Profile
         if not path.is_file():
             raise BadValueError(f"{flag}: no such file")
         calibrated = replace(profile, optics=replace(profile.optics, model=path.resolve()))
+    entries = _model_entries(calibrated.optics.model, flag)
     for name in settings.colours or [channel.name for channel in profile.channels]:
+        fitted_for = (entries.get(profile.channel(name).name) or {}).get("geometry")
+        if fitted_for is not None and fitted_for != calibration_geometry(profile):
+            raise BadValueError(f"{flag}: {calibrated.optics.model} was fitted for another geometry than profile "
+                                f"{profile.name!r} ({_geometry_change(fitted_for, calibration_geometry(profile))})")
         try:
             model = FittedOptics.load(calibrated.optics.model, profile.channel(name).name)
         except (ValueError, KeyError, TypeError) as exc:
@@ -586,3 +617,20 @@ def with_model_calibration(profile: Profile, settings: TrainSettings) -> Profile
         if model is None:
             raise BadValueError(f"{flag}: {calibrated.optics.model} has no fitted model for {name!r}")
     return calibrated
+
+
+def _model_entries(path: Path, flag: str) -> dict[str, Any]:
+    """The per-colour entries of an optical-model file (each may record the geometry it was fitted for)."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as exc:
+        raise BadValueError(f"{flag}: {path} is not an optical model file ({exc})") from None
+    colours = data.get("colours") if isinstance(data, dict) else None
+    if not isinstance(colours, dict):
+        raise BadValueError(f"{flag}: {path} is not an optical model file (no 'colours' table)")
+    return {name: entry for name, entry in colours.items() if isinstance(entry, dict)}
+
+
+def _geometry_change(fitted: Mapping[str, Any], now: Mapping[str, Any]) -> str:
+    return "; ".join(f"{key} {fitted.get(key)} there, {now.get(key)} here" for key in sorted(set(fitted) | set(now))
+                     if fitted.get(key) != now.get(key))
