@@ -113,22 +113,22 @@ def test_refused_requests_reach_no_device(console: Console, sent: list[str], hea
 
 
 def test_laser_controls_round_trip_to_the_emulator(client: TestClient, console: Console, sent: list[str]) -> None:
-    assert client.post("/api/laser/green/power", json={"power": "2mW"}).json() == {"setpoint_mw": 2.0}
+    assert client.post("/api/laser/green/power", json={"power": "2mW"}).json()["setpoint_mw"] == 2.0
     assert laser_channel(2)["setpoint_w"] == pytest.approx(0.002)
-    assert client.post("/api/laser/blue/power", json={"power": "10%"}).json() == {"setpoint_mw": 4.0}
+    assert client.post("/api/laser/blue/power", json={"power": "10%"}).json()["setpoint_mw"] == 4.0
     assert laser_channel(3)["setpoint_w"] == pytest.approx(0.004)
     with client.websocket_connect(WS) as page:
         page.send_text("heartbeat")
-        assert client.post("/api/laser/green/emission", json={"on": True}).json() == {"ok": True}
+        assert client.post("/api/laser/green/emission", json={"on": True}).json()["ok"] is True
         assert laser_channel(2)["emission"] is True
         green = next(ch for ch in client.get("/api/state").json()["laser"]["channels"] if ch["name"] == "green")
         assert green["emission"] and green["setpoint_mw"] == 2.0 and green["measured_mw"] == pytest.approx(2, rel=0.01)
-        assert client.post("/api/laser/green/emission", json={"on": False}).json() == {"ok": True}
+        assert client.post("/api/laser/green/emission", json={"on": False}).json()["ok"] is True
         assert laser_channel(2)["emission"] is False
         client.post("/api/laser/green/emission", json={"on": True})
         client.post("/api/laser/blue/emission", json={"on": True})
         assert laser_channel(2)["emission"] and laser_channel(3)["emission"]
-        assert client.post("/api/laser/off", json={}).json() == {"ok": True}
+        assert client.post("/api/laser/off", json={}).json()["ok"] is True
         assert not laser_channel(2)["emission"] and not laser_channel(3)["emission"]
     assert "CH2:EMIT 1" in sent and sent[-3:] == ["CH1:EMIT 0", "CH2:EMIT 0", "CH3:EMIT 0"]
 
@@ -252,8 +252,8 @@ def test_preview_frames_show_the_light(client: TestClient) -> None:
 
 
 def test_zoom_and_linear_view(client: TestClient) -> None:
-    assert client.post("/api/view", json={"mode": "linear", "zoom": [0.5, 0.5]}).json() == {
-        "mode": "linear", "zoom": [0.5, 0.5]}
+    view = client.post("/api/view", json={"mode": "linear", "zoom": [0.5, 0.5]}).json()
+    assert (view["mode"], view["zoom"]) == ("linear", [0.5, 0.5]) and view["server_s"] >= 0
     with client.websocket_connect(WS) as page:
         while True:
             message = page.receive()
@@ -289,7 +289,7 @@ def test_capture_writes_raw_frames_and_settings_into_a_new_folder(client: TestCl
 def test_uploads_are_capped_and_named_by_number(client: TestClient, console: Console) -> None:
     ok, png = cv2.imencode(".png", np.full((40, 60, 3), 200, np.uint8))
     answer = client.post("/api/upload?name=../../evil.png", content=png.tobytes()).json()
-    assert answer == {"target": "upload:1"}
+    assert answer["target"] == "upload:1"
     files = list(console.uploads.folder.iterdir())
     assert [f.name for f in files] == ["upload-1.png"] and (console.uploads.folder.stat().st_mode & 0o077) == 0
     shown = client.post("/api/slm", json={"kind": "hologram", "target": "upload:1", "channel": "green"})
@@ -307,7 +307,7 @@ def test_procedures_dry_run_then_run_with_the_devices_handed_over(client: TestCl
     lines = client.post("/api/procedures/dry-run", json={"name": "sweep.toml"}).json()["lines"]
     assert any("power-sweep" in line for line in lines) and lines[-1] == "dry run: nothing was touched"
     assert "no procedure" in client.post("/api/procedures/start", json={"name": "../x.toml"}).json()["error"]
-    assert client.post("/api/procedures/start", json={"name": "sweep.toml"}).json() == {"ok": True}
+    assert client.post("/api/procedures/start", json={"name": "sweep.toml"}).json()["ok"] is True
     assert not console.laser.held.connected and not console.camera.connected  # one holder per device
     assert wait_for(lambda: not console.procedures.active, 120)
     state = client.get("/api/state").json()["procedure"]

@@ -39,13 +39,18 @@ def create_app(console: Console, access: Access) -> AccessMiddleware:
     """The application for one console start, wrapped in its access checks."""
 
     def api(handler: Callable[[Request], Awaitable[Any]]) -> Handler:
-        """A JSON endpoint: its result as JSON; a BenchctlError as 400 with its one line (nothing else changed)."""
+        """A JSON endpoint: its result as JSON (a command's with `server_s`, the seconds it took inside the server,
+        device work included); a BenchctlError as 400 with its one line (nothing else changed)."""
 
         async def endpoint(request: Request) -> Response:
+            started = time.perf_counter()
             try:
-                return JSONResponse(await handler(request))
+                result = await handler(request)
             except BenchctlError as exc:
                 return JSONResponse({"error": str(exc)}, status_code=400)
+            if request.method == "POST" and isinstance(result, dict):
+                result = {**result, "server_s": round(time.perf_counter() - started, 6)}
+            return JSONResponse(result)
 
         return endpoint
 
