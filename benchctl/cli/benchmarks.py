@@ -90,6 +90,13 @@ def _cmd_bench_reproduce(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_console(args: argparse.Namespace) -> int:
+    from benchctl.benchmarks.console import run_console_bench
+
+    run_console_bench(args.profile, seconds=args.seconds, repeats=args.repeats, out=args.out)
+    return 0
+
+
 def add_commands(sub: argparse._SubParsersAction) -> None:
     """Add this group's sub-commands to the `benchctl` sub-parsers (importing nothing heavy)."""
     bench = sub.add_parser("bench", help="benchmarks: speed against error").add_subparsers(
@@ -194,3 +201,11 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     reproduce.add_argument("--no-memory", action="store_true", help="skip the training-step memory subprocesses")
     add_profile(reproduce)
     reproduce.set_defaults(func=_cmd_bench_reproduce)
+
+    console = bench.add_parser("console", help="the live console from outside: preview fps, change-to-frame latency, "
+                                               "status latency during an SGD hologram (a console server is started)")
+    console.add_argument("--seconds", type=float, default=10.0, help="how long frames are counted (default 10)")
+    console.add_argument("--repeats", type=positive_int, default=5, help="changes timed per kind (default 5)")
+    console.add_argument("--out", "-o", type=Path, metavar="DIR", help="also write console.json there")
+    add_profile(console)
+    console.set_defaults(func=_cmd_bench_console)

@@ -32,14 +32,17 @@ def camera_for(profile: Profile) -> Camera:
 
     if config.transport != "sim":
         return PtpCamera(config)
-    from benchctl.devices.sim.bench import render_capture
+    from benchctl.devices.camera.base import PREVIEW_WIDTH
+    from benchctl.devices.sim.bench import LiveView, render_capture
     from benchctl.devices.sim.eos_usb import SimEosTransport
 
     def image_source() -> tuple[bytes, str]:
         frame = render_capture(profile, exposure_s=config.exposure_s, iso=config.iso)
         return frame.data, frame.file_name
 
-    return PtpCamera(config, SimEosTransport(image_source))
+    view = LiveView(profile)
+    return PtpCamera(config, SimEosTransport(image_source, live_view=lambda: view.jpeg(
+        PREVIEW_WIDTH, exposure_s=config.exposure_s, iso=config.iso)))
 
 
 def open_camera(profile: Profile) -> Camera:

@@ -9,7 +9,7 @@ from __future__ import annotations
 from abc import abstractmethod
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, ClassVar
 
 from benchctl.devices.connection import Connection
 from benchctl.devices.errors import DeviceError
@@ -22,6 +22,8 @@ if TYPE_CHECKING:
     import numpy as np
 
 RAW_FORMATS = {"dng": ".dng", "cr2": ".cr2", "cr3": ".cr3"}
+PREVIEW_WIDTH = 960  # pixels across a live-view frame unless the caller asks for another size
+Window = tuple[int, int, int, int]  # (top, left, rows, cols) of the sensor's active area
 
 
 @dataclass(frozen=True)
@@ -39,10 +41,30 @@ class RawFrame:
         return RAW_FORMATS.get(self.format, ".raw")
 
 
+@dataclass(frozen=True)
+class PreviewFrame:
+    """One live-view frame, for watching the bench (alignment, focus, exposure), never saved as a measurement.
+
+    data: an image file as the camera gives it: a JPEG (`format` "jpeg": a body's processed live view, sRGB) or a
+    RAW file (a format of RAW_FORMATS, decoded like a capture). window: the part of the sensor's active area it
+    shows, (top, left, rows, cols); None: all of it. full_shape: (rows, cols) of the active area where the camera
+    knows it, so that overlays in sensor coordinates can be placed on the frame.
+    """
+
+    data: bytes
+    format: str
+    window: Window | None = None
+    full_shape: tuple[int, int] | None = None
+    metadata: dict[str, Any] = field(default_factory=dict)
+
+
 class Camera(Connection):
     """A camera built from the profile's [camera] section; a context manager (open on enter, close on exit)."""
 
     driver: str
+    windowed_preview: ClassVar[bool] = False
+    """Whether `preview` gives the window and size it is asked for; else it gives the whole frame at the size the
+    camera has, and the caller crops and scales it."""
 
     def __init__(self, config: CameraConfig) -> None:
         self.config = config
@@ -72,6 +94,12 @@ class Camera(Connection):
     def _capture_one(self) -> RawFrame:
         """Release the shutter once and return the RAW file the camera produced."""
 
+    def _preview(self, width: int, window: Window | None) -> PreviewFrame:
+        """One live-view frame. Default, for cameras without a live view: a RAW capture of the whole frame, which
+        the caller decodes and reduces (slow, but every camera can do it); drivers with a faster view override."""
+        frame = self._capture_one()
+        return PreviewFrame(frame.data, frame.format, metadata=frame.metadata)
+
     def _apply_settings(self, exposure_s: float | None, iso: int | None) -> None:
         """Write exposure time / ISO to the camera; drivers that can override this."""
         raise BadValueError(f"the {self.driver} camera driver cannot set exposure or ISO; set them on the camera")
@@ -94,6 +122,14 @@ class Camera(Connection):
         """What the camera says it is, plus the driver name."""
         self._require_open()
         return {"driver": self.driver, **self._identity()}
+
+    def preview(self, width: int = PREVIEW_WIDTH, window: Window | None = None) -> PreviewFrame:
+        """One live-view frame about `width` pixels wide, of `window` of the active area (None: the whole frame)
+        where the driver can (`windowed_preview`). Nothing is saved; call it again for the next frame."""
+        self._require_open()
+        if width < 1:
+            raise BadValueError(f"preview width must be >= 1 pixel, got {width}")
+        return self._preview(width, window)
 
     def capture(self, destination: Path | None = None, frames: int | None = None,
                 stem: str = "frame") -> list[RawFrame]:

@@ -10,6 +10,8 @@ The M10 has no InitiateCapture, so this follows the EOS M capture sequence of li
     capture:  RemoteReleaseOn(3, 0) (answered DeviceBusy: GetEvent, retry), GetEvent until the body reports it is
               shooting (<= 2 s), RemoteReleaseOff(3), GetEvent until RequestObjectTransfer (<= image_timeout_s),
               GetPartialObject in 1 MiB chunks, TransferComplete(handle)
+    preview:  SetDevicePropValueEx(0xD1B0 = 2) once, then GetViewFinderData(0x00100000) per frame (answered 0xA102
+              or DeviceBusy while no frame is ready: GetEvent, retry); a capture or close sets 0xD1B0 back to 8 first
     close:    CloseSession
 
 Capture destination and EVF output are part of the capture set-up and always written; the exposure settings
@@ -26,7 +28,7 @@ from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import PurePath
 
-from benchctl.devices.camera.base import Camera, RawFrame
+from benchctl.devices.camera.base import Camera, PreviewFrame, RawFrame, Window
 from benchctl.devices.camera.hints import BUSY_HINT, NO_FOCUS_HINT, RAW_HINT
 from benchctl.devices.camera.ptp.container import (
     CANON_VENDOR_ID,
@@ -40,6 +42,7 @@ from benchctl.devices.camera.ptp.eos import (
     CAPTURE_TO_PC,
     EVENT_MODE,
     EVENT_MODE_EOS_M,
+    EVF_OUTPUT_LIVE_VIEW,
     EVF_OUTPUT_PC,
     RAW_ONLY,
     RELEASE_NO_CARD_SPACE,
@@ -71,6 +74,7 @@ class EosTiming:
     poll_interval_s: float = 0.05  # between GetEvent polls that found nothing
     busy_retry_s: float = 5.0  # keep retrying a release the body answers DeviceBusy
     usb_timeout_s: float = 10.0  # one USB transfer (real USB only)
+    live_view_s: float = 3.0  # GetViewFinderData answered "not ready" this long: the live view failed
 
 
 class PtpCamera(Camera):
@@ -88,6 +92,7 @@ class PtpCamera(Camera):
         self._eos: Eos | None = None
         self._info = DeviceInfo()
         self._written: dict[str, float | int] = {}
+        self._live = False  # the live view is on (EVF output to the computer)
 
     # -- connection --------------------------------------------------------------------------------------------
 
@@ -126,6 +131,7 @@ class PtpCamera(Camera):
     def _close(self) -> None:
         if self._session is not None and self._session.is_open:
             try:
+                self._end_live_view()
                 self._session.close()
             except DeviceError:
                 pass  # the camera is gone or frozen: nothing left to close on its side
@@ -136,6 +142,7 @@ class PtpCamera(Camera):
         if self._transport is not None:
             self._transport.close()
         self._transport = self._session = self._eos = None
+        self._live = False
 
     def _require_session(self) -> tuple[PtpSession, Eos]:
         if self._session is None or self._eos is None:
@@ -175,8 +182,37 @@ class PtpCamera(Camera):
 
     # -- capture -----------------------------------------------------------------------------------------------
 
+    # -- live view ---------------------------------------------------------------------------------------------
+
+    def _preview(self, width: int, window: Window | None) -> PreviewFrame:
+        """The body's own live view (a JPEG of the whole frame at the body's size); a body without
+        GetViewFinderData gives a RAW capture instead (the default)."""
+        if OperationCode.EosGetViewFinderData not in self._info.operations_supported:
+            return super()._preview(width, window)
+        _, eos = self._require_session()
+        if not self._live:
+            eos.set_property(EosProperty.EVFOutputDevice, EVF_OUTPUT_LIVE_VIEW)
+            self._live = True
+        started = time.monotonic()
+        while (jpeg := eos.viewfinder_frame()) is None:
+            if time.monotonic() - started >= self.timing.live_view_s:
+                raise DeviceTimeout(f"{self._describe()} gave no live-view frame within {self.timing.live_view_s:g} "
+                                    f"s (GetViewFinderData answered not ready): is it in movie mode or asleep?")
+            eos.get_events()
+            wait(self.timing.poll_interval_s)
+        return PreviewFrame(jpeg, "jpeg", metadata={"camera": self._info.model,
+                                                    "waited_s": round(time.monotonic() - started, 6)})
+
+    def _end_live_view(self) -> None:
+        """EVF output back to the capture set-up's value (the live view holds the sensor otherwise)."""
+        if self._live:
+            _, eos = self._require_session()
+            self._live = False
+            eos.set_property(EosProperty.EVFOutputDevice, EVF_OUTPUT_PC)
+
     def _capture_one(self) -> RawFrame:
         session, eos = self._require_session()
+        self._end_live_view()
         result = self._release(eos)
         seen = self._poll(eos, self.timing.release_events_s, _shooting) if result == RELEASE_OK else []
         eos.remote_release_off()

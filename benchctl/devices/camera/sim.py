@@ -4,16 +4,20 @@ lasers produce (benchctl.devices.sim.bench) as a DNG."""
 from __future__ import annotations
 
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from benchctl.devices.camera.base import Camera, RawFrame
+from benchctl.devices.camera.base import Camera, PreviewFrame, RawFrame, Window
 from benchctl.devices.errors import DeviceError
 from benchctl.devices.lock import DeviceLock
 from benchctl.devices.safety import wait
 from benchctl.devices.sim.state import CAMERA_STATE, load_state, sim_lock, state_dir
 from benchctl.files import ensure_dir
 from benchctl.profiles import CameraConfig, Profile
+
+if TYPE_CHECKING:
+    from benchctl.devices.sim.bench import LiveView
 
 
 def unplug_frame(fault: str) -> int:
@@ -29,10 +33,12 @@ class SimCamera(Camera):
     else from the simulated body's own settings ([sim.sensor])."""
 
     driver = "sim"
+    windowed_preview = True
 
     def __init__(self, config: CameraConfig, profile: Profile) -> None:
         super().__init__(config)
         self.profile = profile
+        self._live_view: LiveView | None = None
 
     def _device_lock(self) -> DeviceLock:
         return sim_lock(CAMERA_STATE, "camera (sim)")
@@ -74,3 +80,16 @@ class SimCamera(Camera):
         frame.metadata["render_s"] = round(time.perf_counter() - start, 6)  # the simulator's own work, not a camera's
         wait(frame.metadata["exposure_s"] + self.profile.sim.sensor.readout_s)
         return frame
+
+    def _preview(self, width: int, window: Window | None) -> PreviewFrame:
+        """A binned readout of `window` from the simulator's live view (`LiveView`): the light is computed once per
+        SLM frame and laser state, so a steady scene costs only resampling and noise per frame."""
+        from benchctl.devices.sim.bench import LiveView
+
+        self._check_cable()
+        if self._live_view is None:
+            self._live_view = LiveView(self.profile)
+        start = time.perf_counter()
+        data, metadata = self._live_view.dng(width, window, exposure_s=self.config.exposure_s, iso=self.config.iso)
+        metadata["render_s"] = round(time.perf_counter() - start, 6)
+        return PreviewFrame(data, "dng", tuple(metadata["window"]), self._live_view.active_shape, metadata)

@@ -17,9 +17,11 @@ from __future__ import annotations
 
 import functools
 import math
+import time
 from collections import Counter
 from collections.abc import Mapping
 from datetime import datetime
+from typing import Any
 
 import cv2
 import numpy as np
@@ -27,12 +29,12 @@ import torch
 from serial.serialutil import SerialException
 
 from benchctl.dng import CFA_LAYOUTS, dng_bytes
-from benchctl.devices.camera.base import RawFrame
+from benchctl.devices.camera.base import RawFrame, Window
 from benchctl.devices.errors import DeviceError
 from benchctl.devices.sim.protocol_sim import parse_url
 from benchctl.devices.sim.state import CAMERA_STATE, load_state, save_state
 from benchctl.devices.slm.sim import read_displayed
-from benchctl.optics import PhaseLUT, Propagator, gray_to_phase
+from benchctl.optics import PhaseLUT, Propagator, gray_to_phase, linear_to_srgb
 from benchctl.optics.aberration import crosstalk_blur, gaussian_beam_power, tilt_phase, wavefront_phase
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import LaserChannel, Profile, SimSensorConfig, SimSLMConfig
@@ -184,9 +186,10 @@ def _lit_box(profile: Profile, homography: np.ndarray) -> tuple[int, int, int, i
     return (top, bottom, left, right) if top < bottom and left < right else None
 
 
-def _mean_electrons(profile: Profile, gray: np.ndarray | None, powers_w: Mapping[str, float],
-                    exposure_s: float) -> tuple[tuple[int, int, int, int], np.ndarray] | None:
-    """The lit box of the active area and the mean photo-electrons in each of its pixels (float64), or None."""
+def _electron_planes(profile: Profile, gray: np.ndarray | None, powers_w: Mapping[str, float],
+                     exposure_s: float) -> np.ndarray:
+    """Mean photo-electrons per target-plane pixel as the sensor's R, G and B pixels collect them: (H, W, 3)
+    float32, the emitting channels' photons times their quantum efficiencies, before the camera geometry."""
     slm = profile.require("slm", "optics").slm
     assert slm is not None
     if gray is None:
@@ -194,28 +197,47 @@ def _mean_electrons(profile: Profile, gray: np.ndarray | None, powers_w: Mapping
     if gray.shape != slm.shape:
         raise DeviceError(f"simulated SLM shows a {gray.shape[0]} x {gray.shape[1]} frame, the profile's SLM is "
                           f"{slm.height} x {slm.width}: show a frame with this profile first")
-    homography = camera_homography(profile)
-    box = _lit_box(profile, homography)
-    if box is None:
-        return None
     electrons = np.zeros((*slm.shape, 3), dtype=np.float32)  # per target pixel, as seen by R, G and B pixels
     for name, watts in powers_w.items():
         channel = profile.channel(name)
         photons = watts * exposure_s * channel.wavelength_m / (PLANCK_J_S * LIGHT_M_S) * profile.sim.beam.efficiency
         irradiance = _target_irradiance(profile, channel, gray).numpy() * photons
         electrons += (irradiance[..., None] * spectral_response(profile, channel)).astype(np.float32)
-    top, bottom, left, right = box
-    shift = np.array([[1.0, 0, -left], [0, 1.0, -top], [0, 0, 1.0]])
-    warped = cv2.warpAffine(electrons, (shift @ homography)[:2], (right - left, bottom - top),
-                            flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    return electrons
+
+
+def _sensor_electrons(profile: Profile, planes: np.ndarray, homography: np.ndarray, shape: tuple[int, int],
+                      origin: tuple[int, int] | None) -> np.ndarray:
+    """Mean electrons per sensor pixel on a grid of `shape` pixels that `homography` maps target-plane pixels to:
+    the planes resampled (bilinear) and divided by the sensor pixels per target pixel squared (energy conserved).
+    With `origin` (the grid's first pixel in active-area coordinates), each pixel keeps the colour of its CFA
+    position: (rows, cols) float64; without, all three colours: (rows, cols, 3) float32."""
+    warped = cv2.warpAffine(planes, homography[:2], (shape[1], shape[0]), flags=cv2.INTER_LINEAR,
+                            borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     warped /= sensor_pixels_per_slm_pixel(profile) ** 2  # energy per target pixel spread over the image's area
+    if origin is None:
+        return warped
     colours = np.array(CFA_LAYOUTS[profile.sim.sensor.cfa]).reshape(2, 2)
+    top, left = origin
     mean = np.empty(warped.shape[:2], dtype=np.float64)
     for dy in (0, 1):
         for dx in (0, 1):  # the active area starts on the CFA's top-left cell (its margins are even)
             r0, c0 = (dy - top) % 2, (dx - left) % 2
             mean[r0::2, c0::2] = warped[r0::2, c0::2, colours[dy, dx]]
-    return box, mean
+    return mean
+
+
+def _mean_electrons(profile: Profile, gray: np.ndarray | None, powers_w: Mapping[str, float],
+                    exposure_s: float) -> tuple[tuple[int, int, int, int], np.ndarray] | None:
+    """The lit box of the active area and the mean photo-electrons in each of its pixels (float64), or None."""
+    homography = camera_homography(profile)
+    box = _lit_box(profile, homography)
+    if box is None:
+        return None
+    planes = _electron_planes(profile, gray, powers_w, exposure_s)
+    top, bottom, left, right = box
+    shift = np.array([[1.0, 0, -left], [0, 1.0, -top], [0, 0, 1.0]])
+    return box, _sensor_electrons(profile, planes, shift @ homography, (bottom - top, right - left), (top, left))
 
 
 def render_mosaic(profile: Profile, gray: np.ndarray | None, powers_w: Mapping[str, float], *,
@@ -259,3 +281,121 @@ def render_capture(profile: Profile, exposure_s: float | None = None, iso: int |
                 "seed": sim.seed, "frame": number, "captured_at": now.isoformat(timespec="milliseconds"),
                 "camera": sensor.model}
     return RawFrame(data, "dng", f"IMG_{number:04d}.DNG", metadata)
+
+
+class LiveView:
+    """The simulated sensor's live view: what the camera shows while nobody captures, from the same physics as a
+    capture (`render_capture`) at the size a screen needs.
+
+    A live-view frame is a binned readout of a window of the active area: each pixel is the mean of `bin` x `bin`
+    sensor pixels of one CFA position (the Bayer layout is kept), with the shot and read noise of that mean, the
+    gain, black level, clipping and quantisation of a capture. Only the light is expensive (a propagation per
+    emitting channel): it is computed once per SLM frame, laser state and exposure and reused until one changes,
+    so frames in between cost the resampling and the noise. Where one frame pixel covers two or more target-plane
+    pixels, those are averaged first (area sampling, not point sampling: a hologram's fine detail does not alias).
+    Saturation is that of the mean, which a single pixel in the bin may reach before it.
+    """
+
+    def __init__(self, profile: Profile) -> None:
+        self.profile = profile
+        self._key: tuple | None = None
+        self._planes: np.ndarray | None = None
+        self._reduced: dict[int, np.ndarray] = {}
+        self._frames = 0
+
+    @property
+    def active_shape(self) -> tuple[int, int]:
+        """(rows, cols) of the sensor's active area."""
+        sensor = self.profile.sim.sensor
+        return sensor.shape[0] - sensor.margin[0], sensor.shape[1] - sensor.margin[1]
+
+    def window(self, window: Window | None) -> Window:
+        """`window` inside the active area, its corner on a CFA cell (even row and column); None: all of it."""
+        rows_a, cols_a = self.active_shape
+        if window is None:
+            return 0, 0, rows_a, cols_a
+        top, left, rows, cols = (int(v) for v in window)
+        top, left = min(max(0, top), rows_a - 2) & ~1, min(max(0, left), cols_a - 2) & ~1
+        return top, left, max(2, min(rows, rows_a - top)), max(2, min(cols, cols_a - left))
+
+    def _light(self, exposure_s: float) -> tuple[np.ndarray, dict[str, Any]]:
+        """The electron planes of what the bench shows now (recomputed only when the SLM frame, the lasers or the
+        exposure changed) and what they show: SLM frame, lasers, seconds spent on the light (0: reused)."""
+        from benchctl.devices.slm.sim import STATE_NAME
+
+        powers = emitting_channels(self.profile)
+        shown = load_state(STATE_NAME).get("frame")
+        key = (shown, tuple(sorted(powers.items())), exposure_s)
+        start = time.perf_counter()
+        if key != self._key or self._planes is None:
+            gray, state = read_displayed() if shown is not None else (None, {})
+            key = (state.get("frame"), key[1], exposure_s)  # the frame read, should a newer one have come
+            self._planes = _electron_planes(self.profile, gray, powers, exposure_s)
+            self._reduced = {}
+            self._key = key
+        return self._planes, {"slm_frame": key[0], "lasers_on_w": dict(key[1]),
+                              "light_s": round(time.perf_counter() - start, 6)}
+
+    def _planes_at(self, step: float) -> tuple[np.ndarray, np.ndarray]:
+        """The light planes averaged over k x k target pixels (k = the whole target pixels one frame pixel spans,
+        at least 1) and the map from their pixel coordinates to the full grid's."""
+        assert self._planes is not None
+        k = max(1, int(step))
+        if k == 1:
+            return self._planes, np.eye(3)
+        if k not in self._reduced:
+            rows, cols = (n // k for n in self._planes.shape[:2])
+            self._reduced[k] = cv2.resize(self._planes[:rows * k, :cols * k], (cols, rows),
+                                          interpolation=cv2.INTER_AREA)
+        return self._reduced[k], np.array([[k, 0, (k - 1) / 2], [0, k, (k - 1) / 2], [0, 0, 1.0]])
+
+    def render(self, width: int, window: Window | None = None, *, exposure_s: float | None = None,
+               iso: int | None = None, cfa: bool = True) -> tuple[np.ndarray, dict[str, Any]]:
+        """One frame of `window` (None: the whole active area) about `width` pixels wide (never finer than the
+        sensor): a uint16 mosaic with the sensor's CFA layout (`cfa`), or (rows, cols, 3) uint16 with every colour
+        at every pixel (a body's processed live view), in raw counts with the black level; and its metadata."""
+        sensor = self.profile.sim.sensor
+        exposure_s = sensor.exposure_s if exposure_s is None else exposure_s
+        iso = sensor.iso if iso is None else iso
+        top, left, rows, cols = self.window(window)
+        binning = max(1.0, cols / max(1, int(width)))
+        shape = (max(2, round(rows / binning)) & ~1, max(2, round(cols / binning)) & ~1)
+        planes, metadata = self._light(exposure_s)
+        reduced, to_full = self._planes_at(binning / sensor_pixels_per_slm_pixel(self.profile))
+        to_frame = np.array([[1 / binning, 0, (0.5 - left) / binning - 0.5],
+                             [0, 1 / binning, (0.5 - top) / binning - 0.5], [0, 0, 1.0]])
+        mean = _sensor_electrons(self.profile, reduced, to_frame @ camera_homography(self.profile) @ to_full, shape,
+                                 (0, 0) if cfa else None)
+        self._frames += 1
+        rng = np.random.default_rng([self.profile.sim.seed, 1 << 32, self._frames])  # apart from captures' streams
+        pixels = binning * binning  # sensor pixels averaged into one frame pixel
+        gain = dn_per_electron(sensor, iso)
+        counts = rng.poisson(mean * pixels).astype(np.float32)
+        counts *= np.float32(gain / pixels)
+        counts += rng.standard_normal(counts.shape, dtype=np.float32) * np.float32(
+            sensor.read_noise_e * gain / math.sqrt(pixels))
+        counts += np.float32(sensor.black_level)
+        np.rint(counts, out=counts)
+        frame = np.clip(counts, 0, sensor.white_level).astype(np.uint16)
+        return frame, {**metadata, "frame": self._frames, "window": [top, left, rows, cols], "bin": round(binning, 4),
+                       "exposure_s": exposure_s, "iso": iso}
+
+    def dng(self, width: int, window: Window | None = None, *, exposure_s: float | None = None,
+            iso: int | None = None) -> tuple[bytes, dict[str, Any]]:
+        """`render`'s mosaic as a DNG (what the simulated camera's preview delivers) and its metadata."""
+        sensor = self.profile.sim.sensor
+        mosaic, metadata = self.render(width, window, exposure_s=exposure_s, iso=iso)
+        return dng_bytes(mosaic, cfa=sensor.cfa, black_level=sensor.black_level, white_level=sensor.white_level,
+                         camera_model=sensor.model, exposure_s=metadata["exposure_s"], iso=metadata["iso"]), metadata
+
+    def jpeg(self, width: int, *, exposure_s: float | None = None, iso: int | None = None) -> bytes:
+        """The whole frame as a body's live view gives it: every colour at every pixel, black level removed, scaled
+        to full scale, sRGB-encoded, JPEG (what the simulated EOS body sends for GetViewFinderData)."""
+        sensor = self.profile.sim.sensor
+        rgb, _ = self.render(width, exposure_s=exposure_s, iso=iso, cfa=False)
+        signal = (rgb.astype(np.float32) - sensor.black_level) / (sensor.white_level - sensor.black_level)
+        srgb = linear_to_srgb(torch.from_numpy(signal)).clamp(0, 1).mul(255).round().to(torch.uint8).numpy()
+        ok, encoded = cv2.imencode(".jpg", cv2.cvtColor(srgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 85])
+        if not ok:
+            raise DeviceError("simulated camera: live-view frame could not be encoded as JPEG")
+        return encoded.tobytes()

@@ -4,7 +4,9 @@ It parses every container the host sends and answers with the containers a real 
 Canon's vendor extension, sessions (SessionNotOpen outside one), remote and event modes, GetEvent records, the
 remote release, capture to the computer, GetPartialObject, TransferComplete and GetObjectInfo. InitiateCapture
 is not offered, as on the M10. Each shutter release takes one file from `image_source` (RAW bytes and the
-camera's file name), so the simulated bench can plug in the DNG it rendered.
+camera's file name), so the simulated bench can plug in the DNG it rendered. With `live_view` (a callable giving
+one JPEG) the body also has a live view: GetViewFinderData answers 0xA102 (not ready) while EVFOutputDevice 0xD1B0
+is not 2 and once more just after it is set to 2 (the sensor starts), then a type-1 record holding a new JPEG.
 
 What it does on a release: answered DeviceBusy unless the host declared capacity (PCHDDCapacity) for capture
 to the computer; otherwise it shoots, reports CameraStatus 1 (shooting), and on RemoteReleaseOff announces the
@@ -47,6 +49,7 @@ from benchctl.devices.camera.ptp.datasets import DeviceInfo, ObjectInfo
 from benchctl.devices.camera.ptp.eos import (
     CAMERA_STATUS_SHOOTING,
     CAPTURE_TO_PC,
+    EVF_OUTPUT_LIVE_VIEW,
     EXPOSURE_PROPERTIES,
     RELEASE_NO_FOCUS,
     EosEventType,
@@ -55,10 +58,12 @@ from benchctl.devices.camera.ptp.eos import (
     pack_events,
     pack_object_record,
     pack_property_change,
+    pack_viewfinder,
 )
 from benchctl.devices.camera.ptp.transport import Transport
 
 ImageSource = Callable[[], tuple[bytes, str]]
+LiveViewSource = Callable[[], bytes]
 
 FIRST_HANDLE = 0x90000001
 _WITH_HOST_DATA = {OperationCode.SetDevicePropValue, OperationCode.EosSetDevicePropValueEx}
@@ -89,11 +94,13 @@ class SimEosTransport(Transport):
                  serial: str = "5a1c0ffee0ddba11deadbeef00c0ffee", firmware: str = "3-1.1.0",
                  busy_releases: int = 0, no_focus: bool = False, no_transfer: bool = False,
                  unplug_after_bytes: int | None = None, freeze_on_property_write: bool = False,
-                 short_transfer_records: bool = False) -> None:
+                 short_transfer_records: bool = False, live_view: LiveViewSource | None = None) -> None:
         self.image_source = image_source
+        self.live_view = live_view
+        operations = set(_HANDLERS) - (set() if live_view else {OperationCode.EosGetViewFinderData})
         self.device_info = DeviceInfo(
             standard_version=100, vendor_extension_id=CANON_VENDOR_ID, vendor_extension_version=100,
-            operations_supported=tuple(sorted(_HANDLERS)),
+            operations_supported=tuple(sorted(operations)),
             events_supported=(EosEventType.ObjectAddedEx, EosEventType.RequestObjectTransfer,
                               EosEventType.PropValueChanged, EosEventType.CameraStatus),
             device_properties_supported=tuple(EosProperty), image_formats=(ObjectFormat.JPEG, ObjectFormat.CR2),
@@ -115,6 +122,8 @@ class SimEosTransport(Transport):
         self.unplugged = False
         self.closed = False
         self.object_bytes_sent = 0
+        self.live_view_frames = 0
+        self._sensor_started = False  # the live view has run since EVF output went to the computer
         self._session: int | None = None
         self._outbox: deque[bytes] = deque()
         self._events: list[bytes] = []
@@ -227,6 +236,8 @@ class SimEosTransport(Transport):
         self.properties[prop] = tuple(values)
         self.property_writes.append((prop, tuple(values)))
         self._events.append(pack_property_change(prop, values))
+        if prop == EosProperty.EVFOutputDevice:
+            self._sensor_started = False
         if self.freeze_on_property_write and prop in EXPOSURE_PROPERTIES:
             self.frozen = True
         return ResponseCode.OK, (), None
@@ -285,6 +296,15 @@ class SimEosTransport(Transport):
         info = ObjectInfo(storage_id=0, object_format=fmt, compressed_size=len(image), filename=name)
         return ResponseCode.OK, (), info.pack()
 
+    def _get_viewfinder_data(self, command: Container, data: bytes | None) -> Reply:
+        if self.live_view is None:
+            return ResponseCode.OperationNotSupported, (), None
+        if self.properties[EosProperty.EVFOutputDevice] != (EVF_OUTPUT_LIVE_VIEW,) or not self._sensor_started:
+            self._sensor_started = self.properties[EosProperty.EVFOutputDevice] == (EVF_OUTPUT_LIVE_VIEW,)
+            return ResponseCode.EosNotReady, (), None
+        self.live_view_frames += 1
+        return ResponseCode.OK, (), pack_viewfinder(self.live_view())
+
     def _transfer_complete(self, command: Container, data: bytes | None) -> Reply:
         if self._objects.pop(command.params[0], None) is None:
             return ResponseCode.InvalidObjectHandle, (), None
@@ -305,4 +325,5 @@ _HANDLERS: dict[int, Callable[[SimEosTransport, Container, bytes | None], Reply]
     OperationCode.EosPCHDDCapacity: SimEosTransport._pc_hdd_capacity,
     OperationCode.EosRemoteReleaseOn: SimEosTransport._release_on,
     OperationCode.EosRemoteReleaseOff: SimEosTransport._release_off,
+    OperationCode.EosGetViewFinderData: SimEosTransport._get_viewfinder_data,
 }

@@ -54,6 +54,7 @@ class OperationCode(IntEnum):
     EosKeepDeviceOn = 0x911D
     EosRemoteReleaseOn = 0x9128
     EosRemoteReleaseOff = 0x9129
+    EosGetViewFinderData = 0x9153
 
 
 class ResponseCode(IntEnum):
@@ -67,6 +68,7 @@ class ResponseCode(IntEnum):
     DeviceBusy = 0x2019
     InvalidParameter = 0x201D
     SessionAlreadyOpen = 0x201E
+    EosNotReady = 0xA102  # Canon: e.g. no live-view frame yet
 
 
 class EventCode(IntEnum):

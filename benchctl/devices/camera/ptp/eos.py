@@ -1,5 +1,5 @@
 """Canon EOS PTP extension: remote mode, event polling (GetEvent records), remote release, capture to the
-computer and chunked download.
+computer, chunked download and the live view.
 
 GetEvent returns a run of records, each `u32 size | u32 type | body`, ending with the record size 8 type 0.
 Offsets below count from the start of a record (size field included) and are those libgphoto2 parses
@@ -7,6 +7,11 @@ Offsets below count from the start of a record (size field included) and are tho
 size at 0x14, NUL-terminated file name at 0x1c. ObjectAddedEx: handle at 8, storage 0x0c, format 0x10,
 size 0x1c, parent 0x20, name 0x28. CameraStatus: status at 8 (1 = busy shooting). PropValueChanged: property
 at 8, value from 0x0c. Both directions are here: the driver parses, the simulated body packs.
+
+Live view (libgphoto2's sequence): EVFOutputDevice 0xD1B0 = 2 sends the viewfinder to the computer; then each
+GetViewFinderData (0x9153, parameter 0x00100000, data to the host) returns records of the same `u32 size |
+u32 type | body` form, the image a type-1 record whose body is a JPEG; the body answers 0xA102 (not ready) or
+DeviceBusy until it has a frame. Setting 0xD1B0 back ends it.
 """
 
 from __future__ import annotations
@@ -17,8 +22,8 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from enum import IntEnum
 
-from benchctl.devices.camera.ptp.container import MalformedContainer, OperationCode, code_name
-from benchctl.devices.camera.ptp.session import PtpSession
+from benchctl.devices.camera.ptp.container import MalformedContainer, OperationCode, ResponseCode, code_name
+from benchctl.devices.camera.ptp.session import PtpSession, response_error
 from benchctl.devices.errors import DeviceError
 from benchctl.errors import BadValueError
 
@@ -31,6 +36,10 @@ EVENT_MODE = 1
 EVENT_MODE_EOS_M = 2
 CAPTURE_TO_PC = 4
 EVF_OUTPUT_PC = 8
+EVF_OUTPUT_LIVE_VIEW = 2  # the viewfinder's frames go to the computer (GetViewFinderData)
+VIEWFINDER_PARAMETER = 0x00100000
+VIEWFINDER_IMAGE = 1  # record type of the live-view JPEG
+JPEG_START = b"\xff\xd8"
 PC_HDD_CAPACITY = (0x0FFFFFFF, 0x1000, 1)  # (free clusters, bytes per cluster, 1): "plenty of room"
 RAW_ONLY = (1, 0x10, 6, 0, 4)  # image format value: one entry of 0x10 bytes, type RAW, size L, quality RAW
 FULL_PRESS = 3  # RemoteReleaseOn button: half + full press in one go
@@ -160,6 +169,30 @@ def pack_camera_status(status: int) -> bytes:
     return pack_record(EosEventType.CameraStatus, struct.pack("<I", status))
 
 
+def viewfinder_jpeg(data: bytes) -> bytes:
+    """The JPEG of a GetViewFinderData data phase: the body of its first type-1 record (the records need no
+    terminator: the data phase ends after the last one)."""
+    offset = 0
+    while len(data) - offset >= RECORD_HEADER.size:
+        size, kind = RECORD_HEADER.unpack_from(data, offset)
+        if size < RECORD_HEADER.size or offset + size > len(data):
+            raise MalformedContainer(f"malformed live-view record at byte {offset}: size field {size}, "
+                                     f"{len(data) - offset} bytes left")
+        body = data[offset + RECORD_HEADER.size:offset + size]
+        if kind == VIEWFINDER_IMAGE:
+            if not body.startswith(JPEG_START):
+                raise MalformedContainer(f"live-view image record at byte {offset} is not a JPEG (starts "
+                                         f"{body[:2].hex() or 'empty'}, not ffd8)")
+            return bytes(body)
+        offset += size
+    raise MalformedContainer(f"live-view data of {len(data)} bytes holds no image record (type {VIEWFINDER_IMAGE})")
+
+
+def pack_viewfinder(jpeg: bytes) -> bytes:
+    """A GetViewFinderData data phase holding `jpeg`, as `viewfinder_jpeg` reads it."""
+    return pack_record(VIEWFINDER_IMAGE, jpeg)
+
+
 def _third_stop_code(stops: float, base: int) -> int:
     """Canon's 1/8-EV code for a value `stops` whole stops from the one coded `base`, rounded to 1/3 stop
     (thirds are coded +3 and +5 eighths)."""
@@ -232,6 +265,15 @@ class Eos:
                                   f"({code_name(OperationCode.GetPartialObject)})")
             data += part
         return bytes(data[:size])
+
+    def viewfinder_frame(self) -> bytes | None:
+        """One GetViewFinderData: the live-view JPEG, or None while the body has no frame (0xA102 or DeviceBusy)."""
+        response = self.session.transact(OperationCode.EosGetViewFinderData, VIEWFINDER_PARAMETER)
+        if response.code in (ResponseCode.EosNotReady, ResponseCode.DeviceBusy):
+            return None
+        if response.code != ResponseCode.OK:
+            raise response_error(OperationCode.EosGetViewFinderData, response.code, response.params)
+        return viewfinder_jpeg(response.data)
 
     def transfer_complete(self, handle: int) -> None:
         """Tell the body the image arrived, so it frees its buffer."""

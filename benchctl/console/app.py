@@ -1,0 +1,252 @@
+"""The console's web application (Starlette): the page, its JSON API and the live-view socket.
+
+Every route sits behind `AccessMiddleware` (token, Host, Origin). Device work runs on worker threads
+(`run_in_threadpool`), never on the event loop. The socket carries frames to the page (binary: a 4-byte header
+length, the JSON header, the frame's JPEG, then the zoom's JPEG if any) and state twice a second (text, JSON); every
+message the page sends on it is a heartbeat for the laser's dead-man switch.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import struct
+import time
+from collections.abc import Awaitable, Callable
+from importlib import resources
+from typing import Any
+
+from starlette.applications import Starlette
+from starlette.concurrency import run_in_threadpool
+from starlette.requests import Request
+from starlette.responses import FileResponse, JSONResponse, Response
+from starlette.routing import Route, WebSocketRoute
+from starlette.websockets import WebSocket, WebSocketDisconnect
+
+from benchctl.console.core import Console
+from benchctl.console.security import Access, AccessMiddleware
+from benchctl.console.slm import ZernikeName, parse_pattern
+from benchctl.errors import BadValueError, BenchctlError
+
+STATIC = {"console.js": "text/javascript", "console.css": "text/css", "index.html": "text/html"}
+STATE_PERIOD_S = 0.5
+MAX_JSON_BYTES = 64 * 1024
+Handler = Callable[[Request], Awaitable[Response]]
+
+
+def create_app(console: Console, access: Access) -> AccessMiddleware:
+    """The application for one console start, wrapped in its access checks."""
+
+    def api(handler: Callable[[Request], Awaitable[Any]]) -> Handler:
+        """A JSON endpoint: its result as JSON (a command's with `server_s`, the seconds it took inside the server,
+        device work included); a BenchctlError as 400 with its one line (nothing else changed)."""
+
+        async def endpoint(request: Request) -> Response:
+            started = time.perf_counter()
+            try:
+                result = await handler(request)
+            except BenchctlError as exc:
+                return JSONResponse({"error": str(exc)}, status_code=400)
+            if request.method == "POST" and isinstance(result, dict):
+                result = {**result, "server_s": round(time.perf_counter() - started, 6)}
+            return JSONResponse(result)
+
+        return endpoint
+
+    async def body(request: Request) -> dict[str, Any]:
+        raw = await request.body()
+        if len(raw) > MAX_JSON_BYTES:
+            raise BadValueError(f"request body of {len(raw)} bytes is above {MAX_JSON_BYTES}")
+        try:
+            data = json.loads(raw or b"{}")
+        except ValueError:
+            raise BadValueError("request body is not JSON") from None
+        if not isinstance(data, dict):
+            raise BadValueError("request body must be a JSON object")
+        return data
+
+    async def page(request: Request) -> Response:
+        return _static("index.html")
+
+    async def static(request: Request) -> Response:
+        name = request.path_params["name"]
+        if name not in STATIC:
+            return Response("not found\n", status_code=404, media_type="text/plain")
+        return _static(name)
+
+    async def state(request: Request) -> dict[str, Any]:
+        return console.state()
+
+    async def info(request: Request) -> dict[str, Any]:
+        return await run_in_threadpool(_info, console)
+
+    async def power(request: Request) -> dict[str, Any]:
+        text = (await body(request)).get("power")
+        if not isinstance(text, str):
+            raise BadValueError('give the power as {"power": "5mW"} or {"power": "10%"}')
+        return await run_in_threadpool(console.set_power, request.path_params["channel"], text)
+
+    async def emission(request: Request) -> dict[str, Any]:
+        on = (await body(request)).get("on")
+        if not isinstance(on, bool):
+            raise BadValueError('give emission as {"on": true} or {"on": false}')
+        if on and console.procedures.active:
+            raise BenchctlError("a procedure holds the laser; stop it first")
+        await run_in_threadpool(console.set_emission, request.path_params["channel"], on)
+        return {"ok": True}
+
+    async def all_off(request: Request) -> dict[str, Any]:
+        if console.procedures.active:  # the run holds the laser: stopping it switches emission off
+            await run_in_threadpool(console.procedures.stop)
+            return {"ok": True, "stopped": "procedure"}
+        await run_in_threadpool(console.all_off)
+        return {"ok": True}
+
+    async def slm(request: Request) -> dict[str, Any]:
+        pattern = parse_pattern(await body(request))
+        return await run_in_threadpool(console.show, pattern)
+
+    async def thumbnail(request: Request) -> Response:
+        if console.slm is None:
+            return Response("no SLM\n", status_code=404, media_type="text/plain")
+        png = await run_in_threadpool(console.slm.thumbnail)
+        return Response(png, media_type="image/png", headers={"cache-control": "no-store"})
+
+    async def upload(request: Request) -> dict[str, Any]:
+        limit = console.uploads.max_bytes
+        declared = request.headers.get("content-length")
+        if declared is not None and (not declared.isdigit() or int(declared) > limit):
+            raise BadValueError(f"upload of {declared} bytes is above the limit of {limit:,}")
+        data = bytearray()
+        async for chunk in request.stream():
+            data += chunk
+            if len(data) > limit:
+                raise BadValueError(f"upload is above the limit of {limit:,} bytes")
+        name = request.query_params.get("name", "image")
+        upload_id = await run_in_threadpool(console.uploads.add, bytes(data), name)
+        console.say(f"uploaded {name!r} as upload:{upload_id}")
+        return {"target": f"upload:{upload_id}"}
+
+    async def view(request: Request) -> dict[str, Any]:
+        data = await body(request)
+        console.set_view(data.get("mode"), data.get("zoom"), "zoom" in data and data["zoom"] is None)
+        return console.view
+
+    async def capture(request: Request) -> dict[str, Any]:
+        frames = (await body(request)).get("frames")
+        if frames is not None and (isinstance(frames, bool) or not isinstance(frames, int)):
+            raise BadValueError(f"frames must be a whole number, got {frames!r}")
+        return await run_in_threadpool(console.capture, frames)
+
+    async def connect(request: Request) -> dict[str, Any]:
+        name = (await body(request)).get("device")
+        held = {"laser": console.laser.held if console.laser else None,
+                "slm": console.slm.held if console.slm else None, "camera": console.camera}.get(name)
+        if held is None:
+            raise BadValueError(f"no device {name!r} to connect (laser, slm or camera)")
+        if console.procedures.active:
+            raise BenchctlError("a procedure holds the devices; wait for it or stop it")
+        await run_in_threadpool(console.laser.connect if name == "laser" and console.laser else held.connect)
+        return {"connected": held.connected, "error": held.error}
+
+    async def dry_run(request: Request) -> dict[str, Any]:
+        name = (await body(request)).get("name")
+        return {"lines": await run_in_threadpool(console.procedures.dry_run, str(name))}
+
+    async def start(request: Request) -> dict[str, Any]:
+        name = (await body(request)).get("name")
+        await run_in_threadpool(console.procedures.start, str(name))
+        return {"ok": True}
+
+    async def stop(request: Request) -> dict[str, Any]:
+        await run_in_threadpool(console.procedures.stop)
+        return {"ok": True}
+
+    async def report(request: Request) -> Response:
+        path = console.procedures.report()
+        if path is None:
+            return Response("no report yet\n", status_code=404, media_type="text/plain")
+        return FileResponse(path, media_type="text/html")
+
+    async def socket(websocket: WebSocket) -> None:
+        await websocket.accept()
+        loop = asyncio.get_running_loop()
+        fresh = asyncio.Event()
+        stop_listening = console.listen(lambda: loop.call_soon_threadsafe(fresh.set))
+        console.pages += 1
+        if console.laser is not None:
+            console.laser.heartbeat()
+        sender = asyncio.create_task(_send(websocket, console, fresh))
+        try:
+            while True:
+                await websocket.receive_text()
+                if console.laser is not None:
+                    console.laser.heartbeat()
+        except WebSocketDisconnect:
+            pass
+        finally:
+            console.pages -= 1
+            stop_listening()
+            sender.cancel()
+            with contextlib.suppress(asyncio.CancelledError, WebSocketDisconnect, RuntimeError):
+                await sender
+
+    routes = [
+        Route("/", page), Route("/static/{name}", static), Route("/api/state", api(state)),
+        Route("/api/info", api(info)), Route("/api/laser/off", api(all_off), methods=["POST"]),
+        Route("/api/laser/{channel}/power", api(power), methods=["POST"]),
+        Route("/api/laser/{channel}/emission", api(emission), methods=["POST"]),
+        Route("/api/slm", api(slm), methods=["POST"]), Route("/api/slm/thumbnail.png", thumbnail),
+        Route("/api/upload", api(upload), methods=["POST"]), Route("/api/view", api(view), methods=["POST"]),
+        Route("/api/capture", api(capture), methods=["POST"]), Route("/api/connect", api(connect), methods=["POST"]),
+        Route("/api/procedures/dry-run", api(dry_run), methods=["POST"]),
+        Route("/api/procedures/start", api(start), methods=["POST"]),
+        Route("/api/procedures/stop", api(stop), methods=["POST"]),
+        Route("/api/procedures/report", report), WebSocketRoute("/ws", socket),
+    ]
+    return AccessMiddleware(Starlette(routes=routes), access)
+
+
+async def _send(websocket: WebSocket, console: Console, fresh: asyncio.Event) -> None:
+    """Frames as they come (the latest only: a slow page skips frames instead of queueing them) and the state."""
+    sent = 0
+    next_state = 0.0
+    loop = asyncio.get_running_loop()
+    while True:
+        shown = console.latest
+        if shown is not None and shown.seq != sent:
+            sent = shown.seq
+            header = json.dumps({**shown.header, "zoom_bytes": len(shown.zoom or b""), "sent": time.time()}).encode()
+            await websocket.send_bytes(struct.pack(">I", len(header)) + header + shown.jpeg + (shown.zoom or b""))
+        if loop.time() >= next_state:
+            next_state = loop.time() + STATE_PERIOD_S
+            await websocket.send_text(json.dumps(console.state()))
+        fresh.clear()
+        with contextlib.suppress(asyncio.TimeoutError):
+            await asyncio.wait_for(fresh.wait(), timeout=max(0.01, next_state - loop.time()))
+
+
+def _static(name: str) -> Response:
+    data = resources.files("benchctl.console").joinpath("static", name).read_bytes()
+    return Response(data, media_type=STATIC[name], headers={"cache-control": "no-store"})
+
+
+def _info(console: Console) -> dict[str, Any]:
+    """What the page's forms offer: channels and their limits, patterns, targets, methods, checkpoints,
+    procedures."""
+    from benchctl.runner.holograms import usable_methods
+    from benchctl.targets import list_targets
+
+    profile = console.profile
+    return {
+        "profile": profile.name,
+        "channels": [{"name": c.name, "wavelength_nm": c.wavelength_nm, "limit_mw": c.max_power_mw,
+                      "setpoint_mw": c.setpoint_mw} for c in profile.channels],
+        "zernike": list(ZernikeName.__args__),
+        "targets": list(list_targets()),
+        "methods": usable_methods(profile) if console.slm is not None else [],
+        "checkpoints": list(console.slm.checkpoints) if console.slm else [],
+        "procedures": list(console.procedures.files()),
+        "deadman_s": console.laser.deadman_s if console.laser else None,
+    }

@@ -1,0 +1,85 @@
+"""`benchctl console`: start the console's process, serve the page with uvicorn, and stop safely.
+
+The server binds 127.0.0.1 unless told otherwise (another address is said loudly: anyone who can reach it and has
+the token can switch the laser on). A termination signal (Ctrl-C, SIGTERM from `benchctl laser off` in another
+shell) switches emission off and lets go of the laser at once, then the server stops and every device is closed.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import socket
+import threading
+from collections.abc import Callable
+from pathlib import Path
+from types import FrameType
+
+import uvicorn
+
+from benchctl.console.app import create_app
+from benchctl.console.core import Console
+from benchctl.console.laser import DEADMAN_S
+from benchctl.console.security import LOOPBACK_NAMES, Access, new_token
+from benchctl.errors import BenchctlError
+from benchctl.profiles import Profile
+
+
+
+class _Server(uvicorn.Server):
+    """uvicorn's server, switching emission off the moment a termination signal arrives (before shutting down)."""
+
+    def __init__(self, config: uvicorn.Config, console: Console) -> None:
+        super().__init__(config)
+        self.console = console
+
+    def handle_exit(self, sig: int, frame: FrameType | None) -> None:
+        threading.Thread(target=self.console.emergency_off, name="console emission off").start()
+        super().handle_exit(sig, frame)
+
+
+def is_loopback(address: str) -> bool:
+    try:
+        return ipaddress.ip_address(address.strip("[]")).is_loopback
+    except ValueError:
+        return address == "localhost"
+
+
+def listen(bind: str, port: int) -> socket.socket:
+    """A listening socket on `bind`:`port` (0: a free port); one line naming the address when it cannot be had."""
+    family = socket.AF_INET6 if ":" in bind.strip("[]") else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        sock.bind((bind.strip("[]"), port))
+    except OSError as exc:
+        sock.close()
+        raise BenchctlError(f"cannot listen on {bind}:{port}: {exc.strerror or exc} (choose another --port)") from None
+    sock.listen(64)
+    return sock
+
+
+def serve(profile: Profile, *, port: int, bind: str = "127.0.0.1", out: Path = Path("runs"),
+          procedures: Path | None = None, deadman_s: float = DEADMAN_S, say: Callable[[str], None] = print) -> None:
+    """Run the console until a termination signal; every device is closed (emission off first) however it ends."""
+    sock = listen(bind, port)
+    port = sock.getsockname()[1]
+    hosts = LOOPBACK_NAMES if is_loopback(bind) else (*LOOPBACK_NAMES, bind)
+    access = Access(new_token(), port, hosts)
+    console = Console(profile, out, deadman_s=deadman_s, procedures_dir=procedures)
+    try:
+        console.start()
+        for line in list(console.events):
+            say(line)
+        config = uvicorn.Config(create_app(console, access), log_level="warning", lifespan="off",
+                                timeout_graceful_shutdown=2)
+        host = "127.0.0.1" if is_loopback(bind) else bind
+        if not is_loopback(bind):
+            say(f"WARNING: the console listens on {bind}, not only on this computer: anyone who can reach "
+                f"{bind}:{port} and has the token can switch the laser on")
+        say(f"benchctl console on profile {profile.name!r}: open http://{host}:{port}/?token={access.token}")
+        say("stop it with Ctrl-C (emission off, devices closed)")
+        _Server(config, console).run(sockets=[sock])
+    finally:
+        sock.close()
+        console.close()
+        say("console stopped: emission off, devices closed")

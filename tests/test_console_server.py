@@ -1,0 +1,347 @@
+"""The console's server through an ASGI test client: every control round-trips to the simulated devices' own
+state (the laser emulator's setpoint and emission, the SLM's displayed frame); requests without the token, from
+another origin or host, or over the limit are refused with nothing sent to a device; the dead-man switch; captures;
+uploads; procedures; and `benchctl laser off` from another process while a real console server holds the laser."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import subprocess
+import sys
+import time
+import urllib.request
+from collections.abc import Iterator
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from starlette.testclient import TestClient
+from starlette.websockets import WebSocketDisconnect
+
+from benchctl.capture.raw import decode_raw
+from benchctl.console.app import create_app
+from benchctl.console.core import Console
+from benchctl.devices.serial_link import SerialLink
+from benchctl.devices.slm import read_displayed
+from benchctl.optics.aberration import wavefront_phase
+from benchctl.profiles import load_profile
+from console_bench import (ORIGIN, PORT, TOKEN, WS, access, expected_phase_frame, laser_channel, make_console,
+                           unpack_frame)
+
+
+@pytest.fixture
+def console(bench_profile_path: Path, tmp_path: Path) -> Iterator[Console]:
+    console = make_console(load_profile(bench_profile_path), tmp_path, deadman_s=0.4)
+    yield console
+    console.close()
+
+
+@pytest.fixture
+def client(console: Console) -> Iterator[TestClient]:
+    with TestClient(create_app(console, access()), base_url=ORIGIN) as client:
+        client.headers["x-benchctl-token"] = TOKEN
+        yield client
+
+
+@pytest.fixture
+def sent(monkeypatch: pytest.MonkeyPatch) -> list[str]:
+    """Every setting command any laser link sends from now on (queries are not settings)."""
+    commands: list[str] = []
+    original = SerialLink.command
+
+    def command(self: SerialLink, line: str, *args: object, **kwargs: object) -> object:
+        commands.append(line)
+        return original(self, line, *args, **kwargs)
+
+    monkeypatch.setattr(SerialLink, "command", command)
+    return commands
+
+
+def wait_for(condition, timeout_s: float = 10.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        time.sleep(0.02)
+    return condition()
+
+
+def test_the_page_needs_the_token_once_then_a_cookie(console: Console) -> None:
+    with TestClient(create_app(console, access()), base_url=ORIGIN) as client:
+        assert client.get("/").status_code == 403
+        assert client.get("/?token=wrong").status_code == 403
+        first = client.get(f"/?token={TOKEN}", follow_redirects=False)
+        assert first.status_code == 303 and first.headers["location"] == "/"
+        assert "HttpOnly" in first.headers["set-cookie"] and "SameSite=Strict" in first.headers["set-cookie"]
+        page = client.get("/")  # the cookie the redirect set
+        assert page.status_code == 200 and "<title>benchctl console</title>" in page.text
+        assert client.get("/static/console.js").text.startswith("// benchctl console page")
+        assert client.get("/static/../core.py").status_code == 404
+        assert client.get("/static/secrets.txt").status_code == 404
+
+
+def test_the_page_loads_nothing_from_the_internet(client: TestClient) -> None:
+    for name in ("/", "/static/console.js", "/static/console.css"):
+        text = client.get(name).text
+        assert not re.search(r"(https?:)?//[a-z0-9.-]+\.[a-z]{2,}", text), name  # no external host anywhere
+
+
+@pytest.mark.parametrize("headers", [
+    {},  # no token at all
+    {"x-benchctl-token": "not-the-token"},
+    {"x-benchctl-token": TOKEN, "origin": "http://evil.example"},  # a cross-site page (CSRF)
+    {"x-benchctl-token": TOKEN, "host": f"evil.example:{PORT}"},  # DNS rebinding: the hostile name arrives
+    {"x-benchctl-token": TOKEN, "origin": f"http://127.0.0.1:{PORT + 1}"},  # another local server's page
+])
+def test_refused_requests_reach_no_device(console: Console, sent: list[str], headers: dict[str, str]) -> None:
+    before = (laser_channel(2), read_displayed()[1])
+    with TestClient(create_app(console, access()), base_url=ORIGIN) as client:
+        for path, body in (("/api/laser/green/power", {"power": "5mW"}), ("/api/laser/green/emission", {"on": True}),
+                           ("/api/slm", {"kind": "grating"}), ("/api/capture", {})):
+            response = client.post(path, json=body, headers=headers)
+            assert response.status_code == 403 and response.text.startswith("refused: "), path
+        assert client.get("/api/state", headers=headers).status_code == 403
+        with pytest.raises(WebSocketDisconnect) as closed:
+            with client.websocket_connect(WS, headers=headers):
+                pass
+        assert closed.value.code == 1008
+    assert sent == [] and (laser_channel(2), read_displayed()[1]) == before
+
+
+def test_laser_controls_round_trip_to_the_emulator(client: TestClient, console: Console, sent: list[str]) -> None:
+    assert client.post("/api/laser/green/power", json={"power": "2mW"}).json()["setpoint_mw"] == 2.0
+    assert laser_channel(2)["setpoint_w"] == pytest.approx(0.002)
+    assert client.post("/api/laser/blue/power", json={"power": "10%"}).json()["setpoint_mw"] == 4.0
+    assert laser_channel(3)["setpoint_w"] == pytest.approx(0.004)
+    with client.websocket_connect(WS) as page:
+        page.send_text("heartbeat")
+        assert client.post("/api/laser/green/emission", json={"on": True}).json()["ok"] is True
+        assert laser_channel(2)["emission"] is True
+        green = next(ch for ch in client.get("/api/state").json()["laser"]["channels"] if ch["name"] == "green")
+        assert green["emission"] and green["setpoint_mw"] == 2.0 and green["measured_mw"] == pytest.approx(2, rel=0.01)
+        assert client.post("/api/laser/green/emission", json={"on": False}).json()["ok"] is True
+        assert laser_channel(2)["emission"] is False
+        client.post("/api/laser/green/emission", json={"on": True})
+        client.post("/api/laser/blue/emission", json={"on": True})
+        assert laser_channel(2)["emission"] and laser_channel(3)["emission"]
+        assert client.post("/api/laser/off", json={}).json()["ok"] is True
+        assert not laser_channel(2)["emission"] and not laser_channel(3)["emission"]
+    assert "CH2:EMIT 1" in sent and sent[-3:] == ["CH1:EMIT 0", "CH2:EMIT 0", "CH3:EMIT 0"]
+
+
+@pytest.mark.parametrize("power, message", [
+    ("41mW", "above the profile's limit 40 mW (max_power_mw); nothing was sent"),
+    ("101%", "above the profile's limit"),
+    ("20", "has no unit"),
+    ("-1mW", "negative"),
+])
+def test_bad_or_over_limit_power_is_refused_before_anything_is_sent(client: TestClient, sent: list[str], power: str,
+                                                                    message: str) -> None:
+    response = client.post("/api/laser/green/power", json={"power": power})
+    assert response.status_code == 400 and message in response.json()["error"]
+    assert sent == [] and laser_channel(2)["setpoint_w"] == 0.0
+
+
+def test_dead_man_switches_emission_off_when_the_page_goes(client: TestClient) -> None:
+    client.post("/api/laser/green/power", json={"power": "1mW"})
+    with client.websocket_connect(WS) as page:
+        page.send_text("heartbeat")
+        client.post("/api/laser/green/emission", json={"on": True})
+        for _ in range(4):  # a page that keeps sending heartbeats keeps the light on past the 0.4 s timeout
+            time.sleep(0.2)
+            page.send_text("heartbeat")
+        assert laser_channel(2)["emission"] is True
+    assert wait_for(lambda: laser_channel(2)["emission"] is False, 5.0)  # the tab closed
+    assert any("dead-man" in line for line in client.get("/api/state").json()["events"])
+
+
+def test_dead_man_also_catches_a_silent_page(client: TestClient) -> None:
+    client.post("/api/laser/red/power", json={"power": "1mW"})
+    with client.websocket_connect(WS):
+        client.post("/api/laser/red/emission", json={"on": True})
+        assert laser_channel(1)["emission"] is True
+        assert wait_for(lambda: laser_channel(1)["emission"] is False, 5.0)  # open socket, no heartbeat
+
+
+def test_stopping_the_console_leaves_emission_off(bench_profile_path: Path, tmp_path: Path) -> None:
+    console = make_console(load_profile(bench_profile_path), tmp_path)
+    console.set_power("green", "1mW")
+    console.set_emission("green", True)
+    assert laser_channel(2)["emission"] is True
+    console.close()
+    assert laser_channel(2)["emission"] is False
+
+
+def test_slm_patterns_round_trip_to_the_displayed_frame(client: TestClient, bench_profile_path: Path) -> None:
+    profile = load_profile(bench_profile_path)
+    rows, cols = profile.slm.shape
+    shown = client.post("/api/slm", json={"kind": "grating", "period_px": 8, "angle_deg": 90, "channel": "green"})
+    assert shown.status_code == 200, shown.text
+    gray, state = read_displayed()
+    assert shown.json()["frame"] == state["frame"]
+    ramp = np.repeat(np.arange(rows, dtype=np.float64)[:, None] * (2 * math.pi / 8), cols, axis=1)
+    expected = expected_phase_frame(profile, ramp, "green")
+    assert np.array_equal(gray, expected) and len(np.unique(gray[:8, 0])) == 8  # rising along the rows
+    flat = {"kind": "flat", "phase_rad": 1.0, "channel": "red", "zernike": {"defocus": 0.5, "coma_vertical": -0.2}}
+    client.post("/api/slm", json=flat)
+    waves = wavefront_phase((rows, cols), profile.slm.pitch_m, {"defocus": 0.5, "coma_vertical": -0.2}).numpy()
+    assert np.array_equal(read_displayed()[0], expected_phase_frame(profile, 1.0 + waves, "red"))
+    client.post("/api/slm", json={"kind": "blank"})
+    assert not read_displayed()[0].any() and read_displayed()[1]["frame"] == state["frame"] + 2
+    thumbnail = cv2.imdecode(np.frombuffer(client.get("/api/slm/thumbnail.png").content, np.uint8), 0)
+    assert thumbnail.shape == (rows, cols) and not thumbnail.any()  # 192 px wide: shown at its own size
+
+
+def test_holograms_are_the_ones_a_run_displays(client: TestClient, bench_profile_path: Path) -> None:
+    from benchctl.runner.hologram_cache import hologram
+    from benchctl.targets import load_target, prepare_target
+
+    profile = load_profile(bench_profile_path)
+    shown = client.post("/api/slm", json={"kind": "hologram", "target": "chart:bars", "method": "sgd",
+                                          "iterations": 3, "channel": "green"}).json()
+    assert shown["kind"] == "hologram" and shown["hologram"]["cached"] is False
+    target = prepare_target(load_target("chart:bars", profile.optics.roi), profile.slm.shape, profile.optics.roi)
+    run = hologram(profile, target, "green", "sgd", iterations=3, seed=0, checkpoint=None)
+    assert run.cached and np.array_equal(read_displayed()[0], run.gray)  # the run's cache holds what was shown
+    dots = client.post("/api/slm", json={"kind": "dots", "channel": "blue"}).json()
+    assert dots["frame"] == read_displayed()[1]["frame"] and read_displayed()[0].std() > 10
+
+
+@pytest.mark.parametrize("pattern, message", [
+    ({"kind": "grating", "period_px": 1}, "period_px"),
+    ({"kind": "spiral"}, "kind"),
+    ({"kind": "flat", "zernike": {"defocus": 99}}, "zernike"),
+    ({"kind": "hologram", "target": "/etc/passwd"}, "choose chart:<name>"),
+    ({"kind": "hologram", "target": "upload:7"}, "no upload '7'"),
+    ({"kind": "hologram", "checkpoint": "../../x.pt", "method": "ccnn"}, "not one the console offers"),
+    ({"kind": "flat", "channel": "violet"}, "no channel 'violet'"),
+    ({"kind": "hologram", "target": "chart:red", "channel": "blue"}, "black in blue"),
+])
+def test_bad_slm_requests_are_refused_by_name(client: TestClient, pattern: dict, message: str) -> None:
+    response = client.post("/api/slm", json=pattern)
+    assert response.status_code == 400 and message in response.json()["error"]
+    assert read_displayed()[1] == {}  # nothing was ever displayed
+
+
+def test_preview_frames_show_the_light(client: TestClient) -> None:
+    def frame(page) -> tuple[dict, np.ndarray]:
+        while True:
+            message = page.receive()
+            if message.get("bytes"):
+                header, jpeg, _ = unpack_frame(message["bytes"])
+                return header, cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+
+    with client.websocket_connect(WS) as page:
+        page.send_text("heartbeat")
+        dark_header, dark = frame(page)
+        client.post("/api/slm", json={"kind": "flat", "channel": "green"})
+        client.post("/api/laser/green/power", json={"power": "2mW"})
+        client.post("/api/laser/green/emission", json={"on": True})
+        page.send_text("heartbeat")
+        header, lit = frame(page)
+        while header["source"].get("lasers_on_w") != {"green": 0.002}:
+            header, lit = frame(page)
+    assert header["seq"] > dark_header["seq"] and lit.shape == dark.shape
+    assert header["stats"]["mean"][1] > 20 * max(dark_header["stats"]["mean"][1], 1e-4)
+    assert header["stats"]["peak"][1] > header["stats"]["peak"][2] and len(header["stats"]["histogram"][1]) == 64
+    assert lit[:, :, 1].mean() > dark[:, :, 1].mean() + 5
+
+
+def test_zoom_and_linear_view(client: TestClient) -> None:
+    view = client.post("/api/view", json={"mode": "linear", "zoom": [0.5, 0.5]}).json()
+    assert (view["mode"], view["zoom"]) == ("linear", [0.5, 0.5]) and view["server_s"] >= 0
+    with client.websocket_connect(WS) as page:
+        while True:
+            message = page.receive()
+            if message.get("bytes"):
+                header, _, zoom = unpack_frame(message["bytes"])
+                if zoom:
+                    break
+    image = cv2.imdecode(np.frombuffer(zoom, np.uint8), cv2.IMREAD_COLOR)
+    top, left, rows, cols = header["zoom_window"]
+    assert image.shape[:2] == (rows, cols) and (rows, cols) == tuple(min(256, n) for n in header["full_shape"])
+    assert client.post("/api/view", json={"mode": "sepia"}).status_code == 400
+    assert client.post("/api/view", json={"zoom": None}).json()["zoom"] is None
+
+
+def test_capture_writes_raw_frames_and_settings_into_a_new_folder(client: TestClient, tmp_path: Path) -> None:
+    client.post("/api/slm", json={"kind": "grating", "period_px": 6, "channel": "green"})
+    client.post("/api/laser/green/power", json={"power": "1mW"})
+    first = client.post("/api/capture", json={"frames": 2}).json()
+    second = client.post("/api/capture", json={"frames": 1}).json()
+    folder = Path(first["folder"])
+    assert folder.parent == tmp_path / "runs" and Path(second["folder"]) != folder
+    assert first["files"] == ["frame-000.dng", "frame-001.dng", "settings.json", "slm-frame.png"]
+    settings = json.loads((folder / "settings.json").read_text())
+    green = next(ch for ch in settings["laser"]["channels"] if ch["name"] == "green")
+    assert green["setpoint_mw"] == 1.0 and settings["slm"]["shows"]["period_px"] == 6
+    assert settings["slm"]["displayed_frame"] == read_displayed()[1]["frame"]
+    assert [f["file"] for f in settings["camera"]["frames"]] == ["frame-000.dng", "frame-001.dng"]
+    assert decode_raw(folder / "frame-000.dng").mosaic.shape == (292, 428)
+    assert np.array_equal(cv2.imread(str(folder / "slm-frame.png"), cv2.IMREAD_UNCHANGED), read_displayed()[0])
+    assert client.post("/api/capture", json={"frames": 0}).status_code == 400
+
+
+def test_uploads_are_capped_and_named_by_number(client: TestClient, console: Console) -> None:
+    ok, png = cv2.imencode(".png", np.full((40, 60, 3), 200, np.uint8))
+    answer = client.post("/api/upload?name=../../evil.png", content=png.tobytes()).json()
+    assert answer["target"] == "upload:1"
+    files = list(console.uploads.folder.iterdir())
+    assert [f.name for f in files] == ["upload-1.png"] and (console.uploads.folder.stat().st_mode & 0o077) == 0
+    shown = client.post("/api/slm", json={"kind": "hologram", "target": "upload:1", "channel": "green"})
+    assert shown.status_code == 200 and shown.json()["target"] == "upload:1"
+    assert "not a PNG" in client.post("/api/upload", content=b"hello").json()["error"]
+    huge = bytearray(png.tobytes())
+    huge[16:24] = (100000).to_bytes(4, "big") + (100000).to_bytes(4, "big")  # the header claims 10 Gpx
+    assert "above the console's limit" in client.post("/api/upload", content=bytes(huge)).json()["error"]
+    console.uploads.max_bytes = 100
+    assert "above the limit of 100" in client.post("/api/upload", content=png.tobytes()).json()["error"]
+
+
+def test_procedures_dry_run_then_run_with_the_devices_handed_over(client: TestClient, console: Console) -> None:
+    assert client.get("/api/info").json()["procedures"] == ["sweep.toml"]
+    lines = client.post("/api/procedures/dry-run", json={"name": "sweep.toml"}).json()["lines"]
+    assert any("power-sweep" in line for line in lines) and lines[-1] == "dry run: nothing was touched"
+    assert "no procedure" in client.post("/api/procedures/start", json={"name": "../x.toml"}).json()["error"]
+    assert client.post("/api/procedures/start", json={"name": "sweep.toml"}).json()["ok"] is True
+    assert not console.laser.held.connected and not console.camera.connected  # one holder per device
+    assert wait_for(lambda: not console.procedures.active, 120)
+    state = client.get("/api/state").json()["procedure"]
+    assert state["returncode"] == 0, state["lines"]
+    assert any(line.startswith("run folder: ") for line in state["lines"]) and state["report"]
+    assert "<html" in client.get("/api/procedures/report").text.lower()
+    assert wait_for(lambda: console.laser.held.connected and console.camera.connected, 5)
+
+
+@pytest.mark.slow
+def test_laser_off_from_another_shell_while_the_console_runs(bench_profile_path: Path, tmp_path: Path) -> None:
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    server = subprocess.Popen([sys.executable, "-m", "benchctl", "console", "-p", str(bench_profile_path), "--port",
+                               "0", "--out", str(tmp_path), "--deadman", "60"], stdout=subprocess.PIPE,
+                              stderr=subprocess.STDOUT, text=True, env=env, cwd=tmp_path)
+    try:
+        assert server.stdout is not None
+        lines = []
+        while not (url := re.search(r"http://\S+", lines[-1] if lines else "")):
+            lines.append(server.stdout.readline())
+            assert lines[-1], "".join(lines)
+        base = url.group(0).split("/?")[0]
+        headers = {"x-benchctl-token": url.group(0).split("token=")[1], "content-type": "application/json"}
+        for path, body in (("power", {"power": "1mW"}), ("emission", {"on": True})):
+            request = urllib.request.Request(f"{base}/api/laser/green/{path}", json.dumps(body).encode(), headers)
+            assert urllib.request.urlopen(request, timeout=30).status == 200
+        assert laser_channel(2)["emission"] is True
+        off = subprocess.run([sys.executable, "-m", "benchctl", "laser", "off", "-p", str(bench_profile_path)],
+                             capture_output=True, text=True, env=env, timeout=60)
+        assert off.returncode == 0, off.stderr
+        assert "benchctl console" in off.stdout and "sent it SIGTERM" in off.stdout
+        assert laser_channel(2)["emission"] is False
+        assert server.wait(timeout=20) != 0
+        assert "console stopped: emission off, devices closed" in server.stdout.read()
+    finally:
+        if server.poll() is None:
+            server.kill()
