@@ -393,3 +393,25 @@ def test_training_with_a_weight_average_checkpoints_the_average_and_resumes_it_e
     for colour in ("red", "green", "blue"):
         for name, value in whole.models[colour].state_dict().items():
             assert torch.allclose(resumed.models[colour].state_dict()[name], value, atol=1e-6), (colour, name)
+
+
+def test_a_training_step_that_cannot_fit_in_memory_is_refused_before_anything_starts(
+        capsys, tmp_path: Path, small_profile_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The estimate (measured bytes per pixel of the network, times the grid and the batch) against what the machine
+    has available: `train --size 9000x7000` grew to 23 GB before the kernel killed it; now it is one line."""
+    from benchctl.runner.learned import memory
+
+    assert memory.step_bytes("holonet", (1088, 1920)) == pytest.approx(8612 * 2**20, rel=0.001)
+    assert memory.step_bytes("holonet-ps2", (100, 100), 3) == 3 * memory.step_bytes("holonet-dcm2", (100, 100))
+    monkeypatch.setattr(memory, "available_memory", lambda: 4 * 2**30)
+    common = ("train", "--method", "holonet", "--profile", str(small_profile_path), "--data", "procedural:2",
+              "--out", str(tmp_path))
+    code, _, err = _run(capsys, *common, "--size", "1088x1920")
+    assert code == 2 and err.startswith("benchctl: error: training holonet on 1088x1920 with batch 1 needs about "
+                                        "8.4 GiB per step, and this machine has 4.0 GiB available")
+    code, _, err = _run(capsys, *common, "--size", "272x480", "--batch-size", "8")
+    assert code == 2 and "with batch 8 needs about 4.2 GiB" in err
+    assert not list(tmp_path.iterdir())  # refused before anything was written
+    code, stdout, err = _run(capsys, *common, "--max-steps", "1", "--val-fraction", "0")
+    assert code == 0, err
+    assert "about 0.0 GiB per step" in stdout  # the small profile's 64 x 96 grid

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 import benchctl
+from benchctl.limits import MAX_PIXELS_ENV, max_pixels
 
 EPILOG = """targets: a bundled chart or photo (see `benchctl targets`) such as chart:siemens or photo:coffee, or an
 image file.
@@ -19,6 +20,10 @@ def grid_size(text: str) -> tuple[int, int]:
         raise argparse.ArgumentTypeError(f"size must look like 1088x1920 (rows x cols), got {text!r}") from None
     if rows < 1 or cols < 1:
         raise argparse.ArgumentTypeError(f"size must be positive, got {text!r}")
+    limit = max_pixels()
+    if rows * cols > limit:
+        raise argparse.ArgumentTypeError(f"{text}: {rows * cols:,} pixels is above the limit of {limit:,} (set "
+                                         f"${MAX_PIXELS_ENV} to raise it)")
     return rows, cols
 
 

@@ -51,6 +51,7 @@ from benchctl.runner.learned.averaging import WeightAverage
 from benchctl.runner.learned.checkpoint import RESUME_SUFFIX, WEIGHT_DTYPES, Checkpoint, read_checkpoint
 from benchctl.runner.learned.data import ImageSource, describe_sources, image_sources, split_sources
 from benchctl.runner.learned.geometry import geometry_of, grid_profile
+from benchctl.runner.learned.memory import check_training_memory, step_bytes
 from benchctl.runner.learned.health import StepStats, TrainingHealth, clamped_fraction, gradient_norm
 from benchctl.targets import prepare_target
 
@@ -349,6 +350,8 @@ def train(profile: Profile, settings: TrainSettings, out_dir: Path, planes: Mapp
     settings.validate()
     loss_fn = make_loss(settings.loss, settings.vgg_weights)
     setups = training_setups(profile, settings.size, settings.colours)
+    if not torch.cuda.is_available():  # the estimate is of CPU memory; a GPU's allocator says for itself
+        check_training_memory(settings.method, next(iter(setups.values())).shape, settings.batch_size)
     train_set, val_set = split_sources(image_sources(settings.data), settings.val_fraction, settings.seed)
     job = Distributed.from_env()
     try:
@@ -387,7 +390,9 @@ def _train(profile: Profile, settings: TrainSettings, out_dir: Path, planes: Map
     out(f"training {settings.method} for {', '.join(setups)} on {geometry.shape[0]}x{geometry.shape[1]} "
         f"(ROI {geometry.roi[0]}x{geometry.roi[1]}), {len(train_set)} training / {len(val_set)} validation images "
         f"from {settings.data}, {settings.epochs} epoch(s) of {steps_per_epoch} step(s) "
-        f"(batch {settings.batch_size} x {job.world_size} process(es)), {total} step(s) in all, on {device}")
+        f"(batch {settings.batch_size} x {job.world_size} process(es)), {total} step(s) in all, on {device}"
+        + (f", about {step_bytes(settings.method, geometry.shape, settings.batch_size) / 2**30:.1f} GiB per step"
+           if device.type == "cpu" else ""))
     meta = {
         "loss": settings.loss, "lr": settings.lr, "epochs": settings.epochs, "batch_size": settings.batch_size,
         "seed": settings.seed, "val_fraction": settings.val_fraction, "max_steps": settings.max_steps,
