@@ -20,6 +20,7 @@ import msgspec
 from msgspec import Meta
 
 from benchctl.dng import CFA_LAYOUTS
+from benchctl.drivers import driver_names
 from benchctl.errors import BenchctlError
 from benchctl.limits import check_pixels
 from benchctl.schema import Model, decode, fail
@@ -42,6 +43,10 @@ PositiveInt = Annotated[int, Meta(gt=0)]
 NonNegativeInt = Annotated[int, Meta(ge=0)]
 RowsCols = tuple[float, float]  # [rows, cols]
 CFALayout = Literal[tuple(CFA_LAYOUTS)]  # type: ignore[valid-type]  # the layouts benchctl.dng writes
+# The drivers of each kind (benchctl.drivers lists them once).
+LaserDriver = Literal[driver_names("laser")]  # type: ignore[valid-type]
+SLMDriver = Literal[driver_names("slm")]  # type: ignore[valid-type]
+CameraDriver = Literal[driver_names("camera")]  # type: ignore[valid-type]
 # The Zernike terms of optics.aberration.ZERNIKE_TERMS (not imported: it imports torch; a test keeps them equal).
 ZernikeTerm = Literal["tilt_vertical", "tilt_horizontal", "astigmatism_oblique", "defocus", "astigmatism_vertical",
                       "coma_vertical", "coma_horizontal", "spherical"]
@@ -67,7 +72,7 @@ class OpticsConfig(Model, kw_only=True):
 class SLMConfig(Model, kw_only=True):
     """Phase SLM ([slm]): grid, pitch, bit depth, and how phases become the gray levels it displays."""
 
-    driver: Literal["sim", "framebuffer"] = "sim"
+    driver: SLMDriver = "sim"
     device: str | None = None  # framebuffer device, e.g. /dev/fb1
     width: PositiveInt
     height: PositiveInt
@@ -132,7 +137,7 @@ class TemplateProtocol(Model, kw_only=True):
 class LaserConfig(Model, kw_only=True):
     """The laser ([laser]): which driver, where it is connected, and its channels."""
 
-    driver: Literal["template", "cobolt", "obis"] = "template"
+    driver: LaserDriver = "template"
     port: str | None = None
     baudrate: PositiveInt = 115200
     timeout_s: Positive = 1.0
@@ -150,7 +155,7 @@ class LaserConfig(Model, kw_only=True):
 class CameraConfig(Model, kw_only=True):
     """The camera ([camera]): driver, how to find it, and the capture settings benchctl may apply."""
 
-    driver: Literal["sim", "ptp", "gphoto2"] = "sim"
+    driver: CameraDriver = "sim"
     model: str = ""
     usb_id: str = "04a9:32a0"  # vendor:product the ptp driver looks for (Canon EOS M10)
     transport: Literal["usb", "sim"] = "usb"  # ptp: "usb" (pyusb) or "sim" (the simulated EOS body)

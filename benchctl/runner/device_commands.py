@@ -100,7 +100,7 @@ def sim_fault(device: str, faults: list[str], clear: bool, profile: Profile) -> 
     if device != CAMERA and device not in lasers:
         raise BenchctlError(f"no simulated device {device!r} (known: {', '.join(sorted(lasers | {CAMERA}))})")
     if device == CAMERA:
-        from benchctl.devices.camera.sim import unplug_frame
+        from benchctl.devices.sim.camera import unplug_frame
 
         for fault in faults:
             unplug_frame(fault)

@@ -59,7 +59,7 @@ from benchctl.devices.camera.ptp.session import PtpSession, ResponseBusy
 from benchctl.devices.camera.ptp.transport import Transport, UsbTransport
 from benchctl.devices.errors import DeviceBusy, DeviceError, DeviceTimeout
 from benchctl.devices.safety import wait
-from benchctl.profiles import CameraConfig
+from benchctl.profiles import CameraConfig, Profile
 
 
 @dataclass(frozen=True)
@@ -88,6 +88,17 @@ class PtpCamera(Camera):
         self._eos: Eos | None = None
         self._info = DeviceInfo()
         self._written: dict[str, float | int] = {}
+
+    @classmethod
+    def for_profile(cls, profile: Profile) -> PtpCamera:
+        """The body on USB, or with camera.transport = "sim" the simulated EOS body on the simulated bench."""
+        config = profile.require("camera").camera
+        assert config is not None
+        if config.transport != "sim":
+            return cls(config)
+        from benchctl.devices.sim.camera import eos_transport
+
+        return cls(config, eos_transport(profile))
 
     # -- connection --------------------------------------------------------------------------------------------
 

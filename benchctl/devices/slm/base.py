@@ -23,7 +23,7 @@ from benchctl.devices.safety import wait
 from benchctl.devices.slm.lut import lut_for
 from benchctl.errors import BadValueError
 from benchctl.optics.phase_encoding import PhaseLUT, gray_to_phase, phase_to_gray
-from benchctl.profiles import SLMConfig
+from benchctl.profiles import Profile, SLMConfig
 
 if TYPE_CHECKING:  # phases may come as tensors, but torch is never imported here: SLM commands stay light
     import torch
@@ -49,6 +49,14 @@ class SLM(Connection):
         self._current: np.ndarray | None = None
         self._frames_shown = 0
         self.shown_frame: int | None = None  # displayed_frame() right after this object's last frame went up
+
+    @classmethod
+    def for_profile(cls, profile: Profile) -> SLM:
+        """This driver for `profile`'s [slm] section and laser channels, not yet opened; drivers that need more
+        of the profile override it."""
+        config = profile.require("slm").slm
+        assert config is not None
+        return cls(config, [channel.name for channel in profile.channels])
 
     # -- hooks ------------------------------------------------------------------------------------------
 
@@ -145,8 +153,6 @@ class SLM(Connection):
     def current(self) -> np.ndarray | None:
         """The last frame this object displayed (read-only), None before the first."""
         return self._current
-
-    # -- lifecycle ------------------------------------------------------------------------------------------
 
     # -- showing ----------------------------------------------------------------------------------------------
 

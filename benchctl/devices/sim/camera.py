@@ -1,5 +1,6 @@
 """The "sim" camera driver: a Canon-like body on the simulated bench, recording what the simulated SLM and
-lasers produce (benchctl.devices.sim.bench) as a DNG."""
+lasers produce (benchctl.devices.sim.bench) as a DNG; and the simulated EOS body that the `ptp` driver talks to
+when the profile says camera.transport = "sim", delivering the same frames over PTP."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import numpy as np
 
 from benchctl.devices.camera.base import Camera, RawFrame
 from benchctl.devices.errors import DeviceError
+from benchctl.devices.sim.eos_usb import SimEosTransport
 from benchctl.devices.lock import DeviceLock
 from benchctl.devices.safety import wait
 from benchctl.devices.sim.state import CAMERA_STATE, load_state, sim_lock, state_dir
@@ -33,6 +35,12 @@ class SimCamera(Camera):
     def __init__(self, config: CameraConfig, profile: Profile) -> None:
         super().__init__(config)
         self.profile = profile
+
+    @classmethod
+    def for_profile(cls, profile: Profile) -> SimCamera:
+        config = profile.require("camera").camera
+        assert config is not None
+        return cls(config, profile)
 
     def _device_lock(self) -> DeviceLock:
         return sim_lock(CAMERA_STATE, "camera (sim)")
@@ -74,3 +82,18 @@ class SimCamera(Camera):
         frame.metadata["render_s"] = round(time.perf_counter() - start, 6)  # the simulator's own work, not a camera's
         wait(frame.metadata["exposure_s"] + self.profile.sim.sensor.readout_s)
         return frame
+
+
+def eos_transport(profile: Profile) -> SimEosTransport:
+    """A simulated EOS body on `profile`'s simulated bench: each shutter release delivers the DNG the bench
+    renders, with the exposure and ISO of the profile's [camera] section."""
+    from benchctl.devices.sim.bench import render_capture  # torch physics: only a capture needs it
+
+    config = profile.require("camera").camera
+    assert config is not None
+
+    def image_source() -> tuple[bytes, str]:
+        frame = render_capture(profile, exposure_s=config.exposure_s, iso=config.iso)
+        return frame.data, frame.file_name
+
+    return SimEosTransport(image_source)
