@@ -27,6 +27,7 @@ DRIVERS: dict[str, dict[str, str]] = {
         "sim": "benchctl.devices.sim.camera:SimCamera",
         "ptp": "benchctl.devices.camera.ptp_camera:PtpCamera",
         "gphoto2": "benchctl.devices.camera.gphoto2:Gphoto2Camera",
+        "genicam": "benchctl.devices.camera.genicam:GenicamCamera",
     },
 }
 

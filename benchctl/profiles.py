@@ -166,6 +166,17 @@ class CameraConfig(Model, kw_only=True):
     write_properties: bool = False
     image_timeout_s: Positive = 90.0  # longest wait for the image after the shutter
     gphoto2_path: str = "gphoto2"
+    # genicam: which camera (every key given must match; none: the only one found). device_id is Aravis's id
+    # or the camera's IP address (opened directly, without a discovery broadcast).
+    device_id: str | None = None
+    serial: str | None = None
+    user_id: str | None = None  # DeviceUserID, a name the lab gave the camera
+    vendor: str | None = None  # with `model`: the camera's vendor and model names as it reports them
+    pixel_format: str | None = None  # PFNC name, e.g. BayerRG12 (None: the camera's current one)
+    region: tuple[NonNegativeInt, NonNegativeInt, PositiveInt, PositiveInt] | None = None  # [x, y, width, height]
+    gain: NonNegative | None = None  # in the camera's unit (usually dB); None: leave it
+    black_level: float | None = None  # the camera's BlackLevel, where offered; None: leave it
+    frame_retries: NonNegativeInt = 2  # incomplete frames (lost packets) re-triggered before the capture fails
 
 
 # The simulated bench's physics ([sim]; docs/simulated_bench.md). Every key is optional; the [sim] block of
@@ -376,6 +387,8 @@ def _checked(path: Path, file: ProfileFile) -> Profile:
         raise fail(path, "name", f"{name!r} must be letters, digits, '_', '-' or '.' and start with a letter or digit "
                                  "(it names the profile's calibration folder)")
     slm, optics = file.slm, file.optics
+    if file.camera and file.camera.driver == "genicam" and file.camera.iso is not None:
+        raise fail(path, "camera.iso", "a GenICam camera has gain, not ISO: set camera.gain instead")
     if slm:
         check_pixels(f"{path}: slm.height x slm.width", slm.height, slm.width)
         if slm.driver == "framebuffer" and not slm.device:

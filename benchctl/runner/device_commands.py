@@ -260,6 +260,13 @@ def devices_found() -> list[str]:
               for c in found.cameras]
     if not found.cameras and not found.usb_error:
         lines.append("  none")
+    lines.append("GenICam cameras (Aravis):")
+    if found.genicam_error:
+        lines.append(f"  cannot list: {found.genicam_error}")
+    lines += [f"  {c.device_id}  {c.vendor} {c.model}  serial {c.serial}  {c.protocol} {c.address}"
+              for c in found.genicam]
+    if not found.genicam and not found.genicam_error:
+        lines.append("  none")
     lines.append("framebuffers:")
     lines += [f"  {f.device}  {f.name or '?'}  {f.width}x{f.height}  {f.bits_per_pixel} bpp"
               for f in found.framebuffers]
