@@ -4,8 +4,8 @@ Open: find the one camera the profile's keys match (device_id, serial, user_id, 
 back region, pixel format, exposure (us), gain and black level (a value the camera does not take as written is
 an error), set the software trigger, and start acquiring into a few pushed buffers. Each capture: software
 trigger, wait for the buffer, and keep it only when Aravis reports it complete and its size, geometry and pixel
-format are those set; an incomplete one (lost packets) is re-triggered up to `frame_retries` times, then the
-capture fails: a frame is kept whole or not at all. The frame becomes a DNG holding exactly the delivered
+format are those set; an incomplete or missing one (lost packets) is re-triggered up to `frame_retries` times,
+then the capture fails: a frame is kept whole or not at all. The frame becomes a DNG holding exactly the delivered
 values, with the CFA layout and white level of its pixel format (benchctl.devices.camera.pixel_formats).
 """
 
@@ -89,8 +89,8 @@ class GenicamCamera(Camera):
         module = aravis()
         self._camera = self._find(module)
         try:
-            self._configure()
             self._identity_found = self._read_identity()
+            self._configure()
             self._start(module)
         except _glib_error() as exc:
             self._shutdown()
@@ -170,12 +170,14 @@ class GenicamCamera(Camera):
     def _shutdown(self) -> None:
         """Drop the stream and the camera (Aravis closes the connection when they are freed); never raises."""
         self._stream = self._camera = None
+        self._identity_found = {}
 
     def _label(self) -> str:
-        if self._camera is None:
+        """How messages name the camera (read at open: a camera that stopped answering cannot say its name)."""
+        found = self._identity_found
+        if not found:
             return "GenICam camera"
-        return f"{self._camera.get_vendor_name()} {self._camera.get_model_name()} " \
-               f"(serial {self._camera.get_device_serial_number()})"
+        return f"{found['manufacturer']} {found['model']} (serial {found['serial']})"
 
     def _read_identity(self) -> dict[str, str]:
         camera = self._camera
@@ -214,9 +216,9 @@ class GenicamCamera(Camera):
             except _glib_error() as exc:
                 raise DeviceError(f"{self._label()}: software trigger failed: {exc.message}") from None
             buffer = self._stream.timeout_pop_buffer(round(timeout_s * 1e6))
-            if buffer is None:
-                raise DeviceTimeout(f"{self._label()} delivered no frame within {timeout_s:g} s of the software "
-                                    f"trigger: camera off, cable pulled or network down (camera.image_timeout_s)")
+            if buffer is None:  # nothing arrived (its leader lost, or the camera gone): trigger again
+                refused.append("nothing")
+                continue
             try:
                 status = buffer.get_status()
                 if status != module.BufferStatus.SUCCESS:
@@ -233,8 +235,12 @@ class GenicamCamera(Camera):
                         "frame_id": frame_id, "timestamp_ns": timestamp_ns, "incomplete_refused": refused,
                         "trigger_to_frame_s": round(received - started, 6), **self._settings}
             return RawFrame(data, "dng", f"frame-{frame_id:08d}.dng", metadata)
-        raise DeviceError(f"{self._label()}: {len(refused)} frames in a row arrived incomplete ({', '.join(refused)}): "
-                          f"packets lost; use a dedicated network port, jumbo frames or a lower frame rate")
+        if set(refused) == {"nothing"}:
+            raise DeviceTimeout(f"{self._label()} delivered no frame within {timeout_s:g} s of each of {len(refused)} "
+                                f"software triggers: camera off, cable pulled or network down (camera.image_timeout_s)")
+        raise DeviceError(f"{self._label()}: no complete frame in {len(refused)} software triggers (buffers: "
+                          f"{', '.join(refused)}): packets lost; use a dedicated network port, jumbo frames or a "
+                          f"lower frame rate")
 
     def _checked(self, buffer: Any) -> Any:
         """The buffer's frame as a uint16 array; DeviceError unless geometry and format are those set."""
