@@ -207,3 +207,11 @@ def test_iso_is_refused_in_a_genicam_profile(tmp_path: Path) -> None:
     profile.write_text('[camera]\ndriver = "genicam"\niso = 200\n')
     with pytest.raises(Exception, match=r"iso.toml: camera.iso: a GenICam camera has gain, not ISO"):
         load_profile(profile)
+
+
+def test_the_benchmark_streams_and_counts_frames(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["bench", "genicam", "--size", "48x64", "--frames", "8", "--frame-rate", "200"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == "fake camera 64 x 48 BayerRG8, 8 frames free running (camera frame rate 200 fps)"
+    assert lines[1].startswith("  sustained into numpy: ") and lines[1].endswith(" fps, 0 dropped, 0 incomplete")
+    assert "buffer -> numpy" in lines[2] and "numpy -> DNG bytes" in lines[2]
