@@ -22,6 +22,7 @@ DRIVERS: dict[str, dict[str, str]] = {
     "slm": {
         "sim": "benchctl.devices.sim.slm:SimSLM",
         "framebuffer": "benchctl.devices.slm.framebuffer:FramebufferSLM",
+        "display": "benchctl.devices.slm.display:DisplaySLM",
     },
     "camera": {
         "sim": "benchctl.devices.sim.camera:SimCamera",

@@ -74,6 +74,11 @@ class SLMConfig(Model, kw_only=True):
 
     driver: SLMDriver = "sim"
     device: str | None = None  # framebuffer device, e.g. /dev/fb1
+    # display: the desktop output showing the SLM, by its EDID (monitor name, serial) and/or connector name
+    edid_name: str | None = None
+    edid_serial: str | None = None
+    output: str | None = None  # RandR output name, e.g. HDMI-A-1
+    x_display: str | None = None  # X display, e.g. ":0" (None: $DISPLAY)
     width: PositiveInt
     height: PositiveInt
     pitch_um: Annotated[float, Meta(ge=0.1, le=1000)]  # the pitches optics.setup accepts (0.1 um .. 1 mm)
@@ -393,6 +398,9 @@ def _checked(path: Path, file: ProfileFile) -> Profile:
         check_pixels(f"{path}: slm.height x slm.width", slm.height, slm.width)
         if slm.driver == "framebuffer" and not slm.device:
             raise fail(path, "slm.device", "the framebuffer driver needs a device, e.g. device = \"/dev/fb1\"")
+        if slm.driver == "display" and slm.edid_name is None and slm.edid_serial is None and slm.output is None:
+            raise fail(path, "slm.driver", "the display driver needs the SLM's output: slm.edid_name, slm.edid_serial "
+                                           "or slm.output (`benchctl devices` lists them)")
     if optics and slm and (optics.roi[0] > slm.height or optics.roi[1] > slm.width):
         raise fail(
             path, "optics.roi",

@@ -19,6 +19,7 @@ import usb.core
 from benchctl.devices.camera.aravis import GenicamInfo, genicam_cameras
 from benchctl.devices.camera.ptp.transport import NO_BACKEND, ptp_interface
 from benchctl.devices.errors import DeviceError
+from benchctl.devices.slm.desktop import DesktopOutput, connect, desktop_outputs
 
 
 @dataclass(frozen=True)
@@ -59,6 +60,8 @@ class Discovery:
     framebuffers: list[FramebufferInfo] = field(default_factory=list)
     genicam: list[GenicamInfo] = field(default_factory=list)
     genicam_error: str | None = None  # why GenICam cameras could not be listed (then `genicam` is empty)
+    outputs: list[DesktopOutput] = field(default_factory=list)  # monitors of the X11 desktop ($DISPLAY)
+    outputs_error: str | None = None
 
 
 def serial_ports() -> list[SerialPortInfo]:
@@ -130,10 +133,25 @@ def genicam() -> tuple[list[GenicamInfo], str | None]:
         return [], str(exc)
 
 
+def desktop() -> tuple[list[DesktopOutput], str | None]:
+    """The outputs of the X11 desktop ($DISPLAY) and None; or [] and why they cannot be read."""
+    try:
+        display = connect(None)
+    except DeviceError as exc:
+        return [], str(exc)
+    try:
+        return desktop_outputs(display), None
+    except DeviceError as exc:
+        return [], str(exc)
+    finally:
+        display.close()
+
+
 def discover(sys_root: Path = Path("/sys"), dev_root: Path = Path("/dev"),
              find_usb: Callable[..., Iterable[Any]] = usb.core.find) -> Discovery:
     """Serial ports, USB PTP cameras (or why USB cannot be scanned), GenICam cameras and framebuffers."""
     cameras, usb_error = usb_cameras(find_usb)
     found_genicam, genicam_error = genicam()
+    outputs, outputs_error = desktop()
     return Discovery(serial_ports(), cameras, usb_error, framebuffers(sys_root, dev_root), found_genicam,
-                     genicam_error)
+                     genicam_error, outputs, outputs_error)

@@ -272,6 +272,10 @@ def devices_found() -> list[str]:
               for f in found.framebuffers]
     if not found.framebuffers:
         lines.append("  none")
+    lines.append("desktop outputs (X11):")
+    lines += [f"  {output.describe()}" for output in found.outputs]
+    if found.outputs_error or not found.outputs:
+        lines.append(f"  {found.outputs_error or 'none'}")
     return lines
 
 

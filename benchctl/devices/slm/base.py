@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 import sys
 from abc import abstractmethod
+from datetime import datetime, timezone
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any, ClassVar
 
@@ -49,6 +50,9 @@ class SLM(Connection):
         self._current: np.ndarray | None = None
         self._frames_shown = 0
         self.shown_frame: int | None = None  # displayed_frame() right after this object's last frame went up
+        # When the last frame was presented (UTC, ISO 8601 to the microsecond): `_display` returned, so the frame
+        # is on the panel as far as the driver can tell; the settle time counts from here.
+        self.presented_at: str | None = None
 
     @classmethod
     def for_profile(cls, profile: Profile) -> SLM:
@@ -236,6 +240,7 @@ class SLM(Connection):
             raise DeviceError(f"{self.label} is not open (use `with open_slm(profile) as slm:`)")
         frame.flags.writeable = False
         self._display(frame, channel)
+        self.presented_at = datetime.now(timezone.utc).isoformat(timespec="microseconds")
         self._current = frame
         self._frames_shown += 1
         self.shown_frame = self.displayed_frame()
