@@ -30,3 +30,14 @@ def test_every_listed_driver_is_a_driver_of_its_kind_with_its_own_name(kind: str
 def test_the_profile_accepts_exactly_the_listed_drivers(kind: str) -> None:
     hints = typing.get_type_hints(CONFIGS[kind], include_extras=True)
     assert typing.get_args(hints["driver"]) == driver_names(kind)  # type: ignore[arg-type]
+
+
+def test_the_genicam_and_hdmi_example_profile_chooses_those_drivers() -> None:
+    from benchctl.devices.camera import camera_for
+    from benchctl.devices.camera.genicam import GenicamCamera
+    from benchctl.devices.slm.display import DisplaySLM
+    from benchctl.profiles import load_profile
+
+    profile = load_profile("genicam_hdmi")
+    assert isinstance(camera_for(profile), GenicamCamera)
+    assert isinstance(driver_class("slm", profile.slm.driver).for_profile(profile), DisplaySLM)  # type: ignore[union-attr]
