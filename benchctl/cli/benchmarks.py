@@ -61,7 +61,7 @@ def _cmd_bench_genicam(args: argparse.Namespace) -> int:
     from benchctl.benchmarks.genicam import run_genicam_bench
 
     height, width = args.size
-    result = run_genicam_bench(width, height, args.pixel_format, args.frames, args.frame_rate)
+    result = run_genicam_bench(width, height, frames=args.frames, frame_rate=args.frame_rate)
     print("\n".join(result.lines()))
     return 0
 
@@ -138,16 +138,17 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
 
     genicam = bench.add_parser("genicam", help="frames per second into numpy from Aravis's fake camera, and the "
                                                "genicam driver's overhead per frame",
-                               description="Streams Aravis's in-process fake camera free running and turns every "
-                                           "buffer into a numpy frame as the genicam driver does; prints sustained "
-                                           "fps, dropped (frame-id gaps) and incomplete frames, and the driver's "
-                                           "time per frame (buffer -> numpy, numpy -> DNG). Needs the genicam extra.")
-    genicam.add_argument("--size", type=grid_size, default=(2048, 2048), metavar="HxW",
-                         help="region of the fake camera (default: 2048x2048, its whole sensor)")
-    genicam.add_argument("--pixel-format", default="BayerRG8", help="fake camera pixel format (default: BayerRG8)")
-    genicam.add_argument("--frames", type=positive_int, default=100, help="frames to stream (default: 100)")
-    genicam.add_argument("--frame-rate", type=float, metavar="FPS",
-                         help="the fake camera's AcquisitionFrameRate (default: its own)")
+                               description="Streams Aravis's in-process fake camera free running (BayerRG8) and "
+                                           "turns every buffer into a numpy frame as the genicam driver does; prints "
+                                           "sustained fps, dropped (frame-id gaps) and incomplete frames, and the "
+                                           "driver's time per frame (buffer -> numpy, numpy -> DNG). Needs the "
+                                           "genicam extra.")
+    for flags, options in ((("--size",), {"type": grid_size, "default": (2048, 2048), "metavar": "HxW",
+                                          "help": "region of the fake camera (default: 2048x2048, its sensor)"}),
+                           (("--frames",), {"type": positive_int, "default": 100, "help": "default: 100"}),
+                           (("--frame-rate",), {"type": float, "metavar": "FPS",
+                                                "help": "the fake camera's frame rate (default: its own, 25)"})):
+        genicam.add_argument(*flags, **options)  # type: ignore[arg-type]
     genicam.set_defaults(func=_cmd_bench_genicam)
 
     reproduce = bench.add_parser("reproduce", help="the paper's quality tables at a CPU-trainable scale: every learned "
