@@ -74,11 +74,6 @@ class SLMConfig(Model, kw_only=True):
 
     driver: SLMDriver = "sim"
     device: str | None = None  # framebuffer device, e.g. /dev/fb1
-    # display: the desktop output showing the SLM, by its EDID (monitor name, serial) and/or connector name
-    edid_name: str | None = None
-    edid_serial: str | None = None
-    output: str | None = None  # RandR output name, e.g. HDMI-A-1
-    x_display: str | None = None  # X display, e.g. ":0" (None: $DISPLAY)
     width: PositiveInt
     height: PositiveInt
     pitch_um: Annotated[float, Meta(ge=0.1, le=1000)]  # the pitches optics.setup accepts (0.1 um .. 1 mm)
@@ -91,6 +86,11 @@ class SLMConfig(Model, kw_only=True):
     grating_period_px: RowsCols = (0.0, 0.0)  # blazed carrier (rows, cols); 0 = none on that axis
     # Channel name -> gray-to-phase table file, relative to the profile's folder.
     lut: dict[str, Path] = msgspec.field(default_factory=dict)
+    # display: the desktop output showing the SLM, by its EDID (monitor name, serial) and/or connector name
+    edid_name: str | None = None
+    edid_serial: str | None = None
+    output: str | None = None  # RandR output name, e.g. HDMI-A-1
+    x_display: str | None = None  # X display, e.g. ":0" (None: $DISPLAY)
 
     @property
     def pitch_m(self) -> float:
@@ -161,7 +161,7 @@ class CameraConfig(Model, kw_only=True):
     """The camera ([camera]): driver, how to find it, and the capture settings benchctl may apply."""
 
     driver: CameraDriver = "sim"
-    model: str = ""
+    model: str = ""  # gphoto2: the camera's model as libgphoto2 names it; genicam: its model name
     usb_id: str = "04a9:32a0"  # vendor:product the ptp driver looks for (Canon EOS M10)
     transport: Literal["usb", "sim"] = "usb"  # ptp: "usb" (pyusb) or "sim" (the simulated EOS body)
     exposure_s: Positive | None = None  # None: leave the camera's own setting
@@ -170,7 +170,6 @@ class CameraConfig(Model, kw_only=True):
     # Property writes (ISO, shutter, RAW format) freeze the EOS M10: set exposure on the body and leave this off.
     write_properties: bool = False
     image_timeout_s: Positive = 90.0  # longest wait for the image after the shutter
-    gphoto2_path: str = "gphoto2"
     # genicam: which camera (every key given must match; none: the only one found). device_id is Aravis's id
     # or the camera's IP address (opened directly, without a discovery broadcast).
     device_id: str | None = None
