@@ -52,7 +52,8 @@ def streaming(args: dict[str, Any]) -> dict[str, Any]:
     try:
         found = [[c.device_id, c.serial, c.protocol, c.address] for c in genicam_cameras()]
         config = CameraConfig(driver="genicam", serial=SERIAL, pixel_format="Mono8", region=(0, 0, 64, 24),
-                              exposure_s=0.01, gain=0.0, image_timeout_s=1.0, frame_retries=args["frame_retries"])
+                              exposure_s=0.01, gain=0.0, image_timeout_s=args["image_timeout_s"],
+                              frame_retries=args["frame_retries"])
         kept, refused, error = [], [], None
         with GenicamCamera(config) as driver:
             try:
