@@ -20,6 +20,7 @@ import msgspec
 from msgspec import Meta
 
 from benchctl.dng import CFA_LAYOUTS
+from benchctl.drivers import driver_names
 from benchctl.errors import BenchctlError
 from benchctl.limits import check_pixels
 from benchctl.schema import Model, decode, fail
@@ -42,6 +43,10 @@ PositiveInt = Annotated[int, Meta(gt=0)]
 NonNegativeInt = Annotated[int, Meta(ge=0)]
 RowsCols = tuple[float, float]  # [rows, cols]
 CFALayout = Literal[tuple(CFA_LAYOUTS)]  # type: ignore[valid-type]  # the layouts benchctl.dng writes
+# The drivers of each kind (benchctl.drivers lists them once).
+LaserDriver = Literal[driver_names("laser")]  # type: ignore[valid-type]
+SLMDriver = Literal[driver_names("slm")]  # type: ignore[valid-type]
+CameraDriver = Literal[driver_names("camera")]  # type: ignore[valid-type]
 # The Zernike terms of optics.aberration.ZERNIKE_TERMS (not imported: it imports torch; a test keeps them equal).
 ZernikeTerm = Literal["tilt_vertical", "tilt_horizontal", "astigmatism_oblique", "defocus", "astigmatism_vertical",
                       "coma_vertical", "coma_horizontal", "spherical"]
@@ -67,7 +72,7 @@ class OpticsConfig(Model, kw_only=True):
 class SLMConfig(Model, kw_only=True):
     """Phase SLM ([slm]): grid, pitch, bit depth, and how phases become the gray levels it displays."""
 
-    driver: Literal["sim", "framebuffer"] = "sim"
+    driver: SLMDriver = "sim"
     device: str | None = None  # framebuffer device, e.g. /dev/fb1
     width: PositiveInt
     height: PositiveInt
@@ -81,6 +86,11 @@ class SLMConfig(Model, kw_only=True):
     grating_period_px: RowsCols = (0.0, 0.0)  # blazed carrier (rows, cols); 0 = none on that axis
     # Channel name -> gray-to-phase table file, relative to the profile's folder.
     lut: dict[str, Path] = msgspec.field(default_factory=dict)
+    # display: the desktop output showing the SLM, by its EDID (monitor name, serial) and/or connector name
+    edid_name: str | None = None
+    edid_serial: str | None = None
+    output: str | None = None  # RandR output name, e.g. HDMI-A-1
+    x_display: str | None = None  # X display, e.g. ":0" (None: $DISPLAY)
 
     @property
     def pitch_m(self) -> float:
@@ -132,7 +142,7 @@ class TemplateProtocol(Model, kw_only=True):
 class LaserConfig(Model, kw_only=True):
     """The laser ([laser]): which driver, where it is connected, and its channels."""
 
-    driver: Literal["template", "cobolt", "obis"] = "template"
+    driver: LaserDriver = "template"
     port: str | None = None
     baudrate: PositiveInt = 115200
     timeout_s: Positive = 1.0
@@ -150,8 +160,8 @@ class LaserConfig(Model, kw_only=True):
 class CameraConfig(Model, kw_only=True):
     """The camera ([camera]): driver, how to find it, and the capture settings benchctl may apply."""
 
-    driver: Literal["sim", "ptp", "gphoto2"] = "sim"
-    model: str = ""
+    driver: CameraDriver = "sim"
+    model: str = ""  # gphoto2: the camera's model as libgphoto2 names it; genicam: its model name
     usb_id: str = "04a9:32a0"  # vendor:product the ptp driver looks for (Canon EOS M10)
     transport: Literal["usb", "sim"] = "usb"  # ptp: "usb" (pyusb) or "sim" (the simulated EOS body)
     exposure_s: Positive | None = None  # None: leave the camera's own setting
@@ -160,7 +170,17 @@ class CameraConfig(Model, kw_only=True):
     # Property writes (ISO, shutter, RAW format) freeze the EOS M10: set exposure on the body and leave this off.
     write_properties: bool = False
     image_timeout_s: Positive = 90.0  # longest wait for the image after the shutter
-    gphoto2_path: str = "gphoto2"
+    # genicam: which camera (every key given must match; none: the only one found). device_id is Aravis's id
+    # or the camera's IP address (opened directly, without a discovery broadcast).
+    device_id: str | None = None
+    serial: str | None = None
+    user_id: str | None = None  # DeviceUserID, a name the lab gave the camera
+    vendor: str | None = None  # with `model`: the camera's vendor and model names as it reports them
+    pixel_format: str | None = None  # PFNC name, e.g. BayerRG12 (None: the camera's current one)
+    region: tuple[NonNegativeInt, NonNegativeInt, PositiveInt, PositiveInt] | None = None  # [x, y, width, height]
+    gain: NonNegative | None = None  # in the camera's unit (usually dB); None: leave it
+    black_level: float | None = None  # the camera's BlackLevel, where offered; None: leave it
+    frame_retries: NonNegativeInt = 2  # incomplete frames (lost packets) re-triggered before the capture fails
 
 
 # The simulated bench's physics ([sim]; docs/simulated_bench.md). Every key is optional; the [sim] block of
@@ -371,10 +391,15 @@ def _checked(path: Path, file: ProfileFile) -> Profile:
         raise fail(path, "name", f"{name!r} must be letters, digits, '_', '-' or '.' and start with a letter or digit "
                                  "(it names the profile's calibration folder)")
     slm, optics = file.slm, file.optics
+    if file.camera and file.camera.driver == "genicam" and file.camera.iso is not None:
+        raise fail(path, "camera.iso", "a GenICam camera has gain, not ISO: set camera.gain instead")
     if slm:
         check_pixels(f"{path}: slm.height x slm.width", slm.height, slm.width)
         if slm.driver == "framebuffer" and not slm.device:
             raise fail(path, "slm.device", "the framebuffer driver needs a device, e.g. device = \"/dev/fb1\"")
+        if slm.driver == "display" and slm.edid_name is None and slm.edid_serial is None and slm.output is None:
+            raise fail(path, "slm.driver", "the display driver needs the SLM's output: slm.edid_name, slm.edid_serial "
+                                           "or slm.output (`benchctl devices` lists them)")
     if optics and slm and (optics.roi[0] > slm.height or optics.roi[1] > slm.width):
         raise fail(
             path, "optics.roi",

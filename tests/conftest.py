@@ -252,6 +252,13 @@ def calibration_and_cache_dirs(tmp_path_factory: pytest.TempPathFactory, monkeyp
 
 
 @pytest.fixture(autouse=True)
+def aravis_fake_interface_only(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Aravis scans only its in-process fake camera: GigE Vision discovery would broadcast on every network
+    interface (the GigE Vision tests run in a network namespace of their own)."""
+    monkeypatch.setenv("BENCHCTL_ARAVIS_INTERFACES", "Fake")
+
+
+@pytest.fixture(autouse=True)
 def lock_dir(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch) -> Path:
     """Each test gets its own device-lock folder (never the user's locks)."""
     folder = tmp_path_factory.mktemp("locks")

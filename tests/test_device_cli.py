@@ -125,7 +125,7 @@ def test_sigterm_during_laser_on_turns_emission_off(tmp_path, small_profile_path
 
 
 def test_slm_show_gray_image_then_blank(capsys, tmp_path, small_profile_path):
-    from benchctl.devices.slm.sim import read_displayed
+    from benchctl.devices.sim.slm import read_displayed
 
     gray = (np.arange(64 * 96).reshape(64, 96) % 256).astype(np.uint8)
     cv2.imwrite(str(tmp_path / "frame.png"), gray)
@@ -139,7 +139,7 @@ def test_slm_show_gray_image_then_blank(capsys, tmp_path, small_profile_path):
 
 
 def test_slm_show_phase_encodes_for_the_channel(capsys, tmp_path, small_profile_path):
-    from benchctl.devices.slm.sim import read_displayed
+    from benchctl.devices.sim.slm import read_displayed
 
     np.save(tmp_path / "phase.npy", np.full((64, 96), np.pi / 2))
     code, _, _ = _run(capsys, "slm", "show", str(tmp_path / "phase.npy"), "--channel", "red",

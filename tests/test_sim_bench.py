@@ -22,7 +22,7 @@ import benchctl.runner.builtin
 from benchctl.capture.raw import RawImage, decode_raw
 from benchctl.cgh import OpticalSetup, get_method
 from benchctl.devices.camera import camera_for
-from benchctl.devices.camera.sim import SimCamera
+from benchctl.devices.sim.camera import SimCamera
 from benchctl.devices.laser import open_laser
 from benchctl.devices.sim import bench
 from benchctl.devices.sim.state import reset_states

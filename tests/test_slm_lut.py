@@ -11,7 +11,8 @@ import pytest
 import torch
 
 from benchctl.cgh import SGD
-from benchctl.devices.slm import SimSLM, load_lut, lut_for, save_lut, slm_for
+from benchctl.devices.sim.slm import SimSLM
+from benchctl.devices.slm import load_lut, lut_for, save_lut, slm_for
 from benchctl.errors import BenchctlError
 from benchctl.optics.metrics import amplitude_scores, crop_roi, lsq_scale
 from benchctl.optics.phase_encoding import PhaseLUT
@@ -208,7 +209,7 @@ def test_generate_and_slm_show_encode_through_the_measured_table(tmp_path: Path,
     """A table measured by lut_calibration (calibration/<profile>/) is used by `generate` and `slm show` as by a
     run: the same frames as with the table named in the profile, not the linear one's."""
     from benchctl.cli import main
-    from benchctl.devices.slm.sim import read_displayed
+    from benchctl.devices.sim.slm import read_displayed
     from benchctl.images import read_image
     from benchctl.runner.calibration import Calibration
     from benchctl.runner.generate import run_generate

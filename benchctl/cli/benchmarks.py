@@ -64,6 +64,15 @@ def _cmd_bench_learned(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_genicam(args: argparse.Namespace) -> int:
+    from benchctl.benchmarks.genicam import run_genicam_bench
+
+    height, width = args.size
+    result = run_genicam_bench(width, height, frames=args.frames, frame_rate=args.frame_rate)
+    print("\n".join(result.lines()))
+    return 0
+
+
 def _cmd_bench_reproduce(args: argparse.Namespace) -> int:
     from benchctl.benchmarks.reproduce import DEFAULT_METHODS, new_plan, reproduce_command, run_reproduction
     from benchctl.benchmarks.reproduce_report import write_report
@@ -159,6 +168,21 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                          help="output folder (default: bench-out)")
     add_profile(learned)
     learned.set_defaults(func=_cmd_bench_learned)
+
+    genicam = bench.add_parser("genicam", help="frames per second into numpy from Aravis's fake camera, and the "
+                                               "genicam driver's overhead per frame",
+                               description="Streams Aravis's in-process fake camera free running (BayerRG8) and "
+                                           "turns every buffer into a numpy frame as the genicam driver does; prints "
+                                           "sustained fps, dropped (frame-id gaps) and incomplete frames, and the "
+                                           "driver's time per frame (buffer -> numpy, numpy -> DNG). Needs the "
+                                           "genicam extra.")
+    for flags, options in ((("--size",), {"type": grid_size, "default": (2048, 2048), "metavar": "HxW",
+                                          "help": "region of the fake camera (default: 2048x2048, its sensor)"}),
+                           (("--frames",), {"type": positive_int, "default": 100, "help": "default: 100"}),
+                           (("--frame-rate",), {"type": float, "metavar": "FPS",
+                                                "help": "the fake camera's frame rate (default: its own, 25)"})):
+        genicam.add_argument(*flags, **options)  # type: ignore[arg-type]
+    genicam.set_defaults(func=_cmd_bench_genicam)
 
     reproduce = bench.add_parser(
         "reproduce", help="the paper's quality tables: every learned method trained until its curve flattens, "

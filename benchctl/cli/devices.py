@@ -88,7 +88,8 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     for parser in (cinfo, capture):
         add_profile(parser)
         parser.set_defaults(func=_cmd_device)
-    devices = sub.add_parser("devices", help="serial ports, PTP cameras and framebuffers on this machine")
+    devices = sub.add_parser("devices", help="serial ports, PTP and GenICam cameras, framebuffers and desktop outputs "
+                                                     "(EDID name, serial, mode) on this machine")
     devices.set_defaults(func=_cmd_device)
 
     sim = sub.add_parser("sim", help="the simulated bench's remembered state").add_subparsers(

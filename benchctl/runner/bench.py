@@ -127,7 +127,8 @@ class Bench:
         darks = camera.capture(folder, dark_frames, stem="dark") if dark_frames else []
         capture_s += clock() - captured_at
         result = {
-            "channel": channel, "slm_frame": shown, "slm_frames_seen": seen, "setpoint_w": setpoint,
+            "channel": channel, "slm_frame": shown, "slm_presented_at": slm.presented_at, "slm_frames_seen": seen,
+            "setpoint_w": setpoint,
             "measured_w": measured, "emission_s": round(exposed_s, 3),
             "frames": [frame_.path.name for frame_ in lit if frame_.path],
             "darks": [frame_.path.name for frame_ in darks if frame_.path],

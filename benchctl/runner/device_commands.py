@@ -100,7 +100,7 @@ def sim_fault(device: str, faults: list[str], clear: bool, profile: Profile) -> 
     if device != CAMERA and device not in lasers:
         raise BenchctlError(f"no simulated device {device!r} (known: {', '.join(sorted(lasers | {CAMERA}))})")
     if device == CAMERA:
-        from benchctl.devices.camera.sim import unplug_frame
+        from benchctl.devices.sim.camera import unplug_frame
 
         for fault in faults:
             unplug_frame(fault)
@@ -246,26 +246,29 @@ def camera_capture(profile: Profile, output: Path, frames: int | None) -> list[s
 
 
 def devices_found() -> list[str]:
-    """Serial ports, PTP cameras (or why USB cannot be scanned) and framebuffers on this machine."""
-    from benchctl.devices.discovery import discover  # USB and framebuffer probing: only `devices` needs it
+    """Serial ports, PTP and GenICam cameras, framebuffers and desktop outputs on this machine; for each kind that
+    cannot be looked up, why."""
+    from benchctl.devices.discovery import discover  # USB, Aravis, X11 probing: only `devices` needs it
 
     found = discover()
-    lines = ["serial ports:"] + [f"  {p.device}  {p.description}  {p.hwid}" for p in found.serial_ports]
-    if not found.serial_ports:
-        lines.append("  none")
-    lines.append("PTP cameras:")
-    if found.usb_error:
-        lines.append(f"  cannot scan USB: {found.usb_error}")
-    lines += [f"  {c.usb_id}  bus {c.bus} address {c.address}  {c.manufacturer or '?'} {c.product or '?'}"
-              for c in found.cameras]
-    if not found.cameras and not found.usb_error:
-        lines.append("  none")
-    lines.append("framebuffers:")
-    lines += [f"  {f.device}  {f.name or '?'}  {f.width}x{f.height}  {f.bits_per_pixel} bpp"
-              for f in found.framebuffers]
-    if not found.framebuffers:
-        lines.append("  none")
-    return lines
+    return [
+        *_section("serial ports", [f"{p.device}  {p.description}  {p.hwid}" for p in found.serial_ports], None),
+        *_section("PTP cameras", [f"{c.usb_id}  bus {c.bus} address {c.address}  {c.manufacturer or '?'} "
+                                  f"{c.product or '?'}" for c in found.cameras],
+                  found.usb_error and f"cannot scan USB: {found.usb_error}"),
+        *_section("GenICam cameras (Aravis)", [f"{c.device_id}  {c.vendor} {c.model}  serial {c.serial}  "
+                                               f"{c.protocol} {c.address}" for c in found.genicam],
+                  found.genicam_error and f"cannot list: {found.genicam_error}"),
+        *_section("framebuffers", [f"{f.device}  {f.name or '?'}  {f.width}x{f.height}  {f.bits_per_pixel} bpp"
+                                   for f in found.framebuffers], None),
+        *_section("desktop outputs (X11)", [output.describe() for output in found.outputs], found.outputs_error),
+    ]
+
+
+def _section(title: str, entries: list[str], error: str | None) -> list[str]:
+    """`title:`, then each entry indented; where there is none, why (`error`) or "none"."""
+    return [f"{title}:", *(f"  {entry}" for entry in entries), *([f"  {error}"] if error else [] if entries
+                                                                  else ["  none"])]
 
 
 def sim_status() -> list[str]:

@@ -33,11 +33,11 @@ from benchctl.devices.camera.base import RawFrame, Window
 from benchctl.devices.errors import DeviceError
 from benchctl.devices.sim.protocol_sim import parse_url
 from benchctl.devices.sim.state import CAMERA_STATE, load_state, save_state
-from benchctl.devices.slm.sim import read_displayed
-from benchctl.optics import PhaseLUT, Propagator, gray_to_phase, linear_to_srgb
+from benchctl.devices.sim.slm import read_displayed, true_lut
+from benchctl.optics import Propagator, gray_to_phase, linear_to_srgb
 from benchctl.optics.aberration import crosstalk_blur, gaussian_beam_power, tilt_phase, wavefront_phase
 from benchctl.optics.setup import OpticalSetup
-from benchctl.profiles import LaserChannel, Profile, SimSensorConfig, SimSLMConfig
+from benchctl.profiles import LaserChannel, Profile, SimSensorConfig
 
 PLANCK_J_S = 6.62607015e-34
 LIGHT_M_S = 299792458.0
@@ -53,15 +53,6 @@ TYPICAL_QE = np.array([
     (650.0, 0.28, 0.05, 0.02),
     (700.0, 0.04, 0.02, 0.01),
 ])
-
-
-@functools.lru_cache(maxsize=8)
-def true_lut(wavelength_m: float, bit_depth: int, response: SimSLMConfig) -> PhaseLUT:
-    """The simulated panel's real gray -> phase table at one wavelength (what calibration should measure):
-    2 pi (two_pi_nm / wavelength) (g / 2^bit_depth)^gamma."""
-    depth = 2 * math.pi * response.two_pi_nm * 1e-9 / wavelength_m
-    levels = np.arange(1 << bit_depth, dtype=np.float64) / (1 << bit_depth)
-    return PhaseLUT(depth * levels**response.gamma)
 
 
 def spectral_response(profile: Profile, channel: LaserChannel) -> np.ndarray:
