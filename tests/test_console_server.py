@@ -26,7 +26,7 @@ from benchctl.capture.raw import decode_raw
 from benchctl.console.app import create_app
 from benchctl.console.core import Console
 from benchctl.devices.serial_link import SerialLink
-from benchctl.devices.slm import read_displayed
+from benchctl.devices.sim.slm import read_displayed
 from benchctl.optics.aberration import wavefront_phase
 from benchctl.profiles import load_profile
 from console_bench import (ORIGIN, PORT, TOKEN, WS, access, expected_phase_frame, laser_channel, make_console,

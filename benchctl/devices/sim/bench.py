@@ -312,7 +312,7 @@ class LiveView:
     def _light(self, exposure_s: float) -> tuple[np.ndarray, dict[str, Any]]:
         """The electron planes of what the bench shows now (recomputed only when the SLM frame, the lasers or the
         exposure changed) and what they show: SLM frame, lasers, seconds spent on the light (0: reused)."""
-        from benchctl.devices.slm.sim import STATE_NAME
+        from benchctl.devices.sim.slm import STATE_NAME
 
         powers = emitting_channels(self.profile)
         shown = load_state(STATE_NAME).get("frame")

@@ -12,12 +12,16 @@ from benchctl.cgh.learned.models import VARIANTS
 from benchctl.errors import BadValueError
 from benchctl.limits import available_memory
 
-BYTES_PER_PIXEL = {
-    "holonet": 4323,  # 8,612 MiB at 1088 x 1920
-    "holonet-dcm2": 2511,  # 5,002 MiB at 1088 x 1920 (13,320 at 2176 x 3840)
-    "holonet-dcm4": 921,  # 1,834 MiB at 1088 x 1920 (5,250 at 4K, 16,389 at 8K)
+BYTES_PER_PIXEL = {  # the largest per pixel, at 1088 x 1920 for all of them (fixed costs weigh most there)
+    "holonet": 4323,
+    "holonet-dcm2": 2511,
+    "holonet-dcm4": 921,
+    "holonet-pyramid": 2860,
+    "ccnn": 526,
+    "ccnn-dcm4": 490,
 }
-MEASURED_AS = {("holonet", 1): "holonet", ("holonet", 2): "holonet-dcm2", ("holonet", 4): "holonet-dcm4"}
+MEASURED_AS = {("holonet", 1): "holonet", ("holonet", 2): "holonet-dcm2", ("holonet", 4): "holonet-dcm4",
+               ("ccnn", 1): "ccnn", ("ccnn", 4): "ccnn-dcm4"}
 
 
 def step_bytes(method: str, grid: tuple[int, int], batch_size: int = 1) -> int:
