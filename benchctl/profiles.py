@@ -14,7 +14,7 @@ import os
 import re
 import sys
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 import msgspec
 from msgspec import Meta
@@ -282,6 +282,13 @@ class Profile(ProfileFile, kw_only=True):
                 return ch
         known = ", ".join(ch.name for ch in self.channels)
         raise BenchctlError(f"{self.path}: no laser channel {name!r}; known channels: {known}")
+
+    def fitted_model(self, channel: str) -> dict[str, Any] | None:
+        """`channel`'s entry of the fitted optical model file `optics.model` names, checked
+        (benchctl.calibration_files); None when there is no model or no entry for the channel."""
+        from benchctl.calibration_files import fitted_model_entry
+
+        return fitted_model_entry(self, channel)
 
     def describe(self) -> str:
         """Multi-line summary for people: each device section with its settings."""

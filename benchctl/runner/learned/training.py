@@ -39,7 +39,6 @@ from benchctl.cgh.learned.vgg import PERCEPTUAL_WEIGHT, PerceptualLoss, load_vgg
 from benchctl.terminal import ProgressLine
 from benchctl.errors import BadValueError, BenchctlError
 from benchctl.files import ensure_dir
-from benchctl.optics.fitted import FittedOptics
 from benchctl.optics.metrics import amplitude_scores, crop_roi, lsq_scale, psnr
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import Profile
@@ -551,10 +550,6 @@ def with_model_calibration(profile: Profile, settings: TrainSettings) -> Profile
             raise BadValueError(f"{flag}: no such file")
         calibrated = replace(profile, optics=replace(profile.optics, model=path.resolve()))
     for name in settings.colours or [channel.name for channel in profile.channels]:
-        try:
-            model = FittedOptics.load(calibrated.optics.model, profile.channel(name).name)
-        except (ValueError, KeyError, TypeError) as exc:
-            raise BadValueError(f"{flag}: {calibrated.optics.model} is not an optical model file ({exc})") from None
-        if model is None:
+        if calibrated.fitted_model(profile.channel(name).name) is None:  # a bad file: one line naming key and value
             raise BadValueError(f"{flag}: {calibrated.optics.model} has no fitted model for {name!r}")
     return calibrated
