@@ -8,6 +8,7 @@ how long emission stays on.
 from __future__ import annotations
 
 import glob
+import math
 import os
 import re
 import signal
@@ -74,13 +75,17 @@ def laser_on(profile: Profile, channel: str, duration_s: float | None, leave_on:
             for line in laser.connect_report():
                 out(line)
             laser.set_emission(channel, True)
-            if laser.setpoint_w(channel) <= 0:
+            setpoint = laser.setpoint_w(channel)
+            emits = f"at {_emitted(setpoint, laser.measured_w(channel), profile.channel(channel).setpoint_mw * 1e-3)}"
+            if setpoint <= 0:
                 out(f"{channel}: the setpoint is 0 mW, so no light comes out; set one with "
                     f"`benchctl laser set {channel} 5mW`")
             if leave_on:
                 laser.leave_on = True
-                return [f"{channel}: emission ON and LEFT ON after exit; `benchctl laser off {channel}` turns it off"]
-            out(f"{channel}: emission ON " + (f"for {duration_s:g} s" if duration_s is not None else "until Ctrl-C"))
+                return [f"{channel}: emission ON {emits} and LEFT ON after exit; `benchctl laser off {channel}` turns "
+                        "it off"]
+            out(f"{channel}: emission ON {emits} "
+                + (f"for {duration_s:g} s" if duration_s is not None else "until Ctrl-C"))
             while duration_s is None:
                 sleep(3600)
             sleep(duration_s)
@@ -89,6 +94,16 @@ def laser_on(profile: Profile, channel: str, duration_s: float | None, leave_on:
         out(f"{channel}: interrupted; emission off on every channel")  # close() has run by now
         raise
     return [f"{channel}: emission off"]
+
+
+def _emitted(setpoint_w: float, measured_w: float | None, profile_w: float) -> str:
+    """The power a channel emits at, as read back, and how it compares with the profile's setpoint: '27.4 mW (read
+    back; measured 27.3 mW; 13.7x the profile's setpoint of 2 mW)'."""
+    notes = ["read back"] + ([f"measured {format_power(measured_w)}"] if measured_w is not None else [])
+    if not math.isclose(setpoint_w, profile_w, rel_tol=1e-3, abs_tol=1e-9):
+        ratio = f"{setpoint_w / profile_w:.3g}x" if setpoint_w > 0 and profile_w > 0 else "not"
+        notes.append(f"{ratio} the profile's setpoint of {format_power(profile_w)}")
+    return f"{format_power(setpoint_w)} ({'; '.join(notes)})"
 
 
 def sim_fault(device: str, faults: list[str], clear: bool, profile: Profile) -> list[str]:
