@@ -335,7 +335,8 @@ def resolve_profile_path(path_or_name: str | Path | None = None) -> Path:
     """Where a profile lives: a path, a bare name (hardware_profiles/<name>.toml) or None for the default.
 
     None means $BENCHCTL_PROFILE if set, else the simulated bench. Bare names are looked up in
-    ./hardware_profiles first, then in the hardware_profiles folder of the repository next to the package.
+    ./hardware_profiles first, then in the hardware_profiles folder of the repository next to the package, then as a
+    file of that name (which load_profile then says is not a TOML profile, if it is not).
     """
     origin = ""
     if path_or_name is None:
@@ -350,6 +351,8 @@ def resolve_profile_path(path_or_name: str | Path | None = None) -> Path:
     for candidate in candidates:
         if candidate.is_file():
             return candidate
+    if Path(text).is_file():  # -p README.md: read, to be told what it is not
+        return Path(text)
     searched = ", ".join(str(c) for c in candidates)
     raise BenchctlError(f"hardware profile {text!r}{origin} not found (looked for {searched})")
 
@@ -365,6 +368,9 @@ def load_profile(path_or_name: str | Path | None = None) -> Profile:
     except OSError as exc:
         raise BenchctlError(f"{path}: cannot read hardware profile: {exc.strerror or exc}") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        if path.suffix.lower() != ".toml":
+            raise BenchctlError(f"{path}: not a hardware profile (a TOML file such as "
+                                f"hardware_profiles/simulated.toml): {exc}") from None
         raise BenchctlError(f"{path}: TOML syntax error: {exc}") from None
     return _checked(path, decode(raw, ProfileFile, path))
 

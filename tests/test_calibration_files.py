@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from conftest import one_error_line
 
 from benchctl.calibration_files import OpticalModelFile, checked_json
 from benchctl.cli import main
@@ -23,13 +24,6 @@ from benchctl.runner.engine import run_procedure
 FIT = {"zernike_waves": {"defocus": 0.2, "spherical": -0.05}, "waist_mm": 0.5, "offset_mm": [0.01, -0.02],
        "crosstalk_px": 0.05, "zero_order": 0.02, "residual": 0.2, "initial_residual": 0.6, "patterns": 4,
        "flat": True, "camera_blur_px": 0.4}
-
-
-def one_error_line(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:
-    assert main(argv) == 2
-    (line,) = capsys.readouterr().err.splitlines()
-    assert line.startswith("benchctl: error: ")
-    return line
 
 
 def stored_model(profile_path: Path) -> Path:

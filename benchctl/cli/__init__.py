@@ -11,7 +11,7 @@ import sys
 from typing import Sequence
 
 from benchctl.cli import benchmarks, devices, holograms, procedures, profile, training
-from benchctl.cli.args import EPILOG, VersionAction
+from benchctl.cli.args import EPILOG, Parser, VersionAction
 from benchctl.errors import BenchctlError
 
 
@@ -21,7 +21,7 @@ def build_parser() -> argparse.ArgumentParser:
     Building it imports nothing heavy (no torch, no networks): `benchctl laser off` must start instantly.
     Method names are therefore checked when a command runs, not by argparse `choices`.
     """
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="benchctl",
         description="Holographic-display experiments on an optical bench, real or simulated.",
         epilog=EPILOG,

@@ -14,7 +14,7 @@ import re
 import signal
 from pathlib import Path
 from urllib.parse import urlsplit
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
@@ -186,10 +186,40 @@ def _open_slm(profile: Profile) -> SLM:
     return open_slm(profile.require("slm"))
 
 
+def human(value: object, key: str = "") -> str:
+    """A value for people, not a Python repr: numbers to 6 significant digits (a power, keyed `*_w`, in W, mW or uW),
+    yes / no, lists and tables inline ('red linear; green lut-green.csv'), an empty one as 'none'."""
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, float):
+        return format_power(value) if key.endswith("_w") else f"{value:.6g}"
+    if isinstance(value, dict):
+        return "; ".join(f"{_label(name)} {human(item, str(name))}" for name, item in value.items()) or "none"
+    if isinstance(value, (list, tuple)):
+        return ", ".join(human(item, key) for item in value) or "none"
+    return "none" if value is None else str(value)
+
+
+def _human_lines(table: dict[str, Any], indent: str) -> list[str]:
+    """`key: value` lines, a table of tables (a laser's channels) as an indented block of its own."""
+    lines = []
+    for key, value in table.items():
+        if isinstance(value, dict) and value and all(isinstance(item, dict) for item in value.values()):
+            lines += [f"{indent}{key}:", *_human_lines(value, indent + "  ")]
+        else:
+            lines.append(f"{indent}{_label(key)}: {human(value, key)}")
+    return lines
+
+
+def _label(key: object) -> str:
+    """A key as shown next to its value: a power's unit suffix goes (the value carries its unit)."""
+    return str(key).removesuffix("_w")
+
+
 def slm_info(profile: Profile) -> list[str]:
     """The SLM's driver, geometry, settle time and lookup tables."""
     with _open_slm(profile) as slm:
-        return [f"{key}: {value}" for key, value in slm.info().items()]
+        return _human_lines(slm.info(), "")
 
 
 def slm_show(profile: Profile, path: Path, channel: str | None) -> list[str]:
@@ -227,7 +257,7 @@ def camera_info(profile: Profile) -> list[str]:
     """What the camera says it is, and the capture settings the profile gives."""
     config = profile.require("camera").camera
     with _open_camera(profile) as camera:
-        lines = [f"{key}: {value}" for key, value in camera.identity().items()]
+        lines = _human_lines(camera.identity(), "")
     exposure = f"{config.exposure_s:g} s" if config.exposure_s else "as set on the camera"
     writes = "on" if config.write_properties else "off (set exposure, ISO and RAW on the body)"
     return lines + [f"exposure: {exposure}", f"iso: {config.iso or 'as set on the camera'}",
@@ -290,7 +320,7 @@ def sim_status() -> list[str]:
     if not states:
         return lines + ["  (empty: every simulated device starts from its power-on state)"]
     for name, state in states.items():
-        lines.append(f"  {name}: {state}")
+        lines += [f"  {name}:", *_human_lines(state, "    ")]
     return lines
 
 
