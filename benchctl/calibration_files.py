@@ -13,12 +13,14 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
 from msgspec import Meta
 
 from benchctl.errors import BenchctlError
+from benchctl.files import file_sha256
 from benchctl.profiles import NonNegative, NonNegativeInt, ZernikeTerm
 from benchctl.schema import Model, decode, fail
 
@@ -173,3 +175,36 @@ def check_calibration(profile: Profile, registration: Path | None = None) -> lis
         if data is not None:
             lines.append(f"registration {registration}: {', '.join(data['colours']) or 'no colours'}")
     return [f"calibration: {line}: OK" for line in lines]
+
+
+def calibration_used(profile: Profile, own_tables: Mapping[str, Path]) -> dict[str, Any]:
+    """What calibration `profile` (as calibration applies it) uses, for metrics and terminals: per laser channel its
+    lookup table ("measured" in calibration/<profile>/, "profile" where the profile names it in `own_tables`, or
+    "linear": uncalibrated), each file with its SHA-256, and the fitted optical model (file, SHA-256, colours) or
+    None for the ideal model."""
+    luts = profile.slm.lut if profile.slm is not None else {}
+    tables: dict[str, Any] = {}
+    for channel in profile.channels:
+        path = luts.get(channel.name)
+        if path is None:
+            tables[channel.name] = {"source": "linear"}
+        else:
+            source = "profile" if channel.name in own_tables else "measured"
+            tables[channel.name] = {"source": source, "file": str(path), "sha256": file_sha256(path)}
+    model = profile.optics.model if profile.optics is not None else None
+    fitted = None
+    if model is not None:
+        fitted = {"file": str(model), "sha256": file_sha256(model),
+                  "colours": [c.name for c in profile.channels if fitted_model_entry(profile, c.name) is not None]}
+    return {"lookup_tables": tables, "optical_model": fitted}
+
+
+def calibration_lines(used: Mapping[str, Any]) -> list[str]:
+    """`calibration_used`'s answer for a terminal, one line per kind (checksums shortened to 12 digits)."""
+    tables = [f"{colour} {entry['source']}" + (f" ({entry['file']}, sha256 {entry['sha256'][:12]})"
+                                               if "file" in entry else " (uncalibrated)")
+              for colour, entry in used["lookup_tables"].items()]
+    model = used["optical_model"]
+    return [f"lookup tables: {'; '.join(tables) or 'none'}",
+            "optical model: " + (f"fitted, {model['file']} (sha256 {model['sha256'][:12]}) for "
+                                 f"{', '.join(model['colours']) or 'no colour here'}" if model else "none (ideal)")]
