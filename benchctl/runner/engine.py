@@ -24,6 +24,7 @@ import msgspec
 from benchctl.calibration_files import check_calibration
 from benchctl.errors import BenchctlError
 from benchctl.files import file_sha256, write_json
+from benchctl.memory import check_memory
 from benchctl.profiles import Profile, load_profile, resolve_profile_path
 from benchctl.runner.bench import Bench
 from benchctl.runner.calibration import REGISTRATION_FILE, Calibration
@@ -98,6 +99,7 @@ def run_procedure(path: Path | None, *, profile: str | None = None, out: Path = 
             raise
         raise BenchctlError(f"{exc} (a resumed run uses its own copy of the calibration: repair it, or copy the file "
                             f"from {Calibration.store(bench_profile).folder} over it)") from None
+    checked += check_memory(effective, procedure.params, str(path or procedure.name))  # counts that scale memory
     with Bench(effective, say) as bench:
         context = Context(effective, procedure.params, calibration, bench, record, say)
         steps = procedure.plan(context)
