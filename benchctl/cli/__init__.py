@@ -1,6 +1,6 @@
 """The `benchctl` command line: parses arguments and calls one function per command; no logic lives here.
 
-One module per command group (`devices`, `profile`, `holograms`, `benchmarks`, `training`, `procedures`), each
+One module per command group (`devices`, `profile`, `holograms`, `benchmarks`, `training`, `procedures`, `runs`), each
 adding its sub-parsers with `add_commands`; a command imports what it uses only when it runs.
 """
 
@@ -10,7 +10,7 @@ import argparse
 import sys
 from typing import Sequence
 
-from benchctl.cli import benchmarks, devices, holograms, procedures, profile, training
+from benchctl.cli import benchmarks, devices, holograms, procedures, profile, runs, training
 from benchctl.cli.args import EPILOG, Parser, VersionAction
 from benchctl.errors import BenchctlError
 
@@ -29,7 +29,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action=VersionAction, nargs=0, help="show the version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for group in (holograms, benchmarks, training, profile, procedures, devices):
+    for group in (holograms, benchmarks, training, profile, procedures, runs, devices):
         group.add_commands(sub)
     return parser
 
