@@ -4,7 +4,8 @@ file the profile names in `[optics] model`), registration.json and the lookup-ta
 A file is checked where it is read: `checked_json` decodes it with the models below (benchctl.schema: every failure
 is one line naming the file, the key path, the value and its allowed range) and returns it as parsed, so a
 hand-edited or damaged file is refused before a number of it is used. `check_calibration` checks every
-calibration file a run will use (`benchctl profile check`, `benchctl run --dry-run`).
+calibration file a run will use (`benchctl profile check`, `benchctl run --dry-run`); `calibration_used` says which
+tables and model a result was made with, with checksums (`benchctl generate`'s metrics.json).
 
 Imports no torch (`profile check` must start instantly); the optics package turns a checked entry into a model.
 """

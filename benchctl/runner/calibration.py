@@ -50,8 +50,6 @@ def geometry(profile: Profile) -> dict[str, Any]:
     }
 
 
-
-
 class Calibration:
     """The calibration files of one profile in one folder (the shared store, or a run's own copy)."""
 
