@@ -113,7 +113,7 @@ def check_memory(profile: Profile, params: Any, where: str) -> list[str]:
     limit = memory_limit()
     lines = []
     for name, estimate_of in ESTIMATES.items():
-        if not hasattr(params, name):
+        if not isinstance(getattr(params, name, None), int):  # a Python procedure may use the name for another thing
             continue
         estimate = estimate_of(profile, params)
         if limit is not None and estimate.peak > limit:

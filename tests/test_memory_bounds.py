@@ -101,3 +101,14 @@ def test_model_calibration_patterns_and_fit_steps_are_bounded(tmp_path: Path, be
     procedure.write_text('procedure = "model-calibration"\n[parameters]\nregistration = "stored"\n')
     line = one_error_line(capsys, ["run", str(procedure), "-p", str(bench_profile_path), "--dry-run"])
     assert line.endswith("not even patterns = 1 fits ($BENCHCTL_MAX_MEMORY sets the limit)"), line
+
+
+def test_a_procedure_parameter_of_the_same_name_but_another_kind_is_no_count(small_profile_path: Path) -> None:
+    from types import SimpleNamespace
+
+    from benchctl.memory import check_memory
+
+    profile = load_profile(small_profile_path)
+    assert check_memory(profile, SimpleNamespace(frames=["first.dng"], patterns="grid"), "mine.py") == []
+    (line,) = check_memory(profile, SimpleNamespace(frames=3, dark_frames=1), "mine.py")
+    assert line.startswith("memory: about ") and "RAW frames of 5280 x 3528 px" in line
