@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from benchctl.capture.raw import RawImage, decode_raw
+from benchctl.cli import main
 from benchctl.devices.sim import bench
 from benchctl.dng import dng_bytes
 from benchctl.profiles import Profile, load_profile
@@ -172,6 +173,14 @@ def make_bench_profile(tmp_path: Path) -> Callable[..., Profile]:
         return load_profile(path)
 
     return make
+
+
+def one_error_line(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:
+    """Run benchctl; it must exit 2 with exactly one error line (no traceback). Returns that line."""
+    assert main(argv) == 2
+    (line,) = capsys.readouterr().err.splitlines()
+    assert line.startswith("benchctl: error: ")
+    return line
 
 
 def sim_exposure(profile: Profile, gray: np.ndarray | None, powers_w: dict[str, float], frame: int = 1) -> RawImage:

@@ -10,19 +10,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from conftest import one_error_line
 
 from benchctl.cli import main
 from benchctl.errors import BenchctlError
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-def one_error_line(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:
-    """Run benchctl; it must exit 2 with exactly one error line (no traceback). Returns that line."""
-    assert main(argv) == 2
-    (line,) = capsys.readouterr().err.splitlines()
-    assert line.startswith("benchctl: error: ")
-    return line
 
 
 def png_header(height: int, width: int) -> bytes:

@@ -115,7 +115,7 @@ def test_shipped_checkpoint_is_found_listed_and_used_by_default(capsys, tmp_path
     code, stdout, _ = _run(capsys, "models", "-p", str(profile_path))
     assert code == 0
     rows = {line.split()[0]: line for line in stdout.splitlines()[2:]}
-    assert f"yes ({shipped})" in rows["ccnn-dcm4"]
+    assert f"yes ({shipped}; BELOW DPAC on its validation images (red " in rows["ccnn-dcm4"]  # a 1-step training
     assert "no (no trained checkpoint for profile 'small')" in rows["ccnn"]
     assert f"{model_info('ccnn-dcm4', (64, 96))['parameters']:,}" in rows["ccnn-dcm4"]
 

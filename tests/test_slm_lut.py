@@ -229,7 +229,7 @@ def test_generate_and_slm_show_encode_through_the_measured_table(tmp_path: Path,
     expected = frames(named, "named")
     store = Calibration.store(load_profile(small_profile_path))
     save_lut(store.lut_path("red"), table)
-    store.record_lut("red", {"gray_step": 8})
+    store.record_lut("red", {"grays": 33})  # what lut calibration records (lut.json is checked: calibration_files)
     measured = frames(small_profile_path, "measured")
     for seen, wanted, before in zip(measured, expected, linear):
         assert np.array_equal(seen, wanted) and not np.array_equal(seen, before)

@@ -20,7 +20,7 @@ from typing import Callable, Optional
 
 import torch
 
-from benchctl.errors import BadValueError
+from benchctl.errors import BadValueError, did_you_mean
 from benchctl.optics.setup import OpticalSetup
 
 Progress = Callable[[int, int], None]
@@ -214,6 +214,7 @@ def get_method(name: str) -> Method:
         pass
     classical = [n for n in method_names() if not METHODS[n].needs_checkpoint]
     learned = [n for n in method_names() if METHODS[n].needs_checkpoint and METHODS[n].refines is None]
-    raise BadValueError(f"unknown hologram method {name!r}; known: {', '.join(classical)}; learned (need a "
+    raise BadValueError(f"unknown hologram method {name!r}{did_you_mean(name, METHODS)}; known: "
+                        f"{', '.join(classical)}; learned (need a "
                         f"checkpoint): {', '.join(learned) or 'none'}; a learned one refined by SGD: "
                         f"<learned>{REFINED_SUFFIX}") from None

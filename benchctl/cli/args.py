@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import re
+from typing import Any
 
 import benchctl
 from benchctl.limits import MAX_PIXELS_ENV, max_pixels
@@ -52,6 +54,16 @@ def positive_int(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
     return value
+
+
+class Parser(argparse.ArgumentParser):
+    """benchctl's argument parser: a value that starts with '-' and a digit ('-5mW', '-3x4') is read as a value, so
+    that its own check says what is wrong ("is negative") instead of argparse's "expected one argument" (argparse
+    reads only plain negative numbers so; no benchctl option starts with '-' and a digit)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = re.compile(r"^-\.?\d")
 
 
 class VersionAction(argparse.Action):

@@ -108,7 +108,8 @@ def _cmd_bench_console(args: argparse.Namespace) -> int:
 
 def add_commands(sub: argparse._SubParsersAction) -> None:
     """Add this group's sub-commands to the `benchctl` sub-parsers (importing nothing heavy)."""
-    bench = sub.add_parser("bench", help="benchmarks: speed against error").add_subparsers(
+    bench = sub.add_parser("bench", help="benchmarks: speed against error, propagation, learned methods, the paper's "
+                                         "tables").add_subparsers(
         dest="bench", metavar="BENCH", required=True)
     speed = bench.add_parser("speed-vs-error", help="seconds per frame against PSNR/SSIM for each method and budget",
                              description="Runs every hologram method at several iteration budgets on the targets, "

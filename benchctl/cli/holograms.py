@@ -9,6 +9,7 @@ from benchctl.cli.args import EPILOG, add_profile, grid_size, name_list, positiv
 
 
 def _cmd_generate(args: argparse.Namespace) -> int:
+    from benchctl.calibration_files import calibration_lines
     from benchctl.terminal import ProgressLine
     from benchctl.profiles import load_profile
     from benchctl.runner.generate import run_generate
@@ -18,8 +19,8 @@ def _cmd_generate(args: argparse.Namespace) -> int:
                            colours=args.colours, seed=args.seed, progress=ProgressLine, checkpoint=args.checkpoint)
     if metrics["checkpoint"]:
         print(f"{args.method}: trained models from {metrics['checkpoint']}")
-    if metrics["optical_model"]:
-        print(f"fitted optical model: {metrics['optical_model']}")
+    for line in calibration_lines(metrics["calibration"]):
+        print(line)
     for name, colour in metrics["colours"].items():
         if colour["skipped"]:
             print(f"{name:>6}: skipped (black in the target)")
@@ -33,10 +34,13 @@ def _cmd_generate(args: argparse.Namespace) -> int:
 
 def _cmd_models(args: argparse.Namespace) -> int:
     from benchctl.profiles import load_profile
+    from benchctl.runner.calibration import Calibration
     from benchctl.runner.holograms import list_methods
 
     profile = load_profile(args.profile)
     shape = args.size or profile.require("slm").slm.shape
+    if profile.optics is not None:  # the lookup tables and optical model a checkpoint would meet here
+        profile = Calibration.store(profile).applied(profile)
     print(f"hologram methods at {shape[0]}x{shape[1]} (checkpoints for profile {profile.name!r}):")
     return print_lines(list_methods(shape, profile))
 
@@ -71,7 +75,11 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     add_profile(gen)
     gen.set_defaults(func=_cmd_generate)
 
-    models = sub.add_parser("models", help="hologram methods with family and parameter count at a grid size")
+    models = sub.add_parser("models", help="hologram methods with family and parameter count at a grid size",
+                            description="Every hologram method, its family and trainable parameters, and for a learned "
+                                        "one the checkpoint it would use here, with what its record says: below DPAC "
+                                        "on its validation images, trained without the lookup tables or the fitted "
+                                        "optical model this profile's bench now has.")
     models.add_argument("--size", type=grid_size, metavar="HxW", help="grid (default: the profile's SLM)")
     add_profile(models)
     models.set_defaults(func=_cmd_models)

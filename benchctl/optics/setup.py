@@ -102,9 +102,11 @@ class OpticalSetup:
     @classmethod
     def from_profile(cls, profile: Profile, channel: str, padding: Padding = "auto") -> "OpticalSetup":
         """The setup of one laser channel of a hardware profile (profile units converted to SI), with the channel's
-        fitted optical model if the profile names one (`optics.model`, set from calibration/<profile>/)."""
+        fitted optical model if the profile names one (`optics.model`, set from calibration/<profile>/; the profile
+        reads and checks the file)."""
         laser = profile.channel(channel)
-        model = FittedOptics.load(profile.optics.model, channel) if profile.optics.model else None
+        entry = profile.fitted_model(laser.name)
+        model = FittedOptics.from_dict(entry) if entry is not None else None
         return cls(wavelength_m=laser.wavelength_m, pitch_m=profile.slm.pitch_m, distance_m=profile.optics.distance_m,
                    shape=profile.slm.shape, roi=profile.optics.roi, padding=padding,
                    aperture=profile.optics.iris_fraction, field_model=model)

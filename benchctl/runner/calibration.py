@@ -14,7 +14,6 @@ calibration it uses into its own folder, so resuming it or reading its report la
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 from datetime import datetime, timedelta
@@ -23,7 +22,7 @@ from typing import Any
 
 import msgspec
 
-from benchctl.errors import BenchctlError
+from benchctl.calibration_files import LutIndex, OpticalModelFile, RegistrationFile, checked_json
 from benchctl.files import ensure_dir, write_json
 from benchctl.profiles import Profile
 
@@ -51,15 +50,6 @@ def geometry(profile: Profile) -> dict[str, Any]:
     }
 
 
-def _read_json(path: Path) -> dict[str, Any] | None:
-    if not path.is_file():
-        return None
-    try:
-        return json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise BenchctlError(f"{path}: cannot read calibration: {exc}") from None
-
-
 class Calibration:
     """The calibration files of one profile in one folder (the shared store, or a run's own copy)."""
 
@@ -77,7 +67,7 @@ class Calibration:
 
     def registrations(self) -> dict[str, dict[str, Any]]:
         """Colour -> stored registration (a dict with "homography", "rms_px", ...) valid for this geometry."""
-        data = _read_json(self.folder / REGISTRATION_FILE)
+        data = checked_json(self.folder / REGISTRATION_FILE, RegistrationFile)
         if not data:
             return {}
         return {colour: entry for colour, entry in data.get("colours", {}).items()
@@ -86,7 +76,7 @@ class Calibration:
     def save_registration(self, colour: str, registration: dict[str, Any]) -> Path:
         """Store one colour's registration (other colours' entries stay)."""
         path = ensure_dir(self.folder) / REGISTRATION_FILE
-        data = _read_json(path) or {"profile": self.profile.name, "colours": {}}
+        data = checked_json(path, RegistrationFile) or {"profile": self.profile.name, "colours": {}}
         data["colours"][colour] = {**registration, "geometry": self.geometry, "created": _now()}
         return write_json(path, data)
 
@@ -94,7 +84,7 @@ class Calibration:
 
     def lut_files(self) -> dict[str, Path]:
         """Colour -> measured lookup-table file valid for this geometry."""
-        index = _read_json(self.folder / LUT_INDEX) or {}
+        index = checked_json(self.folder / LUT_INDEX, LutIndex) or {}
         return {colour: self.folder / entry["file"] for colour, entry in index.items()
                 if entry.get("geometry") == self.geometry and (self.folder / entry["file"]).is_file()}
 
@@ -105,20 +95,20 @@ class Calibration:
     def record_lut(self, colour: str, details: dict[str, Any]) -> None:
         """Note in the index that lut-<colour>.csv was just measured (with `details` on how)."""
         path = ensure_dir(self.folder) / LUT_INDEX
-        index = _read_json(path) or {}
+        index = checked_json(path, LutIndex) or {}
         index[colour] = {"file": self.lut_path(colour).name, "geometry": self.geometry, "created": _now(), **details}
         write_json(path, index)
 
     def lut_info(self) -> dict[str, dict[str, Any]]:
         """The index entries of the valid tables."""
-        index = _read_json(self.folder / LUT_INDEX) or {}
+        index = checked_json(self.folder / LUT_INDEX, LutIndex) or {}
         return {colour: index[colour] for colour in self.lut_files()}
 
     # -- fitted optical model -------------------------------------------------------------------------------------
 
     def models(self) -> dict[str, dict[str, Any]]:
         """Colour -> fitted optical model entry (FittedOptics.to_dict() plus residual, created) for this geometry."""
-        data = _read_json(self.folder / MODEL_FILE) or {}
+        data = checked_json(self.folder / MODEL_FILE, OpticalModelFile) or {}
         return {colour: entry for colour, entry in data.get("colours", {}).items()
                 if entry.get("geometry") == self.geometry}
 

@@ -21,11 +21,13 @@ from typing import Any
 
 import msgspec
 
+from benchctl.calibration_files import check_calibration
 from benchctl.errors import BenchctlError
 from benchctl.files import file_sha256, write_json
+from benchctl.memory import check_memory
 from benchctl.profiles import Profile, load_profile, resolve_profile_path
 from benchctl.runner.bench import Bench
-from benchctl.runner.calibration import Calibration
+from benchctl.runner.calibration import REGISTRATION_FILE, Calibration
 from benchctl.runner.procedure import Context, Procedure, Step, load_procedure
 from benchctl.runner.record import RunRecord, create_run, open_run
 
@@ -89,12 +91,20 @@ def run_procedure(path: Path | None, *, profile: str | None = None, out: Path = 
         bench_profile = load_profile(profile)
         calibration = Calibration.store(bench_profile)
         record = None
-    effective = procedure.params.applied_to(calibration.applied(bench_profile))
+    try:  # every calibration file the run will use, checked before a device opens
+        effective = procedure.params.applied_to(calibration.applied(bench_profile))
+        checked = check_calibration(effective, calibration.folder / REGISTRATION_FILE)
+    except BenchctlError as exc:
+        if record is None:
+            raise
+        raise BenchctlError(f"{exc} (a resumed run uses its own copy of the calibration: repair it, or copy the file "
+                            f"from {Calibration.store(bench_profile).folder} over it)") from None
+    checked += check_memory(effective, procedure.params, str(path or procedure.name))  # counts that scale memory
     with Bench(effective, say) as bench:
         context = Context(effective, procedure.params, calibration, bench, record, say)
         steps = procedure.plan(context)
         if dry_run:
-            for line in _describe(steps, procedure, bench_profile):
+            for line in [*_describe(steps, procedure, bench_profile), *checked]:
                 say(line)
             code = [name for name in procedure.files if name.endswith(".py")]
             say("dry run: nothing was touched" if not code else

@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from benchctl.cgh import Method, OpticalSetup, get_method, method_names
+from benchctl.checkpoint_notes import checkpoint_notes
 from benchctl.cgh.learned import LEARNED_METHODS, model_info
 from benchctl.devices.slm import SLM, slm_for
 from benchctl.errors import BadValueError, BenchctlError
@@ -73,7 +74,9 @@ def checkpoint_status(method: str, profile: Profile) -> str:
     if path is None:
         return f"no trained checkpoint for profile {profile.name!r}"
     problem = checkpoint_problem(path, profile)
-    return f"{path}" if problem is None else f"{path} does not fit: {problem}"
+    if problem is not None:
+        return f"{path} does not fit: {problem}"
+    return "; ".join([str(path), *checkpoint_notes(cached_checkpoint(path).metadata(), profile)])
 
 
 def usable_methods(profile: Profile) -> list[str]:

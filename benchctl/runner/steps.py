@@ -182,10 +182,10 @@ def load_exposure(context: Context, key: str) -> tuple[RawImage, RawImage | None
     """The averaged RAW frames of an exposure step, dark-subtracted, and its averaged dark (None if none)."""
     result = context.result(key)
     folder = context.path(result["folder"])
-    lit = average_frames([decode_raw(folder / name) for name in result["frames"]])
+    lit = average_frames(decode_raw(folder / name) for name in result["frames"])  # decoded one at a time
     if not result["darks"]:
         return lit, None
-    dark = average_frames([decode_raw(folder / name) for name in result["darks"]])
+    dark = average_frames(decode_raw(folder / name) for name in result["darks"])
     return subtract_dark(lit, dark), dark
 
 

@@ -258,7 +258,7 @@ def _measure(context: Context, key: str, channel: LaserChannel, gray: np.ndarray
 
 
 def _decoded(frames: list[RawFrame]) -> RawImage:
-    return average_frames([decode_raw(frame.data) for frame in frames])
+    return average_frames(decode_raw(frame.data) for frame in frames)
 
 
 def _amplitude_error(plane: np.ndarray, target_roi: torch.Tensor) -> tuple[torch.Tensor, float, float]:
