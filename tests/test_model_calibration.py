@@ -35,7 +35,7 @@ from benchctl.runner.calibration import Calibration
 from benchctl.runner.engine import run_procedure
 from benchctl.runner.generate import run_generate
 from benchctl.runner.hologram_cache import _key
-from benchctl.runner.holograms import optimised_setup
+from benchctl.runner.setups import optical_setups, optimised_setup
 from benchctl.devices.slm import slm_for
 
 HIDDEN = {"astigmatism_oblique": 0.12, "defocus": 0.3, "astigmatism_vertical": -0.15, "coma_vertical": 0.08,
@@ -189,7 +189,8 @@ def test_the_procedure_fits_stores_and_hands_the_model_to_generation(tmp_path: P
     assert fitted["patterns"] == 3 and fitted["flat"] is True
     flat = read_image(folder / "holograms" / "model-green-flat.png")
     assert flat.shape == (64, 96) and len(np.unique(flat)) == 1
-    assert sorted(path.name for path in (folder / "raw" / "model" / "green").iterdir()) == ["0", "1", "2", "3"]
+    assert sorted(path.name for path in (folder / "raw" / "model" / "capture" / "green").iterdir()) == ["0", "1", "2",
+                                                                                                  "3"]
     assert fitted["residual"] < 0.5 * fitted["initial_residual"]
     assert fitted["zernike_waves"]["tilt_vertical"] == pytest.approx(0, abs=0.01)  # a true registration, no tilt
     assert fitted["zernike_waves"]["tilt_horizontal"] == pytest.approx(0, abs=0.01)
@@ -323,7 +324,7 @@ def test_optimisers_see_the_driven_phase_only_when_the_model_has_crosstalk(
     path = tmp_path / "optical-model.json"
     path.write_text(json.dumps({"colours": {"green": {**FittedOptics(crosstalk_px=crosstalk_px).to_dict()}}}))
     calibrated = msgspec.structs.replace(profile, optics=msgspec.structs.replace(profile.optics, model=path))
-    setup = optimised_setup(calibrated, "green", slm_for(calibrated))
+    setup = optimised_setup(optical_setups(calibrated, ["green"])["green"], slm_for(calibrated), "green")
     assert setup.field_model is not None and (setup.display is not None) == sees_driven
     driven = torch.zeros(setup.shape)
     driven[:, : setup.shape[1] // 2] = 5.0  # a jump, as where the gray levels wrap

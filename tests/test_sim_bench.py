@@ -585,5 +585,5 @@ def test_simulated_devices_report_their_ground_truth_and_real_ones_none(profile:
 
 def test_builtin_procedures_never_import_the_simulator() -> None:
     folder = Path(benchctl.runner.builtin.__file__).parent
-    for path in sorted(folder.glob("*.py")):
+    for path in sorted(folder.rglob("*.py")):
         assert "devices.sim" not in path.read_text(), path
