@@ -22,13 +22,13 @@ from benchctl.devices.sim import bench
 from benchctl.devices.sim.state import load_state
 from benchctl.errors import BenchctlError
 from benchctl.optics import lsq_scale
-from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import Profile
 from benchctl.capture.colour_planes import registered_plane
 from benchctl.capture.raw import decode_raw
 from benchctl.runner.builtin.citl.procedure import TIMING_KEYS, _load_state, _save_state, gradient_device, keeps_raw
 from benchctl.runner.calibration import Calibration
 from benchctl.runner.engine import run_procedure
+from benchctl.runner.setups import optical_setup
 
 # The small bench with hidden optics the model does not know: a wavefront error and an offset beam on green (the
 # panel's true response is its linear lookup table, so the optics alone differ from the model).
@@ -89,7 +89,7 @@ def test_straight_through_gradient_is_the_models_with_the_captured_value(make_be
     """Captured = the model (any gain): exactly SGD's loss gradient. Captured elsewhere: the loss is the captured
     image's error, and the gradient is the model's Jacobian applied to that error (checked against autograd of an
     explicit formula)."""
-    setup = OpticalSetup.from_profile(make_bench_profile(SMALL_BENCH), "green")
+    setup = optical_setup(make_bench_profile(SMALL_BENCH), "green")
     rows, cols = setup.roi_slices
     generator = torch.Generator().manual_seed(3)
     target = torch.zeros(setup.shape)

@@ -26,6 +26,8 @@ from benchctl.runner.learned.training import TrainSettings, train
 from benchctl.runner.plots import front_plot
 from benchctl.runner.record import create_run, open_run
 
+pytestmark = pytest.mark.slow  # whole procedure runs / training: seconds to a minute each
+
 REPO = Path(__file__).resolve().parents[1]
 CAPTURE = """\
 name = "capture-test"

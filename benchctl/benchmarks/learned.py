@@ -40,7 +40,9 @@ from benchctl.files import ensure_dir, write_csv
 from benchctl.profiles import Profile
 from benchctl.runner.holograms import compute_scene, resolve_method, target_plane, usable_methods
 from benchctl.runner.learned.checkpoint import find_checkpoint, read_checkpoint
-from benchctl.runner.learned.geometry import geometry_of, grid_profile, setup_from_geometry
+from benchctl.optics.geometry import Geometry
+from benchctl.runner.geometry import grid_profile
+from benchctl.runner.setups import optical_setup
 from benchctl.targets import load_target, prepare_target
 
 DEFAULT_TARGETS = ("chart:siemens", "chart:bars", "chart:text")
@@ -103,7 +105,7 @@ def training_step_memory(method: str, geometry: dict[str, Any], device: str) -> 
     from benchctl.runner.learned.training import ReconstructionLoss, peak_normalised, training_step
 
     dev = torch.device(device)
-    setup = setup_from_geometry(geometry)
+    setup = OpticalSetup.of(Geometry.from_dict(geometry))
     torch.manual_seed(0)
     model = build_model(method, setup).to(dev)
     optimiser = torch.optim.Adam(model.parameters(), lr=5e-4)
@@ -138,7 +140,7 @@ def training_step_memory(method: str, geometry: dict[str, Any], device: str) -> 
 
 def measure_training_step(method: str, setup: OpticalSetup, device: torch.device) -> dict[str, Any]:
     """`training_step_memory` for `method` in a fresh Python subprocess; its JSON result."""
-    request = json.dumps({"method": method, "geometry": geometry_of(setup), "device": str(device)})
+    request = json.dumps({"method": method, "geometry": setup.geometry.to_dict(), "device": str(device)})
     proc = subprocess.run([sys.executable, "-m", "benchctl.benchmarks.learned", request], capture_output=True,
                           text=True, env=os.environ.copy(), check=False)
     if proc.returncode != 0:
@@ -205,7 +207,7 @@ def run_learned_bench(
     chosen = _checkpoints(checkpoints, names, bench)
     device = _device()
     channel = bench.channels[0]
-    setup = OpticalSetup.from_profile(bench, channel.name)
+    setup = optical_setup(bench, channel.name)
     grid, roi = setup.shape, setup.roi
     plane = prepare_target(load_target(DEFAULT_TARGETS[0], size=roi), grid, roi)[target_plane(channel)]
     amplitude = (plane / plane.max())[None, None].to(device)

@@ -55,6 +55,7 @@ from benchctl.files import atomic_write_bytes, ensure_dir, write_csv
 from benchctl.optics import amplitude_scores, crop_roi, lsq_scale
 from benchctl.profiles import Profile
 from benchctl.runner.holograms import compute_scene, target_plane
+from benchctl.runner.setups import optical_setup
 from benchctl.targets import load_target, photo_specs, prepare_target
 
 DEFAULT_METHODS = ("holonet", "holonet-dcm2", "holonet-dcm4", "holonet-pyramid", "holonet-ps2", "holonet-ps4",
@@ -113,7 +114,7 @@ class HeldOut:
     def __init__(self, bench: Profile, colour: str, targets: Sequence[str]) -> None:
         channel = bench.channel(colour)
         self.name = channel.name
-        self.setup = OpticalSetup.from_profile(bench, channel.name)
+        self.setup = optical_setup(bench, channel.name)
         self.slm = slm_for(bench)
         plane = target_plane(channel)
         grid, roi = self.setup.shape, self.setup.roi
@@ -231,7 +232,7 @@ def _reproduce(profile: Profile, size: tuple[int, int], cpu_seconds: float | Non
     started = time.perf_counter()
     bench = resized_profile(profile, size)
     channel = bench.channel(colour)
-    setup = OpticalSetup.from_profile(bench, channel.name)
+    setup = optical_setup(bench, channel.name)
     held_out = HeldOut(bench, channel.name, photo_specs("eval"))
     train_images = load_targets(image_sources(data), setup.shape, setup.roi)
     plane = target_plane(channel)

@@ -6,7 +6,7 @@ import argparse
 
 
 def _cmd_profile_check(args: argparse.Namespace) -> int:
-    from benchctl.optics.plan import describe_plans
+    from benchctl.runner.geometry import describe_plans
     from benchctl.profiles import load_profile
 
     profile = load_profile(args.path)

@@ -8,12 +8,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 from numbers import Integral
-from typing import TYPE_CHECKING, Union
+from typing import Union
 
 import numpy as np
-
-if TYPE_CHECKING:
-    from benchctl.profiles import Profile
 
 Padding = Union[str, int]
 PADDING_MODES = ("auto", "2x", "none")
@@ -240,16 +237,3 @@ def window_plan(plan: PropagationPlan, window: tuple[int, int, int, int]) -> Pro
         raise ValueError(f"window {window} (row, rows, col, cols) does not fit in the field {plan.shape}")
     shape = (min(ph, _fft_size(h + rows - 1)), min(pw, _fft_size(w + cols - 1)))
     return replace(plan, padded_shape=shape, window=(row, rows, col, cols), kernel_shape=plan.padded_shape)
-
-
-def describe_plans(profile: Profile) -> str:
-    """Per laser channel, the plan of the propagation SLM -> target at the profile's geometry (what
-    `OpticalSetup.from_profile(profile, channel).target_propagator().plan` is)."""
-    if profile.slm is None or profile.optics is None or not profile.channels:
-        return "  Propagation SLM -> target: not described (needs [slm], [optics] and [laser])"
-    lines = ["  Propagation SLM -> target (padding auto):"]
-    for channel in profile.channels:
-        plan = plan_propagation(profile.slm.shape, profile.optics.distance_m, channel.wavelength_m,
-                                profile.slm.pitch_m, aperture=profile.optics.iris_fraction)
-        lines.append(f"    {channel.name}: {plan.describe()}")
-    return "\n".join(lines)

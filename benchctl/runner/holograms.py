@@ -6,7 +6,7 @@ This is the in-memory core shared by `benchctl generate` and `benchctl bench spe
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -19,13 +19,14 @@ from benchctl.cgh.learned import LEARNED_METHODS, model_info
 from benchctl.devices.slm import slm_for
 from benchctl.errors import BadValueError, BenchctlError
 from benchctl.optics import amplitude_scores, colour_scores, crop_roi
+from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import LaserChannel, Profile
 from benchctl.runner.learned.checkpoint import (
     cached_checkpoint,
     checkpoint_problem,
     find_checkpoint,
     learned_method,
-    profile_setups,
+    profile_geometries,
 )
 from benchctl.runner.setups import optical_setups, optimised_setup
 from benchctl.targets import active_channels
@@ -130,7 +131,7 @@ def resolve_method(name: str, profile: Profile, checkpoint: Path | str | None = 
                             f"with `benchctl train --method {method.network} --data DIR --profile {profile.name}` "
                             "or pass --checkpoint FILE")
     runnable = learned_method(name, path)
-    cached_checkpoint(path).check(profile_setups(profile, channels), f"profile {profile.name!r}")
+    cached_checkpoint(path).check(profile_geometries(profile, channels), f"profile {profile.name!r}")
     return runnable, path
 
 
@@ -151,6 +152,7 @@ def compute_scene(
     seed: int = 0,
     progress: Callable[[str], Callable[[int, int], None]] | None = None,
     checkpoint: Path | None = None,
+    setups: Mapping[str, OpticalSetup] | None = None,
 ) -> SceneResult:
     """Generate, quantise, display (in simulation) and score a hologram for each requested, non-black colour.
 
@@ -158,7 +160,7 @@ def compute_scene(
     given, is called with a label per colour and returns that colour's `(done, total)` callback. A learned
     method uses `checkpoint`, else the checkpoint shipped for the profile (`find_checkpoint`); it is refused
     (BenchctlError) when there is none or when it was trained for another geometry; a classical method given
-    a checkpoint is an error too.
+    a checkpoint is an error too. `setups`: the colours' optical setups (default: the profile's, `optical_setups`).
     """
     grid, roi = profile.slm.shape, profile.optics.roi
     if tuple(target_amplitude.shape) != (3, *grid):
@@ -170,7 +172,7 @@ def compute_scene(
     slm = slm_for(profile)
     target_roi = crop_roi(target_amplitude, roi)
     lit = [channel for channel in channels if present[target_plane(channel)]]
-    setups = optical_setups(profile, [channel.name for channel in lit])
+    setups = setups or optical_setups(profile, [channel.name for channel in lit])
     computed: dict[str, tuple[float, np.ndarray, torch.Tensor]] = {}
     for channel in lit:
         setup = optimised_setup(setups[channel.name], slm, channel.name)

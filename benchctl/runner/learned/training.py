@@ -39,7 +39,6 @@ from benchctl.cgh.learned.vgg import PERCEPTUAL_WEIGHT, PerceptualLoss, load_vgg
 from benchctl.terminal import ProgressLine
 from benchctl.errors import BadValueError, BenchctlError
 from benchctl.files import ensure_dir
-from benchctl.optics.fitted import FittedOptics
 from benchctl.optics.metrics import amplitude_scores, crop_roi, lsq_scale, psnr
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import Profile
@@ -48,7 +47,8 @@ from benchctl.runner.holograms import target_plane
 from benchctl.runner.learned.averaging import WeightAverage
 from benchctl.runner.learned.checkpoint import RESUME_SUFFIX, WEIGHT_DTYPES, Checkpoint, read_checkpoint
 from benchctl.runner.learned.data import ImageSource, describe_sources, image_sources, split_sources
-from benchctl.runner.learned.geometry import geometry_of, grid_profile
+from benchctl.runner.geometry import grid_profile
+from benchctl.runner.setups import fitted_models, optical_setups
 from benchctl.targets import prepare_target
 
 LOSSES = ("mse", "l2-perceptual")
@@ -317,7 +317,7 @@ def training_setups(profile: Profile, size: tuple[int, int] | None,
     ROI scaled with the grid, as the paper trains at 1080p, 4K and 8K)."""
     bench = grid_profile(profile, size) if size else profile.require("slm", "optics")
     names = list(colours) if colours else [c.name for c in profile.require("laser").channels]
-    return {name: OpticalSetup.from_profile(bench, profile.channel(name).name) for name in names}
+    return optical_setups(bench, [profile.channel(name).name for name in names])
 
 
 def _geometry_note(profile: Profile, size: tuple[int, int] | None) -> str:
@@ -431,7 +431,7 @@ def _train(profile: Profile, settings: TrainSettings, out_dir: Path, planes: Map
             history.append({"epoch": epoch + 1, "step": step, "complete": epoch_done,
                             "seconds": round(time.perf_counter() - started, 1), "metrics": metrics})
             checkpoint = Checkpoint(
-                method=settings.method, geometry={c: geometry_of(s) for c, s in setups.items()},
+                method=settings.method, geometry={c: s.geometry for c, s in setups.items()},
                 weights={c: m.state_dict() for c, m in kept.items()},
                 training=meta | {"steps": step, "epochs_done": position["epoch"], "history": history,
                                  "seconds": round(time.perf_counter() - started, 1)},
@@ -552,7 +552,7 @@ def with_model_calibration(profile: Profile, settings: TrainSettings) -> Profile
         calibrated = replace(profile, optics=replace(profile.optics, model=path.resolve()))
     for name in settings.colours or [channel.name for channel in profile.channels]:
         try:
-            model = FittedOptics.load(calibrated.optics.model, profile.channel(name).name)
+            model = fitted_models(calibrated.optics.model).get(profile.channel(name).name)
         except (ValueError, KeyError, TypeError) as exc:
             raise BadValueError(f"{flag}: {calibrated.optics.model} is not an optical model file ({exc})") from None
         if model is None:
