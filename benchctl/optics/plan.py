@@ -85,12 +85,9 @@ def reach_pixels(distance_m: float, wavelength_m: float,
 
 
 AUTO_TOLERANCE = 3.5e-3
-"""Relative L2 error that "auto" allows the wrapped tails of a full-band field (both axes together, modelled).
-
-Chosen by measurement (docs/propagation.md): at the paper geometry (3.74 um, 70 mm, 1088 x 1920 and
-2160 x 3840, 680 / 520 / 450 nm) the ROI error of "auto" stays within 1.53x that of "2x" (goal: 2x), and
-at 2160 x 3840 it pads 66-82 % of the 2x area. The measured ROI error is about 1.5x the modelled figure.
-"""
+"""Relative L2 error that "auto" allows the wrapped tails of a full-band field (both axes together, modelled):
+chosen so that at the paper geometry the ROI error of "auto" stays within the 2x goal of that of "2x" while it
+pads well under 2x's area (docs/propagation.md measures both)."""
 
 
 def wrapped_tail_power(n: int, reach: float, guard: int) -> float:
@@ -135,7 +132,7 @@ def _auto_guard(n: int, reach: float) -> int:
 def _fft_size(n: int) -> int:
     """Smallest multiple of 4 >= n whose prime factors are all 2, 3, 5 or 7: fast for pocketfft and cuFFT.
 
-    (Sizes with a single factor 2, like 6250, measured up to 30 % slower than their neighbours on a CPU.)
+    (Sizes with a single factor 2 are slower than their neighbours on a CPU: docs/propagation.md.)
     """
     m = max(4, n + (-n) % 4)
     while True:

@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 import benchctl
+from benchctl.cgh import DEFAULT_METHOD
 from benchctl.files import ensure_dir, write_json
 from benchctl.images import write_png
 from benchctl.optics import linear_to_srgb
@@ -47,7 +48,7 @@ def run_generate(
     profile: Profile,
     out_dir: Path,
     *,
-    method: str = "dpac",
+    method: str = DEFAULT_METHOD,
     iterations: int | None = None,
     colours: list[str] | None = None,
     seed: int = 0,

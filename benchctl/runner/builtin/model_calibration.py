@@ -48,8 +48,7 @@ DESCRIPTION = ("random-point and flat phase patterns per colour, captured, regis
 class ModelCalibrationParameters(ExposureParameters, kw_only=True):
     """The calibration patterns and the fit."""
 
-    # 4 patterns: on the test bench the fitted coefficients move by < 0.005 waves from 4 to 8
-    # (docs/model_calibration.md)
+    # 4 patterns: more move the fitted coefficients by little (docs/model_calibration.md)
     patterns: Annotated[int, Meta(ge=1)] = 4
     spacing_px: Annotated[int, Meta(ge=2)] = 6  # one focused point per spacing^2 ROI pixels
     fit_steps: Annotated[int, Meta(ge=2)] = 120  # Adam steps of the fit (half blurred, half sharp)
@@ -61,7 +60,7 @@ class ModelCalibrationParameters(ExposureParameters, kw_only=True):
     crosstalk: bool = True  # fit the SLM's pixel crosstalk too (a blur of the driven phase)
     # one crosstalk for the panel, the median of the colours' fits: the liquid crystal's fringing is the same in
     # pixels at every wavelength, and one colour's fit can trade it for the camera's blur, which SGD then
-    # over-compensates (docs/model_calibration.md: red 19.26 -> 22.06 dB on the quarter-size bench)
+    # over-compensates (docs/model_calibration.md)
     panel_crosstalk: bool = True
     zero_order: bool = True  # fit the fraction of the light the panel leaves unmodulated too
     camera_blur: bool = True  # compare through a fitted blur of the captures (camera optics, sampling, registration)

@@ -16,9 +16,9 @@ runnable form of a registered method that needs a checkpoint.
 
 from __future__ import annotations
 
+import functools
 import io
 import time
-from collections import OrderedDict
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -208,12 +208,11 @@ def read_checkpoint(path: Path | str) -> Checkpoint:
     )
 
 
-_READ_CACHE: OrderedDict[tuple[str, int, int], Checkpoint] = OrderedDict()
-_MODEL_CACHE: OrderedDict[tuple[str, int, int, str, str], torch.nn.Module] = OrderedDict()
-_CACHE_SIZE = 6
+CACHE_SIZE = 6  # checkpoints (and models) kept read: a procedure's few methods and colours
 
 
 def _file_key(path: Path) -> tuple[str, int, int]:
+    """A checkpoint file's version: its resolved path, modification time and size."""
     try:
         stat = path.stat()
     except FileNotFoundError:
@@ -221,30 +220,24 @@ def _file_key(path: Path) -> tuple[str, int, int]:
     return str(path.resolve()), stat.st_mtime_ns, stat.st_size
 
 
-def _remember(cache: OrderedDict, key: Any, value: Any) -> Any:
-    cache[key] = value
-    cache.move_to_end(key)
-    while len(cache) > _CACHE_SIZE:
-        cache.popitem(last=False)
-    return value
+@functools.lru_cache(maxsize=CACHE_SIZE)
+def _read(path: str, mtime_ns: int, size: int) -> Checkpoint:
+    return read_checkpoint(path)
+
+
+@functools.lru_cache(maxsize=CACHE_SIZE)
+def _model(path: str, mtime_ns: int, size: int, colour: str, device: str) -> torch.nn.Module:
+    return _read(path, mtime_ns, size).model(colour, device)
 
 
 def cached_checkpoint(path: Path | str) -> Checkpoint:
-    """`read_checkpoint`, remembered per file (path, modification time and size) for repeated use."""
-    key = _file_key(Path(path))
-    if key in _READ_CACHE:
-        _READ_CACHE.move_to_end(key)
-        return _READ_CACHE[key]
-    return _remember(_READ_CACHE, key, read_checkpoint(path))
+    """`read_checkpoint`, remembered per version of the file, for repeated use."""
+    return _read(*_file_key(Path(path)))
 
 
 def cached_model(path: Path | str, colour: str, device: torch.device | str = "cpu") -> torch.nn.Module:
     """The eval-mode model of `colour` in checkpoint `path` on `device`, built once per (file, colour, device)."""
-    key = (*_file_key(Path(path)), colour, str(torch.device(device)))
-    if key in _MODEL_CACHE:
-        _MODEL_CACHE.move_to_end(key)
-        return _MODEL_CACHE[key]
-    return _remember(_MODEL_CACHE, key, cached_checkpoint(path).model(colour, device))
+    return _model(*_file_key(Path(path)), colour, str(torch.device(device)))
 
 
 def _repository_root() -> Path:
