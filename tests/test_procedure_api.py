@@ -32,13 +32,13 @@ PARAMETERS = ExposureParameters
 
 
 def plan(context):
-    green, red = (next(c for c in channels(context) if c.name == name) for name in ("green", "red"))
+    green, red, blue = (next(c for c in channels(context) if c.name == name) for name in ("green", "red", "blue"))
 
     def action(context):
         frame = np.zeros(context.profile.slm.shape, np.uint8)
         return measure(context, %s, %s, frame, frames=1, dark_frames=0).record
 
-    return [Step("expose", "expose", action, (Expose("green", 1e-3, 1, 0),))]
+    return [Step("expose", "expose", action, (Expose("green", 1e-3, 1, 0), Expose("red", None, 1, 0)))]
 """
 
 # A plan that declares red above its max_power_mw (40 mW on the test bench).
@@ -107,8 +107,10 @@ def test_the_readme_example_runs(tmp_path: Path, make_bench_profile) -> None:
 
 @pytest.mark.parametrize("channel, power, message", [
     ("green", "2e-3", "step 'expose' exposes green at 2 mW, 1 frame(s) + 0 dark, which it did not declare "
-                      "(declared: green alone at 1 mW, 1 frame(s) + 0 dark)"),
-    ("red", "1e-3", "step 'expose' exposes red at 1 mW"),
+                      "(declared: green alone at 1 mW, 1 frame(s) + 0 dark; red alone at a power chosen when the "
+                      "step runs, 1 frame(s) + 0 dark)"),
+    ("blue", "1e-3", "step 'expose' exposes blue at 1 mW"),
+    ("red", "0.05", "step 'expose' exposes red at 50 mW, above the channel's max_power_mw 40 mW"),
 ])
 def test_an_exposure_the_step_did_not_declare_is_refused_before_the_laser_is_touched(
         tmp_path: Path, bench_profile_path: Path, channel: str, power: str, message: str) -> None:

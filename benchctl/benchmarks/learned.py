@@ -38,12 +38,12 @@ from benchctl.cgh.learned.models import VARIANTS
 from benchctl.errors import BadValueError, BenchctlError
 from benchctl.files import ensure_dir, write_csv
 from benchctl.profiles import Profile
-from benchctl.runner.holograms import compute_scene, resolve_method, target_plane, usable_methods
+from benchctl.runner.holograms import compute_scene, resolve_method, usable_methods
 from benchctl.runner.learned.checkpoint import find_checkpoint, read_checkpoint
 from benchctl.optics.geometry import Geometry
 from benchctl.runner.geometry import grid_profile
 from benchctl.runner.setups import optical_setup
-from benchctl.targets import load_target, prepare_target
+from benchctl.targets import load_target, prepare_target, target_plane
 
 DEFAULT_TARGETS = ("chart:siemens", "chart:bars", "chart:text")
 BASELINES = {"holonet": "holonet", "ccnn": "ccnn"}

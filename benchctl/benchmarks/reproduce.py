@@ -54,9 +54,9 @@ from benchctl.errors import BadValueError
 from benchctl.files import atomic_write_bytes, ensure_dir, write_csv
 from benchctl.optics import amplitude_scores, crop_roi, lsq_scale
 from benchctl.profiles import Profile
-from benchctl.runner.holograms import compute_scene, target_plane
+from benchctl.runner.holograms import compute_scene
 from benchctl.runner.setups import optical_setup
-from benchctl.targets import load_target, photo_specs, prepare_target
+from benchctl.targets import load_target, photo_specs, prepare_target, target_plane
 
 DEFAULT_METHODS = ("holonet", "holonet-dcm2", "holonet-dcm4", "holonet-pyramid", "holonet-ps2", "holonet-ps4",
                    "holonet-lowdef2", "holonet-dcm2-nolfm", "holonet-dcm2-noeccm", "holonet-dcm2-nogrn", "ccnn",

@@ -26,10 +26,9 @@ and savers place every file in the run folder; a procedure names its files, neve
 """
 
 from benchctl.errors import BenchctlError
-from benchctl.runner.calibration import Calibration
 from benchctl.runner.auto_exposure import ExposureMode, PeakGoal, probe_step, probed_power, signal_stats
+from benchctl.runner.calibration import Calibration
 from benchctl.runner.context import Context, Expose, Parameters, Step
-from benchctl.runner.holograms import target_plane
 from benchctl.runner.plots import front_plot, line_plot
 from benchctl.runner.report import Report, figure, table
 from benchctl.runner.steps import (
@@ -61,6 +60,7 @@ from benchctl.runner.steps import (
     unknown_setpoints,
     unregistered,
 )
+from benchctl.targets import target_plane
 
 __all__ = [
     "BenchctlError",

@@ -17,8 +17,9 @@ from benchctl.capture.registration import cfa_planes
 from benchctl.devices.power import format_power
 from benchctl.profiles import LaserChannel
 from benchctl.runner.context import Context, Expose, Step
-from benchctl.runner.holograms import target_plane
+
 from benchctl.runner.steps import measure, power_w, registered, unregistered
+from benchctl.targets import target_plane
 
 ExposureMode = Literal["auto", "fixed"]
 """"auto": a probe frame per colour sets the laser power so the peak lands at peak_goal; "fixed": setpoints."""

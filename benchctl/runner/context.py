@@ -176,9 +176,11 @@ class Context:
         step = self.step
         if step is None:
             raise BenchctlError("an exposure outside a running step")
-        limit = _limit_w(self.profile.channel(channel).max_power_mw)
-        if not any(_allows(expose, channel, power_w, frames, dark_frames) for expose in step.exposes) or \
-                power_w > limit:
+        max_mw = self.profile.channel(channel).max_power_mw
+        if power_w > _limit_w(max_mw):
+            raise BenchctlError(f"step {step.key!r} exposes {channel} at {format_power(power_w)}, above the channel's "
+                                f"max_power_mw {max_mw:g} mW")
+        if not any(_allows(expose, channel, power_w, frames, dark_frames) for expose in step.exposes):
             raise BenchctlError(f"step {step.key!r} exposes {channel} at {format_power(power_w)}, {frames} frame(s) "
                                 f"+ {dark_frames} dark, which it did not declare (declared: "
                                 + ("; ".join(e.describe() for e in step.exposes) or "no exposure") + ")")

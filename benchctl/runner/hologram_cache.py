@@ -26,9 +26,10 @@ from benchctl.files import atomic_write_bytes, ensure_dir
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import Profile
 from benchctl.provenance import source_hash
-from benchctl.runner.holograms import compute_scene, target_plane
+from benchctl.runner.holograms import compute_scene
 from benchctl.runner.learned.checkpoint import find_checkpoint
 from benchctl.runner.setups import optical_setup
+from benchctl.targets import target_plane
 
 CACHE_ENV = "BENCHCTL_CACHE_DIR"
 

@@ -29,10 +29,7 @@ from benchctl.runner.learned.checkpoint import (
     profile_geometries,
 )
 from benchctl.runner.setups import optical_setups, optimised_setup
-from benchctl.targets import active_channels
-
-RGB_PLANES = ("red", "green", "blue")
-
+from benchctl.targets import active_channels, target_plane
 
 @dataclass
 class ColourResult:
@@ -58,15 +55,6 @@ class SceneResult:
     merged_linear: torch.Tensor  # (3, h, w) linear intensity
     merged_scores: dict[str, float]
     checkpoint: Path | None = None  # the trained models a learned method used
-
-
-def target_plane(channel: LaserChannel) -> int:
-    """Which plane of an RGB target this laser channel displays: by name, else by wavelength band."""
-    if channel.name in RGB_PLANES:
-        return RGB_PLANES.index(channel.name)
-    if channel.wavelength_nm >= 590:
-        return 0
-    return 1 if channel.wavelength_nm >= 490 else 2
 
 
 def checkpoint_status(method: str, profile: Profile) -> str:

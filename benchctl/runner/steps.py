@@ -29,9 +29,9 @@ from benchctl.profiles import LaserChannel, NonNegative, NonNegativeInt, Profile
 from benchctl.runner import layout
 from benchctl.runner.context import Context, Expose, P, Parameters, Step
 from benchctl.runner.hologram_cache import Hologram, hologram
-from benchctl.runner.holograms import resolve_method, target_plane
+from benchctl.runner.holograms import resolve_method
 from benchctl.runner.instruments import Exposure
-from benchctl.targets import CHART_PREFIX, PHOTO_PREFIX, load_target, prepare_target
+from benchctl.targets import CHART_PREFIX, PHOTO_PREFIX, load_target, prepare_target, target_plane
 
 Frames = Annotated[int, Meta(ge=1)]  # RAW frames averaged per exposure
 DarkFrames = Annotated[int, Meta(ge=0)]  # with emission off, after each exposure

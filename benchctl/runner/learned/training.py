@@ -43,13 +43,13 @@ from benchctl.optics.metrics import amplitude_scores, crop_roi, lsq_scale, psnr
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import Profile
 from benchctl.runner.calibration import Calibration
-from benchctl.runner.holograms import target_plane
+
 from benchctl.runner.learned.averaging import WeightAverage
 from benchctl.runner.learned.checkpoint import RESUME_SUFFIX, WEIGHT_DTYPES, Checkpoint, read_checkpoint
 from benchctl.runner.learned.data import ImageSource, describe_sources, image_sources, split_sources
 from benchctl.runner.geometry import grid_profile
 from benchctl.runner.setups import fitted_models, optical_setups
-from benchctl.targets import prepare_target
+from benchctl.targets import prepare_target, target_plane
 
 LOSSES = ("mse", "l2-perceptual")
 
