@@ -23,6 +23,7 @@ from benchctl.dng import CFA_LAYOUTS
 from benchctl.drivers import driver_names
 from benchctl.errors import BenchctlError
 from benchctl.limits import check_pixels
+from benchctl.optics.geometry import Geometry
 from benchctl.schema import Model, decode, fail
 
 if sys.version_info >= (3, 11):
@@ -309,6 +310,14 @@ class Profile(ProfileFile, kw_only=True):
         from benchctl.calibration_files import fitted_model_entry
 
         return fitted_model_entry(self, channel)
+
+    def geometry(self, channel: str) -> Geometry:
+        """The optical geometry of laser channel `channel` in SI units: the one conversion from the profile's
+        units, for everything that computes, calibrates or caches for this bench."""
+        slm, optics = self.require("slm", "optics").slm, self.optics
+        assert slm is not None and optics is not None
+        return Geometry(wavelength_m=self.channel(channel).wavelength_m, pitch_m=slm.pitch_m,
+                        distance_m=optics.distance_m, shape=slm.shape, roi=optics.roi, aperture=optics.iris_fraction)
 
     def describe(self) -> str:
         """Multi-line summary for people: each device section with its settings."""

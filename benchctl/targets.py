@@ -22,7 +22,9 @@ from benchctl.errors import BenchctlError, did_you_mean
 from benchctl.images import read_image
 from benchctl.optics.colour import srgb_to_linear
 from benchctl.optics.metrics import centred_slices
+from benchctl.profiles import LaserChannel
 
+RGB_PLANES = ("red", "green", "blue")
 CHART_PREFIX = "chart:"
 PHOTO_PREFIX = "photo:"
 
@@ -255,3 +257,12 @@ def active_channels(amplitude: torch.Tensor, threshold: float = BLACK_INTENSITY)
     """For each colour channel of (C, H, W) amplitude: True unless its peak intensity (amplitude^2) < threshold."""
     peak = amplitude.detach().flatten(1).abs().amax(dim=1)
     return [bool(p * p >= threshold) for p in peak]
+
+
+def target_plane(channel: LaserChannel) -> int:
+    """Which plane of an RGB target laser channel `channel` displays: by name, else by wavelength band."""
+    if channel.name in RGB_PLANES:
+        return RGB_PLANES.index(channel.name)
+    if channel.wavelength_nm >= 590:
+        return 0
+    return 1 if channel.wavelength_nm >= 490 else 2

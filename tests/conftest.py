@@ -273,23 +273,3 @@ def lock_dir(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.Monke
     folder = tmp_path_factory.mktemp("locks")
     monkeypatch.setenv("BENCHCTL_LOCK_DIR", str(folder))
     return folder
-
-
-# Tests that take seconds to a minute each on two cores: whole procedure runs, training and DDP, subprocesses that
-# import torch. `pytest -m "not slow"` skips them for a quick loop; CI runs everything.
-SLOW_MODULES = {"test_procedures.py", "test_learned_ddp.py", "test_learned_training.py", "test_learned_usage.py",
-                "test_generate_memory.py"}
-SLOW_TESTS = {
-    "test_sgd_beats_its_initial_phase_and_gs",
-    "test_bench_speed_vs_error_writes_a_row_per_method_budget_and_target",
-    "test_sigterm_during_laser_on_turns_emission_off",
-    "test_console_script_reports_errors_without_traceback",
-    "test_a_learned_checkpoint_fine_tuned_through_the_fitted_model_shows_better",
-    "test_colour_capture_with_several_methods_draws_their_front",
-}
-
-
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    for item in items:
-        if item.path.name in SLOW_MODULES or item.name.split("[")[0] in SLOW_TESTS:
-            item.add_marker(pytest.mark.slow)

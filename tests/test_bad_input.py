@@ -168,7 +168,7 @@ def test_a_plan_is_bounded(tmp_path: Path, bench_profile_path: Path) -> None:
     from benchctl.runner.engine import run_procedure
 
     procedure = tmp_path / "many.py"
-    procedure.write_text("from benchctl.runner.procedure import Parameters, Step\nPARAMETERS = Parameters\n\n\n"
+    procedure.write_text("from benchctl.runner.api import Parameters, Step\nPARAMETERS = Parameters\n\n\n"
                          "def plan(context):\n"
                          "    return [Step(f's{i}', 'nothing', lambda c: {}) for i in range(100001)]\n")
     with pytest.raises(BenchctlError, match="plans 100,001 steps, above the limit of 100,000"):

@@ -16,7 +16,7 @@ from benchctl.calibration_files import OpticalModelFile, checked_json
 from benchctl.cli import main
 from benchctl.errors import BenchctlError
 from benchctl.optics.fitted import FittedOptics
-from benchctl.optics.setup import OpticalSetup
+from benchctl.runner.setups import optical_setup
 from benchctl.profiles import load_profile
 from benchctl.runner.calibration import Calibration
 from benchctl.runner.engine import run_procedure
@@ -95,7 +95,7 @@ def test_a_malformed_optical_model_is_one_line_naming_file_key_and_value(
 def test_a_good_optical_model_is_used_as_stored(small_profile_path: Path) -> None:
     stored_model(small_profile_path)
     profile = Calibration.store(load_profile(small_profile_path)).applied(load_profile(small_profile_path))
-    setup = OpticalSetup.from_profile(profile, "green")
+    setup = optical_setup(profile, "green")
     assert setup.field_model == FittedOptics.from_dict(FIT)
     assert setup.field_model.waist_m == pytest.approx(0.5e-3) and dict(setup.field_model.zernike_waves) == {
         "defocus": 0.2, "spherical": -0.05}
@@ -107,8 +107,8 @@ def test_a_beam_that_misses_the_panel_is_refused(small_profile_path: Path) -> No
     profile = Calibration.store(load_profile(small_profile_path)).applied(load_profile(small_profile_path))
     with pytest.raises(BenchctlError, match=r"colours\.green\.offset_mm: a beam of waist 0.001 mm centred at "
                                             r"\[50.0, 0.0\] mm misses the 0.512 x 0.768 mm panel by 49.744 mm"):
-        OpticalSetup.from_profile(profile, "green")
-    assert OpticalSetup.from_profile(profile, "red").field_model is not None  # the other colours are fine
+        optical_setup(profile, "green")
+    assert optical_setup(profile, "red").field_model is not None  # the other colours are fine
 
 
 def test_a_model_the_profile_names_is_checked_too(tmp_path: Path, small_profile_path: Path,

@@ -108,6 +108,7 @@ def test_command_needing_a_missing_section_names_it(capsys, tmp_path, small_prof
     assert code == 2 and "[slm]" in err
 
 
+@pytest.mark.slow  # takes seconds to a minute on two cores
 def test_sigterm_during_laser_on_turns_emission_off(tmp_path, small_profile_path, sim_state_dir):
     env = {**os.environ, "BENCHCTL_SIM_DIR": str(sim_state_dir)}
     cmd = [sys.executable, "-m", "benchctl"]

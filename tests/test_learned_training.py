@@ -24,7 +24,7 @@ from benchctl.runner.holograms import resolve_method
 from benchctl.runner.learned.averaging import WeightAverage
 from benchctl.runner.learned.checkpoint import Checkpoint, read_checkpoint
 from benchctl.runner.learned.data import ImageSource, image_sources, procedural_image, split_sources
-from benchctl.runner.learned.geometry import geometry_of, grid_profile
+from benchctl.runner.geometry import grid_profile
 from benchctl.runner.learned.training import (
     ReconstructionLoss,
     TrainSettings,
@@ -37,6 +37,9 @@ from benchctl.runner.learned.training import (
     with_model_calibration,
 )
 from benchctl.targets import prepare_target
+from benchctl.runner.setups import optical_setup
+
+pytestmark = pytest.mark.slow  # training runs: seconds to a minute each
 
 PLANES = {"red": 0, "green": 1, "blue": 2}
 
@@ -116,7 +119,7 @@ def _checkpoint(setups: dict[str, OpticalSetup], method: str = "holonet-dcm2") -
             for p in model.parameters():
                 p.add_(0.01 * torch.randn_like(p))  # GRN gammas and all: no parameter left at its init value
         weights[colour] = model.state_dict()
-    return Checkpoint(method=method, geometry={c: geometry_of(s) for c, s in setups.items()}, weights=weights,
+    return Checkpoint(method=method, geometry={c: s.geometry for c, s in setups.items()}, weights=weights,
                       training={"loss": "mse", "steps": 3},
                       metrics={c: {"val_psnr_amplitude_db": 12.5} for c in setups})
 
@@ -149,7 +152,7 @@ def test_checkpoint_round_trip_float32_exact_and_float16_close(tmp_path: Path) -
 
 def test_checkpoint_refuses_another_geometry_naming_each_difference(tmp_path: Path, small_profile_path: Path) -> None:
     profile = load_profile(small_profile_path)
-    setups = {ch.name: OpticalSetup.from_profile(profile, ch.name) for ch in profile.channels}
+    setups = {ch.name: optical_setup(profile, ch.name) for ch in profile.channels}
     path = _checkpoint(setups, "ccnn").save(tmp_path / "ccnn.pt")
     resolve_method("ccnn", profile, path)  # its own geometry is accepted
     other = small_profile_path.parent / "other.toml"

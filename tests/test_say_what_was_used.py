@@ -13,11 +13,10 @@ import pytest
 from benchctl.cgh.learned import build_model
 from benchctl.checkpoint_notes import checkpoint_notes
 from benchctl.cli import main
-from benchctl.optics.setup import OpticalSetup
+from benchctl.runner.setups import optical_setup
 from benchctl.profiles import load_profile
 from benchctl.runner.calibration import Calibration
 from benchctl.runner.learned.checkpoint import Checkpoint
-from benchctl.runner.learned.geometry import geometry_of
 
 FIT = {"zernike_waves": {"defocus": 0.1}, "waist_mm": 0.0, "offset_mm": [0.0, 0.0], "crosstalk_px": 0.0,
        "zero_order": 0.0, "residual": 0.2}
@@ -92,8 +91,8 @@ def test_models_shows_the_notes_of_the_checkpoint_it_would_use(tmp_path: Path, s
                                                                monkeypatch: pytest.MonkeyPatch,
                                                                capsys: pytest.CaptureFixture[str]) -> None:
     profile = load_profile(small_profile_path)
-    setups = {c.name: OpticalSetup.from_profile(profile, c.name) for c in profile.channels}
-    checkpoint = Checkpoint("ccnn", {c: geometry_of(s) for c, s in setups.items()},
+    setups = {c.name: optical_setup(profile, c.name) for c in profile.channels}
+    checkpoint = Checkpoint("ccnn", {c: s.geometry.to_dict() for c, s in setups.items()},
                             {c: build_model("ccnn", s).state_dict() for c, s in setups.items()},
                             metrics={c: {"val_psnr_amplitude_db": 11.0, "val_dpac_psnr_amplitude_db": 16.5}
                                      for c in setups})

@@ -36,6 +36,9 @@ Algorithm = Callable[[torch.Tensor, OpticalSetup, Optional[int], int, Optional[P
 Networks = Callable[[OpticalSetup, torch.device], Callable[[torch.Tensor], torch.Tensor]]
 """networks(setup, device) -> the trained network for `setup` on `device`: amplitude (B, 1, H, W) -> phase."""
 
+DEFAULT_METHOD = "dpac"
+"""The method used wherever none is named (generate, procedures): one-shot, no checkpoint needed."""
+
 REFINED_SUFFIX = "+sgd"
 """`<learned method>+sgd`: that network's hologram refined by SGD, an iterative method of its own."""
 

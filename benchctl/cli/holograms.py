@@ -5,20 +5,22 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from benchctl.cli.args import EPILOG, add_profile, grid_size, name_list, positive_int, print_lines
+from benchctl.cli.args import EPILOG, add_profile, count, grid_size, name_list, print_lines
 
 
 def _cmd_generate(args: argparse.Namespace) -> int:
     from benchctl.calibration_files import calibration_lines
-    from benchctl.terminal import ProgressLine
+    from benchctl.cgh import DEFAULT_METHOD
     from benchctl.profiles import load_profile
     from benchctl.runner.generate import run_generate
+    from benchctl.terminal import ProgressLine
 
     profile = load_profile(args.profile)
-    metrics = run_generate(args.target, profile, Path(args.out), method=args.method, iterations=args.iterations,
+    method = args.method or DEFAULT_METHOD
+    metrics = run_generate(args.target, profile, Path(args.out), method=method, iterations=args.iterations,
                            colours=args.colours, seed=args.seed, progress=ProgressLine, checkpoint=args.checkpoint)
     if metrics["checkpoint"]:
-        print(f"{args.method}: trained models from {metrics['checkpoint']}")
+        print(f"{method}: trained models from {metrics['checkpoint']}")
     for line in calibration_lines(metrics["calibration"]):
         print(line)
     for name, colour in metrics["colours"].items():
@@ -61,13 +63,13 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                                      "target are skipped.", epilog=EPILOG,
                          formatter_class=argparse.RawDescriptionHelpFormatter)
     gen.add_argument("target", help="chart or photo name (e.g. chart:siemens, photo:coffee) or image file")
-    gen.add_argument("--method", "-m", default="dpac",
-                     help="hologram method (default: dpac; `benchctl models` lists them all); learned ones, alone "
-                          "or refined as <learned>+sgd, need a trained checkpoint")
+    gen.add_argument("--method", "-m",
+                     help="hologram method (default: dpac, as in procedures; `benchctl models` lists them all); "
+                          "learned ones, alone or refined as <learned>+sgd, need a trained checkpoint")
     gen.add_argument("--checkpoint", type=Path, metavar="CKPT",
                      help="trained models for a learned method (default: the one shipped for the profile)")
-    gen.add_argument("--iterations", "-n", type=positive_int, help="iterations for iterative methods "
-                                                                  "(default: the method's own)")
+    gen.add_argument("--iterations", "-n", type=count, help="iterations for iterative methods (default: the "
+                                                           "method's own; 0: the method's start alone)")
     gen.add_argument("--colours", "--colors", type=name_list, metavar="LIST",
                      help="comma-separated laser channels, e.g. red,green (default: all in the profile)")
     gen.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")

@@ -7,7 +7,7 @@ import argparse
 
 def _cmd_profile_check(args: argparse.Namespace) -> int:
     from benchctl.calibration_files import check_calibration
-    from benchctl.optics.plan import describe_plans
+    from benchctl.runner.geometry import describe_plans
     from benchctl.profiles import load_profile
     from benchctl.runner.calibration import REGISTRATION_FILE, Calibration
 

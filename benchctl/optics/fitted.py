@@ -65,7 +65,7 @@ class FittedOptics:
         return (1 - self.zero_order) * field + self.zero_order if self.zero_order else field
 
     def to_dict(self) -> dict[str, object]:
-        """Profile units (waves, mm), as stored in calibration/<profile>/optical-model.json."""
+        """Profile units (waves, mm), as model calibration stores it."""
         return {"zernike_waves": dict(self.zernike_waves), "waist_mm": self.waist_m * 1e3,
                 "offset_mm": [v * 1e3 for v in self.offset_m], "crosstalk_px": self.crosstalk_px,
                 "zero_order": self.zero_order}

@@ -11,6 +11,7 @@ import torch
 
 import benchctl
 from benchctl.calibration_files import calibration_used
+from benchctl.cgh import DEFAULT_METHOD
 from benchctl.files import ensure_dir, write_json
 from benchctl.images import write_png
 from benchctl.optics import linear_to_srgb
@@ -48,7 +49,7 @@ def run_generate(
     profile: Profile,
     out_dir: Path,
     *,
-    method: str = "dpac",
+    method: str = DEFAULT_METHOD,
     iterations: int | None = None,
     colours: list[str] | None = None,
     seed: int = 0,

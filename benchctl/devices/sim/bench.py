@@ -3,9 +3,9 @@
 Per capture, for every laser channel that emits (and only those): the gray frame the simulated SLM shows
 becomes a phase through the simulator's own response ([sim.slm], deliberately not the profile's lookup table),
 lit by the laser's power (uniform, or a Gaussian beam), with a little unmodulated light from the pixel gaps;
-it is propagated to the target plane by the same Propagator the holograms are computed with
-(`OpticalSetup.from_profile(...).target_propagator()`, Fourier iris included) and becomes photons
-(P t lambda / (h c) times the optical efficiency). The three colour planes of electrons (each channel's
+it is propagated to the target plane by the same Propagator the holograms are computed with, at the profile's
+geometry (`OpticalSetup.of(profile.geometry(...)).target_propagator()`, Fourier iris included), and becomes
+photons (P t lambda / (h c) times the optical efficiency). The three colour planes of electrons (each channel's
 photons times its [R, G, B] quantum efficiency) are carried onto the sensor by the camera homography
 (magnification, rotation, offset; energy conserving) into only the box of sensor pixels the grid's image
 covers. The sensor adds shot noise (Poisson, electrons), read noise (Gaussian, electrons), the ISO gain,
@@ -159,7 +159,7 @@ def _target_irradiance(profile: Profile, channel: LaserChannel, gray: np.ndarray
                                          tuple(sim.aberration.get(channel.name, {}).items()))
     field = (torch.polar(amplitude * (1 - gap), phase) + amplitude * gap) * wavefront
     with torch.inference_mode():
-        out = _propagator(OpticalSetup.from_profile(profile, channel.name))(field)
+        out = _propagator(OpticalSetup.of(profile.geometry(channel.name)))(field)
     irradiance = out.abs().square().to(torch.float64)
     stray = sim.imaging.stray_light
     return (1 - stray) * irradiance + stray * irradiance.mean() if stray else irradiance

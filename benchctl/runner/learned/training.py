@@ -43,15 +43,14 @@ from benchctl.memory import Estimate, check_training_memory, size_text, training
 from benchctl.optics.metrics import amplitude_scores, crop_roi, lsq_scale, psnr
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import Profile
-from benchctl.runner.calibration import Calibration
-from benchctl.runner.calibration import geometry as calibration_geometry
-from benchctl.runner.holograms import target_plane
+from benchctl.runner.calibration import Calibration, validity
+from benchctl.runner.geometry import grid_profile
 from benchctl.runner.learned.averaging import WeightAverage
 from benchctl.runner.learned.checkpoint import RESUME_SUFFIX, WEIGHT_DTYPES, Checkpoint, read_checkpoint
 from benchctl.runner.learned.data import ImageSource, describe_sources, image_sources, split_sources
-from benchctl.runner.learned.geometry import geometry_of, grid_profile
 from benchctl.runner.learned.health import StepStats, TrainingHealth, clamped_fraction, gradient_norm
-from benchctl.targets import prepare_target
+from benchctl.runner.setups import optical_setups
+from benchctl.targets import prepare_target, target_plane
 
 LOSSES = ("mse", "l2-perceptual")
 MAX_LR = 0.1  # Adam on these networks diverges far below this; above it a value is a typo
@@ -337,7 +336,7 @@ def training_setups(profile: Profile, size: tuple[int, int] | None,
     ROI scaled with the grid, as the paper trains at 1080p, 4K and 8K)."""
     bench = grid_profile(profile, size) if size else profile.require("slm", "optics")
     names = list(colours) if colours else [c.name for c in profile.require("laser").channels]
-    return {name: OpticalSetup.from_profile(bench, profile.channel(name).name) for name in names}
+    return optical_setups(bench, [profile.channel(name).name for name in names])
 
 
 def _geometry_note(profile: Profile, size: tuple[int, int] | None) -> str:
@@ -461,7 +460,7 @@ def _train(profile: Profile, settings: TrainSettings, out_dir: Path, planes: Map
             history.append({"epoch": epoch + 1, "step": step, "complete": epoch_done,
                             "seconds": round(time.perf_counter() - started, 1), "metrics": metrics})
             checkpoint = Checkpoint(
-                method=settings.method, geometry={c: geometry_of(s) for c, s in setups.items()},
+                method=settings.method, geometry={c: s.geometry for c, s in setups.items()},
                 weights={c: m.state_dict() for c, m in kept.items()},
                 training=meta | {"steps": step, "epochs_done": position["epoch"], "history": history,
                                  "seconds": round(time.perf_counter() - started, 1)},
@@ -617,10 +616,10 @@ def with_model_calibration(profile: Profile, settings: TrainSettings) -> Profile
         entry = calibrated.fitted_model(profile.channel(name).name)  # a bad file: one line naming key and value
         if entry is None:
             raise BadValueError(f"{flag}: {calibrated.optics.model} has no fitted model for {name!r}")
-        fitted_for = entry.get("geometry")
-        if fitted_for is not None and fitted_for != calibration_geometry(profile):
+        fitted_for, here = entry.get("geometry"), validity(profile, name)
+        if fitted_for is not None and fitted_for != here:
             raise BadValueError(f"{flag}: {calibrated.optics.model} was fitted for another geometry than profile "
-                                f"{profile.name!r} ({_geometry_change(fitted_for, calibration_geometry(profile))})")
+                                f"{profile.name!r} ({_geometry_change(fitted_for, here)})")
     return calibrated
 
 

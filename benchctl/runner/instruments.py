@@ -1,7 +1,7 @@
-"""The bench a procedure runs on: the profile's laser, SLM and camera, each opened the first time a step needs
-it and all closed together (emission off first, then the profile's setpoints back) however the run ends.
+"""The instruments a run uses: the profile's laser, SLM and camera, each opened the first time a step needs it
+and all closed together (emission off first, then the profile's setpoints back) however the run ends.
 
-`expose` is the one way procedures put light on the camera: frame on the SLM, only the wanted channel at its
+`expose` is the one way a run puts light on the camera: frame on the SLM, only the wanted channel at its
 setpoint, the settle time, RAW frames saved the moment they arrive, emission off again, then dark frames with
 every channel off. Laser safety (off at connect, off on any exit, limits, read-back) lives in the driver.
 """
@@ -29,8 +29,8 @@ from benchctl.profiles import Profile
 DEVICES = ("laser", "slm", "camera")
 
 
-class Bench:
-    """Lazily opened devices of one profile; use as a context manager."""
+class Instruments:
+    """The lazily opened devices of one profile; use as a context manager."""
 
     def __init__(self, profile: Profile, say: Callable[[str], None] = print) -> None:
         self.profile = profile
@@ -39,7 +39,7 @@ class Bench:
         self._open: dict[str, Any] = {}
         self.identities: dict[str, Any] = {}
 
-    def __enter__(self) -> Bench:
+    def __enter__(self) -> Instruments:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -107,20 +107,14 @@ class Bench:
     def camera(self) -> Camera:
         return self._device("camera", lambda: open_camera(self.profile), lambda camera: camera.identity())
 
-    def expose(self, folder: Path, channel: str, power_w: float, frame: np.ndarray, *, frames: int,
-               dark_frames: int) -> dict[str, Any]:
-        """Show `frame` (gray levels as displayed), light it with `channel` alone at `power_w`, capture
-        `frames` RAW frames into `folder` (frame-000...), then with emission off `dark_frames` (dark-000...).
+    def expose(self, folder: Path | None, channel: str, power_w: float, frame: np.ndarray, *, frames: int,
+               dark_frames: int) -> Exposure:
+        """Show `frame` (gray levels as displayed), light it with `channel` alone at `power_w`, capture `frames`
+        RAW frames, then with emission off `dark_frames`, saved into `folder` as they arrive (frame-000...,
+        dark-000...; with `folder` None kept in memory only).
 
-        Returns what happened: file names, the read-back setpoint, the measured power, timings, the SLM frame
-        shown and the one each lit frame saw; a lit frame that saw another SLM frame is a DeviceError.
+        A lit frame that saw another SLM frame than the one shown is a DeviceError.
         """
-        return self.expose_frames(folder, channel, power_w, frame, frames=frames, dark_frames=dark_frames).result
-
-    def expose_frames(self, folder: Path | None, channel: str, power_w: float, frame: np.ndarray, *, frames: int,
-                      dark_frames: int) -> Exposure:
-        """`expose`, also returning the frames themselves and where the time went; with `folder` None the
-        frames are kept in memory only (nothing is written)."""
         laser, slm, camera = self.laser, self.slm, self.camera
         clock = time.perf_counter
         start = clock()
@@ -165,9 +159,11 @@ class Bench:
 
 @dataclass
 class Exposure:
-    """One exposure: `expose`'s JSON-ready result, the lit and dark frames (their bytes, and their paths when
-    saved), and seconds spent: display_s (showing the frame, settle included), capture_s (shutter release to
-    file received, every frame), laser_s (the rest: setpoint, emission on and off, read-backs)."""
+    """What one `expose` did: a JSON-ready result (file names, the read-back setpoint, the measured power, the SLM
+    frame shown and the one each lit frame saw, the camera's metadata), the lit and dark frames (their bytes, and
+    their paths when saved), and seconds spent: display_s (showing the frame, settle included), capture_s
+    (shutter release to file received, every frame), laser_s (the rest: setpoint, emission on and off,
+    read-backs)."""
 
     result: dict[str, Any]
     frames: list[RawFrame]
