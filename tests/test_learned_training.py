@@ -19,7 +19,7 @@ from benchctl.cli import main
 from benchctl.errors import BadValueError, BenchctlError
 from benchctl.optics.fitted import FittedOptics
 from benchctl.profiles import Profile, load_profile
-from benchctl.runner.calibration import geometry as calibration_geometry
+from benchctl.runner.calibration import validity
 from benchctl.runner.holograms import resolve_method
 from benchctl.runner.learned.averaging import WeightAverage
 from benchctl.runner.learned.checkpoint import Checkpoint, read_checkpoint
@@ -239,7 +239,7 @@ def test_an_exact_resume_refuses_other_data_seed_batch_or_optical_model(tmp_path
 
 
 def _model_file(folder: Path, profile: Profile, geometry: dict[str, object] | None = None) -> Path:
-    entry = {**FittedOptics(waist_m=5e-3).to_dict(), "geometry": geometry or calibration_geometry(profile)}
+    entry = {**FittedOptics(waist_m=5e-3).to_dict(), "geometry": geometry or validity(profile, "red")}
     path = folder / "optical-model.json"
     path.write_text(json.dumps({"colours": {"red": entry}}))
     return path
@@ -248,11 +248,11 @@ def _model_file(folder: Path, profile: Profile, geometry: dict[str, object] | No
 def test_training_through_a_model_fitted_for_another_geometry_is_refused(tmp_path: Path,
                                                                         small_profile_path: Path) -> None:
     profile = load_profile(small_profile_path)
-    other = calibration_geometry(profile) | {"distance_mm": 70.0}
+    other = validity(profile, "red") | {"distance_m": 0.07}
     path = _model_file(tmp_path, profile, other)
     settings = _settings(colours=("red",), model_calibration=str(path))
     with pytest.raises(BadValueError, match="fitted for another geometry than profile 'small' "
-                                            r"\(distance_mm 70.0 there, 20.0 here\)"):
+                                            r"\(distance_m 0.07 there, 0.02 here\)"):
         with_model_calibration(profile, settings)
     _model_file(tmp_path, profile)
     assert with_model_calibration(profile, settings).optics.model == path.resolve()
