@@ -14,22 +14,22 @@ from benchctl.runner.engine import run_procedure
 
 SETS_POWER = """\
 from benchctl.errors import BenchctlError
-from benchctl.runner.procedure import Parameters, Step
+from benchctl.runner.api import Expose, Parameters, Step
 
 DESCRIPTION = "sets green and blue as an automatic exposure would, then {ending}"
 PARAMETERS = Parameters
 
 
 def expose(context):
-    context.bench.laser.set_power("green", 0.0274)
-    context.bench.laser.set_power("blue", 0.03396)
-    context.bench.laser.set_emission("green", True)
+    context.instruments.laser.set_power("green", 0.0274)
+    context.instruments.laser.set_power("blue", 0.03396)
+    context.instruments.laser.set_emission("green", True)
     {ending}
     return {{}}
 
 
 def plan(context):
-    return [Step("expose", "expose", expose, ("laser",))]
+    return [Step("expose", "expose", expose, (Expose("green", None, 1, 0),))]
 """
 
 

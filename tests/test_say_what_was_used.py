@@ -92,7 +92,7 @@ def test_models_shows_the_notes_of_the_checkpoint_it_would_use(tmp_path: Path, s
                                                                capsys: pytest.CaptureFixture[str]) -> None:
     profile = load_profile(small_profile_path)
     setups = {c.name: optical_setup(profile, c.name) for c in profile.channels}
-    checkpoint = Checkpoint("ccnn", {c: s.geometry.to_dict() for c, s in setups.items()},
+    checkpoint = Checkpoint("ccnn", {c: s.geometry for c, s in setups.items()},
                             {c: build_model("ccnn", s).state_dict() for c, s in setups.items()},
                             metrics={c: {"val_psnr_amplitude_db": 11.0, "val_dpac_psnr_amplitude_db": 16.5}
                                      for c in setups})
