@@ -19,7 +19,7 @@ import functools
 import math
 import time
 from collections import Counter
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from datetime import datetime
 from typing import Any
 
@@ -44,6 +44,8 @@ LIGHT_M_S = 299792458.0
 
 # A typical Bayer sensor's quantum efficiency behind its colour filters and IR-cut filter (electrons per photon):
 # wavelength nm, R, G, B. Channels without a [sim.sensor.response] entry use it, interpolated linearly.
+SATURATION_SAMPLES = 2_000_000  # sensor pixels a live-view frame evaluates, at most, to find saturated bins
+
 TYPICAL_QE = np.array([
     (400.0, 0.02, 0.03, 0.22),
     (450.0, 0.02, 0.10, 0.42),
@@ -152,26 +154,131 @@ def _illumination(shape: tuple[int, int], pitch_m: float | tuple[float, float], 
     return amplitude, torch.polar(torch.ones_like(amplitude), wavefront.to(torch.float32))
 
 
-def _target_irradiance(profile: Profile, channel: LaserChannel, gray: np.ndarray) -> torch.Tensor:
-    """Fraction of the beam's power on each target-plane pixel, (H, W) float64, for one channel.
+def _beam(profile: Profile, channel: LaserChannel) -> tuple[Any, ...]:
+    """The arguments of `_illumination` for `channel`, as the profile's [sim.beam] and [sim.aberration] say."""
+    slm, sim = profile.slm, profile.sim
+    assert slm is not None
+    beam = sim.beam
+    return (slm.shape, slm.pitch_m, beam.waist_mm, tuple(beam.offset_mm), tuple(beam.tilt_mrad),
+            channel.wavelength_m, tuple(sim.aberration.get(channel.name, {}).items()))
 
-    The driven phase (true response, blurred by crosstalk) modulates all but the pixel gaps' light; the beam's
-    tilt and the channel's wavefront error act on all of it; stray light spreads a fraction evenly."""
+
+def _panel_field(profile: Profile, channel: LaserChannel, gray: np.ndarray) -> torch.Tensor:
+    """The field leaving the panel (H, W) complex64: the driven phase (true response, blurred by crosstalk)
+    modulates all but the pixel gaps' light; the beam's tilt and the channel's wavefront error act on all of it."""
     slm, sim = profile.slm, profile.sim
     assert slm is not None
     driven = gray_to_phase(gray, true_lut(channel.wavelength_m, slm.bit_depth, sim.slm))
     phase = crosstalk_blur(torch.from_numpy(driven), sim.slm.crosstalk_px)
     gap = sim.slm.zero_order
-    beam = sim.beam
-    amplitude, wavefront = _illumination(slm.shape, slm.pitch_m, beam.waist_mm, tuple(beam.offset_mm),
-                                         tuple(beam.tilt_mrad), channel.wavelength_m,
-                                         tuple(sim.aberration.get(channel.name, {}).items()))
-    field = (torch.polar(amplitude * (1 - gap), phase) + amplitude * gap) * wavefront
+    amplitude, wavefront = _illumination(*_beam(profile, channel))
+    return (torch.polar(amplitude * (1 - gap), phase) + amplitude * gap) * wavefront
+
+
+def _with_stray_light(profile: Profile, irradiance: torch.Tensor) -> torch.Tensor:
+    """Stray light spreads a fraction of the target plane's light evenly over it."""
+    stray = profile.sim.imaging.stray_light
+    return (1 - stray) * irradiance + stray * irradiance.mean() if stray else irradiance
+
+
+def _target_irradiance(profile: Profile, channel: LaserChannel, gray: np.ndarray) -> torch.Tensor:
+    """Fraction of the beam's power on each target-plane pixel, (H, W) float64, for one channel: the panel's
+    field (`_panel_field`) propagated to the target plane, stray light added."""
+    field = _panel_field(profile, channel, gray)
     with torch.inference_mode():
         out = _propagator(OpticalSetup.from_profile(profile, channel.name))(field)
-    irradiance = out.abs().square().to(torch.float64)
-    stray = sim.imaging.stray_light
-    return (1 - stray) * irradiance + stray * irradiance.mean() if stray else irradiance
+    return _with_stray_light(profile, out.abs().square().to(torch.float64))
+
+
+@functools.lru_cache(maxsize=8)
+def _modulation(wavelength_m: float, bit_depth: int, response: SimSLMConfig) -> np.ndarray:
+    """Per gray level g the field the simulated panel passes of unit light, (1 - f) e^(i phase(g)) + f with f its
+    unmodulated fraction (complex64): `_panel_field` by table lookup where no crosstalk blurs the phase."""
+    table = (1 - response.zero_order) * np.exp(1j * true_lut(wavelength_m, bit_depth, response).phases)
+    return (table + response.zero_order).astype(np.complex64)
+
+
+@functools.lru_cache(maxsize=3)
+def _beam_field(*beam: Any) -> torch.Tensor:
+    """`_illumination(*beam)`'s amplitude times its tilt and wavefront error, (H, W) complex64, computed once."""
+    amplitude, wavefront = _illumination(*beam)
+    return amplitude * wavefront
+
+
+class _PrunedPropagator:
+    """The live view's SLM -> target propagation: `Propagator.__call__` with the same transfer function on the same
+    padded grid, computed as one-dimensional FFTs that skip what is known to be zero: the guard band's rows on the
+    way in, the spatial frequencies the transfer function zeroes (the Fourier iris, the band limit) both ways, and
+    the rows and columns outside the output on the way out. The result is the propagator's to float32 rounding;
+    with the iris at half the Nyquist frequency it takes about half the time. Keeps two work buffers: not safe to
+    call from two threads at once."""
+
+    def __init__(self, propagator: Propagator) -> None:
+        plan = propagator.plan
+        kernel = propagator.kernel(torch.complex64, "cpu")
+        passed = kernel != 0
+        # Per axis the frequencies that pass form one band around zero: indices [0, low) and [n - high, n).
+        (self.low_y, self.high_y), (self.low_x, self.high_x) = (_band(passed.any(dim=1)), _band(passed.any(dim=0)))
+        rows = torch.cat([kernel[:self.low_y], kernel[len(kernel) - self.high_y:]])
+        self.kernel = torch.cat([rows[:, :self.low_x], rows[:, kernel.shape[1] - self.high_x:]], dim=1)
+        self.shape, self.padded_shape = plan.shape, plan.padded_shape
+        self.window = plan.window or (0, plan.shape[0], 0, plan.shape[1])
+        (h, _), (ph, pw), cols = plan.shape, plan.padded_shape, self.low_x + self.high_x
+        self._rows = torch.zeros((max(h, self.window[1]), pw), dtype=torch.complex64)  # input rows, then output rows
+        self._cols = torch.zeros((ph, cols), dtype=torch.complex64)
+
+    def __call__(self, field: torch.Tensor) -> torch.Tensor:
+        (h, w), (ph, pw) = self.shape, self.padded_shape
+        row, rows, col, cols = self.window
+        low_y, high_y, low_x, high_x = self.low_y, self.high_y, self.low_x, self.high_x
+        padded = self._rows[:h]
+        padded[:, :w] = field
+        padded[:, w:] = 0
+        spectrum = torch.fft.fft(padded, dim=1)
+        self._cols[:h, :low_x] = spectrum[:, :low_x]
+        self._cols[:h, low_x:] = spectrum[:, pw - high_x:]
+        self._cols[h:] = 0
+        spectrum = torch.fft.fft(self._cols, dim=0)
+        spectrum[:low_y] *= self.kernel[:low_y]
+        spectrum[low_y:ph - high_y] = 0
+        spectrum[ph - high_y:] *= self.kernel[low_y:]
+        back = torch.fft.ifft(spectrum, dim=0)[row:row + rows]
+        out = self._rows[:rows]
+        out[:, :low_x] = back[:, :low_x]
+        out[:, low_x:pw - high_x] = 0
+        out[:, pw - high_x:] = back[:, low_x:]
+        return torch.fft.ifft(out, dim=1)[:, col:col + cols].clone()
+
+
+def _band(passed: torch.Tensor) -> tuple[int, int]:
+    """(low, high) such that exactly the indices [0, low) and [n - low, n) of `passed` (in FFT order) are True; a
+    set of any other shape is taken whole (nothing skipped, still exact)."""
+    n = len(passed)
+    low = int(torch.argmin(passed.int())) if not passed.all() else n
+    high = int(torch.argmin(passed.flip(0).int())) if low < n else 0
+    if low < n and bool(passed[low:n - high].any()):
+        return n, 0
+    return low, high
+
+
+@functools.lru_cache(maxsize=3)
+def _pruned_propagator(setup: OpticalSetup) -> _PrunedPropagator:
+    return _PrunedPropagator(_propagator(setup))
+
+
+def _live_irradiance(profile: Profile, channel: LaserChannel, gray: np.ndarray) -> torch.Tensor:
+    """`_target_irradiance` (float32) as the live view computes it, faster: the panel's field by table lookup
+    where no crosstalk blurs the phase, propagated by `_PrunedPropagator`."""
+    slm, response = profile.slm, profile.sim.slm
+    assert slm is not None
+    if response.crosstalk_px:
+        field = _panel_field(profile, channel, gray)
+    else:
+        field = torch.from_numpy(_modulation(channel.wavelength_m, slm.bit_depth, response)[gray])
+        field *= _beam_field(*_beam(profile, channel))
+    with torch.inference_mode():
+        out = _pruned_propagator(OpticalSetup.from_profile(profile, channel.name))(field)
+    return _with_stray_light(profile, out.real.square() + out.imag.square())
 
 
 def _lit_box(profile: Profile, homography: np.ndarray) -> tuple[int, int, int, int] | None:
@@ -186,10 +293,12 @@ def _lit_box(profile: Profile, homography: np.ndarray) -> tuple[int, int, int, i
     return (top, bottom, left, right) if top < bottom and left < right else None
 
 
-def _electron_planes(profile: Profile, gray: np.ndarray | None, powers_w: Mapping[str, float],
-                     exposure_s: float) -> np.ndarray:
+def _electron_planes(profile: Profile, gray: np.ndarray | None, powers_w: Mapping[str, float], exposure_s: float,
+                     irradiance: Callable[[Profile, LaserChannel, np.ndarray], torch.Tensor] = _target_irradiance,
+                     ) -> np.ndarray:
     """Mean photo-electrons per target-plane pixel as the sensor's R, G and B pixels collect them: (H, W, 3)
-    float32, the emitting channels' photons times their quantum efficiencies, before the camera geometry."""
+    float32, the emitting channels' photons times their quantum efficiencies, before the camera geometry.
+    `irradiance`: how each channel's light is computed (the live view's is faster)."""
     slm = profile.require("slm", "optics").slm
     assert slm is not None
     if gray is None:
@@ -201,8 +310,8 @@ def _electron_planes(profile: Profile, gray: np.ndarray | None, powers_w: Mappin
     for name, watts in powers_w.items():
         channel = profile.channel(name)
         photons = watts * exposure_s * channel.wavelength_m / (PLANCK_J_S * LIGHT_M_S) * profile.sim.beam.efficiency
-        irradiance = _target_irradiance(profile, channel, gray).numpy() * photons
-        electrons += (irradiance[..., None] * spectral_response(profile, channel)).astype(np.float32)
+        light = irradiance(profile, channel, gray).numpy() * photons
+        electrons += (light[..., None] * spectral_response(profile, channel).astype(light.dtype)).astype(np.float32)
     return electrons
 
 
@@ -290,10 +399,12 @@ class LiveView:
     A live-view frame is a binned readout of a window of the active area: each pixel is the mean of `bin` x `bin`
     sensor pixels of one CFA position (the Bayer layout is kept), with the shot and read noise of that mean, the
     gain, black level, clipping and quantisation of a capture. Only the light is expensive (a propagation per
-    emitting channel): it is computed once per SLM frame, laser state and exposure and reused until one changes,
-    so frames in between cost the resampling and the noise. Where one frame pixel covers two or more target-plane
-    pixels, those are averaged first (area sampling, not point sampling: a hologram's fine detail does not alias).
-    Saturation is that of the mean, which a single pixel in the bin may reach before it.
+    emitting channel, `_live_irradiance`: the capture's light, computed faster): it is computed once per SLM frame,
+    laser state and exposure and reused until one changes, so frames in between cost the resampling and the noise.
+    Where one frame pixel covers two or more target-plane pixels, those are averaged first (area sampling, not point
+    sampling: a hologram's fine detail does not alias). A bin's mean can stay below the white level while some of
+    its pixels reach it: the metadata's `saturated_bins` marks every bin that holds a sensor pixel whose mean signal
+    reaches the white level (noise aside).
     """
 
     def __init__(self, profile: Profile) -> None:
@@ -301,6 +412,7 @@ class LiveView:
         self._key: tuple | None = None
         self._planes: np.ndarray | None = None
         self._reduced: dict[int, np.ndarray] = {}
+        self._saturated: dict[tuple, np.ndarray | None] = {}
         self._frames = 0
 
     @property
@@ -330,8 +442,8 @@ class LiveView:
         if key != self._key or self._planes is None:
             gray, state = read_displayed() if shown is not None else (None, {})
             key = (state.get("frame"), key[1], exposure_s)  # the frame read, should a newer one have come
-            self._planes = _electron_planes(self.profile, gray, powers, exposure_s)
-            self._reduced = {}
+            self._planes = _electron_planes(self.profile, gray, powers, exposure_s, _live_irradiance)
+            self._reduced, self._saturated = {}, {}
             self._key = key
         return self._planes, {"slm_frame": key[0], "lasers_on_w": dict(key[1]),
                               "light_s": round(time.perf_counter() - start, 6)}
@@ -364,8 +476,8 @@ class LiveView:
         reduced, to_full = self._planes_at(binning / sensor_pixels_per_slm_pixel(self.profile))
         to_frame = np.array([[1 / binning, 0, (0.5 - left) / binning - 0.5],
                              [0, 1 / binning, (0.5 - top) / binning - 0.5], [0, 0, 1.0]])
-        mean = _sensor_electrons(self.profile, reduced, to_frame @ camera_homography(self.profile) @ to_full, shape,
-                                 (0, 0) if cfa else None)
+        homography = to_frame @ camera_homography(self.profile)
+        mean = _sensor_electrons(self.profile, reduced, homography @ to_full, shape, (0, 0) if cfa else None)
         self._frames += 1
         rng = np.random.default_rng([self.profile.sim.seed, 1 << 32, self._frames])  # apart from captures' streams
         pixels = binning * binning  # sensor pixels averaged into one frame pixel
@@ -377,8 +489,68 @@ class LiveView:
         counts += np.float32(sensor.black_level)
         np.rint(counts, out=counts)
         frame = np.clip(counts, 0, sensor.white_level).astype(np.uint16)
-        return frame, {**metadata, "frame": self._frames, "window": [top, left, rows, cols], "bin": round(binning, 4),
-                       "exposure_s": exposure_s, "iso": iso}
+        metadata = {**metadata, "frame": self._frames, "window": [top, left, rows, cols], "bin": round(binning, 4),
+                    "exposure_s": exposure_s, "iso": iso}
+        saturated = self._saturated_bins((top, left, rows, cols), binning, shape, iso)
+        if saturated is not None:
+            metadata["saturated_bins"] = saturated
+        return frame, metadata
+
+    def _saturated_bins(self, window: Window, binning: float, shape: tuple[int, int],
+                        iso: int) -> np.ndarray | None:
+        """(rows, cols) bool: the frame pixels whose bin holds a sensor pixel whose mean signal reaches the white
+        level (noise aside), that signal computed as a capture computes it; None where no bin does, or where a frame
+        pixel is one sensor pixel (its own value says it). Computed once per light, ISO and frame geometry.
+
+        A sensor pixel's signal is interpolated between its four nearest target-plane pixels, so it can reach the
+        white level only next to a target pixel that would on its own ("hot"). Only the bins within reach of a hot
+        pixel's image are candidates, and only their sensor pixels are evaluated (where that would be more than
+        SATURATION_SAMPLES pixels, all candidates are marked: never too few)."""
+        if binning <= 1:
+            return None
+        key = (iso, binning, *window, *shape)
+        if key not in self._saturated:
+            self._saturated[key] = self._find_saturated(window, binning, shape, iso)
+        return self._saturated[key]
+
+    def _find_saturated(self, window: Window, binning: float, shape: tuple[int, int], iso: int) -> np.ndarray | None:
+        assert self._planes is not None
+        sensor, spread = self.profile.sim.sensor, sensor_pixels_per_slm_pixel(self.profile)
+        # a sensor pixel gets a target pixel's electrons spread over its image's area (`_sensor_electrons`)
+        full = (sensor.white_level - sensor.black_level) / dn_per_electron(sensor, iso) * spread**2
+        hot_y, hot_x = np.nonzero(self._planes.max(axis=2) >= full)
+        if not len(hot_y):
+            return None
+        top, left = window[:2]
+        homography = camera_homography(self.profile)
+        images = homography[:2] @ np.stack([hot_x, hot_y, np.ones_like(hot_x)]).astype(np.float64)
+        candidates = np.zeros(shape, np.uint8)
+        rows = np.floor((images[1] - top + 0.5) / binning).astype(np.int64)
+        cols = np.floor((images[0] - left + 0.5) / binning).astype(np.int64)
+        inside = (rows >= -1) & (rows <= shape[0]) & (cols >= -1) & (cols <= shape[1])
+        candidates[np.clip(rows[inside], 0, shape[0] - 1), np.clip(cols[inside], 0, shape[1] - 1)] = 1
+        reach = math.ceil(1.5 * spread / binning) + 1  # bins a hot pixel's interpolation can touch
+        candidates = cv2.dilate(candidates, np.ones((2 * reach + 1,) * 2, np.uint8)).astype(bool)
+        bin_y, bin_x = np.nonzero(candidates)
+        n = math.ceil(binning) + 1  # sensor pixels per bin and axis, at most
+        if len(bin_y) * n * n > SATURATION_SAMPLES:
+            return candidates
+        offsets = np.arange(n)
+        first_y, first_x = np.ceil(bin_y * binning - 0.5), np.ceil(bin_x * binning - 0.5)
+        ys = first_y[:, None] + offsets  # (bins, n) sensor rows and columns of each bin, relative to the window
+        xs = first_x[:, None] + offsets
+        valid = ((ys < np.ceil((bin_y + 1) * binning - 0.5)[:, None])[:, :, None]
+                 & (xs < np.ceil((bin_x + 1) * binning - 0.5)[:, None])[:, None, :])
+        ys, xs = np.broadcast_arrays((ys + top)[:, :, None], (xs + left)[:, None, :])  # (bins, n, n) active area
+        target = np.linalg.solve(homography, np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)]))
+        target = (target[:2] / target[2]).astype(np.float32).reshape(2, len(bin_y), n * n)
+        values = cv2.remap(self._planes, target[0], target[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                           borderValue=0)
+        colours = np.array(CFA_LAYOUTS[sensor.cfa]).reshape(2, 2)[ys.astype(np.int64) % 2, xs.astype(np.int64) % 2]
+        signal = np.take_along_axis(values, colours.reshape(len(bin_y), n * n, 1), axis=2)[:, :, 0]
+        saturated = np.zeros(shape, bool)
+        saturated[bin_y, bin_x] = ((signal >= full) & valid.reshape(len(bin_y), -1)).any(axis=1)
+        return saturated if saturated.any() else None
 
     def dng(self, width: int, window: Window | None = None, *, exposure_s: float | None = None,
             iso: int | None = None) -> tuple[bytes, dict[str, Any]]:
