@@ -5,12 +5,15 @@ uploads; procedures; and `benchctl laser off` from another process while a real 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
 import re
+import signal
 import subprocess
 import sys
+import threading
 import time
 import urllib.request
 from collections.abc import Iterator
@@ -30,7 +33,7 @@ from benchctl.devices.slm import read_displayed
 from benchctl.optics.aberration import wavefront_phase
 from benchctl.profiles import load_profile
 from console_bench import (ORIGIN, PORT, TOKEN, WS, access, expected_phase_frame, laser_channel, make_console,
-                           unpack_frame)
+                           next_frame, unpack_frame)
 
 
 @pytest.fixture
@@ -156,7 +159,7 @@ def test_dead_man_switches_emission_off_when_the_page_goes(client: TestClient) -
             page.send_text("heartbeat")
         assert laser_channel(2)["emission"] is True
     assert wait_for(lambda: laser_channel(2)["emission"] is False, 5.0)  # the tab closed
-    assert any("dead-man" in line for line in client.get("/api/state").json()["events"])
+    assert wait_for(lambda: any("dead-man" in line for line in client.get("/api/state").json()["events"]), 5.0)
 
 
 def test_dead_man_also_catches_a_silent_page(client: TestClient) -> None:
@@ -229,11 +232,8 @@ def test_bad_slm_requests_are_refused_by_name(client: TestClient, pattern: dict,
 
 def test_preview_frames_show_the_light(client: TestClient) -> None:
     def frame(page) -> tuple[dict, np.ndarray]:
-        while True:
-            message = page.receive()
-            if message.get("bytes"):
-                header, jpeg, _ = unpack_frame(message["bytes"])
-                return header, cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+        header, jpeg, _ = next_frame(page)
+        return header, cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
 
     with client.websocket_connect(WS) as page:
         page.send_text("heartbeat")
@@ -251,16 +251,27 @@ def test_preview_frames_show_the_light(client: TestClient) -> None:
     assert lit[:, :, 1].mean() > dark[:, :, 1].mean() + 5
 
 
+def test_a_page_that_does_not_keep_up_gets_no_backlog(client: TestClient, console: Console) -> None:
+    with client.websocket_connect(WS) as page:
+        seqs, states = [], 0
+        while states < 4:  # two seconds of state messages, frames never acknowledged
+            message = page.receive()
+            if message.get("bytes"):
+                seqs.append(unpack_frame(message["bytes"])[0]["seq"])
+            else:
+                states += 1
+        assert len(seqs) == 2 and console.latest.seq > seqs[-1] + 2  # the live view went on, the page got two
+        page.send_text(f"ack {seqs[0]}")
+        assert next_frame(page)[0]["seq"] > seqs[-1]  # one acknowledged: the newest frame comes next
+
+
 def test_zoom_and_linear_view(client: TestClient) -> None:
     view = client.post("/api/view", json={"mode": "linear", "zoom": [0.5, 0.5]}).json()
     assert (view["mode"], view["zoom"]) == ("linear", [0.5, 0.5]) and view["server_s"] >= 0
     with client.websocket_connect(WS) as page:
-        while True:
-            message = page.receive()
-            if message.get("bytes"):
-                header, _, zoom = unpack_frame(message["bytes"])
-                if zoom:
-                    break
+        zoom = b""
+        while not zoom:
+            header, _, zoom = next_frame(page)
     image = cv2.imdecode(np.frombuffer(zoom, np.uint8), cv2.IMREAD_COLOR)
     top, left, rows, cols = header["zoom_window"]
     assert image.shape[:2] == (rows, cols) and (rows, cols) == tuple(min(256, n) for n in header["full_shape"])
@@ -317,24 +328,42 @@ def test_procedures_dry_run_then_run_with_the_devices_handed_over(client: TestCl
     assert wait_for(lambda: console.laser.held.connected and console.camera.connected, 5)
 
 
-@pytest.mark.slow
-def test_laser_off_from_another_shell_while_the_console_runs(bench_profile_path: Path, tmp_path: Path) -> None:
+@contextlib.contextmanager
+def console_process(profile_path: Path, tmp_path: Path, *options: str) -> Iterator[tuple[subprocess.Popen, str,
+                                                                                         dict[str, str]]]:
+    """`benchctl console` started as a user starts it, on a free port: the process, its base URL and the headers
+    (token) a script sends."""
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    server = subprocess.Popen([sys.executable, "-m", "benchctl", "console", "-p", str(bench_profile_path), "--port",
-                               "0", "--out", str(tmp_path), "--deadman", "60"], stdout=subprocess.PIPE,
-                              stderr=subprocess.STDOUT, text=True, env=env, cwd=tmp_path)
+    server = subprocess.Popen([sys.executable, "-m", "benchctl", "console", "-p", str(profile_path), "--port", "0",
+                               "--out", str(tmp_path), *options], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                              text=True, env=env, cwd=tmp_path)
     try:
         assert server.stdout is not None
         lines = []
         while not (url := re.search(r"http://\S+", lines[-1] if lines else "")):
             lines.append(server.stdout.readline())
             assert lines[-1], "".join(lines)
-        base = url.group(0).split("/?")[0]
         headers = {"x-benchctl-token": url.group(0).split("token=")[1], "content-type": "application/json"}
-        for path, body in (("power", {"power": "1mW"}), ("emission", {"on": True})):
-            request = urllib.request.Request(f"{base}/api/laser/green/{path}", json.dumps(body).encode(), headers)
-            assert urllib.request.urlopen(request, timeout=30).status == 200
+        yield server, url.group(0).split("/?")[0], headers
+    finally:
+        if server.poll() is None:
+            server.kill()
+            server.wait()
+
+
+def post(base: str, path: str, body: dict, headers: dict[str, str]) -> int:
+    request = urllib.request.Request(f"{base}{path}", json.dumps(body).encode(), headers)
+    with urllib.request.urlopen(request, timeout=60) as response:
+        return response.status
+
+
+@pytest.mark.slow
+def test_laser_off_from_another_shell_while_the_console_runs(bench_profile_path: Path, tmp_path: Path) -> None:
+    with console_process(bench_profile_path, tmp_path, "--deadman", "60") as (server, base, headers):
+        assert post(base, "/api/laser/green/power", {"power": "1mW"}, headers) == 200
+        assert post(base, "/api/laser/green/emission", {"on": True}, headers) == 200
         assert laser_channel(2)["emission"] is True
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         off = subprocess.run([sys.executable, "-m", "benchctl", "laser", "off", "-p", str(bench_profile_path)],
                              capture_output=True, text=True, env=env, timeout=60)
         assert off.returncode == 0, off.stderr
@@ -342,6 +371,55 @@ def test_laser_off_from_another_shell_while_the_console_runs(bench_profile_path:
         assert laser_channel(2)["emission"] is False
         assert server.wait(timeout=20) != 0
         assert "console stopped: emission off, devices closed" in server.stdout.read()
-    finally:
-        if server.poll() is None:
-            server.kill()
+
+
+class Page(threading.Thread):
+    """A script that behaves as the console's page: answers every state message and frame, and sends a heartbeat
+    every second besides."""
+
+    def __init__(self, base: str, headers: dict[str, str]) -> None:
+        from websockets.sync.client import connect
+
+        super().__init__(daemon=True)
+        self.stack = contextlib.ExitStack()
+        self.socket = self.stack.enter_context(connect(base.replace("http://", "ws://") + "/ws",
+                                                       additional_headers=headers, max_size=None))
+        self.closed = threading.Event()
+
+    def run(self) -> None:
+        beat = threading.Thread(target=self._beat, daemon=True)
+        beat.start()
+        with contextlib.suppress(Exception):
+            for message in self.socket:
+                self.socket.send(f"ack {unpack_frame(message)[0]['seq']}" if isinstance(message, bytes)
+                                 else "heartbeat")
+
+    def _beat(self) -> None:
+        while not self.closed.wait(1.0):
+            with contextlib.suppress(Exception):
+                self.socket.send("heartbeat")
+
+    def close(self) -> None:
+        self.closed.set()
+        self.stack.close()
+
+
+@pytest.mark.slow
+def test_a_stopped_console_does_not_trip_on_a_live_page_and_a_closed_page_trips(bench_profile_path: Path,
+                                                                               tmp_path: Path) -> None:
+    """The console's process stopped for longer than the dead-man timeout (as a machine short of memory stops every
+    program) while its page lives on: emission stays on. Then the page closes: emission off within the timeout."""
+    with console_process(bench_profile_path, tmp_path, "--deadman", "1") as (server, base, headers):
+        page = Page(base, headers)
+        page.start()
+        assert post(base, "/api/laser/green/power", {"power": "1mW"}, headers) == 200
+        assert post(base, "/api/laser/green/emission", {"on": True}, headers) == 200
+        os.kill(server.pid, signal.SIGSTOP)
+        time.sleep(2.5)
+        os.kill(server.pid, signal.SIGCONT)
+        time.sleep(2.0)
+        assert laser_channel(2)["emission"] is True
+        page.close()
+        closed = time.monotonic()
+        assert wait_for(lambda: laser_channel(2)["emission"] is False, 10.0)
+        assert time.monotonic() - closed < 2.0  # the 1 s timeout, a watchdog period and the laser's answers

@@ -2,8 +2,11 @@
 
 Every route sits behind `AccessMiddleware` (token, Host, Origin). Device work runs on worker threads
 (`run_in_threadpool`), never on the event loop. The socket carries frames to the page (binary: a 4-byte header
-length, the JSON header, the frame's JPEG, then the zoom's JPEG if any) and state twice a second (text, JSON); every
-message the page sends on it is a heartbeat for the laser's dead-man switch.
+length, the JSON header, the frame's JPEG, then the zoom's JPEG if any) and state twice a second (text, JSON). The
+page answers each frame it has drawn with `ack <seq>` (the server keeps at most FRAMES_IN_FLIGHT frames
+unacknowledged, so a slow page never gets a backlog) and each state with `heartbeat`; every message it sends is a
+heartbeat for the laser's dead-man switch, so the page's heartbeats need no timer of its own (a browser slows a
+hidden tab's timers down to once a minute).
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ from benchctl.errors import BadValueError, BenchctlError
 
 STATIC = {"console.js": "text/javascript", "console.css": "text/css", "index.html": "text/html"}
 STATE_PERIOD_S = 0.5
+FRAMES_IN_FLIGHT = 2  # frames sent to a page and not yet acknowledged, at most
 MAX_JSON_BYTES = 64 * 1024
 Handler = Callable[[Request], Awaitable[Response]]
 
@@ -172,17 +176,19 @@ def create_app(console: Console, access: Access) -> AccessMiddleware:
     async def socket(websocket: WebSocket) -> None:
         await websocket.accept()
         loop = asyncio.get_running_loop()
-        fresh = asyncio.Event()
-        stop_listening = console.listen(lambda: loop.call_soon_threadsafe(fresh.set))
+        page = _Page()
+        stop_listening = console.listen(lambda: loop.call_soon_threadsafe(page.wake.set))
         console.pages += 1
         if console.laser is not None:
             console.laser.heartbeat()
-        sender = asyncio.create_task(_send(websocket, console, fresh))
+        sender = asyncio.create_task(_send(websocket, console, page))
         try:
             while True:
-                await websocket.receive_text()
+                message = await websocket.receive_text()
                 if console.laser is not None:
                     console.laser.heartbeat()
+                if message.startswith("ack "):
+                    page.ack(message[4:])
         except WebSocketDisconnect:
             pass
         finally:
@@ -208,23 +214,40 @@ def create_app(console: Console, access: Access) -> AccessMiddleware:
     return AccessMiddleware(Starlette(routes=routes), access)
 
 
-async def _send(websocket: WebSocket, console: Console, fresh: asyncio.Event) -> None:
-    """Frames as they come (the latest only: a slow page skips frames instead of queueing them) and the state."""
+class _Page:
+    """One page's socket: the frames it has not acknowledged yet, and the event that wakes its sender (a new frame,
+    an acknowledgement)."""
+
+    def __init__(self) -> None:
+        self.unacked: list[int] = []
+        self.wake = asyncio.Event()
+
+    def ack(self, text: str) -> None:
+        """The page has shown frame `text` (a number; anything else is only a heartbeat)."""
+        if text.isdigit():
+            self.unacked = [seq for seq in self.unacked if seq > int(text)]
+            self.wake.set()
+
+
+async def _send(websocket: WebSocket, console: Console, page: _Page) -> None:
+    """Frames as they come, the latest only and at most FRAMES_IN_FLIGHT not yet acknowledged (a slow page skips
+    frames instead of queueing them), and the state every STATE_PERIOD_S."""
     sent = 0
     next_state = 0.0
     loop = asyncio.get_running_loop()
     while True:
+        page.wake.clear()  # before looking: a wake-up that comes while this sends is kept for the wait below
         shown = console.latest
-        if shown is not None and shown.seq != sent:
+        if shown is not None and shown.seq != sent and len(page.unacked) < FRAMES_IN_FLIGHT:
             sent = shown.seq
+            page.unacked.append(sent)
             header = json.dumps({**shown.header, "zoom_bytes": len(shown.zoom or b""), "sent": time.time()}).encode()
             await websocket.send_bytes(struct.pack(">I", len(header)) + header + shown.jpeg + (shown.zoom or b""))
         if loop.time() >= next_state:
             next_state = loop.time() + STATE_PERIOD_S
             await websocket.send_text(json.dumps(console.state()))
-        fresh.clear()
         with contextlib.suppress(asyncio.TimeoutError):
-            await asyncio.wait_for(fresh.wait(), timeout=max(0.01, next_state - loop.time()))
+            await asyncio.wait_for(page.wake.wait(), timeout=max(0.01, next_state - loop.time()))
 
 
 def _static(name: str) -> Response:

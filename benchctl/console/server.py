@@ -23,6 +23,9 @@ from benchctl.console.security import LOOPBACK_NAMES, Access, new_token
 from benchctl.errors import BenchctlError
 from benchctl.profiles import Profile
 
+# torch threads in the console's process (the live view's light; holograms run in their own process). On a busy
+# 2-core machine one thread recomputed the light twice as fast as two, which waited for each other (docs/console.md).
+LIVE_VIEW_THREADS = 1
 
 
 class _Server(uvicorn.Server):
@@ -61,6 +64,9 @@ def listen(bind: str, port: int) -> socket.socket:
 def serve(profile: Profile, *, port: int, bind: str = "127.0.0.1", out: Path = Path("runs"),
           procedures: Path | None = None, deadman_s: float = DEADMAN_S, say: Callable[[str], None] = print) -> None:
     """Run the console until a termination signal; every device is closed (emission off first) however it ends."""
+    import torch
+
+    torch.set_num_threads(LIVE_VIEW_THREADS)
     sock = listen(bind, port)
     port = sock.getsockname()[1]
     hosts = LOOPBACK_NAMES if is_loopback(bind) else (*LOOPBACK_NAMES, bind)

@@ -5,7 +5,8 @@ const COLOURS = ["#ff5050", "#40d060", "#5090ff"];
 let info = null;
 let socket = null;
 let frames = 0;
-let lastHeader = null;
+let lastSeq = 0;
+let drawnSeq = 0;
 let zoomUrl = null;
 let shownFrame = null;
 let laserState = {};
@@ -61,7 +62,7 @@ async function init() {
   }
   showFields();
   connect();
-  setInterval(() => { if (socket && socket.readyState === 1) socket.send("heartbeat"); }, 1000);
+  setInterval(() => send("heartbeat"), 1000);
 }
 
 function showFields() {
@@ -76,30 +77,39 @@ function showFields() {
 function connect() {
   socket = new WebSocket(`ws://${location.host}/ws`);
   socket.binaryType = "arraybuffer";
-  socket.onopen = () => { $("link").textContent = "connected"; $("link").className = "badge on"; };
+  socket.onopen = () => { $("link").textContent = "connected"; $("link").className = "badge on"; drawnSeq = 0; };
   socket.onclose = () => {
     $("link").textContent = "disconnected"; $("link").className = "badge off";
     setTimeout(connect, 1000);
   };
   socket.onmessage = (event) => {
-    if (typeof event.data === "string") state(JSON.parse(event.data)); else frame(event.data);
+    if (typeof event.data === "string") { send("heartbeat"); state(JSON.parse(event.data)); }
+    else frame(event.data).then((seq) => send("ack " + seq), () => send("ack " + lastSeq));
   };
 }
+
+// Every message to the server is a heartbeat for the laser's dead-man switch: the page answers what the server
+// sends (state twice a second, frames), so it needs no timer of its own; the interval is a second line.
+function send(text) { if (socket && socket.readyState === 1) socket.send(text); }
 
 async function frame(buffer) {
   const view = new DataView(buffer);
   const length = view.getUint32(0);
   const header = JSON.parse(new TextDecoder().decode(new Uint8Array(buffer, 4, length)));
+  lastSeq = header.seq;
   const zoomBytes = header.zoom_bytes;
   const jpeg = new Blob([new Uint8Array(buffer, 4 + length, buffer.byteLength - 4 - length - zoomBytes)],
     { type: "image/jpeg" });
   const bitmap = await createImageBitmap(jpeg);
+  if (header.seq < drawnSeq) { bitmap.close(); return header.seq; }  // a newer one was drawn meanwhile
+  drawnSeq = header.seq;
   const canvas = $("frame");
   if (canvas.width !== bitmap.width || canvas.height !== bitmap.height) {
     canvas.width = $("overlay").width = bitmap.width; canvas.height = $("overlay").height = bitmap.height;
     $("frame-box").style.aspectRatio = `${bitmap.width} / ${bitmap.height}`;
   }
   canvas.getContext("2d").drawImage(bitmap, 0, 0);
+  bitmap.close();
   if (zoomBytes) {
     const zoom = new Blob([new Uint8Array(buffer, buffer.byteLength - zoomBytes)], { type: "image/jpeg" });
     if (zoomUrl) URL.revokeObjectURL(zoomUrl);
@@ -108,11 +118,11 @@ async function frame(buffer) {
     const w = header.zoom_window;
     $("zoom-caption").textContent = w ? `1:1 · rows ${w[0]}–${w[0] + w[2]}, cols ${w[1]}–${w[1] + w[3]}` : "1:1";
   } else { $("zoom-box").hidden = true; }
-  lastHeader = header;
   frames += 1;
   $("frame-count").textContent = frames;
   overlay(header);
   statistics(header.stats);
+  return header.seq;
 }
 
 function overlay(header) {

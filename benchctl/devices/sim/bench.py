@@ -311,7 +311,8 @@ def _electron_planes(profile: Profile, gray: np.ndarray | None, powers_w: Mappin
         channel = profile.channel(name)
         photons = watts * exposure_s * channel.wavelength_m / (PLANCK_J_S * LIGHT_M_S) * profile.sim.beam.efficiency
         light = irradiance(profile, channel, gray).numpy() * photons
-        electrons += (light[..., None] * spectral_response(profile, channel).astype(light.dtype)).astype(np.float32)
+        electrons += (light[..., None] * spectral_response(profile, channel).astype(light.dtype)).astype(
+            np.float32, copy=False)
     return electrons
 
 
@@ -518,9 +519,9 @@ class LiveView:
         sensor, spread = self.profile.sim.sensor, sensor_pixels_per_slm_pixel(self.profile)
         # a sensor pixel gets a target pixel's electrons spread over its image's area (`_sensor_electrons`)
         full = (sensor.white_level - sensor.black_level) / dn_per_electron(sensor, iso) * spread**2
-        hot_y, hot_x = np.nonzero(self._planes.max(axis=2) >= full)
-        if not len(hot_y):
+        if self._planes.max() < full:
             return None
+        hot_y, hot_x = np.nonzero(np.maximum.reduce([self._planes[..., c] for c in range(3)]) >= full)
         top, left = window[:2]
         homography = camera_homography(self.profile)
         images = homography[:2] @ np.stack([hot_x, hot_y, np.ones_like(hot_x)]).astype(np.float64)
