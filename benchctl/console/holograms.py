@@ -3,8 +3,9 @@
 A 50-iteration SGD at full size keeps the cores busy for a minute. In the console's process its Python work would
 compete with the event loop for the GIL and its torch threads with the live view for the cores (status requests
 waited up to 0.27 s, docs/console.md). The worker is one child process, spawned (not forked: the console has
-threads) on the first hologram and kept until the console stops, at a lower priority (WORKER_NICE) so that the
-console's own threads get a core first. It runs what a run runs (`runner.hologram_cache.hologram`: the same method,
+threads) on the first hologram and kept until the console stops. It leaves one core to the console's own process
+(WORKER_THREADS) and runs at a slightly lower priority (WORKER_NICE), so the live view keeps its pace; docs/console.md
+has the measurements behind both. It runs what a run runs (`runner.hologram_cache.hologram`: the same method,
 calibration, fitted model and cache) and reports its progress as it goes. It holds no device.
 """
 
@@ -23,7 +24,8 @@ import numpy as np
 
 from benchctl.errors import BenchctlError
 
-WORKER_NICE = 5  # added to the console's own niceness
+WORKER_NICE = 2  # added to the console's own niceness
+WORKER_THREADS = max(1, len(os.sched_getaffinity(0)) - 1) if hasattr(os, "sched_getaffinity") else 1
 
 
 @dataclass(frozen=True)
@@ -85,8 +87,8 @@ class HologramWorker:
         if self._process is None or not self._process.is_alive():
             context = multiprocessing.get_context("spawn")
             ours, theirs = context.Pipe()
-            self._process = context.Process(target=_serve, args=(theirs, WORKER_NICE), name="benchctl hologram worker",
-                                            daemon=True)
+            self._process = context.Process(target=_serve, args=(theirs, WORKER_NICE, WORKER_THREADS),
+                                            name="benchctl hologram worker", daemon=True)
             self._process.start()
             theirs.close()
             self._connection = ours
@@ -104,10 +106,13 @@ class HologramWorker:
                 process.join(timeout=5.0)
 
 
-def _serve(connection: Connection, nice: int) -> None:
+def _serve(connection: Connection, nice: int, threads: int) -> None:
     """The worker's loop: a Request in, progress messages and then its Result (or its error) out."""
+    import torch
+
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C in the console's terminal is the console's to handle
     os.nice(nice)
+    torch.set_num_threads(threads)
     while True:
         try:
             request = connection.recv()
