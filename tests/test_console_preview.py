@@ -136,6 +136,17 @@ def test_a_bin_with_one_saturated_pixel_is_marked(bench_profile_path: Path) -> N
     assert not (surely & ~shown.saturated).any()
 
 
+def test_a_bins_noise_has_the_shot_and_read_noise_of_its_electrons() -> None:
+    rng = np.random.default_rng(3)
+    for expected, read_variance in ((3.0, 0.0), (40.0, 64.0), (2000.0, 64.0), (2000.0, 0.0)):
+        counts = bench._binned_electrons(rng, np.full(200_000, expected, np.float32), read_variance)
+        assert counts.dtype == np.float32
+        assert counts.mean() == pytest.approx(expected, rel=0.01)
+        assert counts.var() == pytest.approx(expected + read_variance, rel=0.02)
+    few = bench._binned_electrons(rng, np.full(1000, 3.0, np.float32), 0.0)
+    assert np.array_equal(few, np.round(few)) and few.min() >= 0  # Poisson's whole electrons where they are few
+
+
 def test_a_native_window_is_the_sensor_at_one_to_one(bench_profile_path: Path) -> None:
     profile = load_profile(bench_profile_path)
     lit_bench(profile)
