@@ -186,6 +186,7 @@ def test_slm_patterns_round_trip_to_the_displayed_frame(client: TestClient, benc
     assert shown.status_code == 200, shown.text
     gray, state = read_displayed()
     assert shown.json()["frame"] == state["frame"]
+    assert 0 < shown.json()["server_cpu_s"] <= shown.json()["server_s"] + 0.001  # the driver's work on a thread
     ramp = np.repeat(np.arange(rows, dtype=np.float64)[:, None] * (2 * math.pi / 8), cols, axis=1)
     expected = expected_phase_frame(profile, ramp, "green")
     assert np.array_equal(gray, expected) and len(np.unique(gray[:8, 0])) == 8  # rising along the rows
@@ -246,6 +247,8 @@ def test_preview_frames_show_the_light(client: TestClient) -> None:
         while header["source"].get("lasers_on_w") != {"green": 0.002}:
             header, lit = frame(page)
     assert header["seq"] > dark_header["seq"] and lit.shape == dark.shape
+    for step in ("render", "encode"):  # CPU seconds within the step's seconds (the two clocks tick apart: 1 ms)
+        assert 0 < header[f"{step}_cpu_s"] <= header[f"{step}_s"] + 0.001
     assert header["stats"]["mean"][1] > 20 * max(dark_header["stats"]["mean"][1], 1e-4)
     assert header["stats"]["peak"][1] > header["stats"]["peak"][2] and len(header["stats"]["histogram"][1]) == 64
     assert lit[:, :, 1].mean() > dark[:, :, 1].mean() + 5

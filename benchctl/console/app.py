@@ -13,12 +13,13 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import contextvars
 import json
 import struct
 import time
 from collections.abc import Awaitable, Callable
 from importlib import resources
-from typing import Any
+from typing import Any, TypeVar
 
 from starlette.applications import Starlette
 from starlette.concurrency import run_in_threadpool
@@ -37,6 +38,7 @@ STATE_PERIOD_S = 0.5
 FRAMES_IN_FLIGHT = 2  # frames sent to a page and not yet acknowledged, at most
 MAX_JSON_BYTES = 64 * 1024
 Handler = Callable[[Request], Awaitable[Response]]
+T = TypeVar("T")
 
 
 def create_app(console: Console, access: Access) -> AccessMiddleware:
@@ -44,16 +46,21 @@ def create_app(console: Console, access: Access) -> AccessMiddleware:
 
     def api(handler: Callable[[Request], Awaitable[Any]]) -> Handler:
         """A JSON endpoint: its result as JSON (a command's with `server_s`, the seconds it took inside the server,
-        device work included); a BenchctlError as 400 with its one line (nothing else changed)."""
+        device work included, and `server_cpu_s`, the CPU seconds of its work on a worker thread); a BenchctlError
+        as 400 with its one line (nothing else changed)."""
 
         async def endpoint(request: Request) -> Response:
-            started = time.perf_counter()
+            started, cpu = time.perf_counter(), _CPU.set([0.0])
             try:
                 result = await handler(request)
             except BenchctlError as exc:
                 return JSONResponse({"error": str(exc)}, status_code=400)
+            finally:
+                spent = _CPU.get()[0]
+                _CPU.reset(cpu)
             if request.method == "POST" and isinstance(result, dict):
-                result = {**result, "server_s": round(time.perf_counter() - started, 6)}
+                result = {**result, "server_s": round(time.perf_counter() - started, 6),
+                          "server_cpu_s": round(spent, 6)}
             return JSONResponse(result)
 
         return endpoint
@@ -83,13 +90,13 @@ def create_app(console: Console, access: Access) -> AccessMiddleware:
         return console.state()
 
     async def info(request: Request) -> dict[str, Any]:
-        return await run_in_threadpool(_info, console)
+        return await _in_thread(_info, console)
 
     async def power(request: Request) -> dict[str, Any]:
         text = (await body(request)).get("power")
         if not isinstance(text, str):
             raise BadValueError('give the power as {"power": "5mW"} or {"power": "10%"}')
-        return await run_in_threadpool(console.set_power, request.path_params["channel"], text)
+        return await _in_thread(console.set_power, request.path_params["channel"], text)
 
     async def emission(request: Request) -> dict[str, Any]:
         on = (await body(request)).get("on")
@@ -97,24 +104,24 @@ def create_app(console: Console, access: Access) -> AccessMiddleware:
             raise BadValueError('give emission as {"on": true} or {"on": false}')
         if on and console.procedures.active:
             raise BenchctlError("a procedure holds the laser; stop it first")
-        await run_in_threadpool(console.set_emission, request.path_params["channel"], on)
+        await _in_thread(console.set_emission, request.path_params["channel"], on)
         return {"ok": True}
 
     async def all_off(request: Request) -> dict[str, Any]:
         if console.procedures.active:  # the run holds the laser: stopping it switches emission off
-            await run_in_threadpool(console.procedures.stop)
+            await _in_thread(console.procedures.stop)
             return {"ok": True, "stopped": "procedure"}
-        await run_in_threadpool(console.all_off)
+        await _in_thread(console.all_off)
         return {"ok": True}
 
     async def slm(request: Request) -> dict[str, Any]:
         pattern = parse_pattern(await body(request))
-        return await run_in_threadpool(console.show, pattern)
+        return await _in_thread(console.show, pattern)
 
     async def thumbnail(request: Request) -> Response:
         if console.slm is None:
             return Response("no SLM\n", status_code=404, media_type="text/plain")
-        png = await run_in_threadpool(console.slm.thumbnail)
+        png = await _in_thread(console.slm.thumbnail)
         return Response(png, media_type="image/png", headers={"cache-control": "no-store"})
 
     async def upload(request: Request) -> dict[str, Any]:
@@ -128,7 +135,7 @@ def create_app(console: Console, access: Access) -> AccessMiddleware:
             if len(data) > limit:
                 raise BadValueError(f"upload is above the limit of {limit:,} bytes")
         name = request.query_params.get("name", "image")
-        upload_id = await run_in_threadpool(console.uploads.add, bytes(data), name)
+        upload_id = await _in_thread(console.uploads.add, bytes(data), name)
         console.say(f"uploaded {name!r} as upload:{upload_id}")
         return {"target": f"upload:{upload_id}"}
 
@@ -141,7 +148,7 @@ def create_app(console: Console, access: Access) -> AccessMiddleware:
         frames = (await body(request)).get("frames")
         if frames is not None and (isinstance(frames, bool) or not isinstance(frames, int)):
             raise BadValueError(f"frames must be a whole number, got {frames!r}")
-        return await run_in_threadpool(console.capture, frames)
+        return await _in_thread(console.capture, frames)
 
     async def connect(request: Request) -> dict[str, Any]:
         name = (await body(request)).get("device")
@@ -151,20 +158,20 @@ def create_app(console: Console, access: Access) -> AccessMiddleware:
             raise BadValueError(f"no device {name!r} to connect (laser, slm or camera)")
         if console.procedures.active:
             raise BenchctlError("a procedure holds the devices; wait for it or stop it")
-        await run_in_threadpool(console.laser.connect if name == "laser" and console.laser else held.connect)
+        await _in_thread(console.laser.connect if name == "laser" and console.laser else held.connect)
         return {"connected": held.connected, "error": held.error}
 
     async def dry_run(request: Request) -> dict[str, Any]:
         name = (await body(request)).get("name")
-        return {"lines": await run_in_threadpool(console.procedures.dry_run, str(name))}
+        return {"lines": await _in_thread(console.procedures.dry_run, str(name))}
 
     async def start(request: Request) -> dict[str, Any]:
         name = (await body(request)).get("name")
-        await run_in_threadpool(console.procedures.start, str(name))
+        await _in_thread(console.procedures.start, str(name))
         return {"ok": True}
 
     async def stop(request: Request) -> dict[str, Any]:
-        await run_in_threadpool(console.procedures.stop)
+        await _in_thread(console.procedures.stop)
         return {"ok": True}
 
     async def report(request: Request) -> Response:
@@ -248,6 +255,24 @@ async def _send(websocket: WebSocket, console: Console, page: _Page) -> None:
             await websocket.send_text(json.dumps(console.state()))
         with contextlib.suppress(asyncio.TimeoutError):
             await asyncio.wait_for(page.wake.wait(), timeout=max(0.01, next_state - loop.time()))
+
+
+_CPU: contextvars.ContextVar[list[float]] = contextvars.ContextVar("console_request_cpu")
+
+
+async def _in_thread(function: Callable[..., T], *args: Any) -> T:
+    """`function(*args)` on a worker thread (never on the event loop), its CPU seconds added to the request's."""
+
+    def timed() -> T:
+        start = time.thread_time()
+        try:
+            return function(*args)
+        finally:
+            spent = _CPU.get(None)  # the request's, copied into this thread's context
+            if spent is not None:
+                spent[0] += time.thread_time() - start
+
+    return await run_in_threadpool(timed)
 
 
 def _static(name: str) -> Response:

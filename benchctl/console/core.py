@@ -219,15 +219,15 @@ class Console:
         assert self.camera is not None
         centre = self.view["zoom"]
         with self.camera.use() as camera:
-            started, clock = time.time(), time.perf_counter()
+            started, clock, cpu = time.time(), time.perf_counter(), time.thread_time()
             frame = camera.preview()
             zoom = None
             if centre is not None and camera.windowed_preview and frame.full_shape is not None:
                 zoom = camera.preview(preview.ZOOM_SIZE, preview.zoom_window(frame.full_shape, centre))
-            render_s = time.perf_counter() - clock
+            render = (time.perf_counter() - clock, time.thread_time() - cpu)
         self._seq += 1
         return preview.shown_frame(self._seq, frame, zoom, mode=self.view["mode"], zoom_centre=centre,
-                                   render_started=started, render_s=render_s)
+                                   render_started=started, render_s=render)
 
     def _publish(self, shown: preview.Shown) -> None:
         shown.header["overlay"] = self.registration_overlay(shown.header["full_shape"])

@@ -152,10 +152,12 @@ class Shown:
 
 
 def shown_frame(seq: int, frame: PreviewFrame, zoom: PreviewFrame | None, *, mode: Mode,
-                zoom_centre: tuple[float, float] | None, render_started: float, render_s: float) -> Shown:
+                zoom_centre: tuple[float, float] | None, render_started: float,
+                render_s: tuple[float, float]) -> Shown:
     """Decode, measure and encode one frame (and its zoom: the camera's own 1:1 window when it has one, else the
-    frame's crop at its own resolution)."""
-    started = time.perf_counter()
+    frame's crop at its own resolution). `render_s`: the seconds and CPU seconds the camera took for it; the
+    header has both for rendering and encoding (CPU seconds: this thread's, what a free core would take)."""
+    started, cpu = time.perf_counter(), time.thread_time()
     image = decode(frame)
     zoom_jpeg = None
     window = None
@@ -173,8 +175,9 @@ def shown_frame(seq: int, frame: PreviewFrame, zoom: PreviewFrame | None, *, mod
         "zoom_window": window, "stats": statistics(image),
         "source": {key: frame.metadata[key] for key in ("slm_frame", "lasers_on_w", "exposure_s", "iso", "bin")
                    if key in frame.metadata},
-        "render_started": render_started, "render_s": round(render_s, 6),
-        "encode_s": round(time.perf_counter() - started, 6), "published": time.time(),
+        "render_started": render_started, "render_s": round(render_s[0], 6), "render_cpu_s": round(render_s[1], 6),
+        "encode_s": round(time.perf_counter() - started, 6), "encode_cpu_s": round(time.thread_time() - cpu, 6),
+        "published": time.time(),
     }
     return Shown(seq, jpeg, zoom_jpeg, header)
 

@@ -398,13 +398,15 @@ def _binned_electrons(rng: np.random.Generator, expected: np.ndarray, read_varia
     """Electrons a bin reads: its photo-electrons (Poisson, mean `expected`) plus its pixels' read noise (normal,
     `read_variance`), float32. Where a bin expects POISSON_BELOW electrons or more the two are drawn as one normal of
     their summed variance (Poisson's normal approximation, far finer than a preview shows; a third of the time)."""
-    counts = rng.standard_normal(expected.shape, dtype=np.float32)
-    counts *= np.sqrt(expected + np.float32(read_variance))
-    counts += expected
     few = expected < POISSON_BELOW
-    if few.any():
-        counts[few] = rng.poisson(expected[few]) + rng.standard_normal(int(few.sum()), dtype=np.float32) * np.float32(
-            math.sqrt(read_variance))
+    if few.all():
+        counts = rng.poisson(expected).astype(np.float32)
+    else:
+        counts = rng.standard_normal(expected.shape, dtype=np.float32)
+        counts *= np.sqrt(expected + np.float32(read_variance))
+        counts += expected
+        counts[few] = rng.poisson(expected[few])
+    counts[few] += rng.standard_normal(int(few.sum()), dtype=np.float32) * np.float32(math.sqrt(read_variance))
     return counts
 
 
