@@ -11,6 +11,7 @@ import math
 import os
 import re
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -28,6 +29,9 @@ from starlette.websockets import WebSocketDisconnect
 from benchctl.capture.raw import decode_raw
 from benchctl.console.app import create_app
 from benchctl.console.core import Console
+from benchctl.console.security import TOKEN_HEADER, Access
+from benchctl.console.server import allowed_hosts
+from benchctl.console.uploads import MAX_UPLOADS
 from benchctl.devices.serial_link import SerialLink
 from benchctl.devices.slm import read_displayed
 from benchctl.optics.aberration import wavefront_phase
@@ -113,6 +117,28 @@ def test_refused_requests_reach_no_device(console: Console, sent: list[str], hea
                 pass
         assert closed.value.code == 1008
     assert sent == [] and (laser_channel(2), read_displayed()[1]) == before
+
+
+def test_a_body_over_the_limit_is_refused_before_it_is_read(client: TestClient, sent: list[str]) -> None:
+    big = json.dumps({"power": "1mW", "pad": "x" * 70_000})
+    response = client.post("/api/laser/green/power", content=big, headers={"content-type": "application/json"})
+    assert response.status_code == 400 and "above the limit of 65,536" in response.json()["error"]
+    assert sent == [] and laser_channel(2)["setpoint_w"] == 0.0
+
+
+@pytest.mark.parametrize("bind, accepted, refused", [
+    ("127.0.0.1", ["127.0.0.1", "localhost", "[::1]"], ["192.0.2.7", "evil.example"]),
+    ("192.0.2.7", ["192.0.2.7", "127.0.0.1"], ["192.0.2.8", "evil.example"]),
+    ("fe80::1", ["[fe80::1]", "localhost"], ["fe80::1", "evil.example"]),
+    ("0.0.0.0", [socket.gethostname(), "127.0.0.1"], ["0.0.0.0", "evil.example"]),  # every interface: its names
+])
+def test_the_host_names_a_console_answers_to(bind: str, accepted: list[str], refused: list[str]) -> None:
+    rules = Access(TOKEN, PORT, allowed_hosts(bind))
+    for host in accepted:
+        assert rules.refusal({"host": f"{host}:{PORT}", TOKEN_HEADER: TOKEN}, None) is None, host
+    for host in refused:
+        assert "is not this console's address" in rules.refusal({"host": f"{host}:{PORT}", TOKEN_HEADER: TOKEN},
+                                                                 None), host
 
 
 def test_laser_controls_round_trip_to_the_emulator(client: TestClient, console: Console, sent: list[str]) -> None:
@@ -314,6 +340,11 @@ def test_uploads_are_capped_and_named_by_number(client: TestClient, console: Con
     assert "above the console's limit" in client.post("/api/upload", content=bytes(huge)).json()["error"]
     console.uploads.max_bytes = 100
     assert "above the limit of 100" in client.post("/api/upload", content=png.tobytes()).json()["error"]
+    console.uploads.max_bytes = 10**6
+    for _ in range(MAX_UPLOADS - 1):
+        assert client.post("/api/upload", content=png.tobytes()).status_code == 200
+    assert "at most 50 uploads" in client.post("/api/upload", content=png.tobytes()).json()["error"]
+    assert len(list(console.uploads.folder.iterdir())) == MAX_UPLOADS
 
 
 def test_procedures_dry_run_then_run_with_the_devices_handed_over(client: TestClient, console: Console) -> None:

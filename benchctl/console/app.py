@@ -66,9 +66,7 @@ def create_app(console: Console, access: Access) -> AccessMiddleware:
         return endpoint
 
     async def body(request: Request) -> dict[str, Any]:
-        raw = await request.body()
-        if len(raw) > MAX_JSON_BYTES:
-            raise BadValueError(f"request body of {len(raw)} bytes is above {MAX_JSON_BYTES}")
+        raw = await _capped(request, MAX_JSON_BYTES, "request body")
         try:
             data = json.loads(raw or b"{}")
         except ValueError:
@@ -125,17 +123,10 @@ def create_app(console: Console, access: Access) -> AccessMiddleware:
         return Response(png, media_type="image/png", headers={"cache-control": "no-store"})
 
     async def upload(request: Request) -> dict[str, Any]:
-        limit = console.uploads.max_bytes
-        declared = request.headers.get("content-length")
-        if declared is not None and (not declared.isdigit() or int(declared) > limit):
-            raise BadValueError(f"upload of {declared} bytes is above the limit of {limit:,}")
-        data = bytearray()
-        async for chunk in request.stream():
-            data += chunk
-            if len(data) > limit:
-                raise BadValueError(f"upload is above the limit of {limit:,} bytes")
+        console.uploads.check_room()
+        data = await _capped(request, console.uploads.max_bytes, "upload")
         name = request.query_params.get("name", "image")
-        upload_id = await _in_thread(console.uploads.add, bytes(data), name)
+        upload_id = await _in_thread(console.uploads.add, data, name)
         console.say(f"uploaded {name!r} as upload:{upload_id}")
         return {"target": f"upload:{upload_id}"}
 
@@ -255,6 +246,20 @@ async def _send(websocket: WebSocket, console: Console, page: _Page) -> None:
             await websocket.send_text(json.dumps(console.state()))
         with contextlib.suppress(asyncio.TimeoutError):
             await asyncio.wait_for(page.wake.wait(), timeout=max(0.01, next_state - loop.time()))
+
+
+async def _capped(request: Request, limit: int, what: str) -> bytes:
+    """The request's body, read no further than `limit` bytes (BadValueError beyond: a declared length is refused
+    before anything is read)."""
+    declared = request.headers.get("content-length")
+    if declared is not None and (not declared.isdigit() or int(declared) > limit):
+        raise BadValueError(f"{what} of {declared} bytes is above the limit of {limit:,}")
+    data = bytearray()
+    async for chunk in request.stream():
+        data += chunk
+        if len(data) > limit:
+            raise BadValueError(f"{what} is above the limit of {limit:,} bytes")
+    return bytes(data)
 
 
 _CPU: contextvars.ContextVar[list[float]] = contextvars.ContextVar("console_request_cpu")
