@@ -3,8 +3,9 @@ reports its progress, says its errors in one line and ends with the console."""
 
 from __future__ import annotations
 
-import multiprocessing
 import os
+import subprocess
+import sys
 import threading
 from pathlib import Path
 
@@ -40,7 +41,7 @@ def test_the_worker_computes_what_a_run_computes_in_its_own_process(bench_profil
         assert worker.compute(job).cached is True and worker._process.pid == pid  # one process, kept
     finally:
         worker.close()
-    assert worker._process is None and not any(p.pid == pid for p in multiprocessing.active_children())
+    assert worker._process is None and not Path(f"/proc/{pid}").exists()
 
 
 def test_a_worker_that_dies_is_said_in_one_line_and_replaced(bench_profile_path: Path) -> None:
@@ -65,3 +66,22 @@ def test_a_worker_that_dies_is_said_in_one_line_and_replaced(bench_profile_path:
         assert worker.compute(request(bench_profile_path, 2)).gray.shape == (128, 192)  # a new worker
     finally:
         worker.close()
+
+
+@pytest.mark.slow
+def test_a_script_without_a_main_guard_can_use_the_worker(bench_profile_path: Path, tmp_path: Path) -> None:
+    """The worker is a fresh `python -m` interpreter: the script that started it is not run again in it (as a
+    spawned multiprocessing child would run it)."""
+    script = tmp_path / "embed.py"
+    script.write_text(f"""
+from pathlib import Path
+from benchctl.console.holograms import HologramWorker
+from test_console_holograms import request
+worker = HologramWorker()
+print("gray", worker.compute(request(Path({str(bench_profile_path)!r}), 2)).gray.shape, flush=True)
+worker.close()
+""")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(__file__).parent), os.environ.get("PYTHONPATH", "")])}
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300, env=env)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.splitlines() == ["gray (128, 192)"]  # once: the script ran once

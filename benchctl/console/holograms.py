@@ -2,18 +2,23 @@
 
 A 50-iteration SGD at full size keeps the cores busy for a minute. In the console's process its Python work would
 compete with the event loop for the GIL and its torch threads with the live view for the cores (status requests
-waited up to 0.27 s, docs/console.md). The worker is one child process, spawned (not forked: the console has
-threads) on the first hologram and kept until the console stops. It leaves one core to the console's own process
-(WORKER_THREADS) and runs at a slightly lower priority (WORKER_NICE), so the live view keeps its pace; docs/console.md
-has the measurements behind both. It runs what a run runs (`runner.hologram_cache.hologram`: the same method,
-calibration, fitted model and cache) and reports its progress as it goes. It holds no device.
+waited up to 0.27 s, docs/console.md). The worker is one child process, `python -m benchctl.console.holograms` (a
+fresh interpreter: the console has threads, and a script that embeds the console is never run again), started on
+the first hologram and kept until the console stops; requests and results travel as pickles over a socket pair.
+It leaves one core to the console's own process (WORKER_THREADS) and runs at a slightly lower priority
+(WORKER_NICE), so the live view keeps its pace; docs/console.md has the measurements behind both. It runs what a
+run runs (`runner.hologram_cache.hologram`: the same method, calibration, fitted model and cache) and reports its
+progress as it goes. It holds no device.
 """
 
 from __future__ import annotations
 
-import multiprocessing
 import os
+import pickle
 import signal
+import socket
+import subprocess
+import sys
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -55,7 +60,7 @@ class HologramWorker:
     """The console's hologram process; `compute` runs one request in it (one at a time), `close` ends it."""
 
     def __init__(self) -> None:
-        self._process: multiprocessing.process.BaseProcess | None = None
+        self._process: subprocess.Popen[bytes] | None = None
         self._connection: Connection | None = None
         self._lock = threading.Lock()
 
@@ -65,9 +70,9 @@ class HologramWorker:
         with self._lock:
             connection = self._start()
             try:
-                connection.send(request)
+                _send(connection, request)
                 while True:
-                    kind, *message = connection.recv()
+                    kind, *message = _receive(connection)
                     if kind == "progress" and progress is not None:
                         progress(*message)
                     elif kind == "done":
@@ -84,26 +89,26 @@ class HologramWorker:
         self._stop()
 
     def _start(self) -> Connection:
-        if self._process is None or not self._process.is_alive():
-            context = multiprocessing.get_context("spawn")
-            ours, theirs = context.Pipe()
-            self._process = context.Process(target=_serve, args=(theirs, WORKER_NICE, WORKER_THREADS),
-                                            name="benchctl hologram worker", daemon=True)
-            self._process.start()
-            theirs.close()
-            self._connection = ours
+        if self._process is None or self._process.poll() is not None:
+            ours, theirs = socket.socketpair()
+            with theirs:
+                self._process = subprocess.Popen(
+                    [sys.executable, "-m", "benchctl.console.holograms", str(theirs.fileno()), str(WORKER_NICE),
+                     str(WORKER_THREADS)], pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL)
+            self._connection = Connection(ours.detach())
         assert self._connection is not None
         return self._connection
 
     def _stop(self) -> None:
         process, connection, self._process, self._connection = self._process, self._connection, None, None
         if connection is not None:
-            connection.close()  # an idle worker reads the end of its pipe and exits
+            connection.close()  # an idle worker reads the end of its socket and exits
         if process is not None:
-            process.join(timeout=2.0)
-            if process.is_alive():
+            try:
+                process.wait(timeout=2.0)
+            except subprocess.TimeoutExpired:
                 process.terminate()
-                process.join(timeout=5.0)
+                process.wait(timeout=5.0)
 
 
 def _serve(connection: Connection, nice: int, threads: int) -> None:
@@ -115,26 +120,42 @@ def _serve(connection: Connection, nice: int, threads: int) -> None:
     torch.set_num_threads(threads)
     while True:
         try:
-            request = connection.recv()
+            request = _receive(connection)
         except (EOFError, OSError):
             return
         try:
-            connection.send(("done", _compute(request, connection)))
+            _send(connection, ("done", _compute(request, connection)))
         except Exception as exc:
             try:
-                connection.send(("error", exc if isinstance(exc, BenchctlError) else BenchctlError(
+                _send(connection, ("error", exc if isinstance(exc, BenchctlError) else BenchctlError(
                     f"hologram: {type(exc).__name__}: {exc}")))
             except Exception:  # an error that does not pickle: its line
-                connection.send(("error", BenchctlError(f"hologram: {exc}")))
+                _send(connection, ("error", BenchctlError(f"hologram: {exc}")))
+
+
+def _send(connection: Connection, message: Any) -> None:
+    """One message, pickled plainly (multiprocessing's own pickler would hand tensors over as shared memory, which
+    only a process multiprocessing started may open)."""
+    connection.send_bytes(pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL))
+
+
+def _receive(connection: Connection) -> Any:
+    return pickle.loads(connection.recv_bytes())
 
 
 def _compute(request: Request, connection: Connection) -> Result:
     from benchctl.runner.hologram_cache import hologram
 
     def progress(label: str) -> Callable[[int, int], None]:
-        return lambda done, total: connection.send(("progress", label, done, total))
+        return lambda done, total: _send(connection, ("progress", label, done, total))
 
     result = hologram(request.profile, request.amplitude, request.channel, request.method,
                       iterations=request.iterations, seed=request.seed, checkpoint=request.checkpoint,
                       progress=progress)
     return Result(result.gray, result.scores, result.seconds, result.cached)
+
+
+if __name__ == "__main__":
+    from benchctl.console.holograms import _serve as serve  # this module by its name, as the console pickles it
+
+    serve(Connection(int(sys.argv[1])), int(sys.argv[2]), int(sys.argv[3]))
