@@ -134,7 +134,12 @@ def connected(browser: webdriver.Chrome, url: str) -> None:
 
 def test_capture_from_the_page(served: tuple[Console, str], browser: webdriver.Chrome, tmp_path: Path) -> None:
     console, url = served
+    browser.set_window_size(1000, 800)  # a laptop's window: every panel fits its column, ALL OFF in view
     connected(browser, url)
+    for panel in ("laser-panel", "slm-panel", "capture-panel", "procedure-panel", "view"):
+        assert browser.execute_script(f"const e = document.getElementById('{panel}'); "
+                                      "return e.scrollWidth <= e.clientWidth;"), panel
+    assert browser.find_element(By.ID, "all-off").is_displayed()
     frames = browser.find_element(By.ID, "frames")
     frames.clear()
     frames.send_keys("2")

@@ -38,11 +38,10 @@ async function init() {
     option($("channel"), ch.name, `${ch.name} (${ch.wavelength_nm} nm)`);
     const row = document.createElement("tr");
     row.id = "laser-" + ch.name;
-    row.innerHTML = `<td class="ch-${ch.name}">${ch.name}<br><span class="muted small">${ch.wavelength_nm} nm,
-      ≤ ${ch.limit_mw} mW</span></td>
+    row.innerHTML = `<td class="ch-${ch.name}">${ch.name}<br><span class="muted small">${ch.wavelength_nm} nm<br>≤ ${ch.limit_mw} mW</span></td>
       <td><input class="setpoint" value="${ch.setpoint_mw}mW" title="e.g. 2mW, 0.5mW or 5%"></td>
       <td><button class="set">set</button></td><td><button class="emit">off</button></td>
-      <td class="readback small"></td><td class="status small"></td>`;
+      <td class="small"><span class="readback"></span><br><span class="status"></span></td>`;
     row.querySelector(".set").onclick = () => api(`/api/laser/${ch.name}/power`,
       { power: row.querySelector(".setpoint").value }).then((r) => say(`${ch.name}: setpoint ${r.setpoint_mw} mW (read back)`), () => {});
     row.querySelector(".emit").onclick = () => {
@@ -106,7 +105,7 @@ async function frame(buffer) {
   const canvas = $("frame");
   if (canvas.width !== bitmap.width || canvas.height !== bitmap.height) {
     canvas.width = $("overlay").width = bitmap.width; canvas.height = $("overlay").height = bitmap.height;
-    $("frame-box").style.aspectRatio = `${bitmap.width} / ${bitmap.height}`;
+    $("frame-box").style.setProperty("--aspect", bitmap.width / bitmap.height);
   }
   canvas.getContext("2d").drawImage(bitmap, 0, 0);
   bitmap.close();
@@ -125,16 +124,20 @@ async function frame(buffer) {
   return header.seq;
 }
 
+const CHANNEL_COLOURS = { red: "#ff6b6b", green: "#5be37d", blue: "#6aa8ff" };
+
 function overlay(header) {
   const canvas = $("overlay"); const ctx = canvas.getContext("2d");
   ctx.clearRect(0, 0, canvas.width, canvas.height);
-  ctx.lineWidth = 2; ctx.setLineDash([8, 6]);
-  for (const [colour, corners] of Object.entries(header.overlay || {})) {
-    ctx.strokeStyle = "#ffd33d"; ctx.beginPath();
-    corners.forEach(([x, y], i) => (i ? ctx.lineTo : ctx.moveTo).call(ctx, x * canvas.width, y * canvas.height));
+  ctx.lineWidth = 2; ctx.font = "12px system-ui, sans-serif";
+  Object.entries(header.overlay || {}).forEach(([colour, corners], i) => {
+    const hue = CHANNEL_COLOURS[colour] || "#ffd33d";
+    ctx.setLineDash([8, 6]); ctx.lineDashOffset = 4 * i; ctx.strokeStyle = hue; ctx.beginPath();
+    corners.forEach(([x, y], k) => (k ? ctx.lineTo : ctx.moveTo).call(ctx, x * canvas.width, y * canvas.height));
     ctx.closePath(); ctx.stroke();
-    ctx.fillStyle = "#ffd33d"; ctx.fillText(colour, corners[0][0] * canvas.width + 4, corners[0][1] * canvas.height - 4);
-  }
+    // one label per colour, stacked above the rectangle's corner (registered colours usually nearly coincide)
+    ctx.fillStyle = hue; ctx.fillText(colour, corners[0][0] * canvas.width + 4, corners[0][1] * canvas.height - 6 - 14 * i);
+  });
   const w = header.zoom_window; const full = header.full_shape || header.shape;
   if (w && full) {
     ctx.setLineDash([]); ctx.strokeStyle = "#4c9bff";
