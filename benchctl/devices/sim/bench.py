@@ -42,11 +42,11 @@ from benchctl.profiles import LaserChannel, Profile, SimSensorConfig, SimSLMConf
 PLANCK_J_S = 6.62607015e-34
 LIGHT_M_S = 299792458.0
 
-# A typical Bayer sensor's quantum efficiency behind its colour filters and IR-cut filter (electrons per photon):
-# wavelength nm, R, G, B. Channels without a [sim.sensor.response] entry use it, interpolated linearly.
 POISSON_BELOW = 50.0  # electrons in a live-view bin below which its shot noise is drawn as Poisson
 SATURATION_SAMPLES = 2_000_000  # sensor pixels a live-view frame evaluates, at most, to find saturated bins
 
+# A typical Bayer sensor's quantum efficiency behind its colour filters and IR-cut filter (electrons per photon):
+# wavelength nm, R, G, B. Channels without a [sim.sensor.response] entry use it, interpolated linearly.
 TYPICAL_QE = np.array([
     (400.0, 0.02, 0.03, 0.22),
     (450.0, 0.02, 0.10, 0.42),
@@ -252,7 +252,7 @@ class _PrunedPropagator:
 
 
 def _band(passed: torch.Tensor) -> tuple[int, int]:
-    """(low, high) such that exactly the indices [0, low) and [n - low, n) of `passed` (in FFT order) are True; a
+    """(low, high) such that exactly the indices [0, low) and [n - high, n) of `passed` (in FFT order) are True; a
     set of any other shape is taken whole (nothing skipped, still exact)."""
     n = len(passed)
     low = int(torch.argmin(passed.int())) if not passed.all() else n
@@ -559,11 +559,13 @@ class LiveView:
                  & (xs < np.ceil((bin_x + 1) * binning - 0.5)[:, None])[:, None, :])
         ys, xs = np.broadcast_arrays((ys + top)[:, :, None], (xs + left)[:, None, :])  # (bins, n, n) active area
         target = np.linalg.solve(homography, np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)]))
-        target = (target[:2] / target[2]).astype(np.float32).reshape(2, len(bin_y), n * n)
-        values = cv2.remap(self._planes, target[0], target[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                           borderValue=0)
+        points = xs.size
+        target = np.pad((target[:2] / target[2]).astype(np.float32), ((0, 0), (0, -points % 1024)))
+        # laid out 1024 wide: OpenCV maps are at most 32767 rows long
+        values = cv2.remap(self._planes, target[0].reshape(-1, 1024), target[1].reshape(-1, 1024), cv2.INTER_LINEAR,
+                           borderMode=cv2.BORDER_CONSTANT, borderValue=0).reshape(-1, 3)[:points]
         colours = np.array(CFA_LAYOUTS[sensor.cfa]).reshape(2, 2)[ys.astype(np.int64) % 2, xs.astype(np.int64) % 2]
-        signal = np.take_along_axis(values, colours.reshape(len(bin_y), n * n, 1), axis=2)[:, :, 0]
+        signal = np.take_along_axis(values, colours.reshape(-1, 1), axis=1).reshape(len(bin_y), n * n)
         saturated = np.zeros(shape, bool)
         saturated[bin_y, bin_x] = ((signal >= full) & valid.reshape(len(bin_y), -1)).any(axis=1)
         return saturated if saturated.any() else None
