@@ -80,7 +80,7 @@ def _black_levels(black_level: int | Sequence[int], white_level: int) -> list[in
 def dng_bytes(
     mosaic: np.ndarray,
     *,
-    cfa: str = "RGGB",
+    cfa: str | None = "RGGB",
     black_level: int | Sequence[int] = 0,
     white_level: int = 65535,
     camera_model: str = "benchctl simulated camera",
@@ -93,7 +93,8 @@ def dng_bytes(
 ) -> bytes:
     """The DNG file for a raw Bayer mosaic (H, W) uint16, as the sensor read it (margins included).
 
-    cfa: the 2x2 layout at the top-left of the active area (the visible image), which is how LibRaw reads it.
+    cfa: the 2x2 layout at the top-left of the active area (the visible image), which is how LibRaw reads it;
+    None for a monochrome sensor (LinearRaw, one plane: no CFA, one black level, a 1x3 colour matrix).
     black_level: one level, or 4 levels per CFA position in row-major order (BlackLevelRepeatDim 2x2).
     active_area: (top, left, bottom, right) of the exposed pixels; the rest are masked margins, as on a real
     sensor; top and left must be even (LibRaw rounds odd ones up and then misplaces per-position black levels).
@@ -105,8 +106,8 @@ def dng_bytes(
         raise BadValueError(f"DNG mosaic must be a 2-D uint16 array, got {getattr(mosaic, 'dtype', type(mosaic))} "
                             f"with shape {getattr(mosaic, 'shape', '?')}")
     height, width = mosaic.shape
-    pattern = CFA_LAYOUTS.get(cfa.upper())
-    if pattern is None:
+    pattern = None if cfa is None else CFA_LAYOUTS.get(cfa.upper())
+    if cfa is not None and pattern is None:
         raise BadValueError(f"unknown CFA layout {cfa!r}; choose one of {', '.join(CFA_LAYOUTS)}")
     if not 0 < white_level <= 65535:
         raise BadValueError(f"white_level must be 1 .. 65535, got {white_level}")
@@ -117,31 +118,44 @@ def dng_bytes(
     if len(as_shot_neutral) != 3 or not all(v > 0 for v in as_shot_neutral):
         raise BadValueError(f"as_shot_neutral must be 3 positive numbers, got {list(as_shot_neutral)}")
 
-    entries = [
+    if pattern is None:
+        if len(set(blacks)) != 1:
+            raise BadValueError(f"a monochrome DNG has one black level, got {blacks}")
+        colour = [
+            _entry(262, _SHORT, [34892]),  # PhotometricInterpretation: LinearRaw
+            _entry(50713, _SHORT, [1, 1]),  # BlackLevelRepeatDim
+            _entry(50714, _LONG, blacks[:1]),  # BlackLevel
+            _entry(50721, _SRATIONAL, [_rational(v, signed=True) for v in matrix[1]]),  # ColorMatrix1: luminance
+            _entry(50728, _RATIONAL, [_rational(as_shot_neutral[1])]),  # AsShotNeutral
+        ]
+    else:
+        colour = [
+            _entry(262, _SHORT, [32803]),  # PhotometricInterpretation: CFA
+            _entry(33421, _SHORT, [2, 2]),  # CFARepeatPatternDim
+            _entry(33422, _BYTE, pattern),  # CFAPattern
+            _entry(50710, _BYTE, [0, 1, 2]),  # CFAPlaneColor: R G B
+            _entry(50711, _SHORT, [1]),  # CFALayout: rectangular
+            _entry(50713, _SHORT, [2, 2]),  # BlackLevelRepeatDim
+            _entry(50714, _LONG, blacks),  # BlackLevel, per CFA position
+            _entry(50721, _SRATIONAL, [_rational(v, signed=True) for row in matrix for v in row]),  # ColorMatrix1
+            _entry(50728, _RATIONAL, [_rational(v) for v in as_shot_neutral]),  # AsShotNeutral
+        ]
+    entries = colour + [
         _entry(254, _LONG, [0]),  # NewSubFileType: the main image
         _entry(256, _LONG, [width]),
         _entry(257, _LONG, [height]),
         _entry(258, _SHORT, [16]),  # BitsPerSample
         _entry(259, _SHORT, [1]),  # Compression: none
-        _entry(262, _SHORT, [32803]),  # PhotometricInterpretation: CFA
         _entry(273, _LONG, [8]),  # StripOffsets: the strip follows the header
         _entry(274, _SHORT, [1]),  # Orientation: top-left
         _entry(277, _SHORT, [1]),  # SamplesPerPixel
         _entry(278, _LONG, [height]),  # RowsPerStrip: one strip
         _entry(279, _LONG, [height * width * 2]),  # StripByteCounts
         _entry(284, _SHORT, [1]),  # PlanarConfiguration: chunky
-        _entry(33421, _SHORT, [2, 2]),  # CFARepeatPatternDim
-        _entry(33422, _BYTE, pattern),  # CFAPattern
         _entry(50706, _BYTE, [1, 4, 0, 0]),  # DNGVersion
         _entry(50707, _BYTE, [1, 1, 0, 0]),  # DNGBackwardVersion
         _ascii(50708, camera_model),  # UniqueCameraModel
-        _entry(50710, _BYTE, [0, 1, 2]),  # CFAPlaneColor: R G B
-        _entry(50711, _SHORT, [1]),  # CFALayout: rectangular
-        _entry(50713, _SHORT, [2, 2]),  # BlackLevelRepeatDim
-        _entry(50714, _LONG, blacks),  # BlackLevel, per CFA position
         _entry(50717, _LONG, [white_level]),  # WhiteLevel
-        _entry(50721, _SRATIONAL, [_rational(v, signed=True) for row in matrix for v in row]),  # ColorMatrix1
-        _entry(50728, _RATIONAL, [_rational(v) for v in as_shot_neutral]),  # AsShotNeutral
         _entry(50778, _SHORT, [_D65]),  # CalibrationIlluminant1
     ]
     if datetime is not None:

@@ -31,3 +31,4 @@ def check_pixels(what: str, height: int, width: int) -> None:
     if height * width > limit:
         raise BadValueError(f"{what}: {height} x {width} = {height * width:,} pixels is above the limit of "
                             f"{limit:,} (set ${MAX_PIXELS_ENV} to raise it)")
+

@@ -14,14 +14,16 @@ import os
 import re
 import sys
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 import msgspec
 from msgspec import Meta
 
 from benchctl.dng import CFA_LAYOUTS
+from benchctl.drivers import driver_names
 from benchctl.errors import BenchctlError
 from benchctl.limits import check_pixels
+from benchctl.optics.geometry import Geometry
 from benchctl.schema import Model, decode, fail
 
 if sys.version_info >= (3, 11):
@@ -42,6 +44,10 @@ PositiveInt = Annotated[int, Meta(gt=0)]
 NonNegativeInt = Annotated[int, Meta(ge=0)]
 RowsCols = tuple[float, float]  # [rows, cols]
 CFALayout = Literal[tuple(CFA_LAYOUTS)]  # type: ignore[valid-type]  # the layouts benchctl.dng writes
+# The drivers of each kind (benchctl.drivers lists them once).
+LaserDriver = Literal[driver_names("laser")]  # type: ignore[valid-type]
+SLMDriver = Literal[driver_names("slm")]  # type: ignore[valid-type]
+CameraDriver = Literal[driver_names("camera")]  # type: ignore[valid-type]
 # The Zernike terms of optics.aberration.ZERNIKE_TERMS (not imported: it imports torch; a test keeps them equal).
 ZernikeTerm = Literal["tilt_vertical", "tilt_horizontal", "astigmatism_oblique", "defocus", "astigmatism_vertical",
                       "coma_vertical", "coma_horizontal", "spherical"]
@@ -67,7 +73,7 @@ class OpticsConfig(Model, kw_only=True):
 class SLMConfig(Model, kw_only=True):
     """Phase SLM ([slm]): grid, pitch, bit depth, and how phases become the gray levels it displays."""
 
-    driver: Literal["sim", "framebuffer"] = "sim"
+    driver: SLMDriver = "sim"
     device: str | None = None  # framebuffer device, e.g. /dev/fb1
     width: PositiveInt
     height: PositiveInt
@@ -81,6 +87,11 @@ class SLMConfig(Model, kw_only=True):
     grating_period_px: RowsCols = (0.0, 0.0)  # blazed carrier (rows, cols); 0 = none on that axis
     # Channel name -> gray-to-phase table file, relative to the profile's folder.
     lut: dict[str, Path] = msgspec.field(default_factory=dict)
+    # display: the desktop output showing the SLM, by its EDID (monitor name, serial) and/or connector name
+    edid_name: str | None = None
+    edid_serial: str | None = None
+    output: str | None = None  # RandR output name, e.g. HDMI-A-1
+    x_display: str | None = None  # X display, e.g. ":0" (None: $DISPLAY)
 
     @property
     def pitch_m(self) -> float:
@@ -132,7 +143,7 @@ class TemplateProtocol(Model, kw_only=True):
 class LaserConfig(Model, kw_only=True):
     """The laser ([laser]): which driver, where it is connected, and its channels."""
 
-    driver: Literal["template", "cobolt", "obis"] = "template"
+    driver: LaserDriver = "template"
     port: str | None = None
     baudrate: PositiveInt = 115200
     timeout_s: Positive = 1.0
@@ -150,8 +161,8 @@ class LaserConfig(Model, kw_only=True):
 class CameraConfig(Model, kw_only=True):
     """The camera ([camera]): driver, how to find it, and the capture settings benchctl may apply."""
 
-    driver: Literal["sim", "ptp", "gphoto2"] = "sim"
-    model: str = ""
+    driver: CameraDriver = "sim"
+    model: str = ""  # gphoto2: the camera's model as libgphoto2 names it; genicam: its model name
     usb_id: str = "04a9:32a0"  # vendor:product the ptp driver looks for (Canon EOS M10)
     transport: Literal["usb", "sim"] = "usb"  # ptp: "usb" (pyusb) or "sim" (the simulated EOS body)
     exposure_s: Positive | None = None  # None: leave the camera's own setting
@@ -160,7 +171,17 @@ class CameraConfig(Model, kw_only=True):
     # Property writes (ISO, shutter, RAW format) freeze the EOS M10: set exposure on the body and leave this off.
     write_properties: bool = False
     image_timeout_s: Positive = 90.0  # longest wait for the image after the shutter
-    gphoto2_path: str = "gphoto2"
+    # genicam: which camera (every key given must match; none: the only one found). device_id is Aravis's id
+    # or the camera's IP address (opened directly, without a discovery broadcast).
+    device_id: str | None = None
+    serial: str | None = None
+    user_id: str | None = None  # DeviceUserID, a name the lab gave the camera
+    vendor: str | None = None  # with `model`: the camera's vendor and model names as it reports them
+    pixel_format: str | None = None  # PFNC name, e.g. BayerRG12 (None: the camera's current one)
+    region: tuple[NonNegativeInt, NonNegativeInt, PositiveInt, PositiveInt] | None = None  # [x, y, width, height]
+    gain: NonNegative | None = None  # in the camera's unit (usually dB); None: leave it
+    black_level: float | None = None  # the camera's BlackLevel, where offered; None: leave it
+    frame_retries: NonNegativeInt = 2  # incomplete frames (lost packets) re-triggered before the capture fails
 
 
 # The simulated bench's physics ([sim]; docs/simulated_bench.md). Every key is optional; the [sim] block of
@@ -283,6 +304,21 @@ class Profile(ProfileFile, kw_only=True):
         known = ", ".join(ch.name for ch in self.channels)
         raise BenchctlError(f"{self.path}: no laser channel {name!r}; known channels: {known}")
 
+    def fitted_model(self, channel: str) -> dict[str, Any] | None:
+        """`channel`'s entry of the fitted optical model file `optics.model` names, checked
+        (benchctl.calibration_files); None when there is no model or no entry for the channel."""
+        from benchctl.calibration_files import fitted_model_entry
+
+        return fitted_model_entry(self, channel)
+
+    def geometry(self, channel: str) -> Geometry:
+        """The optical geometry of laser channel `channel` in SI units: the one conversion from the profile's
+        units, for everything that computes, calibrates or caches for this bench."""
+        slm, optics = self.require("slm", "optics").slm, self.optics
+        assert slm is not None and optics is not None
+        return Geometry(wavelength_m=self.channel(channel).wavelength_m, pitch_m=slm.pitch_m,
+                        distance_m=optics.distance_m, shape=slm.shape, roi=optics.roi, aperture=optics.iris_fraction)
+
     def describe(self) -> str:
         """Multi-line summary for people: each device section with its settings."""
         slm, optics, laser = self.slm, self.optics, self.laser
@@ -328,7 +364,8 @@ def resolve_profile_path(path_or_name: str | Path | None = None) -> Path:
     """Where a profile lives: a path, a bare name (hardware_profiles/<name>.toml) or None for the default.
 
     None means $BENCHCTL_PROFILE if set, else the simulated bench. Bare names are looked up in
-    ./hardware_profiles first, then in the hardware_profiles folder of the repository next to the package.
+    ./hardware_profiles first, then in the hardware_profiles folder of the repository next to the package, then as a
+    file of that name (which load_profile then says is not a TOML profile, if it is not).
     """
     origin = ""
     if path_or_name is None:
@@ -343,6 +380,8 @@ def resolve_profile_path(path_or_name: str | Path | None = None) -> Path:
     for candidate in candidates:
         if candidate.is_file():
             return candidate
+    if Path(text).is_file():  # -p README.md: read, to be told what it is not
+        return Path(text)
     searched = ", ".join(str(c) for c in candidates)
     raise BenchctlError(f"hardware profile {text!r}{origin} not found (looked for {searched})")
 
@@ -358,6 +397,9 @@ def load_profile(path_or_name: str | Path | None = None) -> Profile:
     except OSError as exc:
         raise BenchctlError(f"{path}: cannot read hardware profile: {exc.strerror or exc}") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        if path.suffix.lower() != ".toml":
+            raise BenchctlError(f"{path}: not a hardware profile (a TOML file such as "
+                                f"hardware_profiles/simulated.toml): {exc}") from None
         raise BenchctlError(f"{path}: TOML syntax error: {exc}") from None
     return _checked(path, decode(raw, ProfileFile, path))
 
@@ -371,10 +413,15 @@ def _checked(path: Path, file: ProfileFile) -> Profile:
         raise fail(path, "name", f"{name!r} must be letters, digits, '_', '-' or '.' and start with a letter or digit "
                                  "(it names the profile's calibration folder)")
     slm, optics = file.slm, file.optics
+    if file.camera and file.camera.driver == "genicam" and file.camera.iso is not None:
+        raise fail(path, "camera.iso", "a GenICam camera has gain, not ISO: set camera.gain instead")
     if slm:
         check_pixels(f"{path}: slm.height x slm.width", slm.height, slm.width)
         if slm.driver == "framebuffer" and not slm.device:
             raise fail(path, "slm.device", "the framebuffer driver needs a device, e.g. device = \"/dev/fb1\"")
+        if slm.driver == "display" and slm.edid_name is None and slm.edid_serial is None and slm.output is None:
+            raise fail(path, "slm.driver", "the display driver needs the SLM's output: slm.edid_name, slm.edid_serial "
+                                           "or slm.output (`benchctl devices` lists them)")
     if optics and slm and (optics.roi[0] > slm.height or optics.roi[1] > slm.width):
         raise fail(
             path, "optics.roi",

@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from benchctl.devices.slm import read_displayed, slm_for
+from benchctl.devices.sim.slm import read_displayed
+from benchctl.devices.slm import slm_for
 from benchctl.images import write_png
 from benchctl.profiles import load_profile
 

@@ -20,7 +20,7 @@ from selenium.webdriver.support.ui import Select
 from benchctl.console.app import create_app
 from benchctl.console.core import Console
 from benchctl.console.server import listen
-from benchctl.devices.slm import read_displayed
+from benchctl.devices.sim.slm import read_displayed
 from benchctl.profiles import load_profile
 from console_bench import TOKEN, access, laser_channel, make_console
 

@@ -24,7 +24,8 @@ from benchctl.devices.laser import open_laser
 from benchctl.devices.sim import bench, eos_usb
 from benchctl.devices.sim.eos_usb import SimEosTransport
 from benchctl.devices.sim.state import CAMERA_STATE, load_state
-from benchctl.devices.slm import open_slm, read_displayed
+from benchctl.devices.sim.slm import read_displayed
+from benchctl.devices.slm import open_slm
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import CameraConfig, Profile, load_profile
 
@@ -96,7 +97,7 @@ def test_the_live_views_light_is_the_captures(make_bench_profile, sim: dict, iri
         live = bench._live_irradiance(profile, channel, gray)
         assert live.dtype == torch.float32 and live.shape == capture.shape
         assert torch.allclose(live.double(), capture, rtol=0, atol=2e-6 * float(capture.max()))
-    propagator = bench._pruned_propagator(OpticalSetup.from_profile(profile, "green"))
+    propagator = bench._pruned_propagator(OpticalSetup.of(profile.geometry("green")))
     ph, pw = propagator.padded_shape
     band = (propagator.low_y + propagator.high_y) * (propagator.low_x + propagator.high_x)
     assert band < 0.3 * ph * pw if iris else band > 0.6 * ph * pw  # what the iris lets through, and skips

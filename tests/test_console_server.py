@@ -33,7 +33,7 @@ from benchctl.console.security import TOKEN_HEADER, Access
 from benchctl.console.server import allowed_hosts
 from benchctl.console.uploads import MAX_UPLOADS
 from benchctl.devices.serial_link import SerialLink
-from benchctl.devices.slm import read_displayed
+from benchctl.devices.sim.slm import read_displayed
 from benchctl.optics.aberration import wavefront_phase
 from benchctl.profiles import load_profile
 from console_bench import (ORIGIN, PORT, TOKEN, WS, access, expected_phase_frame, laser_channel, make_console,

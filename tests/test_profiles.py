@@ -112,7 +112,7 @@ def test_toml_syntax_error_names_the_line(small_profile_path: Path) -> None:
         ("[slm]", "[cameras]\nmodel = 'x'\n\n[slm]",
          "cameras: unknown section (did you mean 'camera'? known: name, description, optics, slm, laser, camera"),
         ("[slm]", "[camera]\ndriver = 'webcam'\n\n[slm]",
-         "camera.driver: unknown value 'webcam' (choose from sim, ptp, gphoto2)"),
+         "camera.driver: unknown value 'webcam' (choose from sim, ptp, gphoto2, genicam)"),
         ("wavelength_nm = 520", "wavelenght_nm = 520",
          "laser.channels[1].wavelenght_nm: unknown key (did you mean 'wavelength_nm'?"),
         ("pitch_um = 8.0\n", "", "slm.pitch_um: missing required key"),

@@ -13,6 +13,8 @@ import msgspec
 import pytest
 
 from benchctl.devices.camera.ptp.container import (
+    CANON_VENDOR_ID,
+    MTP_VENDOR_ID,
     Container,
     ContainerType,
     EventCode,
@@ -151,10 +153,36 @@ def test_a_jpeg_is_refused_with_what_to_do() -> None:
             cam.capture()
 
 
-def test_not_a_canon_eos_body() -> None:
-    sim = SimEosTransport(Images())
-    sim.device_info = dataclasses.replace(sim.device_info, vendor_extension_id=0x6, model="Other")
-    with pytest.raises(DeviceError, match="Other \\(04a9:32a0\\) does not offer Canon EOS remote release.*gphoto2"):
+def test_an_eos_body_reporting_the_mtp_vendor_extension_is_a_canon() -> None:
+    """Canon bodies on USB often report VendorExtensionID 6 (Microsoft / MTP), not Canon's 0x0B: the USB vendor
+    0x04A9 and the EOS operations decide (as libgphoto2 does)."""
+    images = Images()
+    sim = SimEosTransport(images, vendor_extension_id=MTP_VENDOR_ID)
+    with camera(sim) as cam:
+        frame = cam.capture()[0]
+    assert sim.operations[:len(OPEN_SEQUENCE)] == OPEN_SEQUENCE
+    assert frame.data == images.produced[0][0]
+
+
+def test_the_mtp_vendor_extension_from_another_usb_vendor_is_not_a_canon() -> None:
+    sim = SimEosTransport(Images(), vendor_extension_id=MTP_VENDOR_ID, usb_vendor=0x04B0)
+    sim.device_info = dataclasses.replace(sim.device_info, model="Other")
+    with pytest.raises(DeviceError, match=r"^Other \(04a9:32a0\) is not a Canon body \(USB vendor 0x04b0, PTP "
+                                          r"vendor extension 6\): use camera driver 'gphoto2'$"):
+        camera(sim)
+    assert sim.closed and Op.EosSetRemoteMode not in sim.operations
+
+
+@pytest.mark.parametrize("vendor_extension_id", [CANON_VENDOR_ID, MTP_VENDOR_ID])
+def test_a_canon_without_the_eos_operations_is_refused(vendor_extension_id: int) -> None:
+    """A PowerShot: Canon by USB vendor and extension, but no EOS remote release or event polling."""
+    sim = SimEosTransport(Images(), vendor_extension_id=vendor_extension_id)
+    without = {Op.EosRemoteReleaseOn, Op.EosGetEvent}
+    sim.device_info = dataclasses.replace(sim.device_info, model="Canon PowerShot G7 X", operations_supported=tuple(
+        code for code in sim.device_info.operations_supported if code not in without))
+    with pytest.raises(DeviceError, match=r"Canon PowerShot G7 X \(04a9:32a0\) does not offer Canon EOS remote "
+                                          r"release and events \(no RemoteReleaseOn \(0x9128\), GetEvent "
+                                          r"\(0x9116\)\): use camera driver 'gphoto2'"):
         camera(sim)
     assert sim.closed
 

@@ -12,7 +12,8 @@ import pytest
 import torch
 
 from benchctl.devices.errors import DeviceError
-from benchctl.devices.slm import SimSLM, open_slm, read_displayed
+from benchctl.devices.sim.slm import SimSLM, read_displayed
+from benchctl.devices.slm import open_slm
 from benchctl.errors import BadValueError, BenchctlError
 from benchctl.profiles import SLMConfig, load_profile
 

@@ -2,7 +2,9 @@
 one, the curves and the plots, built from whatever jobs of the run have finished.
 
 Per method (and bench variant), over its seeds (mean +- sample standard deviation): the held-out score where
-training ended, and two readings that compare methods at one budget: at equal steps (the fewest steps any
+training ended and where its validation score was best (the checkpoint early stopping would keep: batch-1
+Adam at a constant learning rate wanders by a fraction of a dB from step to step), and two readings that
+compare methods at one budget: at equal steps (the fewest steps any
 seed of the family's baseline network trained) and at equal time (the mean training CPU time of the
 baseline's seeds); each reading is the last evaluation at or before that budget.
 """
@@ -116,6 +118,7 @@ def table_rows(groups: dict[tuple[str, bool], list[dict[str, Any]]], memory: dic
             "steps": round(statistics.mean(d["steps"] for d in runs)),
             "cpu_minutes": round(statistics.mean(d["cpu_seconds"] for d in runs) / 60, 2),
             "psnr_db": _spread([e["psnr"] for e in finals]), "ssim": statistics.mean(e["ssim"] for e in finals),
+            "best_val_psnr_db": _spread([max(d["curve"], key=lambda e: e["val_psnr"])["psnr"] for d in runs]),
             "equal_steps": steps_budget, "steps_psnr_db": _spread([e["psnr"] for e in at_steps]),
             "equal_cpu_seconds": round(time_budget, 1), "time_psnr_db": _spread([e["psnr"] for e in at_time]),
             "paper_psnr_db": paper[0] if paper else None, "paper_ssim": paper[1] if paper else None,
@@ -130,7 +133,7 @@ def table_rows(groups: dict[tuple[str, bool], list[dict[str, Any]]], memory: dic
         if base is None:
             continue
         row["baseline"] = base["method"]
-        for key in ("psnr_db", "steps_psnr_db", "time_psnr_db"):
+        for key in ("psnr_db", "best_val_psnr_db", "steps_psnr_db", "time_psnr_db"):
             row[key.replace("psnr_db", "delta_db")] = row[key][0] - base[key][0]
         row["speedup"] = base["inference_seconds"] / row["inference_seconds"]
         if row["train_step_peak_mib"] and base["train_step_peak_mib"]:
@@ -169,10 +172,12 @@ def format_table(rows: Sequence[dict[str, Any]], dpac: tuple[float, float] | Non
         value = row.get(key)
         return "-" if value is None else format(value, fmt)
 
-    lines = ["| method | seeds | ended by | steps | CPU-min | PSNR (dB), end | SSIM | vs base | PSNR at equal steps "
+    lines = ["| method | seeds | ended by | steps | CPU-min | PSNR (dB), end | SSIM | vs base | at best validation | "
+             "vs base | PSNR at equal steps "
              "| vs base | PSNR at equal time | vs base | paper PSNR / SSIM | paper vs base | train-step MiB | "
              "x base memory | s / frame | speed-up |",
-             "| --- | ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- | ---: | ---: "
+             "| --- | ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- "
+             "| ---: | ---: "
              "| ---: | ---: | ---: |"]
     for r in rows:
         paper = (f"{r['paper_psnr_db']:.2f} / {r['paper_ssim']:.3f} ({r['paper_table']})"
@@ -180,6 +185,7 @@ def format_table(rows: Sequence[dict[str, Any]], dpac: tuple[float, float] | Non
         lines.append(
             f"| {r['method']} | {r['seeds']} | {r['ended_by']} | {r['steps']} | {r['cpu_minutes']:.1f} | "
             f"{_pm(r['psnr_db'], r['seeds'])} | {r['ssim']:.3f} | {num(r, 'delta_db', '+.2f')} | "
+            f"{_pm(r['best_val_psnr_db'], r['seeds'])} | {num(r, 'best_val_delta_db', '+.2f')} | "
             f"{_pm(r['steps_psnr_db'], r['seeds'])} ({r['equal_steps']}) | {num(r, 'steps_delta_db', '+.2f')} | "
             f"{_pm(r['time_psnr_db'], r['seeds'])} ({r['equal_cpu_seconds'] / 60:.1f} min) | "
             f"{num(r, 'time_delta_db', '+.2f')} | {paper} | {num(r, 'paper_delta_db', '+.2f')} | "
@@ -187,7 +193,7 @@ def format_table(rows: Sequence[dict[str, Any]], dpac: tuple[float, float] | Non
             f"{r['inference_seconds']:.4f} | {num(r, 'speedup', '.2f')} |")
     if dpac is not None:
         lines.append(f"| dpac (classical reference) | - | - | - | - | {dpac[0]:.2f} | {dpac[1]:.3f} | - | - | - | - | "
-                     "- | - | - | - | - | - | - |")
+                     "- | - | - | - | - | - | - | - | - |")
     return lines
 
 

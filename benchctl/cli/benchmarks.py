@@ -37,12 +37,7 @@ def _cmd_bench_propagation(args: argparse.Namespace) -> int:
     from benchctl.files import ensure_dir, write_csv
     from benchctl.profiles import load_profile
 
-    profile = load_profile(args.profile)
-    (h, w), (rh, rw) = profile.slm.shape, profile.optics.roi
-    rows = run_propagation_bench(sizes=args.size or PAPER_SIZES,
-                                 wavelengths=[(c.name, c.wavelength_m) for c in profile.channels],
-                                 distance_m=profile.optics.distance_m, pitch_m=profile.slm.pitch_m,
-                                 roi_fraction=(rh / h, rw / w), repeats=args.repeats)
+    rows = run_propagation_bench(load_profile(args.profile), sizes=args.size or PAPER_SIZES, repeats=args.repeats)
     if args.out:
         print(f"wrote {write_csv(ensure_dir(Path(args.out)) / 'propagation.csv', rows)}")
     return 0
@@ -61,6 +56,15 @@ def _cmd_bench_learned(args: argparse.Namespace) -> int:
         return 0
     run_learned_bench(load_profile(args.profile), size=args.size, methods=args.methods, checkpoints=args.checkpoint,
                       repeats=args.repeats, training_memory=not args.inference_only, out_dir=args.out)
+    return 0
+
+
+def _cmd_bench_genicam(args: argparse.Namespace) -> int:
+    from benchctl.benchmarks.genicam import run_genicam_bench
+
+    height, width = args.size
+    result = run_genicam_bench(width, height, frames=args.frames, frame_rate=args.frame_rate)
+    print("\n".join(result.lines()))
     return 0
 
 
@@ -99,7 +103,8 @@ def _cmd_bench_console(args: argparse.Namespace) -> int:
 
 def add_commands(sub: argparse._SubParsersAction) -> None:
     """Add this group's sub-commands to the `benchctl` sub-parsers (importing nothing heavy)."""
-    bench = sub.add_parser("bench", help="benchmarks: speed against error").add_subparsers(
+    bench = sub.add_parser("bench", help="benchmarks: speed against error, propagation, learned methods, the paper's "
+                                         "tables").add_subparsers(
         dest="bench", metavar="BENCH", required=True)
     speed = bench.add_parser("speed-vs-error", help="seconds per frame against PSNR/SSIM for each method and budget",
                              description="Runs every hologram method at several iteration budgets on the targets, "
@@ -159,6 +164,21 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                          help="output folder (default: bench-out)")
     add_profile(learned)
     learned.set_defaults(func=_cmd_bench_learned)
+
+    genicam = bench.add_parser("genicam", help="frames per second into numpy from Aravis's fake camera, and the "
+                                               "genicam driver's overhead per frame",
+                               description="Streams Aravis's in-process fake camera free running (BayerRG8) and "
+                                           "turns every buffer into a numpy frame as the genicam driver does; prints "
+                                           "sustained fps, dropped (frame-id gaps) and incomplete frames, and the "
+                                           "driver's time per frame (buffer -> numpy, numpy -> DNG). Needs the "
+                                           "genicam extra.")
+    for flags, options in ((("--size",), {"type": grid_size, "default": (2048, 2048), "metavar": "HxW",
+                                          "help": "region of the fake camera (default: 2048x2048, its sensor)"}),
+                           (("--frames",), {"type": positive_int, "default": 100, "help": "default: 100"}),
+                           (("--frame-rate",), {"type": float, "metavar": "FPS",
+                                                "help": "the fake camera's frame rate (default: its own, 25)"})):
+        genicam.add_argument(*flags, **options)  # type: ignore[arg-type]
+    genicam.set_defaults(func=_cmd_bench_genicam)
 
     reproduce = bench.add_parser(
         "reproduce", help="the paper's quality tables: every learned method trained until its curve flattens, "

@@ -99,7 +99,7 @@ class SlmControl:
     def _hologram(self, pattern: Pattern, progress: Any) -> np.ndarray:
         """The hologram a run would display for this target, method and colour (computed in the hologram worker),
         decoded back to its phase."""
-        from benchctl.runner.holograms import target_plane
+        from benchctl.targets import target_plane
         from benchctl.targets import active_channels, load_target, prepare_target
 
         channel = self._channel(pattern)

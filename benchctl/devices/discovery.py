@@ -1,4 +1,5 @@
-"""What is plugged in, for `benchctl devices`: serial ports, PTP cameras on USB, framebuffers (SLM candidates).
+"""What is plugged in, for `benchctl devices`: serial ports, PTP cameras on USB, GenICam cameras (Aravis),
+framebuffers and desktop outputs (SLM candidates).
 
 Each part is looked up on its own and a part that cannot be scanned says why (no libusb backend, no
 permission) instead of failing the whole listing. Returns plain data; the command line formats it.
@@ -15,7 +16,10 @@ from typing import Any
 import serial.tools.list_ports
 import usb.core
 
+from benchctl.devices.camera.aravis import GenicamInfo, genicam_cameras
 from benchctl.devices.camera.ptp.transport import NO_BACKEND, ptp_interface
+from benchctl.devices.errors import DeviceError
+from benchctl.devices.slm.desktop import DesktopOutput, connect, desktop_outputs
 
 
 @dataclass(frozen=True)
@@ -54,6 +58,10 @@ class Discovery:
     cameras: list[UsbCameraInfo] = field(default_factory=list)
     usb_error: str | None = None
     framebuffers: list[FramebufferInfo] = field(default_factory=list)
+    genicam: list[GenicamInfo] = field(default_factory=list)
+    genicam_error: str | None = None  # why GenICam cameras could not be listed (then `genicam` is empty)
+    outputs: list[DesktopOutput] = field(default_factory=list)  # monitors of the X11 desktop ($DISPLAY)
+    outputs_error: str | None = None
 
 
 def serial_ports() -> list[SerialPortInfo]:
@@ -117,8 +125,33 @@ def framebuffers(sys_root: Path = Path("/sys"), dev_root: Path = Path("/dev")) -
     return found
 
 
+def genicam() -> tuple[list[GenicamInfo], str | None]:
+    """GenICam cameras and None; or [] and why they cannot be listed (Aravis missing)."""
+    try:
+        return genicam_cameras(), None
+    except DeviceError as exc:
+        return [], str(exc)
+
+
+def desktop() -> tuple[list[DesktopOutput], str | None]:
+    """The outputs of the X11 desktop ($DISPLAY) and None; or [] and why they cannot be read."""
+    try:
+        display = connect(None)
+    except DeviceError as exc:
+        return [], str(exc)
+    try:
+        return desktop_outputs(display), None
+    except DeviceError as exc:
+        return [], str(exc)
+    finally:
+        display.close()
+
+
 def discover(sys_root: Path = Path("/sys"), dev_root: Path = Path("/dev"),
              find_usb: Callable[..., Iterable[Any]] = usb.core.find) -> Discovery:
-    """Serial ports, USB PTP cameras (or why USB cannot be scanned) and framebuffers."""
+    """Serial ports, USB PTP cameras (or why USB cannot be scanned), GenICam cameras and framebuffers."""
     cameras, usb_error = usb_cameras(find_usb)
-    return Discovery(serial_ports(), cameras, usb_error, framebuffers(sys_root, dev_root))
+    found_genicam, genicam_error = genicam()
+    outputs, outputs_error = desktop()
+    return Discovery(serial_ports(), cameras, usb_error, framebuffers(sys_root, dev_root), found_genicam,
+                     genicam_error, outputs, outputs_error)

@@ -6,6 +6,12 @@ holding process ends, however it ends (kill -9 included), so a stale file never 
 
 Lock files live in $BENCHCTL_LOCK_DIR, else $XDG_RUNTIME_DIR/benchctl/locks, else a per-user folder in the
 temporary directory. Several users sharing one bench point BENCHCTL_LOCK_DIR at one folder they can all write.
+
+POSIX only, on purpose: the lock is half of the emergency stop (`benchctl laser off` reads the holder's pid here
+and sends it SIGTERM, which the holder turns into emission off, benchctl.devices.safety). Windows has no SIGTERM a
+process can handle (os.kill there is TerminateProcess, which skips every cleanup and would leave a laser
+emitting), so a portable lock alone would promise a safety that benchctl cannot keep on Windows. Port names such
+as COM3 are only pyserial URLs to this module: a key like any other.
 """
 
 from __future__ import annotations

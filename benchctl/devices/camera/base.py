@@ -16,7 +16,7 @@ from benchctl.devices.errors import DeviceError
 from benchctl.devices.lock import DeviceLock
 from benchctl.errors import BadValueError
 from benchctl.files import atomic_write_bytes, ensure_dir
-from benchctl.profiles import CameraConfig
+from benchctl.profiles import CameraConfig, Profile
 
 if TYPE_CHECKING:
     import numpy as np
@@ -68,6 +68,14 @@ class Camera(Connection):
 
     def __init__(self, config: CameraConfig) -> None:
         self.config = config
+
+    @classmethod
+    def for_profile(cls, profile: Profile) -> Camera:
+        """This driver for `profile`'s [camera] section, not yet connected; drivers that need more of the profile
+        (the simulated bench) override it."""
+        config = profile.require("camera").camera
+        assert config is not None
+        return cls(config)
 
     def _device_lock(self) -> DeviceLock:
         return DeviceLock(f"camera:{self.driver}:{self.config.usb_id}", f"camera ({self.driver} {self.config.usb_id})")

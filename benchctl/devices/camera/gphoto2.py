@@ -1,111 +1,163 @@
-"""The `gphoto2` camera driver: captures through the gphoto2 command-line tool, the widely installed fallback.
+"""The `gphoto2` camera driver: any camera libgphoto2 drives, through its maintained Python binding (python-gphoto2,
+whose wheel bundles libgphoto2, so no system package is needed).
 
-One capture is one gphoto2 run: `--set-config capturetarget=0 --capture-image-and-download --filename F`
-into a fresh temporary folder (capturetarget 0: the image goes to the computer, not the card); the RAW file it
-wrote is read back and the folder removed. gphoto2 reports failures as text, sometimes with exit status 0, so
-its output is searched for the errors it prints and each becomes the same one-line error the ptp driver gives.
+Open: autodetect, take the camera the profile's `model` names (else the only one found), connect. Capture: set
+the capture target to the camera's RAM where it has that setting (the image goes to the computer, not the card),
+release, download the file the camera announces, delete it from the camera. The file must be RAW (DNG, CR2, CR3).
+libgphoto2's errors arrive as numbered results, each turned into the same one-line error the ptp driver gives.
 Exposure and ISO are not written (Camera's default): set them on the body.
 """
 
 from __future__ import annotations
 
-import re
-import shutil
-import subprocess
-import tempfile
 from datetime import datetime, timezone
-from pathlib import Path
+from pathlib import PurePath
+from types import ModuleType
+from typing import Any
 
 from benchctl.devices.camera.base import RAW_FORMATS, Camera, RawFrame
-from benchctl.devices.camera.hints import (
-    BUSY_HINT,
-    NO_FOCUS_HINT,
-    NOT_FOUND_HINT,
-    PERMISSION_HINT,
-    RAW_HINT,
-    USB_GRABBED_HINT,
-)
+from benchctl.devices.camera.hints import BUSY_HINT, NOT_FOUND_HINT, PERMISSION_HINT, RAW_HINT, USB_GRABBED_HINT
 from benchctl.devices.errors import DeviceBusy, DeviceError, DeviceTimeout
 from benchctl.profiles import CameraConfig
 
-FILENAME_PATTERN = "%f.%C"  # the camera's own file name and suffix, e.g. IMG_0042.CR2
-_SUMMARY_KEYS = {"manufacturer": "Manufacturer", "model": "Model", "firmware": "Version", "serial": "Serial Number"}
-_ERROR_MARKERS = ("*** Error", "ERROR:")
-# (texts gphoto2 prints, error class, message): the first entry with a text in the output wins
-_KNOWN_ERRORS: list[tuple[tuple[str, ...], type[DeviceError], str]] = [
-    (("Perhaps no focus",), DeviceError, NO_FOCUS_HINT),
-    (("Permission denied", "Access denied"), DeviceError, f"no permission to use the camera: {PERMISSION_HINT}"),
-    (("Could not claim the USB device", "Could not claim interface"), DeviceBusy,
-     f"gphoto2 could not claim the camera's USB interface: {USB_GRABBED_HINT}"),
-    (("PTP Device Busy", "0x2019", "I/O in progress"), DeviceBusy, f"camera busy (PTP DeviceBusy): {BUSY_HINT}"),
-    (("No camera found", "Could not detect any camera"), DeviceError, f"gphoto2 found no camera: {NOT_FOUND_HINT}"),
-    (("Timeout reading from or writing to the port", "PTP Timeout"), DeviceTimeout,
-     "the camera stopped answering gphoto2: power-cycle it and reconnect"),
-]
+INSTALL_HINT = "pip install 'benchctl[gphoto2]'"
+_IDENTITY = {"manufacturer": "manufacturer", "model": "cameramodel", "serial": "serialnumber",
+             "firmware": "deviceversion"}
+_TO_RAM = ("Internal RAM", "RAM", "sdram")  # capture target names meaning "to the computer", by libgphoto2 driver
 
 
-def gphoto2_error(output: str, returncode: int) -> DeviceError:
-    """The DeviceError for a failed gphoto2 run, from what it printed."""
-    for texts, cls, message in _KNOWN_ERRORS:
-        if any(text in output for text in texts):
-            return cls(message)
-    lines = [line.strip().strip("*").strip() for line in output.splitlines()]
-    detail = next((line for line in lines if line and line != "Error"), "no message")
-    return DeviceError(f"gphoto2 failed (exit status {returncode}): {detail}")
+def gphoto2() -> ModuleType:
+    """python-gphoto2; DeviceError saying what to install when it is missing."""
+    try:
+        import gphoto2 as module
+    except ImportError:
+        raise DeviceError(f"the gphoto2 camera driver needs python-gphoto2: {INSTALL_HINT}") from None
+    return module
+
+
+def gphoto2_error(code: int, doing: str) -> DeviceError:
+    """The DeviceError for libgphoto2's result `code` while `doing` (e.g. 'capture')."""
+    gp = gphoto2()
+    known: dict[int, tuple[type[DeviceError], str]] = {
+        gp.GP_ERROR_MODEL_NOT_FOUND: (DeviceError, f"libgphoto2 found no camera: {NOT_FOUND_HINT}"),
+        gp.GP_ERROR_IO_USB_FIND: (DeviceError, f"libgphoto2 found no camera: {NOT_FOUND_HINT}"),
+        gp.GP_ERROR_IO_USB_CLAIM: (DeviceBusy, f"libgphoto2 could not claim the camera's USB interface: "
+                                               f"{USB_GRABBED_HINT}; or no permission: {PERMISSION_HINT}"),
+        gp.GP_ERROR_CAMERA_BUSY: (DeviceBusy, f"camera busy during {doing}: {BUSY_HINT}"),
+        gp.GP_ERROR_TIMEOUT: (DeviceTimeout, f"the camera stopped answering during {doing}: power-cycle it and "
+                                             f"reconnect"),
+    }
+    cls, message = known.get(code, (DeviceError, f"libgphoto2 failed during {doing}: "
+                                                 f"{gp.gp_result_as_string(code)} ({code})"))
+    return cls(message)
 
 
 class Gphoto2Camera(Camera):
-    """A camera driven through the gphoto2 executable (camera.gphoto2_path)."""
+    """A camera driven through libgphoto2 (python-gphoto2); see the module docstring."""
 
     driver = "gphoto2"
 
     def __init__(self, config: CameraConfig) -> None:
         super().__init__(config)
-        self._executable = ""
-        self._summary: dict[str, str] = {}
+        self._camera: Any = None
+        self._found: dict[str, str] = {}
+
+    def _call(self, doing: str, function: Any, *args: Any) -> Any:
+        """`function(*args)`, a libgphoto2 error becoming a one-line DeviceError."""
+        gp = gphoto2()
+        try:
+            return function(*args)
+        except gp.GPhoto2Error as exc:
+            raise gphoto2_error(exc.code, doing) from None
 
     def _open(self) -> None:
-        found = shutil.which(self.config.gphoto2_path)
-        if found is None:
-            raise DeviceError(f"gphoto2 not found (camera.gphoto2_path = {self.config.gphoto2_path!r}): install it "
-                              f"(sudo apt install gphoto2), set camera.gphoto2_path to its full path, or use camera "
-                              f"driver 'ptp'")
-        self._executable = found
-        summary = self._run("--summary")
-        self._summary = {key: match.group(1).strip() for key, label in _SUMMARY_KEYS.items()
-                         if (match := re.search(rf"^\s*{label}:\s*(.+)$", summary, re.MULTILINE))}
+        gp = gphoto2()
+        cameras = self._call("autodetect", gp.Camera.autodetect)
+        detected = [(cameras.get_name(i), cameras.get_value(i)) for i in range(cameras.count())]
+        chosen = [(name, port) for name, port in detected if not self.config.model or name == self.config.model]
+        if len(chosen) != 1:
+            found = ", ".join(f"{name} on {port}" for name, port in detected) or "none"
+            wanted = f"camera.model = {self.config.model!r}" if self.config.model else "one camera"
+            hint = NOT_FOUND_HINT if not detected else "set camera.model to one of them"
+            raise DeviceError(f"libgphoto2 found {len(chosen) or 'no'} camera(s) for {wanted} (found: {found}): {hint}")
+        name, port = chosen[0]
+        abilities, ports = gp.CameraAbilitiesList(), gp.PortInfoList()
+        self._call("loading camera drivers", abilities.load)
+        self._call("loading ports", ports.load)
+        camera = gp.Camera()
+        camera.set_abilities(abilities[self._call("looking up the model", abilities.lookup_model, name)])
+        camera.set_port_info(ports[self._call("looking up the port", ports.lookup_path, port)])
+        self._call("connecting", camera.init)
+        self._camera = camera
+        self._found = {"detected_as": name, "port": port, **{key: self._setting(widget) or ""
+                                                             for key, widget in _IDENTITY.items()}}
 
     def _close(self) -> None:
-        """Nothing held: each gphoto2 run connects and disconnects by itself."""
+        if self._camera is not None:
+            try:
+                self._camera.exit()
+            except gphoto2().GPhoto2Error:
+                pass  # the camera is gone: nothing left to close on its side
+            self._camera = None
+
+    def _setting(self, name: str) -> str | None:
+        """A configuration value of the camera as text; None where it has no such setting."""
+        gp = gphoto2()
+        try:
+            return str(self._camera.get_single_config(name).get_value())
+        except gp.GPhoto2Error:
+            return None
+
+    def settings(self) -> dict[str, str]:
+        """Every configuration value the camera reports, by name (sections flattened)."""
+        self._require_open()
+        gp = gphoto2()
+        found: dict[str, str] = {}
+        pending = [self._call("reading the configuration", self._camera.get_config)]
+        while pending:
+            widget = pending.pop()
+            pending += [widget.get_child(i) for i in range(widget.count_children())]
+            if widget.get_type() not in (gp.GP_WIDGET_WINDOW, gp.GP_WIDGET_SECTION, gp.GP_WIDGET_BUTTON):
+                found[widget.get_name()] = str(widget.get_value())
+        return found
 
     def _identity(self) -> dict[str, str]:
-        return dict(self._summary)
+        return {key: value for key, value in self._found.items() if value}
 
-    def _run(self, *args: str) -> str:
-        """Run gphoto2 with `args`; its standard output, or the DeviceError its output describes."""
+    def _to_computer(self) -> None:
+        """Capture target RAM where the camera has the setting (not every body does)."""
+        gp = gphoto2()
         try:
-            done = subprocess.run([self._executable, *args], capture_output=True, text=True,
-                                  timeout=self.config.image_timeout_s)
-        except subprocess.TimeoutExpired:
-            raise DeviceTimeout(f"gphoto2 {args[0]} did not finish within {self.config.image_timeout_s:g} s "
-                                f"(camera.image_timeout_s): is the camera on and awake?") from None
-        except OSError as exc:
-            raise DeviceError(f"cannot run gphoto2 ({self._executable}): {exc.strerror or exc}") from None
-        output = done.stdout + done.stderr
-        if done.returncode != 0 or any(marker in output for marker in _ERROR_MARKERS):
-            raise gphoto2_error(output, done.returncode)
-        return done.stdout
+            target = self._camera.get_single_config("capturetarget")
+        except gp.GPhoto2Error:
+            return
+        choices = [target.get_choice(i) for i in range(target.count_choices())]
+        ram = next((choice for choice in choices if choice in _TO_RAM), None)
+        if ram is not None and target.get_value() != ram:
+            target.set_value(ram)
+            self._call("setting the capture target", self._camera.set_single_config, "capturetarget", target)
+
+    def download(self, folder: str, name: str) -> bytes:
+        """The file `name` in the camera's `folder`, as the camera holds it."""
+        gp = gphoto2()
+        file = self._call(f"downloading {name}", self._camera.file_get, folder, name, gp.GP_FILE_TYPE_NORMAL)
+        return bytes(memoryview(file.get_data_and_size()))
 
     def _capture_one(self) -> RawFrame:
-        with tempfile.TemporaryDirectory(prefix="benchctl-gphoto2-") as folder:
-            self._run("--set-config", "capturetarget=0", "--capture-image-and-download",
-                      "--filename", str(Path(folder) / FILENAME_PATTERN))
-            written = sorted(Path(folder).iterdir())
-            raws = [path for path in written if path.suffix.lower().lstrip(".") in RAW_FORMATS]
-            if not raws:
-                names = ", ".join(path.name for path in written) or "nothing"
-                raise DeviceError(f"gphoto2 downloaded {names} but no RAW file (.dng, .cr2, .cr3): {RAW_HINT}")
-            data = raws[0].read_bytes()
+        gp = gphoto2()
+        self._to_computer()
+        where = self._call("capture", self._camera.capture, gp.GP_CAPTURE_IMAGE)
+        folder, name = str(where.folder), str(where.name)
+        data = self.download(folder, name)
+        try:
+            self._camera.file_delete(folder, name)
+        except gp.GPhoto2Error:
+            pass  # a body that keeps it (on the card) is fine: the file is here
+        suffix = PurePath(name).suffix.lower().lstrip(".")
+        if suffix not in RAW_FORMATS:
+            raise DeviceError(f"the camera delivered {name} ({len(data)} bytes), not a RAW file (.dng, .cr2, .cr3): "
+                              f"{RAW_HINT}")
         metadata = {"captured_at": datetime.now(timezone.utc).isoformat(timespec="milliseconds"),
-                    "camera": self._summary.get("model", ""), "serial": self._summary.get("serial", "")}
-        return RawFrame(data, raws[0].suffix.lower().lstrip("."), raws[0].name, metadata)
+                    "camera": self._found.get("model") or self._found["detected_as"],
+                    "serial": self._found.get("serial", ""), "camera_path": f"{folder}/{name}"}
+        return RawFrame(data, suffix, name, metadata)

@@ -30,12 +30,7 @@ from pathlib import PurePath
 
 from benchctl.devices.camera.base import Camera, PreviewFrame, RawFrame, Window
 from benchctl.devices.camera.hints import BUSY_HINT, NO_FOCUS_HINT, RAW_HINT
-from benchctl.devices.camera.ptp.container import (
-    CANON_VENDOR_ID,
-    RAW_OBJECT_FORMATS,
-    OperationCode,
-    code_name,
-)
+from benchctl.devices.camera.ptp.container import RAW_OBJECT_FORMATS, OperationCode, code_name
 from benchctl.devices.camera.ptp.datasets import DeviceInfo
 from benchctl.devices.camera.ptp.eos import (
     CAMERA_STATUS_SHOOTING,
@@ -54,7 +49,9 @@ from benchctl.devices.camera.ptp.eos import (
     EosEventType,
     EosProperty,
     ObjectRecord,
+    is_canon,
     iso_code,
+    missing_eos_operations,
     object_record,
     shutter_code,
 )
@@ -62,7 +59,7 @@ from benchctl.devices.camera.ptp.session import PtpSession, ResponseBusy
 from benchctl.devices.camera.ptp.transport import Transport, UsbTransport
 from benchctl.devices.errors import DeviceBusy, DeviceError, DeviceTimeout
 from benchctl.devices.safety import wait
-from benchctl.profiles import CameraConfig
+from benchctl.profiles import CameraConfig, Profile
 
 
 @dataclass(frozen=True)
@@ -94,6 +91,17 @@ class PtpCamera(Camera):
         self._written: dict[str, float | int] = {}
         self._live = False  # the live view is on (EVF output to the computer)
 
+    @classmethod
+    def for_profile(cls, profile: Profile) -> PtpCamera:
+        """The body on USB, or with camera.transport = "sim" the simulated EOS body on the simulated bench."""
+        config = profile.require("camera").camera
+        assert config is not None
+        if config.transport != "sim":
+            return cls(config)
+        from benchctl.devices.sim.camera import eos_transport
+
+        return cls(config, eos_transport(profile))
+
     # -- connection --------------------------------------------------------------------------------------------
 
     def _open(self) -> None:
@@ -113,10 +121,15 @@ class PtpCamera(Camera):
         session, eos = self._require_session()
         session.open()
         self._info = session.get_device_info()
-        if (self._info.vendor_extension_id != CANON_VENDOR_ID
-                or OperationCode.EosRemoteReleaseOn not in self._info.operations_supported):
-            raise DeviceError(f"{self._describe()} does not offer Canon EOS remote release "
-                              f"({code_name(OperationCode.EosRemoteReleaseOn)}): use camera driver 'gphoto2'")
+        usb_vendor = self._transport.usb_vendor if self._transport is not None else None
+        if not is_canon(self._info, usb_vendor):
+            vendor = "unknown" if usb_vendor is None else f"0x{usb_vendor:04x}"
+            raise DeviceError(f"{self._describe()} is not a Canon body (USB vendor {vendor}, PTP vendor extension "
+                              f"{self._info.vendor_extension_id}): use camera driver 'gphoto2'")
+        missing = missing_eos_operations(self._info)
+        if missing:
+            raise DeviceError(f"{self._describe()} does not offer Canon EOS remote release and events (no "
+                              f"{', '.join(code_name(code) for code in missing)}): use camera driver 'gphoto2'")
         eos.set_remote_mode(REMOTE_MODE_EOS_M)
         eos.set_event_mode(EVENT_MODE)
         eos.drain_events()

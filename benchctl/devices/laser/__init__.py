@@ -12,11 +12,10 @@ from benchctl.devices.laser.base import ChannelStatus, Laser, PortFactory
 from benchctl.devices.laser.cobolt import CoboltLaser
 from benchctl.devices.laser.obis import ObisLaser
 from benchctl.devices.laser.template import TemplateLaser
+from benchctl.drivers import driver_class
 from benchctl.profiles import LaserConfig, Profile
 
-DRIVERS: dict[str, type[Laser]] = {"template": TemplateLaser, "cobolt": CoboltLaser, "obis": ObisLaser}
-
-__all__ = ["DRIVERS", "ChannelStatus", "CoboltLaser", "Laser", "ObisLaser", "TemplateLaser", "open_laser"]
+__all__ = ["ChannelStatus", "CoboltLaser", "Laser", "ObisLaser", "TemplateLaser", "open_laser"]
 
 
 def open_laser(profile_or_config: Profile | LaserConfig, *, leave_on: bool = False, observe: bool = False,
@@ -28,5 +27,6 @@ def open_laser(profile_or_config: Profile | LaserConfig, *, leave_on: bool = Fal
         assert config is not None
     else:
         config = profile_or_config
-    laser = DRIVERS[config.driver](config, leave_on=leave_on, observe=observe, port_factory=port_factory)
+    driver: type[Laser] = driver_class("laser", config.driver)
+    laser = driver(config, leave_on=leave_on, observe=observe, port_factory=port_factory)
     return laser.open()

@@ -3,9 +3,9 @@
 Per capture, for every laser channel that emits (and only those): the gray frame the simulated SLM shows
 becomes a phase through the simulator's own response ([sim.slm], deliberately not the profile's lookup table),
 lit by the laser's power (uniform, or a Gaussian beam), with a little unmodulated light from the pixel gaps;
-it is propagated to the target plane by the same Propagator the holograms are computed with
-(`OpticalSetup.from_profile(...).target_propagator()`, Fourier iris included) and becomes photons
-(P t lambda / (h c) times the optical efficiency). The three colour planes of electrons (each channel's
+it is propagated to the target plane by the same Propagator the holograms are computed with, at the profile's
+geometry (`OpticalSetup.of(profile.geometry(...)).target_propagator()`, Fourier iris included), and becomes
+photons (P t lambda / (h c) times the optical efficiency). The three colour planes of electrons (each channel's
 photons times its [R, G, B] quantum efficiency) are carried onto the sensor by the camera homography
 (magnification, rotation, offset; energy conserving) into only the box of sensor pixels the grid's image
 covers. The sensor adds shot noise (Poisson, electrons), read noise (Gaussian, electrons), the ISO gain,
@@ -33,8 +33,8 @@ from benchctl.devices.camera.base import RawFrame, Window
 from benchctl.devices.errors import DeviceError
 from benchctl.devices.sim.protocol_sim import parse_url
 from benchctl.devices.sim.state import CAMERA_STATE, load_state, save_state
-from benchctl.devices.slm.sim import read_displayed
-from benchctl.optics import PhaseLUT, Propagator, gray_to_phase, linear_to_srgb
+from benchctl.devices.sim.slm import read_displayed, true_lut
+from benchctl.optics import Propagator, PrunedPropagator, gray_to_phase, linear_to_srgb
 from benchctl.optics.aberration import crosstalk_blur, gaussian_beam_power, tilt_phase, wavefront_phase
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import LaserChannel, Profile, SimSensorConfig, SimSLMConfig
@@ -56,15 +56,6 @@ TYPICAL_QE = np.array([
     (650.0, 0.28, 0.05, 0.02),
     (700.0, 0.04, 0.02, 0.01),
 ])
-
-
-@functools.lru_cache(maxsize=8)
-def true_lut(wavelength_m: float, bit_depth: int, response: SimSLMConfig) -> PhaseLUT:
-    """The simulated panel's real gray -> phase table at one wavelength (what calibration should measure):
-    2 pi (two_pi_nm / wavelength) (g / 2^bit_depth)^gamma."""
-    depth = 2 * math.pi * response.two_pi_nm * 1e-9 / wavelength_m
-    levels = np.arange(1 << bit_depth, dtype=np.float64) / (1 << bit_depth)
-    return PhaseLUT(depth * levels**response.gamma)
 
 
 def spectral_response(profile: Profile, channel: LaserChannel) -> np.ndarray:
@@ -187,7 +178,7 @@ def _target_irradiance(profile: Profile, channel: LaserChannel, gray: np.ndarray
     field (`_panel_field`) propagated to the target plane, stray light added."""
     field = _panel_field(profile, channel, gray)
     with torch.inference_mode():
-        out = _propagator(OpticalSetup.from_profile(profile, channel.name))(field)
+        out = _propagator(OpticalSetup.of(profile.geometry(channel.name)))(field)
     return _with_stray_light(profile, out.abs().square().to(torch.float64))
 
 
@@ -206,70 +197,14 @@ def _beam_field(*beam: Any) -> torch.Tensor:
     return amplitude * wavefront
 
 
-class _PrunedPropagator:
-    """The live view's SLM -> target propagation: `Propagator.__call__` with the same transfer function on the same
-    padded grid, computed as one-dimensional FFTs that skip what is known to be zero: the guard band's rows on the
-    way in, the spatial frequencies the transfer function zeroes (the Fourier iris, the band limit) both ways, and
-    the rows and columns outside the output on the way out. The result is the propagator's to float32 rounding;
-    with the iris at half the Nyquist frequency it takes about half the time. Keeps two work buffers: not safe to
-    call from two threads at once."""
-
-    def __init__(self, propagator: Propagator) -> None:
-        plan = propagator.plan
-        kernel = propagator.kernel(torch.complex64, "cpu")
-        passed = kernel != 0
-        # Per axis the frequencies that pass form one band around zero: indices [0, low) and [n - high, n).
-        (self.low_y, self.high_y), (self.low_x, self.high_x) = (_band(passed.any(dim=1)), _band(passed.any(dim=0)))
-        rows = torch.cat([kernel[:self.low_y], kernel[len(kernel) - self.high_y:]])
-        self.kernel = torch.cat([rows[:, :self.low_x], rows[:, kernel.shape[1] - self.high_x:]], dim=1)
-        self.shape, self.padded_shape = plan.shape, plan.padded_shape
-        self.window = plan.window or (0, plan.shape[0], 0, plan.shape[1])
-        (h, _), (ph, pw), cols = plan.shape, plan.padded_shape, self.low_x + self.high_x
-        self._rows = torch.zeros((max(h, self.window[1]), pw), dtype=torch.complex64)  # input rows, then output rows
-        self._cols = torch.zeros((ph, cols), dtype=torch.complex64)
-
-    def __call__(self, field: torch.Tensor) -> torch.Tensor:
-        (h, w), (ph, pw) = self.shape, self.padded_shape
-        row, rows, col, cols = self.window
-        low_y, high_y, low_x, high_x = self.low_y, self.high_y, self.low_x, self.high_x
-        padded = self._rows[:h]
-        padded[:, :w] = field
-        padded[:, w:] = 0
-        spectrum = torch.fft.fft(padded, dim=1)
-        self._cols[:h, :low_x] = spectrum[:, :low_x]
-        self._cols[:h, low_x:] = spectrum[:, pw - high_x:]
-        self._cols[h:] = 0
-        spectrum = torch.fft.fft(self._cols, dim=0)
-        spectrum[:low_y] *= self.kernel[:low_y]
-        spectrum[low_y:ph - high_y] = 0
-        spectrum[ph - high_y:] *= self.kernel[low_y:]
-        back = torch.fft.ifft(spectrum, dim=0)[row:row + rows]
-        out = self._rows[:rows]
-        out[:, :low_x] = back[:, :low_x]
-        out[:, low_x:pw - high_x] = 0
-        out[:, pw - high_x:] = back[:, low_x:]
-        return torch.fft.ifft(out, dim=1)[:, col:col + cols].clone()
-
-
-def _band(passed: torch.Tensor) -> tuple[int, int]:
-    """(low, high) such that exactly the indices [0, low) and [n - high, n) of `passed` (in FFT order) are True; a
-    set of any other shape is taken whole (nothing skipped, still exact)."""
-    n = len(passed)
-    low = int(torch.argmin(passed.int())) if not passed.all() else n
-    high = int(torch.argmin(passed.flip(0).int())) if low < n else 0
-    if low < n and bool(passed[low:n - high].any()):
-        return n, 0
-    return low, high
-
-
 @functools.lru_cache(maxsize=3)
-def _pruned_propagator(setup: OpticalSetup) -> _PrunedPropagator:
-    return _PrunedPropagator(_propagator(setup))
+def _pruned_propagator(setup: OpticalSetup) -> PrunedPropagator:
+    return PrunedPropagator(_propagator(setup))
 
 
 def _live_irradiance(profile: Profile, channel: LaserChannel, gray: np.ndarray) -> torch.Tensor:
     """`_target_irradiance` (float32) as the live view computes it, faster: the panel's field by table lookup
-    where no crosstalk blurs the phase, propagated by `_PrunedPropagator`."""
+    where no crosstalk blurs the phase, propagated by `PrunedPropagator`."""
     slm, response = profile.slm, profile.sim.slm
     assert slm is not None
     if response.crosstalk_px:
@@ -278,7 +213,7 @@ def _live_irradiance(profile: Profile, channel: LaserChannel, gray: np.ndarray) 
         field = torch.from_numpy(_modulation(channel.wavelength_m, slm.bit_depth, response)[gray])
         field *= _beam_field(*_beam(profile, channel))
     with torch.inference_mode():
-        out = _pruned_propagator(OpticalSetup.from_profile(profile, channel.name))(field)
+        out = _pruned_propagator(OpticalSetup.of(profile.geometry(channel.name)))(field)
     return _with_stray_light(profile, out.real.square() + out.imag.square())
 
 
@@ -451,7 +386,7 @@ class LiveView:
     def _light(self, exposure_s: float) -> tuple[np.ndarray, dict[str, Any]]:
         """The electron planes of what the bench shows now (recomputed only when the SLM frame, the lasers or the
         exposure changed) and what they show: SLM frame, lasers, seconds spent on the light (0: reused)."""
-        from benchctl.devices.slm.sim import STATE_NAME
+        from benchctl.devices.sim.slm import STATE_NAME
 
         powers = emitting_channels(self.profile)
         shown = load_state(STATE_NAME).get("frame")

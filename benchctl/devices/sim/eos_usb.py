@@ -37,6 +37,7 @@ from pathlib import PurePath
 import usb.core
 
 from benchctl.devices.camera.ptp.container import (
+    CANON_USB_VENDOR,
     CANON_VENDOR_ID,
     RAW_OBJECT_FORMATS,
     Container,
@@ -94,12 +95,16 @@ class SimEosTransport(Transport):
                  serial: str = "5a1c0ffee0ddba11deadbeef00c0ffee", firmware: str = "3-1.1.0",
                  busy_releases: int = 0, no_focus: bool = False, no_transfer: bool = False,
                  unplug_after_bytes: int | None = None, freeze_on_property_write: bool = False,
-                 short_transfer_records: bool = False, live_view: LiveViewSource | None = None) -> None:
+                 short_transfer_records: bool = False, live_view: LiveViewSource | None = None,
+                 vendor_extension_id: int = CANON_VENDOR_ID, usb_vendor: int = CANON_USB_VENDOR) -> None:
+        """`vendor_extension_id`: what DeviceInfo reports (Canon's 0x0B, or 6 (MTP) as many EOS bodies do);
+        `live_view`: what GetViewFinderData delivers (without one the body does not offer the operation)."""
         self.image_source = image_source
         self.live_view = live_view
+        self.usb_vendor = usb_vendor
         operations = set(_HANDLERS) - (set() if live_view else {OperationCode.EosGetViewFinderData})
         self.device_info = DeviceInfo(
-            standard_version=100, vendor_extension_id=CANON_VENDOR_ID, vendor_extension_version=100,
+            standard_version=100, vendor_extension_id=vendor_extension_id, vendor_extension_version=100,
             operations_supported=tuple(sorted(operations)),
             events_supported=(EosEventType.ObjectAddedEx, EosEventType.RequestObjectTransfer,
                               EosEventType.PropValueChanged, EosEventType.CameraStatus),

@@ -1,4 +1,4 @@
-"""Phase SLMs: the `SLM` interface, its drivers (simulated panel, Linux framebuffer) and lookup-table files.
+"""Phase SLMs: the `SLM` interface, its drivers (benchctl.drivers lists them) and lookup-table files.
 
 `open_slm(profile)` builds the driver the profile's [slm] section names and opens it:
 
@@ -9,39 +9,19 @@
 from __future__ import annotations
 
 from benchctl.devices.slm.base import SLM
-from benchctl.devices.slm.framebuffer import FramebufferGeometry, FramebufferSLM
 from benchctl.devices.slm.lut import load_lut, lut_for, save_lut
-from benchctl.devices.slm.sim import SimSLM, read_displayed
-from benchctl.errors import BadValueError
+from benchctl.drivers import driver_class
 from benchctl.profiles import Profile
 
-DRIVERS: dict[str, type[SLM]] = {SimSLM.driver: SimSLM, FramebufferSLM.driver: FramebufferSLM}
-
-__all__ = [
-    "DRIVERS",
-    "SLM",
-    "FramebufferGeometry",
-    "FramebufferSLM",
-    "SimSLM",
-    "load_lut",
-    "lut_for",
-    "open_slm",
-    "read_displayed",
-    "save_lut",
-    "slm_for",
-]
+__all__ = ["SLM", "load_lut", "lut_for", "open_slm", "save_lut", "slm_for"]
 
 
 def slm_for(profile: Profile) -> SLM:
     """The profile's SLM driver, not yet opened: enough to encode and decode frames without the panel."""
     config = profile.require("slm").slm
     assert config is not None
-    if config.driver not in DRIVERS:
-        raise BadValueError(f"{profile.path}: slm.driver {config.driver!r} unknown (choose from {', '.join(DRIVERS)})")
-    channels = [channel.name for channel in profile.channels]
-    if config.driver == SimSLM.driver:
-        return SimSLM(config, channels, profile.sim.slm)  # the simulated panel also knows its true response
-    return DRIVERS[config.driver](config, channels)
+    slm: SLM = driver_class("slm", config.driver).for_profile(profile)
+    return slm
 
 
 def open_slm(profile: Profile) -> SLM:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 import sys
 from abc import abstractmethod
+from datetime import datetime, timezone
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any, ClassVar
 
@@ -23,7 +24,7 @@ from benchctl.devices.safety import wait
 from benchctl.devices.slm.lut import lut_for
 from benchctl.errors import BadValueError
 from benchctl.optics.phase_encoding import PhaseLUT, gray_to_phase, phase_to_gray
-from benchctl.profiles import SLMConfig
+from benchctl.profiles import Profile, SLMConfig
 
 if TYPE_CHECKING:  # phases may come as tensors, but torch is never imported here: SLM commands stay light
     import torch
@@ -49,6 +50,17 @@ class SLM(Connection):
         self._current: np.ndarray | None = None
         self._frames_shown = 0
         self.shown_frame: int | None = None  # displayed_frame() right after this object's last frame went up
+        # When the last frame was presented (UTC, ISO 8601 to the microsecond): `_display` returned, so the frame
+        # is on the panel as far as the driver can tell; the settle time counts from here.
+        self.presented_at: str | None = None
+
+    @classmethod
+    def for_profile(cls, profile: Profile) -> SLM:
+        """This driver for `profile`'s [slm] section and laser channels, not yet opened; drivers that need more
+        of the profile override it."""
+        config = profile.require("slm").slm
+        assert config is not None
+        return cls(config, [channel.name for channel in profile.channels])
 
     # -- hooks ------------------------------------------------------------------------------------------
 
@@ -146,8 +158,6 @@ class SLM(Connection):
         """The last frame this object displayed (read-only), None before the first."""
         return self._current
 
-    # -- lifecycle ------------------------------------------------------------------------------------------
-
     # -- showing ----------------------------------------------------------------------------------------------
 
     def _added_phase(self) -> np.ndarray:
@@ -230,6 +240,7 @@ class SLM(Connection):
             raise DeviceError(f"{self.label} is not open (use `with open_slm(profile) as slm:`)")
         frame.flags.writeable = False
         self._display(frame, channel)
+        self.presented_at = datetime.now(timezone.utc).isoformat(timespec="microseconds")
         self._current = frame
         self._frames_shown += 1
         self.shown_frame = self.displayed_frame()

@@ -87,7 +87,9 @@ class ObjectFormat(IntEnum):
 # The RAW formats benchctl keeps, by the name RawFrame uses for them.
 RAW_OBJECT_FORMATS: dict[int, str] = {ObjectFormat.DNG: "dng", ObjectFormat.CR2: "cr2", ObjectFormat.CR3: "cr3"}
 
-CANON_VENDOR_ID = 0x0000000B  # DeviceInfo.VendorExtensionID of Canon bodies
+CANON_VENDOR_ID = 0x0000000B  # DeviceInfo.VendorExtensionID Canon assigned itself
+MTP_VENDOR_ID = 0x00000006  # Microsoft's (MTP) VendorExtensionID, which many Canon bodies report instead
+CANON_USB_VENDOR = 0x04A9  # Canon's USB vendor id
 
 
 def code_name(code: int) -> str:

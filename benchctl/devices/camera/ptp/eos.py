@@ -22,7 +22,15 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from enum import IntEnum
 
-from benchctl.devices.camera.ptp.container import MalformedContainer, OperationCode, ResponseCode, code_name
+from benchctl.devices.camera.ptp.container import (
+    CANON_USB_VENDOR,
+    CANON_VENDOR_ID,
+    MalformedContainer,
+    OperationCode,
+    ResponseCode,
+    code_name,
+)
+from benchctl.devices.camera.ptp.datasets import DeviceInfo
 from benchctl.devices.camera.ptp.session import PtpSession, response_error
 from benchctl.devices.errors import DeviceError
 from benchctl.errors import BadValueError
@@ -50,6 +58,22 @@ RELEASE_OK = 0
 RELEASE_NO_FOCUS = 1
 RELEASE_NO_CARD_SPACE = 7
 CAMERA_STATUS_SHOOTING = 1
+
+
+# The operations the EOS capture sequence needs beyond standard PTP: remote release and event polling.
+EOS_OPERATIONS = (OperationCode.EosRemoteReleaseOn, OperationCode.EosRemoteReleaseOff,
+                  OperationCode.EosSetEventMode, OperationCode.EosGetEvent)
+
+
+def is_canon(info: DeviceInfo, usb_vendor: int | None) -> bool:
+    """Whether the body is a Canon: Canon's own VendorExtensionID, or any (EOS bodies report 6, Microsoft / MTP)
+    from Canon's USB vendor id, as libgphoto2 decides it."""
+    return info.vendor_extension_id == CANON_VENDOR_ID or usb_vendor == CANON_USB_VENDOR
+
+
+def missing_eos_operations(info: DeviceInfo) -> list[int]:
+    """The EOS_OPERATIONS the body does not offer (none for an EOS body)."""
+    return [code for code in EOS_OPERATIONS if code not in info.operations_supported]
 
 
 class EosEventType(IntEnum):

@@ -45,6 +45,8 @@ class Endpoint(Protocol):
 class Transport(ABC):
     """Sends and receives whole PTP containers (as bytes); raises pyusb's exceptions on USB failures."""
 
+    usb_vendor: int | None = None  # the USB vendor id of the device at the other end, where known
+
     @abstractmethod
     def send(self, container: bytes) -> None:
         """Write one container to the camera."""
@@ -152,8 +154,10 @@ class UsbTransport(Transport):
             usb.util.release_interface(device, interface)
             usb.util.dispose_resources(device)
 
-        return cls(bulk_out, bulk_in, endpoint(usb.util.ENDPOINT_IN, usb.util.ENDPOINT_TYPE_INTR),
-                   timeout_s=timeout_s, on_close=release)
+        transport = cls(bulk_out, bulk_in, endpoint(usb.util.ENDPOINT_IN, usb.util.ENDPOINT_TYPE_INTR),
+                        timeout_s=timeout_s, on_close=release)
+        transport.usb_vendor = vendor
+        return transport
 
     @property
     def _timeout_ms(self) -> int:

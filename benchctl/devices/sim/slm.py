@@ -1,4 +1,5 @@
-"""The simulated SLM: keeps exactly what the panel would show, in the simulated bench's state folder.
+"""The simulated SLM: keeps exactly what the panel would show, in the simulated bench's state folder, and knows
+its own liquid crystal's phase response (`true_lut`), which calibration has to find.
 
 Each displayed frame becomes a PNG (8- or 16-bit, gray levels as shown) named by a frame counter, and the
 state file `slm.json` says which frame is current, its shape, bit depth, channel and time. Other programs
@@ -7,6 +8,8 @@ state file `slm.json` says which frame is current, its shape, bit depth, channel
 
 from __future__ import annotations
 
+import functools
+import math
 from collections.abc import Sequence
 from datetime import datetime, timezone
 from typing import Any
@@ -19,10 +22,20 @@ from benchctl.devices.sim.state import device_file, load_state, save_state, sim_
 from benchctl.devices.slm.base import SLM
 from benchctl.errors import BenchctlError
 from benchctl.files import ensure_dir
-from benchctl.profiles import SimSLMConfig, SLMConfig
+from benchctl.optics.phase_encoding import PhaseLUT
+from benchctl.profiles import Profile, SimSLMConfig, SLMConfig
 
 STATE_NAME = "slm"
 _READ_ATTEMPTS = 5
+
+
+@functools.lru_cache(maxsize=8)
+def true_lut(wavelength_m: float, bit_depth: int, response: SimSLMConfig) -> PhaseLUT:
+    """The simulated panel's real gray -> phase table at one wavelength (what calibration should measure):
+    2 pi (two_pi_nm / wavelength) (g / 2^bit_depth)^gamma."""
+    depth = 2 * math.pi * response.two_pi_nm * 1e-9 / wavelength_m
+    levels = np.arange(1 << bit_depth, dtype=np.float64) / (1 << bit_depth)
+    return PhaseLUT(depth * levels**response.gamma)
 
 
 def read_displayed() -> tuple[np.ndarray | None, dict[str, Any]]:
@@ -56,10 +69,15 @@ class SimSLM(SLM):
         super().__init__(config, channels)
         self.response = response if response is not None else SimSLMConfig()
 
+    @classmethod
+    def for_profile(cls, profile: Profile) -> SimSLM:
+        """The simulated panel of `profile`, with its true phase response ([sim.slm])."""
+        config = profile.require("slm").slm
+        assert config is not None
+        return cls(config, [channel.name for channel in profile.channels], profile.sim.slm)
+
     def ground_truth_lut(self, wavelength_m: float) -> np.ndarray:
         """The simulated panel's own response ([sim.slm]) at `wavelength_m`."""
-        from benchctl.devices.sim.bench import true_lut
-
         return true_lut(wavelength_m, self.bit_depth, self.response).phases
 
     def _device_lock(self) -> DeviceLock:

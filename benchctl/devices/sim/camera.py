@@ -1,5 +1,6 @@
 """The "sim" camera driver: a Canon-like body on the simulated bench, recording what the simulated SLM and
-lasers produce (benchctl.devices.sim.bench) as a DNG."""
+lasers produce (benchctl.devices.sim.bench) as a DNG; and the simulated EOS body that the `ptp` driver talks to
+when the profile says camera.transport = "sim", delivering the same frames over PTP."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import numpy as np
 
 from benchctl.devices.camera.base import Camera, PreviewFrame, RawFrame, Window
 from benchctl.devices.errors import DeviceError
+from benchctl.devices.sim.eos_usb import SimEosTransport
 from benchctl.devices.lock import DeviceLock
 from benchctl.devices.safety import wait
 from benchctl.devices.sim.state import CAMERA_STATE, load_state, sim_lock, state_dir
@@ -39,6 +41,12 @@ class SimCamera(Camera):
         super().__init__(config)
         self.profile = profile
         self._live_view: LiveView | None = None
+
+    @classmethod
+    def for_profile(cls, profile: Profile) -> SimCamera:
+        config = profile.require("camera").camera
+        assert config is not None
+        return cls(config, profile)
 
     def _device_lock(self) -> DeviceLock:
         return sim_lock(CAMERA_STATE, "camera (sim)")
@@ -93,3 +101,21 @@ class SimCamera(Camera):
         data, metadata = self._live_view.dng(width, window, exposure_s=self.config.exposure_s, iso=self.config.iso)
         metadata["render_s"] = round(time.perf_counter() - start, 6)
         return PreviewFrame(data, "dng", tuple(metadata["window"]), self._live_view.active_shape, metadata)
+
+def eos_transport(profile: Profile) -> SimEosTransport:
+    """A simulated EOS body on `profile`'s simulated bench: each shutter release delivers the DNG the bench
+    renders, and its live view the simulator's preview as JPEG, with the exposure and ISO of the profile's
+    [camera] section."""
+    from benchctl.devices.camera.base import PREVIEW_WIDTH
+    from benchctl.devices.sim.bench import LiveView, render_capture  # torch physics: only a capture needs it
+
+    config = profile.require("camera").camera
+    assert config is not None
+
+    def image_source() -> tuple[bytes, str]:
+        frame = render_capture(profile, exposure_s=config.exposure_s, iso=config.iso)
+        return frame.data, frame.file_name
+
+    view = LiveView(profile)
+    return SimEosTransport(image_source, live_view=lambda: view.jpeg(PREVIEW_WIDTH, exposure_s=config.exposure_s,
+                                                                     iso=config.iso))
