@@ -12,7 +12,7 @@ import pytest
 import torch
 
 import benchctl.optics.propagation as propagation
-from benchctl.optics import Propagator, plan_propagation, propagate
+from benchctl.optics import Propagator, PrunedPropagator, plan_propagation, propagate
 from benchctl.optics.plan import wrapped_tail_power
 from benchctl.runner.geometry import describe_plans
 from benchctl.optics.setup import OpticalSetup
@@ -453,3 +453,16 @@ def test_reconstruct_roi_is_the_roi_of_reconstruct_and_keeps_the_gradient() -> N
     (grad_roi,) = torch.autograd.grad(roi.square().sum(), phase)
     assert torch.allclose(grad_roi, grad_whole, rtol=0, atol=1e-10)
     assert setup.roi_propagator() is setup.roi_propagator()
+
+
+@pytest.mark.parametrize("aperture, window", [(0.5, None), (None, None), (0.3, (5, 40, 10, 60))])
+def test_the_pruned_evaluation_is_the_propagators_to_float32_rounding(aperture, window):
+    """PrunedPropagator skips the guard band's rows, the frequencies the transfer function zeroes and the outputs
+    outside the window, and must give what the propagator gives."""
+    propagator = Propagator((64, 96), 20e-3, 520e-9, 8e-6, aperture=aperture, window=window)
+    gen = torch.Generator().manual_seed(3)
+    field = torch.polar(torch.rand(64, 96, generator=gen), 2 * math.pi * torch.rand(64, 96, generator=gen))
+    expected = propagator(field.to(torch.complex64))
+    got = PrunedPropagator(propagator)(field.to(torch.complex64))
+    assert got.shape == expected.shape
+    assert float((got - expected).abs().max()) < 1e-5 * float(expected.abs().max())

@@ -26,6 +26,7 @@ _HOME = {
     "PropagationPlan": "plan",
     "plan_propagation": "plan",
     "Propagator": "propagation",
+    "PrunedPropagator": "propagation",
     "propagate": "propagation",
 }
 
