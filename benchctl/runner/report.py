@@ -17,6 +17,7 @@ import numpy as np
 from benchctl.files import atomic_write_bytes, write_csv, write_json
 from benchctl.images import read_image
 from benchctl.runner import layout
+from benchctl.runner.acceptance import rejection_line
 from benchctl.runner.context import Context
 
 PREVIEW_WIDTH = 480
@@ -52,7 +53,7 @@ def table(rows: list[dict[str, Any]]) -> str:
 def figure(context: Context, relative: str, caption: str) -> str:
     """An embedded 8-bit preview of an image file of the run (`relative`, as a step result names it), linked to
     the full-resolution file."""
-    image = read_image(context.path(relative))
+    image = read_image(context.verified(relative))
     if image.dtype == np.uint16:
         image = (image / 257).round().astype(np.uint8)
     if image.shape[1] > PREVIEW_WIDTH:
@@ -109,6 +110,27 @@ class Report:
     def warn(self, *lines: str) -> None:
         """Warnings, shown first in the report (each once)."""
         self.warnings += lines
+
+    def calibrations(self, records: list[dict[str, Any]]) -> None:
+        """A section on the calibrations the run measured (`Verdict.record`s): per colour whether each replaced the
+        stored one, its residual beside the stored one's on the same captures, and why one was not stored; a warning
+        for each one not stored or stored by force."""
+        rows = [{"colour": r["colour"], "calibration": r["kind"], "measure": r["measure"],
+                 "stored one (same captures)": r["old"], "new": r["new"],
+                 "stored": "yes, forced" if r["forced"] else "yes" if r["stored"] else "no",
+                 "failed checks": "; ".join(r["failures"]) or "none"} for r in records]
+        for record in records:
+            if not record["stored"]:
+                self.warn(rejection_line(record))
+            elif record["forced"]:
+                self.warn(f"{record['colour']}: new {record['kind']} stored although it failed its acceptance test "
+                          f"(accept = \"always\"): {'; '.join(record['failures'])}")
+        self.section("Acceptance of the new calibration", table(rows),
+                     "<p>A new calibration replaces the stored one only if light reached the camera, its fit improved "
+                     "on its start, its residual is below the bound and not above that of the stored one on the same "
+                     "captures. One that fails is kept for inspection in <code>rejected/</code> beside the store and "
+                     "in this run's <code>calibration/</code>; <code>accept = \"always\"</code> stores it anyway."
+                     "</p>")
 
     def write(self, context: Context, metrics: dict[str, Any], rows: list[dict[str, Any]], colours: list[str],
               headline: list[str]) -> dict[str, Any]:

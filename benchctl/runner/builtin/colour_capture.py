@@ -42,6 +42,7 @@ from benchctl.runner.api import (
     figure,
     front_plot,
     hologram_step,
+    load_array,
     load_exposure,
     power_w,
     prepared_target,
@@ -98,7 +99,7 @@ def plan(context: Context) -> list[Step]:
         steps += lut_calibration.lut_steps(context, uncalibrated,
                                            lut_calibration.PARAMETERS(gray_step=AUTO_LUT_GRAY_STEP))
     steps += registration.registration_first(context, used, options[methods[0]], params.registration)
-    labels: set[str] = set()
+    labels: set[str] = {registration.LABEL}  # registration's holograms are named after it
     targets = []
     for spec in params.targets:
         base, target = target_label(spec, labels), prepared_target(context.profile, spec)
@@ -164,7 +165,7 @@ def _processor(spec: str, label: str, repeat: str, lit: list[LaserChannel], targ
             image, _ = load_exposure(context, f"capture/{label}{repeat}/{channel.name}")
             planes[index] = registered(context, image, channel)
             saturation[index] = registered_saturation(context, image, channel)
-            sim = np.load(context.path(context.result(f"hologram/{label}/{channel.name}")["simulated"]))
+            sim = load_array(context, context.result(f"hologram/{label}/{channel.name}")["simulated"])
             simulated[index] = torch.from_numpy(sim).square().clamp(0, 1)
         capture = merge_capture(planes, target_roi, saturation=saturation)
         folder = label + repeat
