@@ -78,7 +78,7 @@ def test_captures_without_light_never_replace_a_good_model(tmp_path: Path, profi
     info = json.loads((folder / "run.json").read_text())
     assert info["stop"]["status"] == "finished" and info["stop"]["not_stored"][0].startswith("green: new optical")
     report = (folder / "report.html").read_text()
-    assert "Acceptance of the new calibration" in report and "no light reached the camera" in report
+    assert "stored only if it passes its acceptance test" in report and "no light reached the camera" in report
     assert "<b>Warnings</b>" in report and "green: residual 1.000 -&gt; 0.998" not in report
     assert not list(store.folder.glob("*rejected*.json"))  # kept only in rejected/, which later runs do not copy
 
@@ -130,7 +130,7 @@ def test_a_better_fit_replaces_the_stored_model_with_both_residuals_reported(
     stored = json.loads((store.folder / "optical-model.json").read_text())["colours"]["green"]
     assert stored["residual"] == record["new"]
     (folder,) = (tmp_path / "runs").iterdir()
-    assert "Acceptance of the new calibration" in (folder / "report.html").read_text()
+    assert "stored only if it passes its acceptance test" in (folder / "report.html").read_text()
 
 
 def test_the_residual_of_a_given_model_is_the_fits_own(make_bench_profile: Callable[..., Profile]) -> None:
@@ -223,7 +223,7 @@ def test_a_lookup_table_measured_without_light_keeps_the_stored_one(tmp_path: Pa
     assert (store.folder / "lut-green.csv").read_bytes() == table
     (folder,) = (tmp_path / "dark").iterdir()
     report = (folder / "report.html").read_text()
-    assert "Acceptance of the new calibration" in report and "no table could be read" in report
+    assert "stored only if it passes its acceptance test" in report and "no table could be read" in report
 
 
 REGISTRATION = """\

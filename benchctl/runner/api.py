@@ -25,7 +25,8 @@ and savers place every file in the run folder; a procedure names its files, neve
 - files: `save_hologram`, `save_image`, `save_array` (each file's checksum joins the step's result), `load_image`,
   `load_array` (checked against it before use), `state_path`.
 - calibration: `Verdict` (a new calibration's acceptance test), stored or kept by `Context.store_calibration`.
-- reports: `Report` with the HTML helpers `table`, `figure`, `line_plot`, `front_plot`.
+- reports: `Report` with the HTML helpers `table`, `figure`, `row` (figures side by side), `line_plot`,
+  `front_plot`, and the pictures `error_map` and `dots_over`.
 """
 
 from benchctl.errors import BenchctlError
@@ -33,8 +34,8 @@ from benchctl.runner.acceptance import AcceptMode, Verdict
 from benchctl.runner.auto_exposure import ExposureMode, PeakGoal, probe_step, probed_power, signal_stats
 from benchctl.runner.calibration import Calibration
 from benchctl.runner.context import Context, Expose, Parameters, Step, StepRedo
-from benchctl.runner.plots import front_plot, line_plot
-from benchctl.runner.report import Report, figure, table
+from benchctl.runner.plots import ERROR_FULL_SCALE, dots_over, error_map, front_plot, line_plot
+from benchctl.runner.report import Report, figure, row, table
 from benchctl.runner.steps import (
     DarkFrames,
     ExposureParameters,
@@ -69,6 +70,7 @@ from benchctl.runner.steps import (
 from benchctl.targets import target_plane
 
 __all__ = [
+    "ERROR_FULL_SCALE",
     "AcceptMode",
     "BenchctlError",
     "Calibration",
@@ -91,6 +93,8 @@ __all__ = [
     "check_method",
     "compute_hologram",
     "displayed_frame",
+    "dots_over",
+    "error_map",
     "exposure_step",
     "figure",
     "front_plot",
@@ -106,6 +110,7 @@ __all__ = [
     "probed_power",
     "registered",
     "registered_saturation",
+    "row",
     "save_array",
     "save_hologram",
     "save_image",

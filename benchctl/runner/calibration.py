@@ -195,8 +195,8 @@ class Calibration:
                           + f" waves; beam waist {model['waist_mm']:.2f} mm"
                           + f"; crosstalk {model.get('crosstalk_px', 0.0):.3f} px"
                           + f"; zero order {model.get('zero_order', 0.0):.3f}" if model else "none: ideal model")
-            rows.append({"colour": colour, "registration": reg_text, "lookup_table": lut_text,
-                         "optical_model": model_text})
+            rows.append({"colour": colour, "registration": reg_text, "lookup table": lut_text,
+                         "optical model": model_text})
         return rows, warnings
 
 

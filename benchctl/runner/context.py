@@ -51,16 +51,19 @@ P = TypeVar("P", bound=Parameters)
 class Expose:
     """An exposure a step declares: show a frame, light `channel` alone at `power_w` (None: a power the step
     decides when it runs, never above the channel's max_power_mw), capture `frames` RAW frames and then
-    `dark_frames` with emission off."""
+    `dark_frames` with emission off; `keep`: the RAW files are kept in the run folder (its disk estimate counts
+    them)."""
 
     channel: str
     power_w: float | None
     frames: int
     dark_frames: int
+    keep: bool = True
 
     def describe(self) -> str:
         power = "a power chosen when the step runs" if self.power_w is None else format_power(self.power_w)
-        return f"{self.channel} alone at {power}, {self.frames} frame(s) + {self.dark_frames} dark"
+        return (f"{self.channel} alone at {power}, {self.frames} frame(s) + {self.dark_frames} dark"
+                + ("" if self.keep else ", RAW not kept"))
 
 
 @dataclass(frozen=True)

@@ -33,6 +33,7 @@ from benchctl.devices.power import format_power
 from benchctl.runner.acceptance import rejection_line
 from benchctl.runner.calibration import REGISTRATION_FILE, Calibration
 from benchctl.runner.context import Context, Step, StepRedo
+from benchctl.runner.estimates import RunEstimate, duration_text
 from benchctl.runner.instruments import Instruments
 from benchctl.runner.layout import CALIBRATION_COPY, DEVICES, PROFILE_COPY, REPORT, RUN_FILE
 from benchctl.runner.procedure import Procedure, load_procedure
@@ -148,15 +149,24 @@ def _run(path: Path | None, profile: str | None, out: Path, dry_run: bool, resum
     checked += check_memory(effective, procedure.params, str(path or procedure.name))  # counts that scale memory
     with Instruments(effective, say) as instruments:
         context = Context(effective, procedure.params, calibration, instruments, record, say)
-        steps = procedure.plan(context)
+        try:
+            steps = procedure.plan(context)
+        except BenchctlError as exc:  # a value of the procedure's: name its file too
+            if not str(exc).startswith("parameters."):
+                raise
+            raise BenchctlError(f"{path or record.folder / record.info()['procedure_file']}: {exc}") from None
+        estimate = RunEstimate(steps, effective)
+        todo = [step for step in steps if record is None or not record.is_done(step.key)]
         if dry_run:
-            for line in [*_describe(steps, procedure, bench_profile), *checked]:
+            for line in [*_describe(steps, procedure, bench_profile), *checked,
+                         *estimate.describe(steps, Path(out))]:
                 say(line)
             code = [name for name in procedure.files if name.endswith(".py")]
             say("dry run: nothing was touched" if not code else
                 f"dry run: benchctl opened no device and wrote nothing; the procedure's own code ({', '.join(code)}) "
                 "ran to plan these steps, with your rights")
             return RunOutcome(None, [], [step.key for step in steps], [])
+        estimate.check_disk(todo, record.folder if record is not None else Path(out))
         if record is None:
             record = create_run(Path(out), procedure.name, {
                 "procedure": procedure.kind, "procedure_file": next(iter(procedure.files)),
@@ -171,13 +181,13 @@ def _run(path: Path | None, profile: str | None, out: Path, dry_run: bool, resum
         say(f"run folder: {record.folder}")
         for reason in [*record.invalidated, *record.damaged]:
             say(reason)
-        return _execute(steps, context, record)
+        return _execute(steps, context, record, estimate)
 
 
 MAX_REDOS = 2  # times one run invocation goes back to the same step (StepRedo) before it stops
 
 
-def _execute(steps: list[Step], context: Context, record: RunRecord) -> RunOutcome:
+def _execute(steps: list[Step], context: Context, record: RunRecord, estimate: RunEstimate) -> RunOutcome:
     """Run the unfinished steps in order; log each; write the stop record however it ends. A step that sends the
     run back to an earlier one (StepRedo) has that one and every step finished after it done again."""
     earlier = [step.key for step in steps if record.is_done(step.key)]
@@ -187,10 +197,12 @@ def _execute(steps: list[Step], context: Context, record: RunRecord) -> RunOutco
     try:
         while True:
             todo = [(number, step) for number, step in enumerate(steps, 1) if not record.is_done(step.key)]
+            estimate.start([step for _, step in todo])
             try:
                 for number, step in todo:
                     current = step.key
-                    _run_step(number, steps, step, context, record)
+                    _run_step(f"[{number}/{len(steps)}, about {duration_text(estimate.left())} left]", step, context,
+                              record, estimate)
                     ran.append(step.key)
                 break
             except StepRedo as exc:
@@ -228,10 +240,11 @@ def _execute(steps: list[Step], context: Context, record: RunRecord) -> RunOutco
     return RunOutcome(record.folder, ran, skipped, headline)
 
 
-def _run_step(number: int, steps: list[Step], step: Step, context: Context, record: RunRecord) -> None:
+def _run_step(where: str, step: Step, context: Context, record: RunRecord, estimate: RunEstimate) -> None:
     """Run one step and log it: started, then finished with its result, or failed (a StepRedo also marks the step
-    it goes back to, and every step finished after that, to be done again)."""
-    context.say(f"[{number}/{len(steps)}] {_line(step)}")
+    it goes back to, and every step finished after that, to be done again). `where` leads its line: [n/N, time
+    left]."""
+    context.say(f"{where} {_line(step)}")
     record.started(step.key)
     start = time.perf_counter()
     context.step = step
@@ -252,7 +265,9 @@ def _run_step(number: int, steps: list[Step], step: Step, context: Context, reco
         raise
     finally:
         context.step = None
-    record.finished(step.key, time.perf_counter() - start, result)
+    seconds = time.perf_counter() - start
+    record.finished(step.key, seconds, result)
+    estimate.ran(step, seconds)
 
 
 def _best_effort(context: Context, what: str, action: Callable[[], object]) -> None:

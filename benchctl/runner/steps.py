@@ -94,7 +94,10 @@ def channels(context: Context) -> list[LaserChannel]:
     """The laser channels a procedure uses: `colours` if given (each must exist), else all of the profile's."""
     profile = context.profile.require("laser")
     names = context.parameters(ExposureParameters).colours or [channel.name for channel in profile.channels]
-    return [profile.channel(name) for name in names]
+    try:
+        return [profile.channel(name) for name in names]
+    except BenchctlError as exc:
+        raise BenchctlError(f"parameters.colours: {exc}") from None
 
 
 def power_w(context: Context, channel: LaserChannel) -> float:
@@ -136,11 +139,17 @@ def target_label(spec: str, taken: set[str]) -> str:
     return label
 
 
-def prepared_target(profile: Profile, spec: str) -> torch.Tensor:
-    """(3, H, W) target amplitude on the SLM grid, prepared as the paper prepares targets."""
+def prepared_target(profile: Profile, spec: str, key: str | None = None) -> torch.Tensor:
+    """(3, H, W) target amplitude on the SLM grid, prepared as the paper prepares targets; an unknown or unreadable
+    target is an error naming the parameter `key` it came from (e.g. "parameters.targets")."""
     profile.require("slm", "optics")
     assert profile.slm is not None and profile.optics is not None
-    return prepare_target(load_target(spec, size=profile.optics.roi), profile.slm.shape, profile.optics.roi)
+    try:
+        return prepare_target(load_target(spec, size=profile.optics.roi), profile.slm.shape, profile.optics.roi)
+    except BenchctlError as exc:
+        if key is None:
+            raise
+        raise BenchctlError(f"{key}: {exc}") from None
 
 
 # -- holograms ------------------------------------------------------------------------------------------------------

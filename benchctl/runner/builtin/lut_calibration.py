@@ -42,6 +42,7 @@ from benchctl.runner.api import (
     line_plot,
     load_exposure,
     power_w,
+    row,
     table,
     target_plane,
     unknown_setpoints,
@@ -173,9 +174,10 @@ def _reporter(used: list[LaserChannel]):
     return action
 
 
-def lut_report(context: Context, fits: dict[str, dict[str, Any]]) -> dict[str, Any]:
-    """Measured gray -> phase per colour (plot), depth, whether each table was stored, and on the simulated bench the
-    error against the truth."""
+def lut_sections(report: Report, fits: dict[str, dict[str, Any]]) -> tuple[list[str], list[dict[str, Any]]]:
+    """The lookup tables' sections of a report (their own, or a procedure's that measured them first): whether each
+    table was stored, the measured gray -> phase response and zero-order signal per colour, depth, and on the
+    simulated bench the error against the truth. Returns headline lines and the table's rows."""
     measured = {name: fit for name, fit in fits.items() if "phases" in fit}
     series = {name: ([float(g) for g in fit["grays"]], fit["phases"]) for name, fit in measured.items()}
     rows = [{"colour": name, "grays measured": len(fit["grays"]), "phase depth rad": fit.get("depth_rad"),
@@ -184,15 +186,22 @@ def lut_report(context: Context, fits: dict[str, dict[str, Any]]) -> dict[str, A
              "table": fit["file"] if fit["calibration"]["stored"] else "not stored"}
             for name, fit in fits.items()]
     signals = {name: ([float(g) for g in fit["grays"]], fit["signals"]) for name, fit in fits.items()}
-    report = Report("SLM lookup-table calibration")
     report.calibrations([fit["calibration"] for fit in fits.values()])
-    report.section("Measured phase response", line_plot(series, "gray level", "phase - phase(0) (rad)"))
-    report.section("Zero-order signal", line_plot(signals, "gray level", "signal (full scale = 1)"))
-    report.section("Tables", table(rows), "<p>The tables are stored per profile and used by later runs for every "
-                   "channel whose table the profile does not name ([slm.lut]).</p>")
+    report.section("SLM lookup tables", table(rows), row(
+        line_plot(series, "gray level", "measured phase - phase(0) (rad)"),
+        line_plot(signals, "gray level", "zero-order signal (full scale = 1)")),
+        "<p>The tables are stored per profile and used by later runs for every channel whose table the profile "
+        "does not name ([slm.lut]).</p>")
     headline = [f"{r['colour']}: " + ("no table" if r["phase depth rad"] is None else
                                       f"depth {r['phase depth rad']:.3f} rad")
                 + (f", RMS {r['RMS vs simulator rad']:.4f} rad vs the simulator"
                    if r["RMS vs simulator rad"] is not None else "")
                 + ("" if fits[r["colour"]]["calibration"]["stored"] else "; NOT stored") for r in rows]
+    return headline, rows
+
+
+def lut_report(context: Context, fits: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """The lookup-table calibration's report (`lut_sections`)."""
+    report = Report("SLM lookup-table calibration")
+    headline, rows = lut_sections(report, fits)
     return report.write(context, {"procedure": "lut-calibration", "colours": fits}, rows, list(fits), headline)

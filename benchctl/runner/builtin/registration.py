@@ -14,6 +14,7 @@ from typing import Annotated, Any
 import numpy as np
 from msgspec import Meta
 
+from benchctl.capture.colour_planes import registered_plane
 from benchctl.capture.registration import (
     DEFAULT_GRID,
     MAX_RMS_TARGET_PX,
@@ -24,8 +25,10 @@ from benchctl.capture.registration import (
     dots_in_capture,
     fit_registration,
 )
+from benchctl.capture.raw import RawImage
 from benchctl.devices.camera import camera_for
 from benchctl.files import write_json
+from benchctl.optics.metrics import centred_slices
 from benchctl.profiles import LaserChannel, Positive
 from benchctl.runner.api import (
     BenchctlError,
@@ -37,11 +40,14 @@ from benchctl.runner.api import (
     StepRedo,
     carried,
     channels,
+    dots_over,
     exposure_step,
     figure,
     hologram_step,
     load_exposure,
     power_w,
+    row,
+    save_image,
     shown,
     table,
     target_plane,
@@ -131,9 +137,23 @@ def _fitter(channel: LaserChannel, points: np.ndarray, grid: tuple[int, int], ma
         context.say(f"      {channel.name}: {fit.inliers}/{fit.points} dots, RMS {fit.rms_px:.3f} px, "
                     f"max {fit.max_px:.3f} px, {fit.scale:.3f} sensor px per SLM px")
         return {**entry, "scale": fit.scale, "mirrored": fit.mirrored, "simulator": _against_simulator(context, fit),
-                "calibration": record}
+                "calibration": record, "overlay": _overlay(context, channel, image, fit, points, grid)}
 
     return action
+
+
+def _overlay(context: Context, channel: LaserChannel, image: RawImage, fit: Registration, points: np.ndarray,
+             grid: tuple[int, int]) -> str:
+    """The dot-grid capture seen through the new registration, each dot's ring where it was meant to land (saved for
+    the report)."""
+    profile = context.profile
+    assert profile.slm is not None and profile.optics is not None
+    roi = profile.optics.roi
+    plane = registered_plane(image, target_plane(channel), fit.homography, profile.slm.shape, roi)
+    rows, cols = centred_slices(profile.slm.shape, roi)
+    radius = 0.35 * min(roi[0] / grid[0], roi[1] / grid[1])
+    return save_image(context, dots_over(plane, points - [cols.start, rows.start], radius), "registration",
+                      f"dots-{channel.name}.png")
 
 
 def median_error(homography: np.ndarray, points: np.ndarray, found: np.ndarray) -> float:
@@ -167,21 +187,30 @@ def _reporter(used: list[LaserChannel]):
     return action
 
 
-def registration_report(context: Context, fits: dict[str, dict[str, Any]]) -> dict[str, Any]:
-    """Per colour: dots used, reprojection error, scale, whether it was stored, and (simulated bench) the error
-    against the truth."""
+def registration_sections(report: Report, context: Context,
+                          fits: dict[str, dict[str, Any]]) -> tuple[list[str], list[dict[str, Any]]]:
+    """The registration's sections of a report (its own, or a procedure's that registered first): per colour whether
+    the fit was stored, dots used, reprojection error, scale, (simulated bench) the error against the truth, and the
+    capture seen through the fit with the dots' rings. Returns headline lines and the table's rows."""
     rows = [{"colour": name, "inliers": f["inliers"], "points": f["points"], "rms px": f["rms_px"],
              "max px": f["max_px"], "sensor px per SLM px": f["scale"], "mirrored": f["mirrored"],
              "ROI corners vs simulator, max px": (f["simulator"] or {}).get("corner_error_max_px"),
              "stored": "yes" if f["calibration"]["stored"] else "no"}
             for name, f in fits.items() if "homography" in f]
-    pictures = "".join(figure(context, context.result(f"registration/hologram/{name}")["file"],
-                              f"dot-grid hologram {name}") for name in fits)
-    report = Report("Camera-SLM registration")
+    pictures = [figure(context, f["overlay"], f"{name}: the dots seen through the fit, each in its ring")
+                for name, f in fits.items() if "overlay" in f]
     report.calibrations([f["calibration"] for f in fits.values()])
-    report.section("Fits", table(rows), pictures)
-    return report.write(context, {"procedure": "registration", "colours": fits}, rows, list(fits),
-                        [f"{r['colour']}: RMS {r['rms px']:.3f} px over {r['inliers']}/{r['points']} dots"
-                         + ("" if r["stored"] == "yes" else "; NOT stored") for r in rows]
-                        + [f"{name}: refused ({f['problem']}); NOT stored" for name, f in fits.items()
-                           if "problem" in f])
+    report.section("Camera-SLM registration", table(rows), row(*pictures))
+    headline = ([f"{r['colour']}: RMS {r['rms px']:.3f} px over {r['inliers']}/{r['points']} dots"
+                 + ("" if r["stored"] == "yes" else "; NOT stored") for r in rows]
+                + [f"{name}: refused ({f['problem']}); NOT stored" for name, f in fits.items() if "problem" in f])
+    return headline, rows
+
+
+def registration_report(context: Context, fits: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """The registration procedure's report: its sections and the dot-grid holograms shown."""
+    report = Report("Camera-SLM registration")
+    headline, rows = registration_sections(report, context, fits)
+    report.section("Dot-grid holograms", row(*[figure(context, context.result(f"registration/hologram/{name}")["file"],
+                                                      f"dot-grid hologram {name}") for name in fits]))
+    return report.write(context, {"procedure": "registration", "colours": fits}, rows, list(fits), headline)

@@ -132,7 +132,7 @@ def plan(context: Context) -> list[Step]:
     params = context.parameters(CitlParameters)
     gradient_device(params.device)
     unknown_setpoints(context)
-    target = prepared_target(context.profile, params.target)
+    target = prepared_target(context.profile, params.target, "parameters.target")
     present = active_channels(target)
     used = [c for c in channels(context) if present[target_plane(c)]]
     if not used:
@@ -152,7 +152,8 @@ def plan(context: Context) -> list[Step]:
             what = "capture the final phase" if k == count else "capture, register, step the phase"
             steps.append(Step(f"citl/{name}/{k:04d}", f"CITL {name} iteration {k}/{count}: {what}",
                               _iteration(target, channel, k),
-                              (Expose(name, power, params.frames, params.dark_frames),)))
+                              (Expose(name, power, params.frames, params.dark_frames,
+                                      keeps_raw(k, count, params.keep_raw_every)),)))
         if params.baseline:
             steps.append(Step(f"citl/{name}/baseline", f"model-only SGD {name} at {_budget(params)} iterations, "
                               "captured", _baseline(target, channel),
