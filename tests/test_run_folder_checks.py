@@ -214,7 +214,7 @@ def test_an_edited_calibration_copy_is_refused_on_resume(captured: Path, capsys:
 HOLD = textwrap.dedent("""\
     import sys
     from benchctl.devices.lock import set_command
-    from benchctl.runner.engine import run_folder_lock
+    from benchctl.runner.record import run_folder_lock
     set_command("benchctl run")
     with run_folder_lock(sys.argv[1]):
         print("held", flush=True)
@@ -224,7 +224,7 @@ HOLD = textwrap.dedent("""\
 
 def test_a_run_folder_has_one_writer(captured: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """Two `run --resume` of one folder both executed steps (duplicate `done` events); the second is now refused,
-    told who holds it, and writes nothing."""
+    told who holds it, and writes nothing; `runs remove --force` leaves it alone too."""
     (captured / "images" / "bars" / "capture.png").unlink()  # work for a resume to do
     log = (captured / "steps.jsonl").read_bytes()
     holder = subprocess.Popen([sys.executable, "-c", HOLD, str(captured)], stdin=subprocess.PIPE,
@@ -236,6 +236,8 @@ def test_a_run_folder_has_one_writer(captured: Path, capsys: pytest.CaptureFixtu
         assert line.startswith(f"benchctl: error: {captured}: this run is being written already, held by `benchctl "
                                f"run` (pid {holder.pid}) since "), line
         assert (captured / "steps.jsonl").read_bytes() == log
+        assert main(["runs", "remove", str(captured), "--yes", "--force"]) == 2  # nor removed under its writer
+        assert "this run is being written already" in capsys.readouterr().err and captured.is_dir()
     finally:
         holder.communicate("\n", timeout=30)
     assert main(["run", "--resume", str(captured)]) == 0  # the holder gone, the resume runs

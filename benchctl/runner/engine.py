@@ -24,7 +24,6 @@ from typing import Any
 import msgspec
 
 from benchctl.calibration_files import check_calibration
-from benchctl.devices.lock import DeviceHeld, DeviceLock
 from benchctl.errors import BenchctlError
 from benchctl.files import file_sha256, write_json
 from benchctl.memory import check_memory
@@ -37,7 +36,7 @@ from benchctl.runner.estimates import RunEstimate, duration_text
 from benchctl.runner.instruments import Instruments
 from benchctl.runner.layout import CALIBRATION_COPY, DEVICES, PROFILE_COPY, REPORT, RUN_FILE
 from benchctl.runner.procedure import Procedure, load_procedure
-from benchctl.runner.record import RunRecord, create_run, open_run
+from benchctl.runner.record import RunRecord, create_run, open_run, run_folder_lock
 
 
 @dataclass
@@ -73,18 +72,6 @@ def _describe(steps: list[Step], procedure: Procedure, profile: Profile) -> list
             lines.append(f"  {channel.name}: {len(mine)} exposure(s), {highest}{later}; limit "
                          f"{channel.max_power_mw:g} mW")
     return lines
-
-
-def run_folder_lock(folder: Path) -> DeviceLock:
-    """The lock that gives a run folder one writer (a device lock, keyed by the folder's resolved path: released by
-    the kernel when the holder ends, however it ends); taken, or BenchctlError naming who holds it."""
-    lock = DeviceLock(f"run:{Path(folder).resolve()}", f"run folder {folder}")
-    try:
-        return lock.acquire()
-    except DeviceHeld as exc:
-        holder = exc.holder or "by another process"
-        raise BenchctlError(f"{folder}: this run is being written already, {holder}; a run folder has one writer: "
-                            "wait for it to end, or stop it") from None
 
 
 def _resumed(folder: Path, profile_arg: str | None) -> tuple[RunRecord, Procedure, Profile]:

@@ -19,6 +19,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
+from benchctl.devices.lock import DeviceHeld, DeviceLock
 from benchctl.errors import BenchctlError
 from benchctl.files import atomic_write_bytes, ensure_dir, file_sha256, write_json
 from benchctl.provenance import code_identity
@@ -309,6 +310,18 @@ def open_run(folder: Path) -> RunRecord:
     info.pop("stop", None)
     write_json(folder / RUN_FILE, info)
     return record
+
+
+def run_folder_lock(folder: Path) -> DeviceLock:
+    """The lock that gives a run folder one writer (a device lock, keyed by the folder's resolved path: released by
+    the kernel when the holder ends, however it ends); taken, or BenchctlError naming who holds it."""
+    lock = DeviceLock(f"run:{Path(folder).resolve()}", f"run folder {folder}")
+    try:
+        return lock.acquire()
+    except DeviceHeld as exc:
+        holder = exc.holder or "by another process"
+        raise BenchctlError(f"{folder}: this run is being written already, {holder}; a run folder has one writer: "
+                            "wait for it to end, or stop it") from None
 
 
 def set_aside(folder: Path, attempt: int) -> Path | None:
