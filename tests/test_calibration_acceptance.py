@@ -12,11 +12,10 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import SMALL_BENCH
+from conftest import SMALL_BENCH, truly_registered
 from test_model_calibration import ABERRATED, HIDDEN, PROCEDURE, rendered
 
 from benchctl.cli import main
-from benchctl.devices.sim import bench
 from benchctl.optics.fitted import FitDiverged, FittedOptics, calibration_patterns, fit_optics, model_residual
 from benchctl.profiles import Profile
 from benchctl.runner.builtin import model_calibration
@@ -29,10 +28,7 @@ pytestmark = pytest.mark.slow  # procedure runs: seconds each
 @pytest.fixture
 def profile(make_bench_profile: Callable[..., Profile]) -> Profile:
     """The aberrated small bench (green) with its true registration stored."""
-    profile = make_bench_profile(SMALL_BENCH, ABERRATED)
-    Calibration.store(profile).save_registration("green", {"homography": bench.camera_homography(profile).tolist(),
-                                                           "rms_px": 0.0})
-    return profile
+    return truly_registered(make_bench_profile(SMALL_BENCH, ABERRATED))
 
 
 def run_cli(capsys: pytest.CaptureFixture[str], procedure: Path, profile: Profile, out: Path) -> tuple[int, str]:
@@ -239,9 +235,8 @@ def test_a_refused_registration_keeps_the_stored_one_or_is_captured_again(
         tmp_path: Path, make_bench_profile: Callable[..., Profile], capsys: pytest.CaptureFixture[str]) -> None:
     """A fit above its RMS limit is not stored: with a stored registration that one stays (rc 2 once the run is
     done); without one the run stops and a resume captures the dots again (not the same refused fit forever)."""
-    profile = make_bench_profile()  # the 128 x 192 bench: room for the dot grid
+    profile = truly_registered(make_bench_profile())  # the 128 x 192 bench: room for the dot grid
     store = Calibration.store(profile)
-    store.save_registration("green", {"homography": bench.camera_homography(profile).tolist(), "rms_px": 0.0})
     before = (store.folder / "registration.json").read_bytes()
     procedure = tmp_path / "registration.toml"
     procedure.write_text(REGISTRATION % "0.0001")

@@ -12,13 +12,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import SMALL_BENCH
+from conftest import SMALL_BENCH, truly_registered
 
 from benchctl.cgh.citl import straight_through_loss
 from benchctl.cgh.sgd import roi_loss
 from benchctl.cli import main
 from benchctl.devices.errors import DeviceError
-from benchctl.devices.sim import bench
 from benchctl.devices.sim.state import load_state
 from benchctl.errors import BenchctlError
 from benchctl.optics import lsq_scale
@@ -55,10 +54,7 @@ registration = "stored"
 @pytest.fixture
 def profile(make_bench_profile: Callable[..., Profile]) -> Profile:
     """The aberrated small bench with its true camera registration stored."""
-    profile = make_bench_profile(SMALL_BENCH, ABERRATED)
-    Calibration.store(profile).save_registration("green", {"homography": bench.camera_homography(profile).tolist(),
-                                                           "rms_px": 0.0})
-    return profile
+    return truly_registered(make_bench_profile(SMALL_BENCH, ABERRATED))
 
 
 def run(tmp_path: Path, profile: Profile, out: str, iterations: int = 12, every: int = 10,

@@ -5,18 +5,17 @@ and warnings that are true."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 from selenium import webdriver
-from selenium.webdriver.chrome.service import Service
 from selenium.webdriver.common.by import By
-from test_console_browser import BROWSER_ARGS, CHROMEDRIVER, CHROMIUM
+import test_console_browser
 
 from benchctl.runner.engine import run_procedure
 
 pytestmark = pytest.mark.slow  # a procedure run and a browser
+browser = test_console_browser.browser  # the console tests' headless Chromium (a fixture)
 
 
 @pytest.fixture
@@ -28,19 +27,6 @@ def report(tmp_path: Path, bench_profile_path: Path) -> Path:
     outcome = run_procedure(procedure, profile=str(bench_profile_path), out=tmp_path / "runs", say=lambda line: None)
     assert outcome.folder is not None
     return outcome.folder / "report.html"
-
-
-@pytest.fixture
-def browser() -> Iterator[webdriver.Chrome]:
-    options = webdriver.ChromeOptions()
-    options.binary_location = CHROMIUM
-    for argument in BROWSER_ARGS:
-        options.add_argument(argument)
-    driver = webdriver.Chrome(service=Service(CHROMEDRIVER), options=options)
-    try:
-        yield driver
-    finally:
-        driver.quit()
 
 
 def section_text(browser: webdriver.Chrome, heading: str) -> str:

@@ -16,16 +16,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import SMALL_BENCH
+from conftest import SMALL_BENCH, truly_registered
 from test_citl import ABERRATED, PROCEDURE as CITL
+from test_procedures import CAPTURE as CAPTURE_TEST
 
 from benchctl.cli import main
 from benchctl.devices.errors import DeviceError
-from benchctl.devices.sim import bench
 from benchctl.images import write_png
 from benchctl.profiles import Profile
 from benchctl.runner.builtin.citl.procedure import _save_state
-from benchctl.runner.calibration import Calibration
 from benchctl.runner.engine import run_procedure
 
 pytestmark = pytest.mark.slow  # procedure runs: seconds each
@@ -33,10 +32,7 @@ pytestmark = pytest.mark.slow  # procedure runs: seconds each
 
 @pytest.fixture
 def profile(make_bench_profile: Callable[..., Profile]) -> Profile:
-    profile = make_bench_profile(SMALL_BENCH, ABERRATED)
-    Calibration.store(profile).save_registration("green", {"homography": bench.camera_homography(profile).tolist(),
-                                                           "rms_px": 0.0})
-    return profile
+    return truly_registered(make_bench_profile(SMALL_BENCH, ABERRATED))
 
 
 def events(folder: Path) -> list[dict]:
@@ -128,17 +124,11 @@ def test_a_citl_run_that_diverges_stops_and_resumes_at_half_the_rate(tmp_path: P
         ("failed", "citl/green/0001"), ("invalid", "citl/green/0000")]
 
 
-CAPTURE = """\
-procedure = "colour-capture"
-[parameters]
-colours = ["green"]
-setpoints = { green = "2mW" }
-frames = 1
-dark_frames = 0
-registration = "stored"
-lut_calibration = "skip"
-exposure = "fixed"
-"""
+# test_procedures' colour capture, green alone, one frame, the registration stored
+CAPTURE = (CAPTURE_TEST.replace("[parameters]", '[parameters]\ncolours = ["green"]')
+           .replace('setpoints = { red = "100%", green = "100%", blue = "100%" }', 'setpoints = { green = "2mW" }')
+           .replace("frames = 2\ndark_frames = 1", "frames = 1\ndark_frames = 0")
+           .replace('registration = "auto"', 'registration = "stored"'))
 
 
 @pytest.fixture

@@ -141,7 +141,8 @@ def _run(path: Path | None, profile: str | None, out: Path, dry_run: bool, resum
         except BenchctlError as exc:  # a value of the procedure's: name its file too
             if not str(exc).startswith("parameters."):
                 raise
-            raise BenchctlError(f"{path or record.folder / record.info()['procedure_file']}: {exc}") from None
+            where = path if record is None else record.folder / record.info()["procedure_file"]
+            raise BenchctlError(f"{where}: {exc}") from None
         estimate = RunEstimate(steps, effective)
         todo = [step for step in steps if record is None or not record.is_done(step.key)]
         if dry_run:

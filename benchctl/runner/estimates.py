@@ -70,14 +70,14 @@ class RunEstimate:
                         if step.exposes else STEP_SECONDS for step in steps}
         self.measured: dict[tuple[str, bool], list[float]] = {}
         self._count: Counter[tuple[str, bool]] = Counter()  # steps left, per kind
-        self._planned: Counter[tuple[str, bool]] = Counter()  # their planned seconds, per kind
+        self._planned: dict[tuple[str, bool], float] = {}  # their planned seconds, per kind
 
     def start(self, todo: Sequence[Step]) -> None:
         """The steps still to run, in order (again after a step sent the run back: StepRedo)."""
         self._count = Counter(_kind(step) for step in todo)
-        self._planned = Counter()
+        self._planned = {}
         for step in todo:
-            self._planned[_kind(step)] += self.planned[step.key]
+            self._planned[_kind(step)] = self._planned.get(_kind(step), 0.0) + self.planned[step.key]
 
     def ran(self, step: Step, seconds: float) -> None:
         """A step finished in `seconds`: the rest of its kind are estimated from what those took."""

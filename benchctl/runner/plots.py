@@ -121,9 +121,9 @@ def dots_over(plane: np.ndarray, dots: np.ndarray, radius_px: float) -> np.ndarr
     """A registered capture of a dot grid (h, w, linear) in gray, with a red ring of `radius_px` where each dot
     (N, 2) as (x, y) was meant to land: (3, h, w) RGB in [0, 1]. A good registration puts every dot in its ring."""
     gray = np.clip(plane / max(float(np.percentile(plane, 99.9)), 1e-12), 0, 1)
-    picture = np.round(np.repeat(gray[:, :, None], 3, axis=2) * 255).astype(np.uint8)
     scale = 4 if max(plane.shape) < 800 else 1  # rings drawn finer than a small ROI's pixels
-    picture = cv2.resize(picture, (plane.shape[1] * scale, plane.shape[0] * scale), interpolation=cv2.INTER_NEAREST)
+    picture = cv2.resize(np.round(np.repeat(gray[:, :, None], 3, axis=2) * 255).astype(np.uint8),
+                         (plane.shape[1] * scale, plane.shape[0] * scale), interpolation=cv2.INTER_NEAREST)
     radius = max(2, round(radius_px * scale))
     for x, y in dots:
         cv2.circle(picture, (round((x + 0.5) * scale - 0.5), round((y + 0.5) * scale - 0.5)), radius, (255, 40, 40),

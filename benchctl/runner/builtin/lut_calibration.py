@@ -136,8 +136,8 @@ def _fitter(channel: LaserChannel, grays: list[int]):
             return {"grays": grays[:len(signals)], "signals": signals, "problem": problem,
                     "calibration": context.store_calibration(verdict, lambda calibration: None, {})}
         assert lut is not None and phases is not None
-        verdict.check(verdict.new <= MAX_MISFIT, f"signal misfit {verdict.new:.4g} of the span, above the bound "
-                                                 f"{MAX_MISFIT:g}")
+        misfit = signal_misfit(grays, signals, lut)
+        verdict.check(misfit <= MAX_MISFIT, f"signal misfit {misfit:.4g} of the span, above the bound {MAX_MISFIT:g}")
         verdict.no_worse()
         run = context.record.name if context.record else None
 
@@ -150,7 +150,7 @@ def _fitter(channel: LaserChannel, grays: list[int]):
             f"lut-{channel.name}.json": lambda path: write_json(path, {"grays": grays, "signals": signals,
                                                                        "acceptance": verdict.record(False, [])})})
         measured = lut.phases
-        result = {"grays": grays, "signals": signals, "phases": [float(p) for p in phases],
+        result: dict[str, Any] = {"grays": grays, "signals": signals, "phases": [float(p) for p in phases],
                   "depth_rad": float(measured[-1] - measured[0]), "calibration": record,
                   "file": context.calibration.lut_path(channel.name).name}
         truth = context.slm.ground_truth_lut(channel.wavelength_m)  # None on a real panel
@@ -180,11 +180,11 @@ def lut_sections(report: Report, fits: dict[str, dict[str, Any]]) -> tuple[list[
     simulated bench the error against the truth. Returns headline lines and the table's rows."""
     measured = {name: fit for name, fit in fits.items() if "phases" in fit}
     series = {name: ([float(g) for g in fit["grays"]], fit["phases"]) for name, fit in measured.items()}
-    rows = [{"colour": name, "grays measured": len(fit["grays"]), "phase depth rad": fit.get("depth_rad"),
-             "RMS vs simulator rad": (fit.get("simulator") or {}).get("rms_rad"),
-             "max vs simulator rad": (fit.get("simulator") or {}).get("max_rad"),
-             "table": fit["file"] if fit["calibration"]["stored"] else "not stored"}
-            for name, fit in fits.items()]
+    rows: list[dict[str, Any]] = [
+        {"colour": name, "grays measured": len(fit["grays"]), "phase depth rad": fit.get("depth_rad"),
+         "RMS vs simulator rad": (fit.get("simulator") or {}).get("rms_rad"),
+         "max vs simulator rad": (fit.get("simulator") or {}).get("max_rad"),
+         "table": fit["file"] if fit["calibration"]["stored"] else "not stored"} for name, fit in fits.items()]
     signals = {name: ([float(g) for g in fit["grays"]], fit["signals"]) for name, fit in fits.items()}
     report.calibrations([fit["calibration"] for fit in fits.values()])
     report.section("SLM lookup tables", table(rows), row(

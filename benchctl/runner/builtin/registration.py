@@ -119,6 +119,7 @@ def _fitter(channel: LaserChannel, points: np.ndarray, grid: tuple[int, int], ma
         except RegistrationError as exc:
             if old is None:  # nothing to fall back on: the run cannot go on, and the dots are captured again
                 raise StepRedo(f"{channel.name}: {exc}", f"registration/capture/{channel.name}", stop=True) from None
+            assert old_error is not None
             verdict = Verdict("registration", channel.name, "median error px", None, round(old_error, 4))
             verdict.check(False, str(exc))
             return {"problem": str(exc), "calibration": context.store_calibration(verdict, lambda c: None, {})}
