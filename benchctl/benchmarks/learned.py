@@ -26,7 +26,7 @@ import statistics
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -316,13 +316,19 @@ def run_learned_bench(
     return rows
 
 
-def _add_ratios(rows: list[dict[str, Any]]) -> None:
+def with_baselines(rows: list[dict[str, Any]]) -> Iterator[tuple[dict[str, Any], dict[str, Any]]]:
+    """Each row (a dict with "method" and "family") with its family's baseline row, the baseline's name recorded in
+    the row as "baseline"; rows whose baseline was not measured are left out."""
     by_name = {r["method"]: r for r in rows}
     for row in rows:
         base = by_name.get(BASELINES[row["family"]])
-        if base is None:
-            continue
-        row["baseline"] = base["method"]
+        if base is not None:
+            row["baseline"] = base["method"]
+            yield row, base
+
+
+def _add_ratios(rows: list[dict[str, Any]]) -> None:
+    for row, base in with_baselines(rows):
         row["parameters_ratio"] = row["parameters"] / base["parameters"]
         row["speedup"] = base["inference_seconds"] / row["inference_seconds"]
         if "train_step_peak_mib" in row and base.get("train_step_peak_mib"):

@@ -18,13 +18,12 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from benchctl.benchmarks.learned import BASELINES, with_baselines
 from benchctl.benchmarks.reproduce_job import VALIDATION_COUNT, VALIDATION_FIRST, bench_for, read_done, read_progress
 from benchctl.cgh.learned.models import VARIANTS
 from benchctl.files import atomic_write_bytes, write_csv, write_json
 from benchctl.runner.holograms import compute_scene
 from benchctl.targets import load_target, photo_specs, prepare_target
-
-BASELINES = {"holonet": "holonet", "ccnn": "ccnn"}
 
 PAPER: dict[str, tuple[float, float, str]] = {
     "holonet": (30.47, 0.9257, "T4"),
@@ -127,12 +126,7 @@ def table_rows(groups: dict[tuple[str, bool], list[dict[str, Any]]], memory: dic
             "train_step_peak_mib": memory.get(method),
         }
         rows.append(row)
-    by_label = {r["method"]: r for r in rows}
-    for row in rows:
-        base = by_label.get(BASELINES[row["family"]])
-        if base is None:
-            continue
-        row["baseline"] = base["method"]
+    for row, base in with_baselines(rows):
         for key in ("psnr_db", "best_val_psnr_db", "steps_psnr_db", "time_psnr_db"):
             row[key.replace("psnr_db", "delta_db")] = row[key][0] - base[key][0]
         row["speedup"] = base["inference_seconds"] / row["inference_seconds"]
