@@ -3,7 +3,7 @@ against (benchctl.profiles) and the one place a driver class is found by that na
 
 A driver is named by its module and class, not imported here: a command imports only the driver its profile
 chooses, so `benchctl laser off` never loads a camera library, and a driver whose optional library is missing
-(Aravis, python-gphoto2, pyglet) fails only where it is chosen. Adding a driver is one line here.
+(Aravis, python-gphoto2, python-xlib) fails only where it is chosen. Adding a driver is one line here.
 """
 
 from __future__ import annotations
