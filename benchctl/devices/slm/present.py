@@ -70,9 +70,10 @@ class Presenter:
 
     @classmethod
     def on(cls, display: Any, window: Any, crtc: int) -> Presenter | None:
-        """A Presenter for `window`, or None when the X server has no Present extension (or not version 1.0+)."""
+        """A Presenter for `window`, or None when the X server has no Present extension. (A server with Present
+        has the Generic Event extension its notifications travel in, which python-xlib then loads.)"""
         info = display.query_extension(EXTENSION)
-        if info is None or not hasattr(display, "ge_add_event_data"):  # Generic Events carry its notifications
+        if info is None:
             return None
         _QueryVersion(display=display.display, opcode=info.major_opcode, major_version=1, minor_version=2)
         return cls(display, window, crtc, info.major_opcode)
