@@ -104,7 +104,8 @@ def test_malformed_containers_name_the_field(raw: bytes, message: str) -> None:
 def test_code_names() -> None:
     assert code_name(0x9116) == "GetEvent (0x9116)"
     assert code_name(0x2019) == "DeviceBusy (0x2019)"
-    assert code_name(0xA102) == "0xA102"
+    assert code_name(0xA102) == "NotReady (0xA102)"  # Canon's answer while live view has no frame yet
+    assert code_name(0xA1FF) == "0xA1FF"
 
 
 # -- datasets ----------------------------------------------------------------------------------------------------
