@@ -325,6 +325,6 @@ def test_a_lab_runs_the_colour_capture_after_editing_only_the_example_profile(tm
     exposures = [step["result"] for step in done if step["step"].startswith(("probe/", "capture/"))]
     presented = [datetime.fromisoformat(result["slm_presented_at"]) for result in exposures]
     assert len(presented) == 6 and presented == sorted(presented)
-    for colour in ("red", "green", "blue"):
-        assert decode_raw(folder / "raw" / "bars" / colour / "frame-000.dng").layout == "mono"
+    for result in exposures:
+        assert decode_raw(folder / result["folder"] / result["frames"][0]).layout == "mono"
     assert set(metrics["targets"][0]["colours"]) == {"red", "green", "blue"}

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -15,14 +16,12 @@ import numpy as np
 import pytest
 from conftest import SMALL_BENCH, bench_profile_text, mono_exposure
 from gigevision import mono8_ramp
-from test_registration import CORNER_TOLERANCE, GEOMETRY, POWERS_W, corner_error
+from test_registration import CORNER_TOLERANCE, GEOMETRY, corner_error, dot_grid_capture
 
 from benchctl.capture.raw import decode_raw
-from benchctl.capture.registration import Registration, dot_grid_target, dots_in_capture, fit_registration
-from benchctl.cgh import OpticalSetup, get_method
+from benchctl.capture.registration import Registration, dots_in_capture, fit_registration
 from benchctl.cli import main
 from benchctl.devices.sim import bench
-from benchctl.devices.slm import slm_for
 from benchctl.images import read_image
 from benchctl.profiles import Profile, load_profile
 from benchctl.runner.calibration import Calibration
@@ -34,11 +33,8 @@ def test_registration_finds_the_dots_in_a_mono_capture(make_bench_profile: Calla
     """test_registration's dot grid, captured by a monochrome sensor: the homography is recovered as closely as
     from a Bayer capture (its tolerance)."""
     profile = make_bench_profile(GEOMETRY)
-    amplitude, points = dot_grid_target(profile.slm.shape, profile.optics.roi, (12, 21))
-    gray = slm_for(profile).encode(get_method("dpac")(amplitude, OpticalSetup.from_profile(profile, channel)),
-                                   channel)
-    image = mono_exposure(profile, gray, {channel: POWERS_W[channel]}, colour=colour)
-    assert image.saturation_fraction == 0
+    image, points = dot_grid_capture(profile, channel, exposure=partial(mono_exposure, colour=colour))
+    assert image.monochrome and image.saturation_fraction == 0
     fit = fit_registration(points, dots_in_capture(image, colour))
     assert fit.inliers >= 0.98 * fit.points and fit.scale == pytest.approx(2.0, rel=0.005)
     assert corner_error(profile, fit.homography, bench.camera_homography(profile)) < CORNER_TOLERANCE * 2.0
@@ -94,9 +90,10 @@ def test_colour_capture_runs_on_a_mono8_genicam_camera(tmp_path: Path) -> None:
     folder, metrics, done = finished_run(tmp_path / "runs")
     assert json.loads((folder / "devices.json").read_text())["camera"]["pixel_format"] == "Mono8 (8 bit, mono)"
     for colour in ("red", "green", "blue"):
-        assert [p.name for p in (folder / "raw" / "bars" / colour).glob("*.dng")] == ["frame-000.dng"]
-        frame_id = next(s["result"] for s in done if s["step"] == f"capture/bars/{colour}")["camera"][0]["frame_id"]
-        decoded = decode_raw(folder / "raw" / "bars" / colour / "frame-000.dng")  # exactly the delivered ramp
+        capture = next(s["result"] for s in done if s["step"] == f"capture/bars/{colour}")
+        assert capture["frames"] == ["frame-000.dng"] and capture["darks"] == []
+        decoded = decode_raw(folder / capture["folder"] / "frame-000.dng")  # exactly the delivered ramp
+        frame_id = capture["camera"][0]["frame_id"]
         ramp = mono8_ramp(frame_id, 192, 256).astype(np.float32) / np.float32(255)
         assert decoded.layout == "mono" and np.array_equal(decoded.mosaic, ramp)
         probe = next(s["result"] for s in done if s["step"] == f"probe/bars/{colour}")["auto_exposure"]
@@ -105,4 +102,5 @@ def test_colour_capture_runs_on_a_mono8_genicam_camera(tmp_path: Path) -> None:
     assert set(bars["colours"]) == {"red", "green", "blue"}
     for colour in bars["colours"].values():
         assert 0.5 < colour["peak"] <= 1.0 and colour["capture"]["psnr_amplitude_db"] > 0
-    assert read_image(folder / "images" / "bars" / "capture.png").shape == (48, 80, 3)
+    (capture_png,) = folder.rglob("capture.png")
+    assert read_image(capture_png).shape == (48, 80, 3)
