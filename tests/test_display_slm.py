@@ -237,6 +237,7 @@ def test_an_output_whose_gamma_ramp_is_not_the_identity_is_refused(tmp_path: Pat
             slm(tmp_path, x_display, edid_name="DELL E178WFP").open()
     finally:
         set_gamma(connection, crtc, 1.0)
+        connection.sync()  # close() alone may leave the request unsent
         connection.close()
 
 
