@@ -1,5 +1,4 @@
-"""Size limits on what users hand in, so a bad file or value gets one line instead of exhausting memory, and
-the memory this machine has available for the work a command is about to start.
+"""Size limits on what users hand in, so a bad file or value gets one line instead of exhausting memory.
 
 One pixel limit covers decoded images (PNG, JPEG and BMP are checked from their header, before decoding; other
 formats after decoding, within OpenCV's own limit of 2^30 pixels) and the SLM grid: 64 Mpx by default (an 8K
@@ -9,7 +8,6 @@ grid, 4352 x 7680, is 33 Mpx). $BENCHCTL_MAX_PIXELS raises (or lowers) it.
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
 from benchctl.errors import BadValueError
 
@@ -34,13 +32,3 @@ def check_pixels(what: str, height: int, width: int) -> None:
         raise BadValueError(f"{what}: {height} x {width} = {height * width:,} pixels is above the limit of "
                             f"{limit:,} (set ${MAX_PIXELS_ENV} to raise it)")
 
-
-def available_memory() -> int | None:
-    """Bytes the kernel can give a new allocation without swapping (Linux MemAvailable), None where unknown."""
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return None

@@ -14,7 +14,7 @@ import os
 import re
 import sys
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 import msgspec
 from msgspec import Meta
@@ -23,6 +23,7 @@ from benchctl.dng import CFA_LAYOUTS
 from benchctl.drivers import driver_names
 from benchctl.errors import BenchctlError
 from benchctl.limits import check_pixels
+from benchctl.optics.geometry import Geometry
 from benchctl.schema import Model, decode, fail
 
 if sys.version_info >= (3, 11):
@@ -303,6 +304,21 @@ class Profile(ProfileFile, kw_only=True):
         known = ", ".join(ch.name for ch in self.channels)
         raise BenchctlError(f"{self.path}: no laser channel {name!r}; known channels: {known}")
 
+    def fitted_model(self, channel: str) -> dict[str, Any] | None:
+        """`channel`'s entry of the fitted optical model file `optics.model` names, checked
+        (benchctl.calibration_files); None when there is no model or no entry for the channel."""
+        from benchctl.calibration_files import fitted_model_entry
+
+        return fitted_model_entry(self, channel)
+
+    def geometry(self, channel: str) -> Geometry:
+        """The optical geometry of laser channel `channel` in SI units: the one conversion from the profile's
+        units, for everything that computes, calibrates or caches for this bench."""
+        slm, optics = self.require("slm", "optics").slm, self.optics
+        assert slm is not None and optics is not None
+        return Geometry(wavelength_m=self.channel(channel).wavelength_m, pitch_m=slm.pitch_m,
+                        distance_m=optics.distance_m, shape=slm.shape, roi=optics.roi, aperture=optics.iris_fraction)
+
     def describe(self) -> str:
         """Multi-line summary for people: each device section with its settings."""
         slm, optics, laser = self.slm, self.optics, self.laser
@@ -354,7 +370,8 @@ def resolve_profile_path(path_or_name: str | Path | None = None) -> Path:
     """Where a profile lives: a path, a bare name (hardware_profiles/<name>.toml) or None for the default.
 
     None means $BENCHCTL_PROFILE if set, else the simulated bench. Bare names are looked up in
-    ./hardware_profiles first, then in the hardware_profiles folder of the repository next to the package.
+    ./hardware_profiles first, then in the hardware_profiles folder of the repository next to the package, then as a
+    file of that name (which load_profile then says is not a TOML profile, if it is not).
     """
     origin = ""
     if path_or_name is None:
@@ -369,6 +386,8 @@ def resolve_profile_path(path_or_name: str | Path | None = None) -> Path:
     for candidate in candidates:
         if candidate.is_file():
             return candidate
+    if Path(text).is_file():  # -p README.md: read, to be told what it is not
+        return Path(text)
     searched = ", ".join(str(c) for c in candidates)
     raise BenchctlError(f"hardware profile {text!r}{origin} not found (looked for {searched})")
 
@@ -384,6 +403,9 @@ def load_profile(path_or_name: str | Path | None = None) -> Profile:
     except OSError as exc:
         raise BenchctlError(f"{path}: cannot read hardware profile: {exc.strerror or exc}") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        if path.suffix.lower() != ".toml":
+            raise BenchctlError(f"{path}: not a hardware profile (a TOML file such as "
+                                f"hardware_profiles/simulated.toml): {exc}") from None
         raise BenchctlError(f"{path}: TOML syntax error: {exc}") from None
     return _checked(path, decode(raw, ProfileFile, path))
 

@@ -18,11 +18,13 @@ import cv2
 import numpy as np
 import torch
 
-from benchctl.errors import BenchctlError
+from benchctl.errors import BenchctlError, did_you_mean
 from benchctl.images import read_image
 from benchctl.optics.colour import srgb_to_linear
 from benchctl.optics.metrics import centred_slices
+from benchctl.profiles import LaserChannel
 
+RGB_PLANES = ("red", "green", "blue")
 CHART_PREFIX = "chart:"
 PHOTO_PREFIX = "photo:"
 
@@ -171,8 +173,9 @@ def photo_path(spec: str) -> Path:
     name = spec[len(PHOTO_PREFIX):] if spec.startswith(PHOTO_PREFIX) else spec
     photo = _PHOTOS.get(name)
     if photo is None:
-        known = ", ".join(f"{PHOTO_PREFIX}{n}" for n in _PHOTOS)
-        raise BenchctlError(f"unknown photo {spec!r}; known photos: {known}")
+        known = [f"{PHOTO_PREFIX}{n}" for n in _PHOTOS]
+        raise BenchctlError(f"unknown photo {spec!r}{did_you_mean(spec, known, _name)}; known photos: "
+                            f"{', '.join(known)}")
     package = importlib.util.find_spec("skimage")
     if package is None or not package.submodule_search_locations:
         raise BenchctlError(f"{spec}: photographs come from scikit-image's bundled images; "
@@ -181,6 +184,11 @@ def photo_path(spec: str) -> Path:
     if not path.is_file():
         raise BenchctlError(f"{spec}: {path} is missing from the installed scikit-image")
     return path
+
+
+def _name(spec: str) -> str:
+    """A target's name without its kind ("coffee" of "photo:coffee"), as misspellings are compared."""
+    return spec.split(":", 1)[-1]
 
 
 def list_targets() -> dict[str, str]:
@@ -205,10 +213,14 @@ def load_target(spec: str | Path, size: tuple[int, int]) -> np.ndarray:
             raise ValueError(f"chart size must be positive, got {size!r}")
         entry = _CHARTS.get(text[len(CHART_PREFIX):])
         if entry is None:
-            raise BenchctlError(f"unknown chart {text!r}; known charts: "
-                               f"{', '.join(CHART_PREFIX + name for name in _CHARTS)}")
+            known = [CHART_PREFIX + name for name in _CHARTS]
+            raise BenchctlError(f"unknown chart {text!r}{did_you_mean(text, known, _name)}; known charts: "
+                                f"{', '.join(known)}")
         image = entry[0](h, w)
     else:
+        hint = "" if text.startswith(PHOTO_PREFIX) or Path(text).exists() else did_you_mean(text, list_targets(), _name)
+        if hint:  # "coffee" for photo:coffee
+            raise BenchctlError(f"{text}: no such file or target{hint}")
         image = read_image(photo_path(text) if text.startswith(PHOTO_PREFIX) else text)
         if np.issubdtype(image.dtype, np.floating) and not np.isfinite(image).all():
             bad = int((~np.isfinite(image)).sum())
@@ -245,3 +257,12 @@ def active_channels(amplitude: torch.Tensor, threshold: float = BLACK_INTENSITY)
     """For each colour channel of (C, H, W) amplitude: True unless its peak intensity (amplitude^2) < threshold."""
     peak = amplitude.detach().flatten(1).abs().amax(dim=1)
     return [bool(p * p >= threshold) for p in peak]
+
+
+def target_plane(channel: LaserChannel) -> int:
+    """Which plane of an RGB target laser channel `channel` displays: by name, else by wavelength band."""
+    if channel.name in RGB_PLANES:
+        return RGB_PLANES.index(channel.name)
+    if channel.wavelength_nm >= 590:
+        return 0
+    return 1 if channel.wavelength_nm >= 490 else 2

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from benchctl.capture.raw import RawImage, decode_raw
+from benchctl.cli import main
 from benchctl.devices.sim import bench
 from benchctl.dng import CFA_LAYOUTS, dng_bytes
 from benchctl.profiles import Profile, load_profile
@@ -175,6 +176,14 @@ def make_bench_profile(tmp_path: Path) -> Callable[..., Profile]:
     return make
 
 
+def one_error_line(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:
+    """Run benchctl; it must exit 2 with exactly one error line (no traceback). Returns that line."""
+    assert main(argv) == 2
+    (line,) = capsys.readouterr().err.splitlines()
+    assert line.startswith("benchctl: error: ")
+    return line
+
+
 def sim_exposure(profile: Profile, gray: np.ndarray | None, powers_w: dict[str, float], frame: int = 1) -> RawImage:
     """One simulated exposure (10 ms, ISO 100) of `gray` (None: the SLM shows nothing) lit by `powers_w`, written as
     a DNG and decoded. Each frame number has its own noise."""
@@ -285,23 +294,3 @@ def lock_dir(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.Monke
     folder = tmp_path_factory.mktemp("locks")
     monkeypatch.setenv("BENCHCTL_LOCK_DIR", str(folder))
     return folder
-
-
-# Tests that take seconds to a minute each on two cores: whole procedure runs, training and DDP, subprocesses that
-# import torch. `pytest -m "not slow"` skips them for a quick loop; CI runs everything.
-SLOW_MODULES = {"test_procedures.py", "test_learned_ddp.py", "test_learned_training.py", "test_learned_usage.py",
-                "test_generate_memory.py"}
-SLOW_TESTS = {
-    "test_sgd_beats_its_initial_phase_and_gs",
-    "test_bench_speed_vs_error_writes_a_row_per_method_budget_and_target",
-    "test_sigterm_during_laser_on_turns_emission_off",
-    "test_console_script_reports_errors_without_traceback",
-    "test_a_learned_checkpoint_fine_tuned_through_the_fitted_model_shows_better",
-    "test_colour_capture_with_several_methods_draws_their_front",
-}
-
-
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    for item in items:
-        if item.path.name in SLOW_MODULES or item.name.split("[")[0] in SLOW_TESTS:
-            item.add_marker(pytest.mark.slow)

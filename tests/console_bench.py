@@ -58,6 +58,16 @@ def unpack_frame(message: bytes) -> tuple[dict[str, Any], bytes, bytes]:
     return header, rest[:len(rest) - zoom], rest[len(rest) - zoom:]
 
 
+def next_frame(page: Any) -> tuple[dict[str, Any], bytes, bytes]:
+    """The next live-view frame a test client's socket gets (`unpack_frame`), acknowledged as the page does."""
+    while True:
+        message = page.receive()
+        if message.get("bytes"):
+            header, jpeg, zoom = unpack_frame(message["bytes"])
+            page.send_text(f"ack {header['seq']}")
+            return header, jpeg, zoom
+
+
 def expected_phase_frame(profile: Profile, phase: np.ndarray, channel: str) -> np.ndarray:
     """The gray frame the SLM driver shows for `phase` on `channel` (its own encoding, outside the console)."""
     from benchctl.devices.slm import slm_for

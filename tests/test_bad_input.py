@@ -10,19 +10,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from conftest import one_error_line
 
 from benchctl.cli import main
 from benchctl.errors import BenchctlError
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-def one_error_line(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:
-    """Run benchctl; it must exit 2 with exactly one error line (no traceback). Returns that line."""
-    assert main(argv) == 2
-    (line,) = capsys.readouterr().err.splitlines()
-    assert line.startswith("benchctl: error: ")
-    return line
 
 
 def png_header(height: int, width: int) -> bytes:
@@ -175,7 +168,7 @@ def test_a_plan_is_bounded(tmp_path: Path, bench_profile_path: Path) -> None:
     from benchctl.runner.engine import run_procedure
 
     procedure = tmp_path / "many.py"
-    procedure.write_text("from benchctl.runner.procedure import Parameters, Step\nPARAMETERS = Parameters\n\n\n"
+    procedure.write_text("from benchctl.runner.api import Parameters, Step\nPARAMETERS = Parameters\n\n\n"
                          "def plan(context):\n"
                          "    return [Step(f's{i}', 'nothing', lambda c: {}) for i in range(100001)]\n")
     with pytest.raises(BenchctlError, match="plans 100,001 steps, above the limit of 100,000"):

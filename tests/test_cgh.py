@@ -362,6 +362,7 @@ def test_sgd_starts_from_dpac_and_never_ends_worse(setup: OpticalSetup) -> None:
         assert all(later < earlier for earlier, later in zip(errors, errors[1:])), (make.__name__, errors)
 
 
+@pytest.mark.slow  # takes seconds to a minute on two cores
 def test_sgd_beats_the_random_start_and_gs(setup: OpticalSetup) -> None:
     random_start = sgd_method(init="random", tolerance=None)
     for make, ratio in ((smooth_target, 0.05), (sharp_target, 0.8)):

@@ -22,14 +22,13 @@ from benchctl.devices.sim import bench
 from benchctl.devices.sim.state import load_state
 from benchctl.errors import BenchctlError
 from benchctl.optics import lsq_scale
-from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import Profile
-from benchctl.capture.colour_planes import merge_capture, registered_plane
+from benchctl.capture.colour_planes import registered_plane
 from benchctl.capture.raw import decode_raw
-from benchctl.runner.builtin.citl import (TIMING_KEYS, _load_state, _save_state, gradient_device, keeps_raw,
-                                         merged_psnr)
+from benchctl.runner.builtin.citl.procedure import TIMING_KEYS, _load_state, _save_state, gradient_device, keeps_raw
 from benchctl.runner.calibration import Calibration
 from benchctl.runner.engine import run_procedure
+from benchctl.runner.setups import optical_setup
 
 # The small bench with hidden optics the model does not know: a wavefront error and an offset beam on green (the
 # panel's true response is its linear lookup table, so the optics alone differ from the model).
@@ -90,7 +89,7 @@ def test_straight_through_gradient_is_the_models_with_the_captured_value(make_be
     """Captured = the model (any gain): exactly SGD's loss gradient. Captured elsewhere: the loss is the captured
     image's error, and the gradient is the model's Jacobian applied to that error (checked against autograd of an
     explicit formula)."""
-    setup = OpticalSetup.from_profile(make_bench_profile(SMALL_BENCH), "green")
+    setup = optical_setup(make_bench_profile(SMALL_BENCH), "green")
     rows, cols = setup.roi_slices
     generator = torch.Generator().manual_seed(3)
     target = torch.zeros(setup.shape)
@@ -257,14 +256,3 @@ def test_saved_optimiser_state_continues_exactly_as_an_uninterrupted_adam(tmp_pa
         adam.step()
         _save_state(path, resumed, adam)
     assert torch.equal(_load_state(path, 0.05)[0].detach(), phase.detach())
-
-
-def test_merged_psnr_per_iteration_is_merge_captures() -> None:
-    """The report scores every iteration's merged image without SSIM: the PSNRs must be merge_capture's."""
-    generator = np.random.default_rng(1)
-    target = torch.from_numpy(generator.uniform(0, 1, (3, 20, 30)).astype(np.float32))
-    target[2] = 0  # a colour not captured stays black
-    planes = {c: (generator.uniform(-0.01, 0.4, (20, 30))).astype(np.float32) for c in (0, 1)}
-    full = merge_capture(planes, target).merged_scores
-    fast = merged_psnr(planes, target)
-    assert fast == {k: pytest.approx(full[k], abs=1e-4) for k in ("psnr_linear_db", "psnr_srgb_db")}

@@ -8,10 +8,14 @@ from benchctl.optics.colour import linear_to_srgb, srgb_to_linear
 
 
 def test_reference_values() -> None:
-    srgb = torch.tensor([0.0, 0.04045, 0.5, 1.0], dtype=torch.float64)
-    expected = torch.tensor([0.0, 0.04045 / 12.92, ((0.5 + 0.055) / 1.055) ** 2.4, 1.0], dtype=torch.float64)
-    torch.testing.assert_close(srgb_to_linear(srgb), expected)
-    torch.testing.assert_close(linear_to_srgb(expected), srgb)
+    """Published values of the sRGB curve (IEC 61966-2-1): the knee at 0.04045 <-> 0.0031308, mid-level 0.5 ->
+    0.2140, 8-bit 128 -> 0.2159, 18 % grey -> 0.4614, linear 0.5 -> 0.7354 (to the 4 digits they are quoted to)."""
+    srgb = torch.tensor([0.0, 0.04045, 0.5, 128 / 255, 1.0], dtype=torch.float64)
+    published = torch.tensor([0.0, 0.0031308, 0.2140, 0.2159, 1.0], dtype=torch.float64)
+    torch.testing.assert_close(srgb_to_linear(srgb), published, atol=5e-5, rtol=0)
+    linear = torch.tensor([0.0031308, 0.18, 0.5], dtype=torch.float64)
+    torch.testing.assert_close(linear_to_srgb(linear), torch.tensor([0.04045, 0.4614, 0.7354], dtype=torch.float64),
+                               atol=5e-5, rtol=0)
 
 
 def test_round_trip_any_shape() -> None:

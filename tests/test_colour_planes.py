@@ -94,11 +94,11 @@ def test_planes_that_match_the_target_score_perfectly_with_their_gains() -> None
     gains = (2.0, 3.0, 0.5)
     planes = {c: ((target[c] / gains[c]) ** 2).numpy() for c in range(3)}
     merged = merge_capture(planes, target)
-    assert merged.gains == pytest.approx({0: 2.0, 1: 3.0, 2: 0.5}, rel=1e-5)
+    assert merged.merged.gains == pytest.approx({0: 2.0, 1: 3.0, 2: 0.5}, rel=1e-5)
     for c in range(3):
         assert merged.scores[c]["psnr_amplitude_db"] > 90 and merged.scores[c]["ssim_amplitude"] == pytest.approx(1.0)
-    assert torch.allclose(merged.amplitude, target, atol=1e-5)
-    assert torch.allclose(merged.merged_linear, target.square(), atol=1e-5)
+    assert torch.allclose(merged.merged.amplitude, target, atol=1e-5)
+    assert torch.allclose(merged.merged.linear, target.square(), atol=1e-5)
     assert merged.merged_scores["psnr_linear_db"] > 90 and merged.warnings == []
 
 
@@ -109,10 +109,10 @@ def test_scores_of_a_flat_capture_follow_from_the_targets_statistics() -> None:
     target = torch.zeros((3, 20, 20))
     target[0] = torch.where((torch.arange(20)[:, None] + torch.arange(20)[None, :]) % 2 == 0, 0.2, 0.8)
     merged = merge_capture({0: np.full((20, 20), 0.25, np.float32)}, target)
-    assert merged.gains == {0: pytest.approx(1.0)}
+    assert merged.merged.gains == {0: pytest.approx(1.0)}
     assert merged.scores[0]["psnr_amplitude_db"] == pytest.approx(10 * math.log10(1 / 0.09), abs=1e-4)
     assert merged.scores[0]["psnr_linear_db"] == pytest.approx(10 * math.log10(1 / 0.0981), abs=1e-4)
-    assert torch.equal(merged.merged_linear[1:], torch.zeros((2, 20, 20)))
+    assert torch.equal(merged.merged.linear[1:], torch.zeros((2, 20, 20)))
     # all three planes at once: green and blue are exact (black on black), red's MSE is a third
     assert merged.merged_scores["psnr_linear_db"] == pytest.approx(10 * math.log10(3 / 0.0981), abs=1e-4)
     assert merged.warnings == []
@@ -127,7 +127,7 @@ def test_warnings_name_saturation_low_signal_and_missing_colours() -> None:
         f"green: low signal, peak 1.0% of full scale (below {LOW_SIGNAL:.0%}): expose longer or raise the laser power",
         "not captured: blue (present in the target; scored as black)",
     ]
-    assert merged.merged_linear[2].abs().max() == 0
+    assert merged.merged.linear[2].abs().max() == 0
 
 
 def test_merge_refuses_planes_that_do_not_fit_the_target() -> None:
@@ -186,7 +186,7 @@ def test_a_captured_colour_chart_scores_like_the_simulated_reconstruction(profil
         assert 0.3 < np.percentile(planes[colour], 99.9) < 0.8  # well exposed
     merged = merge_capture(planes, crop_roi(target, roi), saturation)
     assert merged.warnings == []
-    assert merged.merged_linear.shape == (3, 48, 80)
+    assert merged.merged.linear.shape == (3, 48, 80)
     for colour in range(3):
         captured, simulated = merged.scores[colour], scene.colours[colour].scores
         assert abs(captured["psnr_amplitude_db"] - simulated["psnr_amplitude_db"]) < AMPLITUDE_MARGIN_DB

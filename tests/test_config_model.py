@@ -232,5 +232,5 @@ def test_a_python_procedure_must_declare_a_parameters_model(tmp_path: Path) -> N
     path = tmp_path / "old_style.py"
     path.write_text("PARAMETERS = {}\n\n\ndef plan(context):\n    return []\n")
     with pytest.raises(BenchctlError, match="PARAMETERS must be a class deriving from "
-                                            "benchctl.runner.procedure.Parameters, got {}"):
+                                            "benchctl.runner.api.Parameters, got {}"):
         load_procedure(path)

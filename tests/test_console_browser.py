@@ -3,6 +3,8 @@ against the real server (uvicorn, WebSocket) on the small simulated bench."""
 
 from __future__ import annotations
 
+import contextlib
+import json
 import threading
 import time
 from collections.abc import Iterator
@@ -28,10 +30,10 @@ BROWSER_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-backgr
                 "--disable-component-update", "--disable-sync", "--no-first-run", "--window-size=1500,1000"]
 
 
-@pytest.fixture
-def served(bench_profile_path: Path, tmp_path: Path) -> Iterator[tuple[Console, str]]:
+@contextlib.contextmanager
+def serve(profile_path: Path, tmp_path: Path, deadman_s: float = 30.0) -> Iterator[tuple[Console, str]]:
     """A console on the small bench behind a real uvicorn server on a free port; its URL with the token."""
-    console = make_console(load_profile(bench_profile_path), tmp_path)
+    console = make_console(load_profile(profile_path), tmp_path, deadman_s=deadman_s)
     sock = listen("127.0.0.1", 0)
     port = sock.getsockname()[1]
     server = uvicorn.Server(uvicorn.Config(create_app(console, access(port)), log_level="warning", lifespan="off"))
@@ -44,6 +46,12 @@ def served(bench_profile_path: Path, tmp_path: Path) -> Iterator[tuple[Console, 
         thread.join(timeout=10)
         sock.close()
         console.close()
+
+
+@pytest.fixture
+def served(bench_profile_path: Path, tmp_path: Path) -> Iterator[tuple[Console, str]]:
+    with serve(bench_profile_path, tmp_path) as console_and_url:
+        yield console_and_url
 
 
 @pytest.fixture
@@ -116,3 +124,79 @@ def test_the_page_drives_the_bench(served: tuple[Console, str], browser: webdriv
     browser.find_element(By.ID, "all-off").click()
     until(lambda: not laser_channel(2)["emission"])  # "all off" turns emission off
     until(lambda: row.find_element(By.CLASS_NAME, "emit").text == "off")
+
+
+def connected(browser: webdriver.Chrome, url: str) -> None:
+    browser.get(url)
+    until(lambda: browser.find_element(By.ID, "link").text == "connected")
+    until(lambda: frames_seen(browser) >= 2)
+
+
+def test_capture_from_the_page(served: tuple[Console, str], browser: webdriver.Chrome, tmp_path: Path) -> None:
+    console, url = served
+    browser.set_window_size(1000, 800)  # a laptop's window: every panel fits its column, ALL OFF in view
+    connected(browser, url)
+    for panel in ("laser-panel", "slm-panel", "capture-panel", "procedure-panel", "view"):
+        assert browser.execute_script(f"const e = document.getElementById('{panel}'); "
+                                      "return e.scrollWidth <= e.clientWidth;"), panel
+    assert browser.find_element(By.ID, "all-off").is_displayed()
+    frames = browser.find_element(By.ID, "frames")
+    frames.clear()
+    frames.send_keys("2")
+    browser.find_element(By.ID, "capture").click()
+    result = until(lambda: browser.find_element(By.ID, "capture-result").text)
+    folder = Path(result.split(": ")[0])
+    assert folder.parent == tmp_path / "runs" and folder.is_dir()
+    assert result.endswith(": frame-000.dng, frame-001.dng, settings.json")  # the SLM has shown nothing yet
+    assert sorted(path.name for path in folder.iterdir()) == ["frame-000.dng", "frame-001.dng", "settings.json"]
+    assert len(json.loads((folder / "settings.json").read_text())["camera"]["frames"]) == 2
+    until(lambda: "capture done" in browser.find_element(By.ID, "job").text)
+
+
+@pytest.mark.slow
+def test_a_procedure_from_the_page(served: tuple[Console, str], browser: webdriver.Chrome) -> None:
+    """Its dry run shown first, then started: its steps followed live, the devices handed over and back, its
+    report opened from the page's link."""
+    console, url = served
+    connected(browser, url)
+    Select(browser.find_element(By.ID, "procedure")).select_by_visible_text("sweep.toml")
+    start = browser.find_element(By.ID, "start")
+    assert not start.is_enabled()  # no start before the dry run
+    browser.find_element(By.ID, "dry-run").click()
+    lines = browser.find_element(By.ID, "procedure-lines")
+    until(lambda: lines.text.endswith("dry run: nothing was touched"))
+    assert "power-sweep" in lines.text
+    until(start.is_enabled)
+    start.click()
+    until(lambda: "run folder: " in lines.text)  # the run's own output, as it goes
+    until(lambda: "[4/4]" in lines.text, timeout_s=180)  # its steps, one after the other
+    until(lambda: "ended with exit code" in browser.find_element(By.ID, "events").text, timeout_s=180)
+    assert console.procedures.returncode == 0, console.procedures.lines
+    assert not browser.find_element(By.ID, "stop").is_enabled()  # nothing left to stop
+    report = browser.find_element(By.ID, "report")
+    until(report.is_displayed)
+    until(lambda: console.laser.held.connected and console.camera.connected)  # the devices are back
+    report.click()
+    browser.switch_to.window(browser.window_handles[-1])
+    until(lambda: browser.title == "Laser power sweep")  # the run's report.html
+    assert browser.current_url.endswith("/api/procedures/report") and "<table" in browser.page_source
+
+
+def test_a_live_page_keeps_the_light_on_and_a_closed_one_does_not(bench_profile_path: Path, tmp_path: Path,
+                                                                   browser: webdriver.Chrome) -> None:
+    """The page's heartbeats answer what the server sends, so a page whose timers do not run (a browser slows a
+    hidden tab's timers to once a minute) still keeps the light on; leaving the page switches it off in time."""
+    with serve(bench_profile_path, tmp_path, deadman_s=1.0) as (console, url):
+        connected(browser, url)
+        browser.execute_script("for (let id = 1; id < 100000; id++) clearInterval(id);")  # no timer heartbeats
+        console.set_power("green", "1mW")
+        row = browser.find_element(By.ID, "laser-green")
+        row.find_element(By.CLASS_NAME, "emit").click()
+        until(lambda: laser_channel(2)["emission"])
+        time.sleep(4.0)  # four dead-man timeouts
+        assert laser_channel(2)["emission"] and not any("dead-man" in line for line in console.events)
+        browser.get("about:blank")  # the page goes away
+        left = time.monotonic()
+        until(lambda: not laser_channel(2)["emission"], timeout_s=10)
+        assert time.monotonic() - left < 2.5
+        until(lambda: any("dead-man" in line for line in console.events))

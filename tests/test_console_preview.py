@@ -10,8 +10,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import torch
 
 from benchctl.capture.raw import decode_raw
+from benchctl.console import preview
+from benchctl.devices.camera.base import PreviewFrame
 from benchctl.devices.camera import open_camera
 from benchctl.devices.camera.ptp.container import MalformedContainer, OperationCode, ResponseCode
 from benchctl.devices.camera.ptp.eos import EVF_OUTPUT_PC, EosProperty, pack_viewfinder, viewfinder_jpeg
@@ -21,7 +24,9 @@ from benchctl.devices.laser import open_laser
 from benchctl.devices.sim import bench, eos_usb
 from benchctl.devices.sim.eos_usb import SimEosTransport
 from benchctl.devices.sim.state import CAMERA_STATE, load_state
+from benchctl.devices.sim.slm import read_displayed
 from benchctl.devices.slm import open_slm
+from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import CameraConfig, Profile, load_profile
 
 FAST = EosTiming(settle_s=0.0, release_events_s=0.05, poll_interval_s=0.001, busy_retry_s=0.05)
@@ -29,32 +34,118 @@ Op = OperationCode
 
 
 def lit_bench(profile: Profile, channel: str = "green", power: str = "2mW") -> None:
-    """Show a grating-free flat phase and leave `channel` emitting (the simulated devices keep their state)."""
-    with open_slm(profile) as slm:
-        slm.sleep = lambda s: None
-        slm.show_phase(np.zeros(profile.slm.shape), channel)
+    """Leave `channel` emitting at `power` (the simulated devices keep their state), a flat phase shown unless the
+    SLM shows something already."""
+    if read_displayed()[0] is None:
+        show(profile, np.zeros(profile.slm.shape), channel)
     laser = open_laser(profile, leave_on=True)
     with laser:
         laser.set_power(channel, power)
         laser.set_emission(channel, True)
 
 
-def test_binned_live_view_has_the_full_captures_signal(bench_profile_path: Path) -> None:
+def show(profile: Profile, phase: np.ndarray, channel: str = "green") -> None:
+    with open_slm(profile) as slm:
+        slm.sleep = lambda s: None
+        slm.show_phase(phase, channel)
+
+
+SCENES = {"flat": lambda shape: np.zeros(shape),
+          "speckle": lambda shape: np.random.default_rng(1).uniform(0, 2 * np.pi, shape),  # light at every frequency
+          "grating": lambda shape: np.tile(np.arange(shape[1]) * (2 * np.pi / 6), (shape[0], 1))}
+POWERS = {"flat": "2mW", "speckle": "20mW", "grating": "10mW"}  # bright, nowhere saturated
+
+
+@pytest.mark.parametrize("scene", SCENES)
+def test_binned_live_view_has_the_full_captures_signal(bench_profile_path: Path, scene: str) -> None:
     profile = load_profile(bench_profile_path)
-    lit_bench(profile)
-    capture = decode_raw(bench.render_capture(profile).data)
+    show(profile, SCENES[scene](profile.slm.shape))
+    lit_bench(profile, power=POWERS[scene])
+    captures = [decode_raw(bench.render_capture(profile).data) for _ in range(2)]
     view = bench.LiveView(profile)
-    data, metadata = view.dng(110)
-    frame = decode_raw(data)
+    frames = [view.dng(100) for _ in range(2)]
     rows, cols = view.active_shape
-    assert metadata["window"] == [0, 0, rows, cols] and metadata["bin"] == pytest.approx(cols / 110, rel=0.02)
-    assert frame.mosaic.shape == (round(rows / metadata["bin"]) & ~1, 110) and frame.layout == capture.layout
+    metadata = frames[0][1]
+    assert metadata["window"] == [0, 0, rows, cols] and metadata["bin"] == pytest.approx(cols / 100, rel=0.02)
+    assert metadata["bin"] / bench.sensor_pixels_per_slm_pixel(profile) > 2  # 2 x 2 target pixels per frame pixel
+    frame = [decode_raw(data) for data, _ in frames]
+    assert frame[0].mosaic.shape == (round(rows / metadata["bin"]) & ~1, 100)
+    assert frame[0].layout == captures[0].layout
     # the same light on average (the preview bins, the capture does not), and the light where the capture has it
-    assert frame.mosaic.mean() == pytest.approx(capture.mosaic.mean(), rel=0.03)
-    assert capture.mosaic.mean() > 20 * np.abs(capture.mosaic[:6]).mean()  # there is light to compare
-    green = frame.planes()[1]
-    small = cv2.resize(capture.planes()[1], green.shape[::-1], interpolation=cv2.INTER_AREA)
-    assert np.corrcoef(small.ravel(), green.ravel())[0, 1] > 0.9
+    capture = np.mean([c.mosaic for c in captures], axis=0)
+    assert np.mean([f.mosaic.mean() for f in frame]) == pytest.approx(capture.mean(), rel=0.02)
+    assert capture.mean() > 20 * np.abs(capture[:6]).mean() and not any(c.saturated.any() for c in captures)
+    green = np.mean([f.planes()[1] for f in frame], axis=0)
+    binned = np.mean([cv2.resize(c.planes()[1], green.shape[::-1], interpolation=cv2.INTER_AREA) for c in captures],
+                     axis=0)
+    assert np.corrcoef(binned.ravel(), green.ravel())[0, 1] > 0.93
+
+
+@pytest.mark.parametrize("sim", [
+    {},
+    {"beam": {"waist_mm": 0.6, "offset_mm": [0.1, -0.2], "tilt_mrad": [0.5, -1.0]},
+     "aberration": {"green": {"defocus": 0.3, "coma_vertical": -0.2}}, "imaging": {"stray_light": 0.01}},
+    {"slm": {"crosstalk_px": 0.8}},
+])
+@pytest.mark.parametrize("iris", [0.5, None])
+def test_the_live_views_light_is_the_captures(make_bench_profile, sim: dict, iris: float | None) -> None:
+    """The live view computes the light its own, faster way (table lookup, pruned FFTs): the same numbers."""
+    profile = make_bench_profile(sim=sim, optics={"iris_fraction": iris})
+    gray = np.random.default_rng(2).integers(0, 256, profile.slm.shape).astype(np.uint8)
+    for channel in profile.channels:
+        capture = bench._target_irradiance(profile, channel, gray)
+        live = bench._live_irradiance(profile, channel, gray)
+        assert live.dtype == torch.float32 and live.shape == capture.shape
+        assert torch.allclose(live.double(), capture, rtol=0, atol=2e-6 * float(capture.max()))
+    propagator = bench._pruned_propagator(OpticalSetup.of(profile.geometry("green")))
+    ph, pw = propagator.padded_shape
+    band = (propagator.low_y + propagator.high_y) * (propagator.low_x + propagator.high_x)
+    assert band < 0.3 * ph * pw if iris else band > 0.6 * ph * pw  # what the iris lets through, and skips
+
+
+def test_a_bin_with_one_saturated_pixel_is_marked(bench_profile_path: Path) -> None:
+    """Speckle bright enough that its brightest grains saturate sensor pixels while their bins' means do not: the
+    binned frame marks exactly the bins that hold a saturated sensor pixel; the console shows them."""
+    profile = load_profile(bench_profile_path)
+    show(profile, SCENES["speckle"](profile.slm.shape))
+    lit_bench(profile, power="20mW")
+    sensor = profile.sim.sensor
+    full = (sensor.white_level - sensor.black_level) / bench.dn_per_electron(sensor, sensor.iso)
+    gray, powers = read_displayed()[0], bench.emitting_channels(profile)
+    brightest = bench._mean_electrons(profile, gray, powers, sensor.exposure_s)[1].max()
+    exposure_s = 1.5 * sensor.exposure_s * full / brightest  # the brightest sensor pixels at 1.5 x the white level
+    (top, bottom, left, right), mean = bench._mean_electrons(profile, gray, powers, exposure_s)
+    data, metadata = bench.LiveView(profile).dng(100, exposure_s=exposure_s)
+    frame = decode_raw(data)
+
+    def bins_with(hot: np.ndarray) -> np.ndarray:
+        """The frame pixels whose bins hold a sensor pixel of `hot` (in the lit box)."""
+        rows, cols = (np.floor((np.arange(a, b) + 0.5) / metadata["bin"]).astype(int) for a, b in
+                      ((top, bottom), (left, right)))
+        y, x = np.nonzero(hot)
+        keep = (rows[y] < frame.mosaic.shape[0]) & (cols[x] < frame.mosaic.shape[1])
+        marked = np.zeros(frame.mosaic.shape, bool)
+        marked[rows[y[keep]], cols[x[keep]]] = True
+        return marked
+
+    surely, maybe = bins_with(mean >= 1.001 * full), bins_with(mean >= 0.999 * full)  # interpolation's rounding
+    marks = metadata["saturated_bins"]
+    assert marks.shape == frame.mosaic.shape and surely.sum() >= 5
+    assert (surely & ~frame.saturated).sum() >= 3  # bins whose mean stays below the white level: only marks say it
+    assert not (surely & ~marks).any() and not (marks & ~maybe).any()  # exactly the bins with a saturated pixel
+    shown = preview.decode(PreviewFrame(data, "dng", metadata=metadata))
+    assert not (surely & ~shown.saturated).any()
+
+
+def test_a_bins_noise_has_the_shot_and_read_noise_of_its_electrons() -> None:
+    rng = np.random.default_rng(3)
+    for expected, read_variance in ((3.0, 0.0), (40.0, 64.0), (2000.0, 64.0), (2000.0, 0.0)):
+        counts = bench._binned_electrons(rng, np.full(200_000, expected, np.float32), read_variance)
+        assert counts.dtype == np.float32
+        assert counts.mean() == pytest.approx(expected, rel=0.01)
+        assert counts.var() == pytest.approx(expected + read_variance, rel=0.02)
+    few = bench._binned_electrons(rng, np.full(1000, 3.0, np.float32), 0.0)
+    assert np.array_equal(few, np.round(few)) and few.min() >= 0  # Poisson's whole electrons where they are few
 
 
 def test_a_native_window_is_the_sensor_at_one_to_one(bench_profile_path: Path) -> None:

@@ -5,12 +5,16 @@ uploads; procedures; and `benchctl laser off` from another process while a real 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
 import re
+import signal
+import socket
 import subprocess
 import sys
+import threading
 import time
 import urllib.request
 from collections.abc import Iterator
@@ -25,12 +29,15 @@ from starlette.websockets import WebSocketDisconnect
 from benchctl.capture.raw import decode_raw
 from benchctl.console.app import create_app
 from benchctl.console.core import Console
+from benchctl.console.security import TOKEN_HEADER, Access
+from benchctl.console.server import allowed_hosts
+from benchctl.console.uploads import MAX_UPLOADS
 from benchctl.devices.serial_link import SerialLink
 from benchctl.devices.sim.slm import read_displayed
 from benchctl.optics.aberration import wavefront_phase
 from benchctl.profiles import load_profile
 from console_bench import (ORIGIN, PORT, TOKEN, WS, access, expected_phase_frame, laser_channel, make_console,
-                           unpack_frame)
+                           next_frame, unpack_frame)
 
 
 @pytest.fixture
@@ -112,6 +119,28 @@ def test_refused_requests_reach_no_device(console: Console, sent: list[str], hea
     assert sent == [] and (laser_channel(2), read_displayed()[1]) == before
 
 
+def test_a_body_over_the_limit_is_refused_before_it_is_read(client: TestClient, sent: list[str]) -> None:
+    big = json.dumps({"power": "1mW", "pad": "x" * 70_000})
+    response = client.post("/api/laser/green/power", content=big, headers={"content-type": "application/json"})
+    assert response.status_code == 400 and "above the limit of 65,536" in response.json()["error"]
+    assert sent == [] and laser_channel(2)["setpoint_w"] == 0.0
+
+
+@pytest.mark.parametrize("bind, accepted, refused", [
+    ("127.0.0.1", ["127.0.0.1", "localhost", "[::1]"], ["192.0.2.7", "evil.example"]),
+    ("192.0.2.7", ["192.0.2.7", "127.0.0.1"], ["192.0.2.8", "evil.example"]),
+    ("fe80::1", ["[fe80::1]", "localhost"], ["fe80::1", "evil.example"]),
+    ("0.0.0.0", [socket.gethostname(), "127.0.0.1"], ["0.0.0.0", "evil.example"]),  # every interface: its names
+])
+def test_the_host_names_a_console_answers_to(bind: str, accepted: list[str], refused: list[str]) -> None:
+    rules = Access(TOKEN, PORT, allowed_hosts(bind))
+    for host in accepted:
+        assert rules.refusal({"host": f"{host}:{PORT}", TOKEN_HEADER: TOKEN}, None) is None, host
+    for host in refused:
+        assert "is not this console's address" in rules.refusal({"host": f"{host}:{PORT}", TOKEN_HEADER: TOKEN},
+                                                                 None), host
+
+
 def test_laser_controls_round_trip_to_the_emulator(client: TestClient, console: Console, sent: list[str]) -> None:
     assert client.post("/api/laser/green/power", json={"power": "2mW"}).json()["setpoint_mw"] == 2.0
     assert laser_channel(2)["setpoint_w"] == pytest.approx(0.002)
@@ -156,7 +185,7 @@ def test_dead_man_switches_emission_off_when_the_page_goes(client: TestClient) -
             page.send_text("heartbeat")
         assert laser_channel(2)["emission"] is True
     assert wait_for(lambda: laser_channel(2)["emission"] is False, 5.0)  # the tab closed
-    assert any("dead-man" in line for line in client.get("/api/state").json()["events"])
+    assert wait_for(lambda: any("dead-man" in line for line in client.get("/api/state").json()["events"]), 5.0)
 
 
 def test_dead_man_also_catches_a_silent_page(client: TestClient) -> None:
@@ -183,6 +212,7 @@ def test_slm_patterns_round_trip_to_the_displayed_frame(client: TestClient, benc
     assert shown.status_code == 200, shown.text
     gray, state = read_displayed()
     assert shown.json()["frame"] == state["frame"]
+    assert 0 < shown.json()["server_cpu_s"] <= shown.json()["server_s"] + 0.001  # the driver's work on a thread
     ramp = np.repeat(np.arange(rows, dtype=np.float64)[:, None] * (2 * math.pi / 8), cols, axis=1)
     expected = expected_phase_frame(profile, ramp, "green")
     assert np.array_equal(gray, expected) and len(np.unique(gray[:8, 0])) == 8  # rising along the rows
@@ -229,11 +259,8 @@ def test_bad_slm_requests_are_refused_by_name(client: TestClient, pattern: dict,
 
 def test_preview_frames_show_the_light(client: TestClient) -> None:
     def frame(page) -> tuple[dict, np.ndarray]:
-        while True:
-            message = page.receive()
-            if message.get("bytes"):
-                header, jpeg, _ = unpack_frame(message["bytes"])
-                return header, cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+        header, jpeg, _ = next_frame(page)
+        return header, cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
 
     with client.websocket_connect(WS) as page:
         page.send_text("heartbeat")
@@ -246,21 +273,34 @@ def test_preview_frames_show_the_light(client: TestClient) -> None:
         while header["source"].get("lasers_on_w") != {"green": 0.002}:
             header, lit = frame(page)
     assert header["seq"] > dark_header["seq"] and lit.shape == dark.shape
+    for step in ("render", "encode"):  # CPU seconds within the step's seconds (the two clocks tick apart: 1 ms)
+        assert 0 < header[f"{step}_cpu_s"] <= header[f"{step}_s"] + 0.001
     assert header["stats"]["mean"][1] > 20 * max(dark_header["stats"]["mean"][1], 1e-4)
     assert header["stats"]["peak"][1] > header["stats"]["peak"][2] and len(header["stats"]["histogram"][1]) == 64
     assert lit[:, :, 1].mean() > dark[:, :, 1].mean() + 5
+
+
+def test_a_page_that_does_not_keep_up_gets_no_backlog(client: TestClient, console: Console) -> None:
+    with client.websocket_connect(WS) as page:
+        seqs, states = [], 0
+        while states < 4:  # two seconds of state messages, frames never acknowledged
+            message = page.receive()
+            if message.get("bytes"):
+                seqs.append(unpack_frame(message["bytes"])[0]["seq"])
+            else:
+                states += 1
+        assert len(seqs) == 2 and console.latest.seq > seqs[-1] + 2  # the live view went on, the page got two
+        page.send_text(f"ack {seqs[0]}")
+        assert next_frame(page)[0]["seq"] > seqs[-1]  # one acknowledged: the newest frame comes next
 
 
 def test_zoom_and_linear_view(client: TestClient) -> None:
     view = client.post("/api/view", json={"mode": "linear", "zoom": [0.5, 0.5]}).json()
     assert (view["mode"], view["zoom"]) == ("linear", [0.5, 0.5]) and view["server_s"] >= 0
     with client.websocket_connect(WS) as page:
-        while True:
-            message = page.receive()
-            if message.get("bytes"):
-                header, _, zoom = unpack_frame(message["bytes"])
-                if zoom:
-                    break
+        zoom = b""
+        while not zoom:
+            header, _, zoom = next_frame(page)
     image = cv2.imdecode(np.frombuffer(zoom, np.uint8), cv2.IMREAD_COLOR)
     top, left, rows, cols = header["zoom_window"]
     assert image.shape[:2] == (rows, cols) and (rows, cols) == tuple(min(256, n) for n in header["full_shape"])
@@ -300,6 +340,11 @@ def test_uploads_are_capped_and_named_by_number(client: TestClient, console: Con
     assert "above the console's limit" in client.post("/api/upload", content=bytes(huge)).json()["error"]
     console.uploads.max_bytes = 100
     assert "above the limit of 100" in client.post("/api/upload", content=png.tobytes()).json()["error"]
+    console.uploads.max_bytes = 10**6
+    for _ in range(MAX_UPLOADS - 1):
+        assert client.post("/api/upload", content=png.tobytes()).status_code == 200
+    assert "at most 50 uploads" in client.post("/api/upload", content=png.tobytes()).json()["error"]
+    assert len(list(console.uploads.folder.iterdir())) == MAX_UPLOADS
 
 
 def test_procedures_dry_run_then_run_with_the_devices_handed_over(client: TestClient, console: Console) -> None:
@@ -317,24 +362,42 @@ def test_procedures_dry_run_then_run_with_the_devices_handed_over(client: TestCl
     assert wait_for(lambda: console.laser.held.connected and console.camera.connected, 5)
 
 
-@pytest.mark.slow
-def test_laser_off_from_another_shell_while_the_console_runs(bench_profile_path: Path, tmp_path: Path) -> None:
+@contextlib.contextmanager
+def console_process(profile_path: Path, tmp_path: Path, *options: str) -> Iterator[tuple[subprocess.Popen, str,
+                                                                                         dict[str, str]]]:
+    """`benchctl console` started as a user starts it, on a free port: the process, its base URL and the headers
+    (token) a script sends."""
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    server = subprocess.Popen([sys.executable, "-m", "benchctl", "console", "-p", str(bench_profile_path), "--port",
-                               "0", "--out", str(tmp_path), "--deadman", "60"], stdout=subprocess.PIPE,
-                              stderr=subprocess.STDOUT, text=True, env=env, cwd=tmp_path)
+    server = subprocess.Popen([sys.executable, "-m", "benchctl", "console", "-p", str(profile_path), "--port", "0",
+                               "--out", str(tmp_path), *options], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                              text=True, env=env, cwd=tmp_path)
     try:
         assert server.stdout is not None
         lines = []
         while not (url := re.search(r"http://\S+", lines[-1] if lines else "")):
             lines.append(server.stdout.readline())
             assert lines[-1], "".join(lines)
-        base = url.group(0).split("/?")[0]
         headers = {"x-benchctl-token": url.group(0).split("token=")[1], "content-type": "application/json"}
-        for path, body in (("power", {"power": "1mW"}), ("emission", {"on": True})):
-            request = urllib.request.Request(f"{base}/api/laser/green/{path}", json.dumps(body).encode(), headers)
-            assert urllib.request.urlopen(request, timeout=30).status == 200
+        yield server, url.group(0).split("/?")[0], headers
+    finally:
+        if server.poll() is None:
+            server.kill()
+            server.wait()
+
+
+def post(base: str, path: str, body: dict, headers: dict[str, str]) -> int:
+    request = urllib.request.Request(f"{base}{path}", json.dumps(body).encode(), headers)
+    with urllib.request.urlopen(request, timeout=60) as response:
+        return response.status
+
+
+@pytest.mark.slow
+def test_laser_off_from_another_shell_while_the_console_runs(bench_profile_path: Path, tmp_path: Path) -> None:
+    with console_process(bench_profile_path, tmp_path, "--deadman", "60") as (server, base, headers):
+        assert post(base, "/api/laser/green/power", {"power": "1mW"}, headers) == 200
+        assert post(base, "/api/laser/green/emission", {"on": True}, headers) == 200
         assert laser_channel(2)["emission"] is True
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         off = subprocess.run([sys.executable, "-m", "benchctl", "laser", "off", "-p", str(bench_profile_path)],
                              capture_output=True, text=True, env=env, timeout=60)
         assert off.returncode == 0, off.stderr
@@ -342,6 +405,55 @@ def test_laser_off_from_another_shell_while_the_console_runs(bench_profile_path:
         assert laser_channel(2)["emission"] is False
         assert server.wait(timeout=20) != 0
         assert "console stopped: emission off, devices closed" in server.stdout.read()
-    finally:
-        if server.poll() is None:
-            server.kill()
+
+
+class Page(threading.Thread):
+    """A script that behaves as the console's page: answers every state message and frame, and sends a heartbeat
+    every second besides."""
+
+    def __init__(self, base: str, headers: dict[str, str]) -> None:
+        from websockets.sync.client import connect
+
+        super().__init__(daemon=True)
+        self.stack = contextlib.ExitStack()
+        self.socket = self.stack.enter_context(connect(base.replace("http://", "ws://") + "/ws",
+                                                       additional_headers=headers, max_size=None))
+        self.closed = threading.Event()
+
+    def run(self) -> None:
+        beat = threading.Thread(target=self._beat, daemon=True)
+        beat.start()
+        with contextlib.suppress(Exception):
+            for message in self.socket:
+                self.socket.send(f"ack {unpack_frame(message)[0]['seq']}" if isinstance(message, bytes)
+                                 else "heartbeat")
+
+    def _beat(self) -> None:
+        while not self.closed.wait(1.0):
+            with contextlib.suppress(Exception):
+                self.socket.send("heartbeat")
+
+    def close(self) -> None:
+        self.closed.set()
+        self.stack.close()
+
+
+@pytest.mark.slow
+def test_a_stopped_console_does_not_trip_on_a_live_page_and_a_closed_page_trips(bench_profile_path: Path,
+                                                                               tmp_path: Path) -> None:
+    """The console's process stopped for longer than the dead-man timeout (as a machine short of memory stops every
+    program) while its page lives on: emission stays on. Then the page closes: emission off within the timeout."""
+    with console_process(bench_profile_path, tmp_path, "--deadman", "1") as (server, base, headers):
+        page = Page(base, headers)
+        page.start()
+        assert post(base, "/api/laser/green/power", {"power": "1mW"}, headers) == 200
+        assert post(base, "/api/laser/green/emission", {"on": True}, headers) == 200
+        os.kill(server.pid, signal.SIGSTOP)
+        time.sleep(2.5)
+        os.kill(server.pid, signal.SIGCONT)
+        time.sleep(2.0)
+        assert laser_channel(2)["emission"] is True
+        page.close()
+        closed = time.monotonic()
+        assert wait_for(lambda: laser_channel(2)["emission"] is False, 10.0)
+        assert time.monotonic() - closed < 2.0  # the 1 s timeout, a watchdog period and the laser's answers

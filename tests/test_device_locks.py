@@ -35,15 +35,15 @@ def test_a_second_holder_is_told_who_holds_the_lock(lock_dir: Path) -> None:
 def test_commands_are_refused_while_another_holds_the_devices(tmp_path: Path, bench_profile_path: Path,
                                                               capsys: pytest.CaptureFixture[str],
                                                               command: list[str]) -> None:
-    from benchctl.runner.bench import Bench
+    from benchctl.runner.instruments import Instruments
 
     procedure = tmp_path / "p.toml"
     procedure.write_text('procedure = "colour-capture"\n[parameters]\ntargets = ["chart:bars"]\n'
                          'registration = "auto"\nlut_calibration = "skip"\n')
     argv = [str(procedure) if word == "PROCEDURE" else word for word in command]
     set_command("benchctl run")
-    with Bench(load_profile(bench_profile_path)) as bench:
-        bench.slm, bench.camera, bench.laser  # noqa: B018 (opening them is the point)
+    with Instruments(load_profile(bench_profile_path)) as instruments:
+        instruments.slm, instruments.camera, instruments.laser  # noqa: B018 (opening them is the point)
         shown = load_state("slm")
         assert main([*argv, "-p", str(bench_profile_path), *(["-o", str(tmp_path / "runs")] if "run" in argv
                                                                else [])]) == 2

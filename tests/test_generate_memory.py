@@ -9,7 +9,8 @@ from pathlib import Path
 
 import pytest
 
-pytestmark = pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads Linux's /proc/self/status")
+pytestmark = [pytest.mark.slow,  # a subprocess that imports torch per case
+              pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads Linux's /proc/self/status")]
 
 BYTES_PER_PIXEL = 2048  # README, "Bounded input": measured 0.7-0.85 KiB (DPAC) and 0.8-0.95 KiB (SGD)
 PROBE = r"""

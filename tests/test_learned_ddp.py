@@ -6,15 +6,18 @@ import os
 import socket
 from pathlib import Path
 
+import pytest
 import torch
 import torch.multiprocessing as mp
 from conftest import SMALL_PROFILE
 
-from benchctl.cgh import OpticalSetup
 from benchctl.cgh.learned import build_model
 from benchctl.profiles import load_profile
 from benchctl.runner.learned.checkpoint import read_checkpoint
 from benchctl.runner.learned.training import TrainSettings, train
+from benchctl.runner.setups import optical_setup
+
+pytestmark = pytest.mark.slow  # DDP spawns: seconds to a minute each
 
 SETTINGS = TrainSettings(method="holonet-dcm2", data="procedural:5", epochs=1, lr=1e-3, val_fraction=0.2)
 
@@ -52,7 +55,7 @@ def test_two_process_gloo_training_keeps_ranks_identical_and_rank_zero_writes(tm
     profile = load_profile(tmp_path / "small.toml")
     for colour in ("red", "green", "blue"):
         torch.manual_seed(SETTINGS.seed)  # the weights every process started from
-        initial = dict(build_model(SETTINGS.method, OpticalSetup.from_profile(profile, colour)).named_parameters())
+        initial = dict(build_model(SETTINGS.method, optical_setup(profile, colour)).named_parameters())
         params0, params1 = ranks[0]["parameters"][colour], ranks[1]["parameters"][colour]
         assert params0.keys() == params1.keys() == initial.keys()
         for name, value in params0.items():

@@ -23,6 +23,9 @@ from benchctl.runner.holograms import compute_scene
 from benchctl.runner.learned.checkpoint import find_checkpoint, learned_method
 from benchctl.runner.learned.training import TrainSettings, train
 from benchctl.targets import load_target, prepare_target
+from benchctl.runner.setups import optical_setup
+
+pytestmark = pytest.mark.slow  # training runs: seconds to a minute each
 
 
 @pytest.fixture(scope="module")
@@ -57,7 +60,7 @@ def test_generate_with_a_checkpoint_writes_the_trained_models_holograms(capsys, 
     # The displayed frame is exactly the network's phase for that colour, encoded for the SLM.
     profile = load_profile(profile_path)
     target = prepare_target(load_target("chart:bars", profile.optics.roi), profile.slm.shape, profile.optics.roi)
-    setup = OpticalSetup.from_profile(profile, "green")
+    setup = optical_setup(profile, "green")
     phase = learned_method("ccnn-dcm4", checkpoint)(target[1], setup)
     expected = slm_for(profile).encode(phase, "green")
     written = cv2.imread(str(out / "phase_green.png"), cv2.IMREAD_UNCHANGED)
@@ -92,7 +95,7 @@ def test_checkpoint_misuse_is_refused(capsys, tmp_path, trained) -> None:
 def test_a_learned_method_serves_only_the_setups_it_was_trained_for(trained) -> None:
     profile_path, checkpoint = trained
     method = learned_method("ccnn-dcm4", checkpoint)
-    setup = OpticalSetup.from_profile(load_profile(profile_path), "red")
+    setup = optical_setup(load_profile(profile_path), "red")
     other = OpticalSetup(wavelength_m=633e-9, pitch_m=setup.pitch_m, distance_m=setup.distance_m, shape=setup.shape,
                          roi=setup.roi, padding=setup.padding, aperture=setup.aperture)
     target = torch.zeros(setup.shape)
@@ -115,7 +118,7 @@ def test_shipped_checkpoint_is_found_listed_and_used_by_default(capsys, tmp_path
     code, stdout, _ = _run(capsys, "models", "-p", str(profile_path))
     assert code == 0
     rows = {line.split()[0]: line for line in stdout.splitlines()[2:]}
-    assert f"yes ({shipped})" in rows["ccnn-dcm4"]
+    assert f"yes ({shipped}; BELOW DPAC on its validation images (red " in rows["ccnn-dcm4"]  # a 1-step training
     assert "no (no trained checkpoint for profile 'small')" in rows["ccnn"]
     assert f"{model_info('ccnn-dcm4', (64, 96))['parameters']:,}" in rows["ccnn-dcm4"]
 

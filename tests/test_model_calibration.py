@@ -29,13 +29,12 @@ from benchctl.optics.aberration import pupil_radius_m
 from benchctl.optics.fitted import FittedOptics, _residual, calibration_patterns, fit_optics
 from benchctl.optics.phase_encoding import PhaseLUT, gray_to_phase, phase_to_gray
 from benchctl.optics.propagation import Propagator
-from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import Profile
 from benchctl.runner.calibration import Calibration
 from benchctl.runner.engine import run_procedure
 from benchctl.runner.generate import run_generate
 from benchctl.runner.hologram_cache import _key
-from benchctl.runner.holograms import optimised_setup
+from benchctl.runner.setups import optical_setup, optical_setups, optimised_setup
 from benchctl.devices.slm import slm_for
 
 HIDDEN = {"astigmatism_oblique": 0.12, "defocus": 0.3, "astigmatism_vertical": -0.15, "coma_vertical": 0.08,
@@ -54,7 +53,7 @@ def profile(make_bench_profile: Callable[..., Profile]) -> Profile:
 
 def rendered(profile: Profile, phases: torch.Tensor) -> torch.Tensor:
     """What the simulated bench shows on the ROI for each phase (noiseless target-plane irradiance)."""
-    setup = OpticalSetup.from_profile(profile, "green")
+    setup = optical_setup(profile, "green")
     rows, cols = setup.roi_slices
     grays = phase_to_gray(phases.detach().numpy(), PhaseLUT.linear(8))
     captured = torch.stack([bench._target_irradiance(profile, profile.channel("green"), g)[rows, cols] for g in grays])
@@ -69,7 +68,7 @@ def test_fit_recovers_the_hidden_wavefront_beam_and_tilt(make_bench_profile: Cal
     tilt_mrad = (0.2, -0.3)
     profile = make_bench_profile(SMALL_BENCH, {"sim": {**ABERRATED["sim"], "beam": {
         **ABERRATED["sim"]["beam"], "tilt_mrad": list(tilt_mrad)}}})
-    setup = OpticalSetup.from_profile(profile, "green")
+    setup = optical_setup(profile, "green")
     phases = calibration_patterns(setup.slm_propagator(), setup.roi, 3, seed=1)
     captured, shown = rendered(profile, phases)
     fit = fit_optics(setup.target_propagator(), setup.roi, shown, captured, iterations=90, learning_rate=0.03)
@@ -90,7 +89,7 @@ def test_fit_recovers_the_slm_crosstalk(make_bench_profile: Callable[..., Profil
     sigma crosstalk_px; the fit, given the driven phases, finds sigma beside the wavefront and the beam."""
     sim = ABERRATED["sim"]
     profile = make_bench_profile(SMALL_BENCH, {"sim": {**sim, "slm": {**sim["slm"], "crosstalk_px": crosstalk_px}}})
-    setup = OpticalSetup.from_profile(profile, "green")
+    setup = optical_setup(profile, "green")
     phases = calibration_patterns(setup.slm_propagator(), setup.roi, 3, seed=1)
     captured, driven = rendered(profile, phases)
     fit = fit_optics(setup.target_propagator(), setup.roi, driven, captured, iterations=90, learning_rate=0.03)
@@ -100,7 +99,7 @@ def test_fit_recovers_the_slm_crosstalk(make_bench_profile: Callable[..., Profil
     for name, value in HIDDEN.items():
         assert dict(fit.model.zernike_waves)[name] == pytest.approx(value, abs=max(0.02, 0.1 * abs(value))), name
     # a setup carrying the fit shows what the bench shows, from the driven phase
-    model = OpticalSetup.from_profile(profile, "green")
+    model = optical_setup(profile, "green")
     model = dataclasses.replace(model, field_model=fit.model)
     shown = model.reconstruct_roi(driven[0]).square()
     assert float(torch.corrcoef(torch.stack([shown.flatten(), captured[0].flatten().float()]))[0, 1]) > 0.99
@@ -117,7 +116,7 @@ def test_fit_recovers_the_zero_order_and_with_it_the_crosstalk(make_bench_profil
     profile = make_bench_profile(SMALL_BENCH, {"sim": {
         **sim, "slm": {**sim["slm"], "zero_order": zero_order, "crosstalk_px": crosstalk_px},
         "imaging": {"stray_light": 0.005}}})
-    setup = OpticalSetup.from_profile(profile, "green")
+    setup = optical_setup(profile, "green")
     phases = calibration_patterns(setup.slm_propagator(), setup.roi, 3, seed=1)
     captured, driven = rendered(profile, phases)
     fits = {term: fit_optics(setup.target_propagator(), setup.roi, driven, captured, zero_order=term,
@@ -189,13 +188,14 @@ def test_the_procedure_fits_stores_and_hands_the_model_to_generation(tmp_path: P
     assert fitted["patterns"] == 3 and fitted["flat"] is True
     flat = read_image(folder / "holograms" / "model-green-flat.png")
     assert flat.shape == (64, 96) and len(np.unique(flat)) == 1
-    assert sorted(path.name for path in (folder / "raw" / "model" / "green").iterdir()) == ["0", "1", "2", "3"]
+    assert sorted(path.name for path in (folder / "raw" / "model" / "capture" / "green").iterdir()) == ["0", "1", "2",
+                                                                                                  "3"]
     assert fitted["residual"] < 0.5 * fitted["initial_residual"]
     assert fitted["zernike_waves"]["tilt_vertical"] == pytest.approx(0, abs=0.01)  # a true registration, no tilt
     assert fitted["zernike_waves"]["tilt_horizontal"] == pytest.approx(0, abs=0.01)
-    setup = OpticalSetup.from_profile(Calibration.store(profile).applied(profile), "green")
+    setup = optical_setup(Calibration.store(profile).applied(profile), "green")
     assert setup.field_model == FittedOptics.from_dict(fitted)
-    assert OpticalSetup.from_profile(profile, "green").field_model is None
+    assert optical_setup(profile, "green").field_model is None
     report = (folder / "report.html").read_text()
     assert "Model calibration" in report and "defocus (waves)" in report and "fitted 20" in report
     assert "zero order" in report and "3 + flat" in report and "camera blur px" in report
@@ -244,7 +244,7 @@ def test_methods_with_the_fitted_model_show_closer_to_the_target(profile: Profil
     irradiance on the ROI, least-squares scaled). Measured, model-only -> calibrated: SGD 15.3 -> 48.3 dB (its
     simulation equals what the bench shows), DPAC (wavefront removed, beam divided out) 15.5 -> 23.1 dB, GS (lit
     through the model, its wavefront removed on the way back) 11.1 -> 16.7 dB."""
-    ideal = OpticalSetup.from_profile(profile, "green")
+    ideal = optical_setup(profile, "green")
     model = FittedOptics(tuple(HIDDEN.items()), 0.5e-3, (0.05e-3, -0.08e-3))
     calibrated = dataclasses.replace(ideal, field_model=model)
     rows, cols = ideal.roi_slices
@@ -270,7 +270,7 @@ def test_dpac_and_gs_take_the_zero_order_out(make_bench_profile: Callable[..., P
     back by its own stagnation, not by the zero order (200 iterations: 17.02 -> 17.91 (17.35))."""
     sim = ABERRATED["sim"]
     profile = make_bench_profile(SMALL_BENCH, {"sim": {**sim, "slm": {**sim["slm"], "zero_order": 0.1}}})
-    ideal = OpticalSetup.from_profile(profile, "green")
+    ideal = optical_setup(profile, "green")
     rows, cols = ideal.roi_slices
     target = torch.zeros(ideal.shape)
     y, x = np.indices(ideal.roi)
@@ -298,7 +298,7 @@ def test_sgd_through_a_model_with_crosstalk_shows_closer_to_the_target(make_benc
     sim = ABERRATED["sim"]
     profile = make_bench_profile(SMALL_BENCH, {"sim": {**sim, "slm": {**sim["slm"], "crosstalk_px": 0.3}}})
     lut = PhaseLUT.linear(8)
-    ideal = OpticalSetup.from_profile(profile, "green")
+    ideal = optical_setup(profile, "green")
     rows, cols = ideal.roi_slices
     target = torch.zeros(ideal.shape)
     y, x = np.indices(ideal.roi)
@@ -323,7 +323,7 @@ def test_optimisers_see_the_driven_phase_only_when_the_model_has_crosstalk(
     path = tmp_path / "optical-model.json"
     path.write_text(json.dumps({"colours": {"green": {**FittedOptics(crosstalk_px=crosstalk_px).to_dict()}}}))
     calibrated = msgspec.structs.replace(profile, optics=msgspec.structs.replace(profile.optics, model=path))
-    setup = optimised_setup(calibrated, "green", slm_for(calibrated))
+    setup = optimised_setup(optical_setups(calibrated, ["green"])["green"], slm_for(calibrated), "green")
     assert setup.field_model is not None and (setup.display is not None) == sees_driven
     driven = torch.zeros(setup.shape)
     driven[:, : setup.shape[1] // 2] = 5.0  # a jump, as where the gray levels wrap
@@ -335,7 +335,8 @@ def test_generate_uses_the_stored_model(tmp_path: Path, profile: Profile) -> Non
     """`benchctl generate` finds the profile's stored model: SGD's hologram changes and metrics.json names the model;
     the hologram cache keys on it, so a run after calibration never reuses a hologram made without it."""
     before = run_generate("chart:bars", profile, tmp_path / "ideal", method="sgd", iterations=3, colours=["green"])
-    key_before = _key(profile, "green", torch.ones(64, 96), {"method": "sgd"})
+    key_before = _key(profile, optical_setups(profile, ["green"])["green"], "green", torch.ones(64, 96),
+                      {"method": "sgd"})
     model = FittedOptics(tuple(HIDDEN.items()), 0.5e-3, (0.05e-3, -0.08e-3))
     Calibration.store(profile).save_model("green", {**model.to_dict(), "residual": 0.1, "initial_residual": 0.5,
                                                     "patterns": 3})
@@ -344,9 +345,11 @@ def test_generate_uses_the_stored_model(tmp_path: Path, profile: Profile) -> Non
     ideal, fitted = (read_image(tmp_path / name / "phase_green.png") for name in ("ideal", "fitted"))
     assert not np.array_equal(ideal, fitted)
     applied = Calibration.store(profile).applied(profile)
-    assert _key(applied, "green", torch.ones(64, 96), {"method": "sgd"}) != key_before
+    assert _key(applied, optical_setups(applied, ["green"])["green"], "green", torch.ones(64, 96),
+                {"method": "sgd"}) != key_before
 
 
+@pytest.mark.slow  # takes seconds to a minute on two cores
 def test_a_learned_checkpoint_fine_tuned_through_the_fitted_model_shows_better(
         tmp_path: Path, make_bench_profile: Callable[..., Profile], capsys: pytest.CaptureFixture[str]) -> None:
     """ccnn trained on the ideal model, then fine-tuned with `--model-calibration stored`: its holograms (the
@@ -366,8 +369,8 @@ def test_a_learned_checkpoint_fine_tuned_through_the_fitted_model_shows_better(
     meta = json.loads((tmp_path / "tuned" / "ccnn.json").read_text())["training"]
     assert meta["optical_model"]["green"]["zernike_waves"] == pytest.approx(HIDDEN)
     assert "--model-calibration stored" in meta["command"]
-    ideal = OpticalSetup.from_profile(profile, "green")
-    calibrated = OpticalSetup.from_profile(calibration.applied(profile), "green")
+    ideal = optical_setup(profile, "green")
+    calibrated = optical_setup(calibration.applied(profile), "green")
     assert calibrated.field_model == FittedOptics.from_dict(calibration.models()["green"])
     target = torch.zeros(ideal.shape)
     rows, cols = ideal.roi_slices
@@ -425,7 +428,7 @@ def test_two_colours_share_one_panel_crosstalk(tmp_path: Path, make_bench_profil
     assert shared["green"]["zernike_waves"]["defocus"] == pytest.approx(HIDDEN["defocus"], abs=0.02)
     assert json.loads((store.folder / "optical-model.json").read_text())["colours"] == shared
     for colour in ("green", "blue"):
-        model = OpticalSetup.from_profile(store.applied(profile), colour).field_model
+        model = optical_setup(store.applied(profile), colour).field_model
         assert model is not None and model.crosstalk_px == pytest.approx(median, abs=1e-5)
     assert any(line.startswith("      crosstalk ") and "px for every colour (fitted: green" in line
                for line in said), said

@@ -26,6 +26,8 @@ from benchctl.runner.learned.training import TrainSettings, train
 from benchctl.runner.plots import front_plot
 from benchctl.runner.record import create_run, open_run
 
+pytestmark = pytest.mark.slow  # whole procedure runs / training: seconds to a minute each
+
 REPO = Path(__file__).resolve().parents[1]
 CAPTURE = """\
 name = "capture-test"
@@ -120,7 +122,11 @@ def test_dry_run_prints_every_step_and_touches_nothing(tmp_path: Path, bench_pro
     for key in ("registration/hologram/red", "registration/capture/blue", "registration/fit/green",
                 "hologram/bars/red", "capture/bars/green", "process/bars", "report"):
         assert f". {key}: " in text
-    assert "[laser, slm, camera]" in text and lines[-1] == "dry run: nothing was touched"
+    # every exposure with its channel, power and frames, and per channel the highest power against its limit
+    assert ". capture/bars/green: expose bars  [green alone at 40 mW, 2 frame(s) + 1 dark]" in text
+    assert ". hologram/bars/red: hologram bars red (dpac)\n" in text  # no exposure: no device
+    assert "  blue: 2 exposure(s), at most 40 mW; limit 40 mW" in lines
+    assert lines[-1] == "dry run: nothing was touched"
     assert not (tmp_path / "runs").exists()
     assert list(sim_state_dir.iterdir()) == []  # no simulated device was opened
     assert not Path(os.environ["BENCHCTL_CALIBRATION_DIR"]).exists()
@@ -182,7 +188,7 @@ def test_colour_capture_from_a_fresh_profile(tmp_path: Path, bench_profile_path:
     # holograms as displayed, RAW frames as captured, 16-bit images
     hologram = read_image(folder / "holograms" / "bars-red.png")
     assert hologram.dtype == np.uint8 and hologram.shape == (128, 192)
-    raw = sorted((folder / "raw" / "bars" / "red").iterdir())
+    raw = sorted((folder / "raw" / "capture" / "bars" / "red").iterdir())
     assert [p.name for p in raw] == ["dark-000.dng", "frame-000.dng", "frame-001.dng"]
     assert decode_raw(raw[1]).mosaic.shape == (292, 428)
     capture = read_image(folder / "images" / "bars" / "capture.png")
@@ -220,7 +226,7 @@ def test_resume_after_a_pulled_cable_finishes_without_recapturing(tmp_path: Path
     info = json.loads((folder / "run.json").read_text())
     assert info["stop"]["status"] == "failed" and info["stop"]["step"] == "capture/bars/green"
     assert shutter_count() == 12 and all(not s.get("emission") for s in laser_channels().values())
-    assert sorted(p.name for p in (folder / "raw" / "bars" / "red").iterdir()) == [
+    assert sorted(p.name for p in (folder / "raw" / "capture" / "bars" / "red").iterdir()) == [
         "dark-000.dng", "frame-000.dng", "frame-001.dng"]
     kept = {p: p.read_bytes() for p in (folder / "raw").rglob("*.dng")}
 
@@ -349,7 +355,7 @@ def test_auto_exposure_puts_every_colours_peak_near_the_goal(tmp_path: Path, ben
             assert not choice["limited_by_max"] and choice["power_w"] > 4 * choice["probe_w"]
             assert peak == pytest.approx(0.7, abs=0.07), (colour, peak)
     assert not [w for w in metrics["warnings"] if "low signal" in w]
-    assert (folder / "raw" / "bars" / "probe" / "blue" / "frame-000.dng").is_file()
+    assert (folder / "raw" / "probe" / "bars" / "blue" / "frame-000.dng").is_file()
 
 
 def test_colour_capture_with_several_methods_draws_their_front(tmp_path: Path, bench_profile_path: Path,
@@ -362,7 +368,8 @@ def test_colour_capture_with_several_methods_draws_their_front(tmp_path: Path, b
     folder = run_ok(capture_procedure, bench_profile_path, tmp_path / "runs")
     metrics = json.loads((folder / "metrics.json").read_text())
     assert [(t["label"], t["method"]) for t in metrics["targets"]] == [("bars-dpac", "dpac"), ("bars-sgd", "sgd")]
-    assert (folder / "holograms" / "bars-sgd-green.png").is_file() and (folder / "raw" / "bars-dpac" / "red").is_dir()
+    assert (folder / "holograms" / "bars-sgd-green.png").is_file()
+    assert (folder / "raw" / "capture" / "bars-dpac" / "red").is_dir()
     front = {row["method"]: row for row in metrics["front"]}
     assert set(front) == {"dpac", "sgd"}
     dpac, sgd = front["dpac"], front["sgd"]

@@ -4,16 +4,20 @@ Rayleigh-Sommerfeld integral, Parseval, float64 and heavily padded propagations.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
+import msgspec
 import numpy as np
 import pytest
 import torch
 
 import benchctl.optics.propagation as propagation
-from benchctl.optics import Propagator, plan_propagation, propagate
-from benchctl.optics.plan import describe_plans, wrapped_tail_power
+from benchctl.optics import Propagator, PrunedPropagator, plan_propagation, propagate
+from benchctl.optics.plan import wrapped_tail_power
+from benchctl.runner.geometry import describe_plans
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import load_profile
+from benchctl.runner.setups import optical_setup
 
 
 def _rel(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -318,12 +322,14 @@ def test_auto_pads_much_less_than_2x_where_spread_is_small(wavelength):
     assert errors["auto"] < 1e-2  # a few times AUTO_TOLERANCE's model figure, as measured at 4K
 
 
-def test_propagation_bench_returns_one_row_per_mode_with_ratios():
+def test_propagation_bench_returns_one_row_per_mode_with_ratios(small_profile_path: Path) -> None:
     from benchctl.benchmarks.propagation import run_propagation_bench
 
     lines: list[str] = []
-    rows = run_propagation_bench(sizes=[(48, 64)], wavelengths=[("green", 520e-9)], distance_m=2e-3, pitch_m=8e-6,
-                                 repeats=1, out=lines.append)
+    profile = load_profile(small_profile_path)
+    green = msgspec.structs.replace(profile, optics=msgspec.structs.replace(profile.optics, distance_mm=2.0),
+                                    laser=msgspec.structs.replace(profile.laser, channels=(profile.channel("green"),)))
+    rows = run_propagation_bench(green, sizes=[(48, 64)], repeats=1, out=lines.append)
     assert [r["mode"] for r in rows] == ["none", "2x", "auto", "auto+roi"]
     by_mode = {r["mode"]: r for r in rows}
     # the ROI alone, on a smaller grid, with the error of the whole field's "auto" (the same outputs)
@@ -335,9 +341,9 @@ def test_propagation_bench_returns_one_row_per_mode_with_ratios():
     assert by_mode["2x"]["roi_rel_l2"] < by_mode["none"]["roi_rel_l2"]
     assert all(r["time_ms"] > 0 and r["bare_fft_ms"] > 0 and r["plan"] for r in rows)
     assert any("auto vs 2x" in line for line in lines) and any("K/N rows" in line for line in lines)
-    rows = run_propagation_bench(sizes=[(16, 24)], wavelengths=[("red", 680e-9)], distance_m=1e-3, pitch_m=8e-6,
-                                 modes=(3, "auto"), repeats=1, out=lines.append)
+    rows = run_propagation_bench(green, sizes=[(16, 24)], modes=(3, "auto"), repeats=1, out=lines.append)
     assert [r["mode"] for r in rows] == ["3", "auto"] and rows[0]["speedup_vs_2x"] is None
+    assert {r["colour"] for r in rows} == {"green"} and rows[0]["size"] == "16x24"
 
 
 @pytest.mark.parametrize(
@@ -399,7 +405,7 @@ def test_a_profiles_described_plans_are_its_setups_plans(name: str) -> None:
     profile = load_profile(name)
     text = describe_plans(profile)
     for channel in profile.channels:
-        plan = OpticalSetup.from_profile(profile, channel.name).target_propagator().plan
+        plan = optical_setup(profile, channel.name).target_propagator().plan
         assert f"    {channel.name}: {plan.describe()}" in text.splitlines()
 
 
@@ -447,3 +453,16 @@ def test_reconstruct_roi_is_the_roi_of_reconstruct_and_keeps_the_gradient() -> N
     (grad_roi,) = torch.autograd.grad(roi.square().sum(), phase)
     assert torch.allclose(grad_roi, grad_whole, rtol=0, atol=1e-10)
     assert setup.roi_propagator() is setup.roi_propagator()
+
+
+@pytest.mark.parametrize("aperture, window", [(0.5, None), (None, None), (0.3, (5, 40, 10, 60))])
+def test_the_pruned_evaluation_is_the_propagators_to_float32_rounding(aperture, window):
+    """PrunedPropagator skips the guard band's rows, the frequencies the transfer function zeroes and the outputs
+    outside the window, and must give what the propagator gives."""
+    propagator = Propagator((64, 96), 20e-3, 520e-9, 8e-6, aperture=aperture, window=window)
+    gen = torch.Generator().manual_seed(3)
+    field = torch.polar(torch.rand(64, 96, generator=gen), 2 * math.pi * torch.rand(64, 96, generator=gen))
+    expected = propagator(field.to(torch.complex64))
+    got = PrunedPropagator(propagator)(field.to(torch.complex64))
+    assert got.shape == expected.shape
+    assert float((got - expected).abs().max()) < 1e-5 * float(expected.abs().max())

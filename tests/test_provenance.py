@@ -85,7 +85,7 @@ def test_refined_learned_methods_key_the_cache_by_their_networks_checkpoint(
                         else None)
     seen: list[dict] = []
 
-    def key(profile, channel, plane, options):  # record what the key is made of, then stop before computing
+    def key(profile, setup, channel, plane, options):  # record what the key is made of, then stop before computing
         seen.append(options)
         raise RuntimeError("stop")
 

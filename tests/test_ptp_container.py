@@ -104,8 +104,8 @@ def test_malformed_containers_name_the_field(raw: bytes, message: str) -> None:
 def test_code_names() -> None:
     assert code_name(0x9116) == "GetEvent (0x9116)"
     assert code_name(0x2019) == "DeviceBusy (0x2019)"
-    assert code_name(0xA102) == "NotReady (0xA102)"  # Canon's answer while live view has no frame yet
-    assert code_name(0xA1FF) == "0xA1FF"
+    assert code_name(0xA102) == "NotReady (0xA102)"  # Canon's, answered while no live-view frame is ready
+    assert code_name(0xA1FE) == "0xA1FE"  # a code no table names
 
 
 # -- datasets ----------------------------------------------------------------------------------------------------

@@ -29,7 +29,7 @@ from benchctl.capture.registration import (
     plane_homography,
     warp_to_roi,
 )
-from benchctl.cgh import OpticalSetup, get_method
+from benchctl.cgh import get_method
 from benchctl.devices.sim import bench
 from benchctl.devices.slm import save_lut, slm_for
 from benchctl.errors import BenchctlError
@@ -37,6 +37,7 @@ from benchctl.optics.aberration import pupil_radius_m
 from benchctl.optics.fitted import FittedOptics
 from benchctl.optics.metrics import centred_slices
 from benchctl.profiles import Profile
+from benchctl.runner.setups import optical_setup
 
 # BENCH_PROFILE's 128 x 192 SLM with the ROI widened to 96 x 168 (the default 12 x 21 grid at 8 px spacing), imaged
 # at 8 um / 4 um x 1.0 = 2 sensor pixels per SLM pixel, turned 3 degrees, onto its 300 x 440 sensor. The [sim.slm]
@@ -63,7 +64,7 @@ def dot_grid_capture(profile: Profile, channel: str, method: str = "dpac", grid:
     """The dot-grid hologram for `channel`, encoded by the profile's SLM (its tables and flips), captured (by
     `exposure`, conftest's sim_exposure or mono_exposure)."""
     amplitude, points = dot_grid_target(profile.slm.shape, profile.optics.roi, grid)
-    phase = get_method(method)(amplitude, OpticalSetup.from_profile(profile, channel))
+    phase = get_method(method)(amplitude, optical_setup(profile, channel))
     gray = slm_for(profile).encode(phase, channel)
     return exposure(profile, gray, {channel: POWERS_W[channel] if power_w is None else power_w}), points
 
@@ -387,7 +388,7 @@ def test_an_aberrated_bench_registers_through_its_fitted_model(make_bench_profil
     profile = make_bench_profile(GEOMETRY, {"sim": {"slm": {"two_pi_nm": 520.0, "gamma": 1.0, "zero_order": 0.0},
                                                     "beam": {"tilt_mrad": list(tilt_mrad)},
                                                     "aberration": {"green": hidden}}})
-    setup = OpticalSetup.from_profile(profile, "green")
+    setup = optical_setup(profile, "green")
     radius = pupil_radius_m(setup.shape, setup.pitch_m)
     tilt = {f"tilt_{axis}": radius * math.sin(angle * 1e-3) / (2 * setup.wavelength_m)
             for axis, angle in zip(("vertical", "horizontal"), tilt_mrad)}

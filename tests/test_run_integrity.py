@@ -19,7 +19,7 @@ from benchctl.runner.engine import run_procedure
 EXPOSE = """\
 import numpy as np
 
-from benchctl.runner.steps import ExposureParameters, channels, exposure_step, power_w
+from benchctl.runner.api import ExposureParameters, channels, exposure_step, power_w
 
 PARAMETERS = ExposureParameters
 
@@ -27,8 +27,8 @@ PARAMETERS = ExposureParameters
 def plan(context):
     green = [channel for channel in channels(context) if channel.name == "green"][0]
     frame = lambda context: np.full(context.profile.slm.shape, 100, np.uint8)
-    return [exposure_step(context, "expose", ("expose",), green, power_w(context, green), frame, "expose",
-                          frames=3, dark_frames=1)]
+    return [exposure_step(context, "expose", green, power_w(context, green), frame, "expose", frames=3,
+                          dark_frames=1)]
 """
 
 

@@ -20,7 +20,7 @@ from conftest import SMALL_BENCH, bench_profile_text
 
 import benchctl.runner.builtin
 from benchctl.capture.raw import RawImage, decode_raw
-from benchctl.cgh import OpticalSetup, get_method
+from benchctl.cgh import get_method
 from benchctl.devices.camera import camera_for
 from benchctl.devices.sim.camera import SimCamera
 from benchctl.devices.laser import open_laser
@@ -33,6 +33,7 @@ from benchctl.optics.aberration import ZERNIKE_TERMS, defocus_focal_length_m, ga
 from benchctl.optics.fitted import FittedOptics
 from benchctl.profiles import LaserConfig, Profile, SimConfig, ZernikeTerm, load_profile
 from benchctl.runner.holograms import compute_scene
+from benchctl.runner.setups import optical_setup
 
 H_PLANCK, C_LIGHT = 6.62607015e-34, 299792458.0
 
@@ -333,7 +334,7 @@ def test_a_dpac_hologram_is_seen_as_benchctl_predicts(profile: Profile) -> None:
     displayed frame at 0.995 (measured; noise and the camera's resampling make the rest); the mirrored
     prediction correlates at 0.53."""
     profile = changed(profile, "optics", iris_fraction=0.5)
-    setup = OpticalSetup.from_profile(profile, "green")
+    setup = optical_setup(profile, "green")
     letter = np.zeros(setup.shape, np.float32)  # an "F": no symmetry, so a mirrored image cannot match
     letter[12:52, 30:38] = letter[12:20, 30:66] = letter[28:35, 30:58] = 1.0
     target = torch.from_numpy(letter)
@@ -585,5 +586,5 @@ def test_simulated_devices_report_their_ground_truth_and_real_ones_none(profile:
 
 def test_builtin_procedures_never_import_the_simulator() -> None:
     folder = Path(benchctl.runner.builtin.__file__).parent
-    for path in sorted(folder.glob("*.py")):
+    for path in sorted(folder.rglob("*.py")):
         assert "devices.sim" not in path.read_text(), path

@@ -16,10 +16,10 @@ from benchctl.devices.slm import load_lut, lut_for, save_lut, slm_for
 from benchctl.errors import BenchctlError
 from benchctl.optics.metrics import amplitude_scores, crop_roi, lsq_scale
 from benchctl.optics.phase_encoding import PhaseLUT
-from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import SLMConfig, load_profile
 from benchctl.runner.holograms import compute_scene
 from benchctl.targets import load_target, prepare_target
+from benchctl.runner.setups import optical_setup
 
 PI = math.pi
 # A measured-looking 8-bit response: not linear, ~1.9 pi deep, with a flat step (equal neighbours allowed).
@@ -168,7 +168,7 @@ def test_generated_sgd_optimises_what_a_short_stroke_panel_shows(tmp_path: Path,
     target = prepare_target(load_target("chart:white", profile.slm.shape), profile.slm.shape, profile.optics.roi)
     scored = compute_scene(target, profile, "sgd", iterations=40, colours=["red"]).colours[0].scores
     # the same SGD blind to the table, displayed and scored the same way
-    slm, setup = slm_for(profile), OpticalSetup.from_profile(profile, "red")
+    slm, setup = slm_for(profile), optical_setup(profile, "red")
     recon = setup.reconstruct_roi(torch.from_numpy(slm.decode(slm.encode(SGD(target[0], setup, iterations=40), "red"),
                                                                "red")))
     wanted = crop_roi(target[0], profile.optics.roi)
@@ -229,7 +229,7 @@ def test_generate_and_slm_show_encode_through_the_measured_table(tmp_path: Path,
     expected = frames(named, "named")
     store = Calibration.store(load_profile(small_profile_path))
     save_lut(store.lut_path("red"), table)
-    store.record_lut("red", {"gray_step": 8})
+    store.record_lut("red", {"grays": 33})  # what lut calibration records (lut.json is checked: calibration_files)
     measured = frames(small_profile_path, "measured")
     for seen, wanted, before in zip(measured, expected, linear):
         assert np.array_equal(seen, wanted) and not np.array_equal(seen, before)

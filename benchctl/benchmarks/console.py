@@ -9,10 +9,13 @@ lock and cache folders), and driven over HTTP and its WebSocket:
   frame that shows it; negative when it began before the command returned, e.g. during the SLM's settle), render
   (the camera's preview), encode (decode, statistics, JPEG) and delivery (to the client);
 - status request latency while a 50-iteration SGD hologram computes.
+Besides the seconds, the CPU seconds of the device, render and encode work (each runs on one thread): on a busy
+machine the seconds grow with the load, the CPU seconds say what the same work takes on a free core.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
@@ -36,13 +39,13 @@ GOALS = {"fps": 10.0, "latency_ms": 300.0, "status_ms": 100.0}
 class _Client:
     """HTTP and WebSocket access to one console, with its token."""
 
-    def __init__(self, url: str) -> None:
+    def __init__(self, url: str, stack: contextlib.ExitStack) -> None:
         from websockets.sync.client import connect
 
         self.base, token = url.split("/?token=")
         self.headers = {"x-benchctl-token": token, "content-type": "application/json"}
-        self.socket = connect(self.base.replace("http://", "ws://") + "/ws", additional_headers=self.headers,
-                              max_size=None)
+        self.socket = stack.enter_context(connect(self.base.replace("http://", "ws://") + "/ws",
+                                                  additional_headers=self.headers, max_size=None))
         self._beat = 0.0
 
     def call(self, path: str, body: dict[str, Any] | None = None, timeout_s: float = 600.0) -> dict[str, Any]:
@@ -52,17 +55,17 @@ class _Client:
             return json.loads(response.read())
 
     def frame(self, timeout_s: float = 30.0) -> tuple[dict[str, Any], float]:
-        """The next live-view frame's header and when it arrived (time.time())."""
+        """The next live-view frame's header and when it arrived (time.time()), acknowledged as the page does."""
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
-            if time.monotonic() - self._beat > 0.5:
-                self.socket.send("heartbeat")
-                self._beat = time.monotonic()
             message = self.socket.recv(timeout=timeout_s)
             if isinstance(message, bytes):
                 arrived = time.time()
                 (length,) = struct.unpack(">I", message[:4])
-                return json.loads(message[4:4 + length]), arrived
+                header = json.loads(message[4:4 + length])
+                self.socket.send(f"ack {header['seq']}")
+                return header, arrived
+            self.socket.send("heartbeat")
         raise BenchctlError(f"console bench: no live-view frame within {timeout_s:g} s")
 
     def frame_showing(self, wanted: Callable[[dict[str, Any]], bool]) -> tuple[dict[str, Any], float]:
@@ -95,7 +98,9 @@ def _split(t0: float, t1: float, reply: dict[str, Any], header: dict[str, Any], 
     device = reply["server_s"]
     return {"total_ms": (arrived - t0) * 1e3, "command_ms": (t1 - t0 - device) * 1e3, "device_ms": device * 1e3,
             "wait_ms": (header["render_started"] - t1) * 1e3, "render_ms": header["render_s"] * 1e3,
-            "encode_ms": header["encode_s"] * 1e3, "delivery_ms": (arrived - header["published"]) * 1e3}
+            "encode_ms": header["encode_s"] * 1e3, "delivery_ms": (arrived - header["published"]) * 1e3,
+            "device_cpu_ms": reply["server_cpu_s"] * 1e3, "render_cpu_ms": header["render_cpu_s"] * 1e3,
+            "encode_cpu_ms": header["encode_cpu_s"] * 1e3}
 
 
 def _median(rows: list[dict[str, float]]) -> dict[str, float]:
@@ -108,14 +113,23 @@ def run_console_bench(profile: str | None = None, seconds: float = 10.0, repeats
     with tempfile.TemporaryDirectory(prefix="benchctl-console-bench-") as scratch:
         process, url = _start(profile, Path(scratch))
         try:
-            return _measure(_Client(url), seconds, repeats, out, say)
+            with contextlib.ExitStack() as stack:
+                load = os.getloadavg()[0]
+                say(f"machine: {os.cpu_count()} cores, load average {load:.1f} (1 min) at the start")
+                figures = _measure(_Client(url, stack), seconds, repeats, say)
+                figures["load"] = [round(load, 2), round(os.getloadavg()[0], 2)]
+                say(f"load average {figures['load'][1]:.1f} at the end")
         finally:
             process.terminate()
             process.wait(timeout=30)
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "console.json").write_text(json.dumps(figures, indent=2) + "\n")
+        say(f"figures: {out / 'console.json'}")
+    return figures
 
 
-def _measure(client: _Client, seconds: float, repeats: int, out: Path | None,
-             say: Callable[[str], None]) -> dict[str, Any]:
+def _measure(client: _Client, seconds: float, repeats: int, say: Callable[[str], None]) -> dict[str, Any]:
     channel = "green"
     client.call(f"/api/laser/{channel}/power", {"power": "5%"})
     client.call("/api/slm", {"kind": "grating", "period_px": 8, "channel": channel})
@@ -151,6 +165,8 @@ def _measure(client: _Client, seconds: float, repeats: int, out: Path | None,
             f"(goal <= {GOALS['latency_ms']:g} ms): command {m['command_ms']:.0f} ms, device {m['device_ms']:.0f} ms, "
             f"wait {m['wait_ms']:.0f} ms, render {m['render_ms']:.0f} ms, encode {m['encode_ms']:.0f} ms, "
             f"delivery {m['delivery_ms']:.0f} ms")
+        say(f"  CPU time of that work: device {m['device_cpu_ms']:.0f} ms, render {m['render_cpu_ms']:.0f} ms, "
+            f"encode {m['encode_cpu_ms']:.0f} ms (each on one thread: what a free core takes)")
 
     result: dict[str, Any] = {}
 
@@ -173,10 +189,5 @@ def _measure(client: _Client, seconds: float, repeats: int, out: Path | None,
     sgd_s = result["reply"]["hologram"]["seconds"]
     say(f"status while a 50-iteration SGD hologram computes ({sgd_s:.1f} s): median {statistics.median(waits):.1f} ms, "
         f"max {max(waits):.1f} ms over {len(waits)} requests (goal < {GOALS['status_ms']:g} ms)")
-    figures = {"fps": round(fps, 2), "shown": shape, "laser_latency": laser_rows, "slm_latency": slm_rows,
-               "status_ms": [round(w, 2) for w in waits], "sgd_s": sgd_s, "goals": GOALS}
-    if out is not None:
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "console.json").write_text(json.dumps(figures, indent=2) + "\n")
-        say(f"figures: {out / 'console.json'}")
-    return figures
+    return {"fps": round(fps, 2), "shown": shape, "laser_latency": laser_rows, "slm_latency": slm_rows,
+            "status_ms": [round(w, 2) for w in waits], "sgd_s": sgd_s, "goals": GOALS}

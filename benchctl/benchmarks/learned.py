@@ -38,10 +38,12 @@ from benchctl.cgh.learned.models import VARIANTS
 from benchctl.errors import BadValueError, BenchctlError
 from benchctl.files import ensure_dir, write_csv
 from benchctl.profiles import Profile
-from benchctl.runner.holograms import compute_scene, resolve_method, target_plane, usable_methods
+from benchctl.runner.holograms import compute_scene, resolve_method, usable_methods
 from benchctl.runner.learned.checkpoint import find_checkpoint, read_checkpoint
-from benchctl.runner.learned.geometry import geometry_of, grid_profile, setup_from_geometry
-from benchctl.targets import load_target, prepare_target
+from benchctl.optics.geometry import Geometry
+from benchctl.runner.geometry import grid_profile
+from benchctl.runner.setups import optical_setup
+from benchctl.targets import load_target, prepare_target, target_plane
 
 DEFAULT_TARGETS = ("chart:siemens", "chart:bars", "chart:text")
 BASELINES = {"holonet": "holonet", "ccnn": "ccnn"}
@@ -103,7 +105,7 @@ def training_step_memory(method: str, geometry: dict[str, Any], device: str) -> 
     from benchctl.runner.learned.training import ReconstructionLoss, peak_normalised, training_step
 
     dev = torch.device(device)
-    setup = setup_from_geometry(geometry)
+    setup = OpticalSetup.of(Geometry.from_dict(geometry))
     torch.manual_seed(0)
     model = build_model(method, setup).to(dev)
     optimiser = torch.optim.Adam(model.parameters(), lr=5e-4)
@@ -147,7 +149,7 @@ def measure_training_step(method: str, setup: OpticalSetup, device: torch.device
     `memory_cap` (bytes) limits the subprocess's address space (CPU; the kernel's out-of-memory killer is told to
     pick it first): a step that would need more gives {"out_of_memory": True} instead of a traceback or a machine
     that swaps or kills its neighbours."""
-    request = json.dumps({"method": method, "geometry": geometry_of(setup), "device": str(device),
+    request = json.dumps({"method": method, "geometry": setup.geometry.to_dict(), "device": str(device),
                           "memory_cap": memory_cap})
     proc = subprocess.run([sys.executable, "-m", "benchctl.benchmarks.learned", request], capture_output=True,
                           text=True, env=os.environ.copy(), check=False)
@@ -202,7 +204,7 @@ def run_memory_table(profile: Profile, *, grids: Sequence[tuple[int, int]] = MEM
                 row |= {"result": f"{OUT_OF_MEMORY} (at {too_big} already)"}
             else:
                 bench = grid_profile(profile.require("slm", "optics", "laser"), grid)
-                setup = OpticalSetup.from_profile(bench, bench.channels[0].name)
+                setup = optical_setup(bench, bench.channels[0].name)
                 measured = measure_training_step(method, setup, device, cap)
                 if measured.get("out_of_memory"):
                     too_big = label
@@ -278,7 +280,7 @@ def run_learned_bench(
     chosen = _checkpoints(checkpoints, names, bench)
     device = _device()
     channel = bench.channels[0]
-    setup = OpticalSetup.from_profile(bench, channel.name)
+    setup = optical_setup(bench, channel.name)
     grid, roi = setup.shape, setup.roi
     plane = prepare_target(load_target(DEFAULT_TARGETS[0], size=roi), grid, roi)[target_plane(channel)]
     amplitude = (plane / plane.max())[None, None].to(device)

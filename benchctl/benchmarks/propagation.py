@@ -2,8 +2,10 @@
 
 For every grid size x colour x padding mode it prints the plan, the time of one complex64 propagation, its
 ratio to a bare `fft2` + `ifft2` of the same padded grid timed in the same run, and the relative L2 error on
-the centred ROI against a converged float64 propagation. The field is what a phase SLM shows: unit
-amplitude, uniformly random phase (seeded). Mode "auto+roi" is "auto" computing only the ROI.
+the centred ROI against a converged float64 propagation. Each colour is a profile's channel on that grid
+(`grid_profile`: pitch and distance kept, ROI scaled; the iris left out, which is not what padding is about).
+The field is what a phase SLM shows: unit amplitude, uniformly random phase (seeded). Mode "auto+roi" is "auto"
+computing only the ROI.
 """
 
 from __future__ import annotations
@@ -15,11 +17,13 @@ from typing import Any, Callable, Sequence
 
 import torch
 
+from benchctl.optics.geometry import Geometry
+from benchctl.optics.metrics import centred_slices
 from benchctl.optics.propagation import Padding, Propagator
+from benchctl.profiles import Profile
+from benchctl.runner.geometry import grid_profile
 
 PAPER_SIZES = ((1088, 1920), (2160, 3840))
-PAPER_WAVELENGTHS = (("red", 680e-9), ("green", 520e-9), ("blue", 450e-9))
-PAPER_ROI_FRACTION = (880 / 1088, 1600 / 1920)
 ROI_MODE = "auto+roi"
 """"auto" computing only the ROI on the smaller grid it needs (`window_plan`): what SGD, training and the
 simulated scores use, since they look at nothing else."""
@@ -38,14 +42,6 @@ def _timer(device: torch.device) -> Callable[..., float]:
     return timed
 
 
-def _roi(shape: tuple[int, int], fraction: tuple[float, float]) -> tuple[slice, slice]:
-    slices = []
-    for n, f in zip(shape, fraction):
-        r = max(1, min(n, round(n * f)))
-        slices.append(slice((n - r) // 2, (n - r) // 2 + r))
-    return slices[0], slices[1]
-
-
 def _fft_pair(x: torch.Tensor) -> torch.Tensor:
     return torch.fft.ifft2(torch.fft.fft2(x))
 
@@ -56,12 +52,9 @@ def _relative_l2(estimate: torch.Tensor, reference: torch.Tensor) -> float:
 
 
 def run_propagation_bench(
+    profile: Profile,
     sizes: Sequence[tuple[int, int]] = PAPER_SIZES,
-    wavelengths: Sequence[tuple[str, float]] = PAPER_WAVELENGTHS,
-    distance_m: float = 0.07,
-    pitch_m: float | tuple[float, float] = 3.74e-6,
     *,
-    roi_fraction: tuple[float, float] = PAPER_ROI_FRACTION,
     modes: Sequence[Padding] = ("none", "2x", "auto", ROI_MODE),
     repeats: int = 5,
     reference_factor: int = 4,
@@ -69,7 +62,8 @@ def run_propagation_bench(
     device: str | torch.device = "cpu",
     out: Callable[[str], None] = print,
 ) -> list[dict[str, Any]]:
-    """Benchmark every size x colour x padding mode; print aligned tables and return one dict per row.
+    """Benchmark every size x channel of `profile` x padding mode; print aligned tables and return one dict per
+    row.
 
     Times are medians of `repeats` calls after one warm-up. Every mode and its bare FFT pair are timed in
     turn within each round, and ratios (to the bare pair, and the speed-up over "2x") are medians of the
@@ -89,12 +83,13 @@ def run_propagation_bench(
         phase = (2.0 * torch.rand(tuple(shape), generator=generator, dtype=torch.float64) - 1.0) * math.pi
         field64 = torch.polar(torch.ones_like(phase), phase).to(device)
         field32 = field64.to(torch.complex64)
-        roi = _roi(tuple(shape), roi_fraction)
-        for colour, wavelength_m in wavelengths:
-            reference_prop = Propagator(shape, distance_m, wavelength_m, pitch_m, padding=f"{reference_factor}x")
-            reference = reference_prop(field64)[..., roi[0], roi[1]].clone()
-            del reference_prop
-            props = {mode: _propagator(mode, shape, distance_m, wavelength_m, pitch_m, roi) for mode in modes}
+        bench = grid_profile(profile.require("slm", "optics", "laser"), tuple(shape))
+        for channel in bench.channels:
+            colour, geometry = channel.name, bench.geometry(channel.name)
+            wavelength_m = geometry.wavelength_m
+            roi = centred_slices(geometry.shape, geometry.roi)
+            reference = _propagator(f"{reference_factor}x", geometry)(field64)[..., roi[0], roi[1]].clone()
+            props = {mode: _propagator(mode, geometry) for mode in modes}
             bare_inputs = {mode: torch.zeros(p.plan.padded_shape, dtype=torch.complex64, device=device)
                            for mode, p in props.items()}
             ky, kx = next(iter(props.values())).plan.spread_fraction
@@ -145,12 +140,14 @@ def run_propagation_bench(
     return rows
 
 
-def _propagator(mode: Padding, shape: tuple[int, int], distance_m: float, wavelength_m: float,
-                pitch_m: float | tuple[float, float], roi: tuple[slice, slice]) -> Propagator:
+def _propagator(mode: Padding, geometry: Geometry) -> Propagator:
+    """SLM -> target at `geometry` (without its iris) padded as `mode` says; ROI_MODE: "auto" computing the ROI."""
+    window = None
     if mode == ROI_MODE:
-        window = (roi[0].start, roi[0].stop - roi[0].start, roi[1].start, roi[1].stop - roi[1].start)
-        return Propagator(shape, distance_m, wavelength_m, pitch_m, padding="auto", window=window)
-    return Propagator(shape, distance_m, wavelength_m, pitch_m, padding=mode)
+        rows, cols = centred_slices(geometry.shape, geometry.roi)
+        mode, window = "auto", (rows.start, geometry.roi[0], cols.start, geometry.roi[1])
+    return Propagator(geometry.shape, geometry.distance_m, geometry.wavelength_m, geometry.pitch_m, padding=mode,
+                      window=window)
 
 
 def _on_roi(propagator: Propagator, field: torch.Tensor, roi: tuple[slice, slice]) -> torch.Tensor:

@@ -32,7 +32,7 @@ import torch
 from benchctl.benchmarks.learned import measure_training_step
 from benchctl.benchmarks.reproduce_job import bench_for, job_dir, read_done
 from benchctl.benchmarks.reproduce_report import write_report
-from benchctl.cgh import OpticalSetup
+from benchctl.runner.setups import optical_setup
 from benchctl.cgh.learned import LEARNED_METHODS
 from benchctl.errors import BadValueError, BenchctlError
 from benchctl.files import ensure_dir, write_json
@@ -189,7 +189,7 @@ def measure_memory(run_dir: Path, out: Callable[[str], None] = print) -> dict[st
         if job["method"] in memory or not job["iris"]:
             continue
         bench = bench_for(plan, job)
-        setup = OpticalSetup.from_profile(bench, bench.channel(plan["colour"]).name)
+        setup = optical_setup(bench, bench.channel(plan["colour"]).name)
         memory[job["method"]] = measure_training_step(job["method"], setup, torch.device("cpu"))["peak_bytes"] / 2**20
         out(f"training-step memory of {job['method']}: {memory[job['method']]:.0f} MiB")
         write_json(path, memory)

@@ -33,13 +33,12 @@ import torch
 
 from benchctl.benchmarks.learned import inference_seconds
 from benchctl.benchmarks.speed_vs_error import resized_profile
-from benchctl.cgh import OpticalSetup
 from benchctl.cgh.learned import build_model
 from benchctl.devices.slm import slm_for
 from benchctl.files import atomic_write_bytes, ensure_dir, write_json
 from benchctl.optics import amplitude_scores, crop_roi, lsq_scale
 from benchctl.profiles import Profile, load_profile
-from benchctl.runner.holograms import target_plane
+from benchctl.runner.setups import optical_setup
 from benchctl.runner.learned.data import ImageSource, image_sources
 from benchctl.runner.learned.health import TrainingHealth
 from benchctl.runner.learned.training import (
@@ -50,7 +49,7 @@ from benchctl.runner.learned.training import (
     peak_normalised,
     training_step,
 )
-from benchctl.targets import load_target, photo_specs, prepare_target
+from benchctl.targets import load_target, photo_specs, prepare_target, target_plane
 
 VALIDATION_FIRST = 100_000  # procedural images from here on are nobody's training data (procedural:N starts at 0)
 VALIDATION_COUNT = 8
@@ -102,7 +101,7 @@ class Scorer:
     def __init__(self, bench: Profile, colour: str, images: Sequence[ImageSource | str]) -> None:
         channel = bench.channel(colour)
         self.name = channel.name
-        self.setup = OpticalSetup.from_profile(bench, channel.name)
+        self.setup = optical_setup(bench, channel.name)
         self.slm = slm_for(bench)
         grid, roi = self.setup.shape, self.setup.roi
         plane = target_plane(channel)
@@ -150,7 +149,7 @@ def run_job(run_dir: Path, name: str, out: Any = print) -> dict[str, Any]:
     torch.set_num_threads(int(plan["threads"]))
     bench = bench_for(plan, job)
     colour = bench.channel(plan["colour"]).name
-    setup = OpticalSetup.from_profile(bench, colour)
+    setup = optical_setup(bench, colour)
     plane = target_plane(bench.channel(colour))
     train_images = load_targets(image_sources(plan["data"]), setup.shape, setup.roi)
     validation = Scorer(bench, colour, [ImageSource(f"procedural-{i}", index=i)

@@ -18,13 +18,14 @@ from typing import Any, Callable
 
 import torch
 
-from benchctl.cgh import OpticalSetup, get_method, method_names
+from benchctl.cgh import get_method, method_names
 from benchctl.errors import BenchctlError
 from benchctl.files import atomic_write_bytes, ensure_dir, write_csv
 from benchctl.optics.metrics import pareto_front
 from benchctl.profiles import Profile
 from benchctl.runner.holograms import checkpoint_status, compute_scene, usable_methods
-from benchctl.runner.learned.geometry import grid_profile
+from benchctl.runner.geometry import grid_profile
+from benchctl.runner.setups import optical_setup
 from benchctl.targets import load_target, photo_specs, prepare_target
 
 CHART_TARGETS = ("chart:siemens", "chart:bars", "chart:text")
@@ -201,7 +202,7 @@ def run_speed_vs_error(
 
 def _propagation_seconds(profile: Profile, channel: str, repeats: int = 5) -> float:
     """Median time of one SLM -> target propagation of a random phase on this grid (after a warm-up)."""
-    setup = OpticalSetup.from_profile(profile, channel)
+    setup = optical_setup(profile, channel)
     generator = torch.Generator().manual_seed(0)
     field = torch.polar(torch.ones(setup.shape), torch.rand(setup.shape, generator=generator) * 6.283)
     propagate = setup.target_propagator()

@@ -6,11 +6,11 @@ only: one CFA position for red and blue, two for green. Every position is warped
 plane homography (`registration.plane_homography`), so the two greens, half a pixel apart diagonally, land
 where they belong and are then averaged.
 
-Scoring follows the simulated reconstruction's (`runner.holograms.compute_scene`): amplitude = sqrt(linear
-signal), scaled per colour by least squares against that colour's target amplitude (the colour balance the
-paper sets with laser powers, here measured: each plane's gain is recorded), `amplitude_scores` per colour, then
-the merged linear image (the scaled amplitudes squared, clipped to 0..1; colours not captured stay 0) scored
-with `colour_scores`.
+Captured and simulated colours are merged the same way (`merge_colours`, which the simulated reconstruction of
+`runner.holograms.compute_scene` uses too): each colour's amplitude (captured: sqrt of the linear signal) scaled
+by least squares against that colour's target amplitude (the colour balance the paper sets with laser powers,
+here measured: each plane's gain is recorded), the merged linear image being the scaled amplitudes squared,
+clipped to 0..1 (colours not present stay 0); then `amplitude_scores` per colour and `colour_scores` merged.
 """
 
 from __future__ import annotations
@@ -57,18 +57,39 @@ def roi_saturation(raw: RawImage, colour: int, homography: np.ndarray, shape: tu
     return float(registered_saturation(raw, colour, homography, shape, roi).mean())
 
 
-@dataclass
-class MergedCapture:
-    """Captured colours registered, balanced, merged and scored (keys are plane indices 0 R, 1 G, 2 B).
+def captured_amplitude(signal: np.ndarray) -> torch.Tensor:
+    """The amplitude of a registered plane's linear signal: its square root, the noise below 0 clipped."""
+    return torch.from_numpy(np.sqrt(np.clip(np.asarray(signal, dtype=np.float32), 0.0, None)))
 
-    amplitude: (3, h, w) scaled amplitude per captured colour (0 elsewhere); merged_linear: its square clipped to
-    0..1; gains: the least-squares amplitude gain of each captured plane (intensity gain = gain^2); scores: each
-    captured colour's `amplitude_scores`; merged_scores: `colour_scores` of the merged image; warnings: lines.
-    """
+
+@dataclass
+class MergedColours:
+    """Colours balanced and merged (keys are plane indices 0 R, 1 G, 2 B): amplitude (3, h, w), each colour scaled
+    by its least-squares gain against the target (0 for the colours not given); linear: its square clipped to
+    0..1, the merged image; gains: each colour's amplitude gain (intensity gain = gain^2)."""
 
     amplitude: torch.Tensor
-    merged_linear: torch.Tensor
+    linear: torch.Tensor
     gains: dict[int, float]
+
+
+def merge_colours(amplitudes: Mapping[int, torch.Tensor], target_roi: torch.Tensor) -> MergedColours:
+    """Balance and merge amplitudes (colour -> (h, w)) against the target amplitude on the ROI (3, h, w)."""
+    amplitude = torch.zeros_like(target_roi)
+    gains: dict[int, float] = {}
+    for colour, measured in sorted(amplitudes.items()):
+        gain = lsq_scale(measured, target_roi[colour])
+        amplitude[colour] = measured * gain
+        gains[colour] = float(gain)
+    return MergedColours(amplitude, amplitude.square().clamp(0, 1), gains)
+
+
+@dataclass
+class MergedCapture:
+    """Captured colours registered, balanced, merged (`merged`) and scored: each captured colour's
+    `amplitude_scores` (scores), `colour_scores` of the merged image (merged_scores), and warnings (lines)."""
+
+    merged: MergedColours
     scores: dict[int, dict[str, float]]
     merged_scores: dict[str, float]
     warnings: list[str] = field(default_factory=list)
@@ -82,9 +103,7 @@ def merge_capture(planes: Mapping[int, np.ndarray], target_roi: torch.Tensor,
     target = torch.as_tensor(target_roi, dtype=torch.float32)
     if target.dim() != 3 or target.shape[0] != 3:
         raise BenchctlError(f"target ROI must be (3, h, w) amplitude, got shape {tuple(target.shape)}")
-    amplitude = torch.zeros_like(target)
-    gains: dict[int, float] = {}
-    scores: dict[int, dict[str, float]] = {}
+    amplitudes: dict[int, torch.Tensor] = {}
     warnings: list[str] = []
     for colour, signal in sorted(planes.items()):
         if colour not in (0, 1, 2):
@@ -100,13 +119,10 @@ def merge_capture(planes: Mapping[int, np.ndarray], target_roi: torch.Tensor,
         clipped = (saturation or {}).get(colour, 0.0)
         if clipped > 0:
             warnings.append(f"{name}: {clipped:.2%} of the ROI is saturated; that colour reads low there")
-        measured = torch.from_numpy(np.sqrt(np.clip(signal, 0.0, None)))
-        gain = lsq_scale(measured, target[colour])
-        amplitude[colour] = measured * gain
-        gains[colour] = float(gain)
-        scores[colour] = amplitude_scores(amplitude[colour], target[colour])
+        amplitudes[colour] = captured_amplitude(signal)
     missing = [COLOUR_NAMES[c] for c in range(3) if c not in planes and float(target[c].max()) > 0]
     if missing:
         warnings.append(f"not captured: {', '.join(missing)} (present in the target; scored as black)")
-    merged = amplitude.square().clamp(0, 1)
-    return MergedCapture(amplitude, merged, gains, scores, colour_scores(merged, target), warnings)
+    merged = merge_colours(amplitudes, target)
+    scores = {colour: amplitude_scores(merged.amplitude[colour], target[colour]) for colour in amplitudes}
+    return MergedCapture(merged, scores, colour_scores(merged.linear, target), warnings)

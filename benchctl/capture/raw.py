@@ -28,7 +28,7 @@ import io
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
+from typing import Iterable, Iterator
 
 import cv2
 import numpy as np
@@ -212,30 +212,41 @@ def _check_same_grid(reference: RawImage, other: RawImage, action: str) -> None:
             f"{reference.source} ({'x'.join(map(str, reference.mosaic.shape))} {reference.layout})")
 
 
-def average_frames(images: list[RawImage]) -> RawImage:
+def average_frames(images: Iterable[RawImage]) -> RawImage:
     """Mean of N frames of one scene (noise / sqrt(N)); a pixel saturated in any frame stays flagged.
 
-    black_levels and white_level are the frames' means (information only: each mosaic is already scaled).
+    Streaming: `images` may be a generator that decodes each frame as it is asked for, and each is added to a
+    running sum and let go, so N frames need the memory of one (plus the sum), not of N. black_levels and white_level
+    are the frames' means (information only: each mosaic is already scaled).
     """
-    if not images:
+    frames = iter(images)
+    first = next(frames, None)
+    if first is None:
         raise BadValueError("average_frames needs at least one frame")
-    first = images[0]
-    if len(images) == 1:  # the mean of one frame is that frame: no float64 copy of a sensor-sized mosaic
-        return first
-    total = np.zeros(first.mosaic.shape, dtype=np.float64)
-    saturated = np.zeros(first.mosaic.shape, dtype=bool)
-    for image in images:
+    total: np.ndarray | None = None  # the mean of one frame is that frame: no float64 copy of a sensor-sized mosaic
+    saturated = first.saturated
+    black_levels, white_level = first.black_levels.astype(np.float64), first.white_level
+    count, last = 1, first.source
+    for image in frames:
         _check_same_grid(first, image, "average")
+        if total is None:
+            total, saturated = first.mosaic.astype(np.float64), first.saturated.copy()
         total += image.mosaic
         saturated |= image.saturated
-    count = len(images)
+        black_levels = black_levels + image.black_levels
+        white_level += image.white_level
+        count, last = count + 1, image.source
+        del image  # let it go before the next one is decoded
+    if total is None:
+        return first
+    total /= count
     return RawImage(
-        mosaic=(total / count).astype(np.float32),
+        mosaic=total.astype(np.float32),
         cfa=first.cfa.copy(),
         saturated=saturated,
-        black_levels=np.mean([image.black_levels for image in images], axis=0),
-        white_level=float(np.mean([image.white_level for image in images])),
-        source=first.source if count == 1 else f"mean of {count} frames ({first.source} .. {images[-1].source})",
+        black_levels=black_levels / count,
+        white_level=white_level / count,
+        source=f"mean of {count} frames ({first.source} .. {last})",
     )
 
 

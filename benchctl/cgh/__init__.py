@@ -8,6 +8,7 @@ refinements (`benchctl.cgh.learned`). Imports only `benchctl.optics` from the re
 from benchctl.cgh.dpac import DPAC, double_phase
 from benchctl.cgh.gerchberg_saxton import GERCHBERG_SAXTON
 from benchctl.cgh.method import (
+    DEFAULT_METHOD,
     METHODS,
     REFINED_SUFFIX,
     Algorithm,
@@ -27,6 +28,7 @@ from benchctl.optics.setup import OpticalSetup
 from benchctl.cgh import learned  # registers the learned methods: last, as it builds on the above
 
 __all__ = [
+    "DEFAULT_METHOD",
     "DPAC",
     "GERCHBERG_SAXTON",
     "METHODS",

@@ -20,7 +20,7 @@ from typing import Callable, Optional
 
 import torch
 
-from benchctl.errors import BadValueError
+from benchctl.errors import BadValueError, did_you_mean
 from benchctl.optics.setup import OpticalSetup
 
 Progress = Callable[[int, int], None]
@@ -35,6 +35,9 @@ Algorithm = Callable[[torch.Tensor, OpticalSetup, Optional[int], int, Optional[P
 
 Networks = Callable[[OpticalSetup, torch.device], Callable[[torch.Tensor], torch.Tensor]]
 """networks(setup, device) -> the trained network for `setup` on `device`: amplitude (B, 1, H, W) -> phase."""
+
+DEFAULT_METHOD = "dpac"
+"""The method used wherever none is named (generate, procedures): one-shot, no checkpoint needed."""
 
 REFINED_SUFFIX = "+sgd"
 """`<learned method>+sgd`: that network's hologram refined by SGD, an iterative method of its own."""
@@ -214,6 +217,7 @@ def get_method(name: str) -> Method:
         pass
     classical = [n for n in method_names() if not METHODS[n].needs_checkpoint]
     learned = [n for n in method_names() if METHODS[n].needs_checkpoint and METHODS[n].refines is None]
-    raise BadValueError(f"unknown hologram method {name!r}; known: {', '.join(classical)}; learned (need a "
+    raise BadValueError(f"unknown hologram method {name!r}{did_you_mean(name, METHODS)}; known: "
+                        f"{', '.join(classical)}; learned (need a "
                         f"checkpoint): {', '.join(learned) or 'none'}; a learned one refined by SGD: "
                         f"<learned>{REFINED_SUFFIX}") from None

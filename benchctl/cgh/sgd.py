@@ -5,16 +5,15 @@ least-squares scale sum(r t) / sum(r^2) of the current reconstruction (a phase-o
 image's brightness). At that s the loss's gradient with respect to s is zero, so treating s as a constant in
 the backward pass gives the exact gradient of the scale-free error; nothing about the scale is learned.
 
-Choices, measured on the Fresnel-scaled simulated bench (272 x 480, ROI 220 x 400, iris 0.5; docs/benchmarks.md):
+Choices (docs/benchmarks.md and docs/model_calibration.md measure them):
 - Start from the DPAC hologram, not from neural-holography's uniform [-0.5, 0.5] phase: DPAC is already a
-  good solution (16-33 dB there), so the first iterations refine it instead of building one from a flat phase.
+  good solution, so the first iterations refine it instead of building one from a flat phase.
   `init="random"` keeps that uniform start; `init` may also be any `Method` (a trained network's output).
 - Adam with lr 0.05 on the phase (neural-holography: 8e-3, plus 2e-3 on a learned scale).
 - Where the SLM cannot show every phase (`setup.display`: a measured lookup table whose levels leave a gap, such
   as red on a panel with 2 pi at 600 nm), the loss scores the phase as shown, its gradient passed straight
-  through the quantisation: +3.6 dB for red SGD-70 at 1088 x 1920 (29.17 against 25.59 dB on chart:bars); and
-  after each step a phase in the table's gap, which that gradient cannot move out of, is set to the phase the SLM
-  shows for it (`OpticalSetup.within_reach`): 34.60 dB.
+  through the quantisation; and after each step a phase in the table's gap, which that gradient cannot move out
+  of, is set to the phase the SLM shows for it (`OpticalSetup.within_reach`).
 - The best phase seen is returned, so SGD never ends worse (in its loss) than the phase it started from.
 - Early stop: once the best loss fell by less than `tolerance` (relative) over the last `STOP_WINDOW`
   iterations, further iterations would change the result by less than that: stop and report the

@@ -1,6 +1,6 @@
 """The `benchctl` command line: parses arguments and calls one function per command; no logic lives here.
 
-One module per command group (`devices`, `profile`, `holograms`, `benchmarks`, `training`, `procedures`,
+One module per command group (`devices`, `profile`, `holograms`, `benchmarks`, `training`, `procedures`, `runs`,
 `console`), each adding its sub-parsers with `add_commands`; a command imports what it uses only when it runs.
 """
 
@@ -10,8 +10,8 @@ import argparse
 import sys
 from typing import Sequence
 
-from benchctl.cli import benchmarks, console, devices, holograms, procedures, profile, training
-from benchctl.cli.args import EPILOG, VersionAction
+from benchctl.cli import benchmarks, console, devices, holograms, procedures, profile, runs, training
+from benchctl.cli.args import EPILOG, Parser, VersionAction
 from benchctl.errors import BenchctlError
 
 
@@ -21,7 +21,7 @@ def build_parser() -> argparse.ArgumentParser:
     Building it imports nothing heavy (no torch, no networks): `benchctl laser off` must start instantly.
     Method names are therefore checked when a command runs, not by argparse `choices`.
     """
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="benchctl",
         description="Holographic-display experiments on an optical bench, real or simulated.",
         epilog=EPILOG,
@@ -29,7 +29,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action=VersionAction, nargs=0, help="show the version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for group in (holograms, benchmarks, training, profile, procedures, devices, console):
+    for group in (holograms, benchmarks, training, profile, procedures, runs, devices, console):
         group.add_commands(sub)
     return parser
 

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import re
+from collections.abc import Callable
+from typing import Any
 
 import benchctl
 from benchctl.limits import MAX_PIXELS_ENV, max_pixels
@@ -43,15 +46,32 @@ def name_list(text: str) -> list[str]:
     return [v.strip() for v in text.split(",") if v.strip()]
 
 
-def positive_int(text: str) -> int:
-    """A whole number >= 1."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
-    return value
+def whole_number(minimum: int) -> Callable[[str], int]:
+    """The argument type of a whole number >= `minimum`."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be >= {minimum}, got {value}")
+        return value
+
+    return parse
+
+
+count = whole_number(0)
+positive_int = whole_number(1)
+
+
+class Parser(argparse.ArgumentParser):
+    """benchctl's argument parser: a value that starts with '-' and a digit ('-5mW', '-3x4') is read as a value, so
+    that its own check says what is wrong ("is negative") instead of argparse's "expected one argument" (argparse
+    reads only plain negative numbers so; no benchctl option starts with '-' and a digit)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = re.compile(r"^-\.?\d")
 
 
 class VersionAction(argparse.Action):

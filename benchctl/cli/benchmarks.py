@@ -37,12 +37,7 @@ def _cmd_bench_propagation(args: argparse.Namespace) -> int:
     from benchctl.files import ensure_dir, write_csv
     from benchctl.profiles import load_profile
 
-    profile = load_profile(args.profile)
-    (h, w), (rh, rw) = profile.slm.shape, profile.optics.roi
-    rows = run_propagation_bench(sizes=args.size or PAPER_SIZES,
-                                 wavelengths=[(c.name, c.wavelength_m) for c in profile.channels],
-                                 distance_m=profile.optics.distance_m, pitch_m=profile.slm.pitch_m,
-                                 roi_fraction=(rh / h, rw / w), repeats=args.repeats)
+    rows = run_propagation_bench(load_profile(args.profile), sizes=args.size or PAPER_SIZES, repeats=args.repeats)
     if args.out:
         print(f"wrote {write_csv(ensure_dir(Path(args.out)) / 'propagation.csv', rows)}")
     return 0
@@ -108,7 +103,8 @@ def _cmd_bench_console(args: argparse.Namespace) -> int:
 
 def add_commands(sub: argparse._SubParsersAction) -> None:
     """Add this group's sub-commands to the `benchctl` sub-parsers (importing nothing heavy)."""
-    bench = sub.add_parser("bench", help="benchmarks: speed against error").add_subparsers(
+    bench = sub.add_parser("bench", help="benchmarks: speed against error, propagation, learned methods, the paper's "
+                                         "tables").add_subparsers(
         dest="bench", metavar="BENCH", required=True)
     speed = bench.add_parser("speed-vs-error", help="seconds per frame against PSNR/SSIM for each method and budget",
                              description="Runs every hologram method at several iteration budgets on the targets, "

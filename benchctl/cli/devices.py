@@ -22,6 +22,10 @@ def _cmd_device(args: argparse.Namespace) -> int:
         if args.sim_command == "reset":
             return print_lines(dc.sim_reset())
         return print_lines(dc.sim_fault(args.device, args.faults, args.clear, load_profile(args.profile)))
+    if args.command == "camera" and args.camera_command == "show":  # a file: no profile, no camera
+        from benchctl.capture.preview import show_frame
+
+        return print_lines(show_frame(Path(args.frame), args.output))
     profile = load_profile(args.profile)
     if args.command == "camera":
         if args.camera_command == "info":
@@ -32,7 +36,7 @@ def _cmd_device(args: argparse.Namespace) -> int:
         if action == "status":
             return print_lines(dc.laser_status(profile))
         if action == "set":
-            return print_lines(dc.laser_set(profile, args.channel, args.power))
+            return print_lines(dc.laser_set(profile, args.channel, " ".join(args.power)))
         if action == "on":
             duration = dc.parse_duration(args.duration) if args.duration else None
             return print_lines(dc.laser_on(profile, args.channel, duration, args.leave_on))
@@ -55,7 +59,7 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                                              "interlock, faults (changes nothing)")
     setp = laser.add_parser("set", help="change a channel's power setpoint (emission stays off)")
     setp.add_argument("channel", help="channel name from the profile, e.g. red")
-    setp.add_argument("power", help="power: 20mW, 0.02W or 5%% (of the channel's max_power_mw)")
+    setp.add_argument("power", nargs="+", help="power: 20mW, 20 mW, 0.02W or 5%% (of the channel's max_power_mw)")
     on = laser.add_parser("on", help="emission on for a time or until Ctrl-C, then off")
     on.add_argument("channel", help="channel name from the profile, e.g. red")
     on.add_argument("--for", dest="duration", metavar="TIME", help="how long, e.g. 30s, 500ms, 2m "
@@ -67,7 +71,11 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
         add_profile(parser)
         parser.set_defaults(func=_cmd_device)
 
-    slm = sub.add_parser("slm", help="SLM: info, show an image or phase, blank").add_subparsers(
+    slm = sub.add_parser("slm", help="SLM: info, show an image or phase, blank",
+                         description="The phase SLM the profile describes. A phase (.npy, radians) is shown "
+                                     "through the channel's lookup table (measured ones from calibration/<profile>/, "
+                                     "else linear), with the profile's offset, carrier and flips; an image's gray "
+                                     "levels are shown exactly as they are.").add_subparsers(
         dest="slm_command", metavar="ACTION", required=True)
     info = slm.add_parser("info", help="driver, resolution, pitch, bit depth, settle time, lookup tables")
     show = slm.add_parser("show", help="show an 8-bit image as is, or a .npy phase (radians) encoded for a channel")
@@ -78,7 +86,10 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
         add_profile(parser)
         parser.set_defaults(func=_cmd_device)
 
-    camera = sub.add_parser("camera", help="camera: info, capture RAW frames").add_subparsers(
+    camera = sub.add_parser("camera", help="camera: info, capture RAW frames, show one",
+                            description="The camera the profile describes. Captured RAW files are written the moment "
+                                        "they arrive and never modified; `camera show` reads one back (no camera "
+                                        "needed).").add_subparsers(
         dest="camera_command", metavar="ACTION", required=True)
     cinfo = camera.add_parser("info", help="what the camera says it is, and the capture settings")
     capture = camera.add_parser("capture", help="capture RAW frames exactly as the camera delivers them")
@@ -88,6 +99,12 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     for parser in (cinfo, capture):
         add_profile(parser)
         parser.set_defaults(func=_cmd_device)
+    show = camera.add_parser("show", help="a RAW frame's size, levels, peak and saturation per colour, and a preview "
+                                          "PNG")
+    show.add_argument("frame", help="RAW file (DNG, CR2, ... as captured)")
+    show.add_argument("--output", "-o", type=Path, metavar="PNG",
+                      help="where to write the preview (default: FRAME's name + .preview.png, in this folder)")
+    show.set_defaults(func=_cmd_device)
     devices = sub.add_parser("devices", help="serial ports, PTP and GenICam cameras, framebuffers and desktop outputs "
                                                      "(EDID name, serial, mode) on this machine")
     devices.set_defaults(func=_cmd_device)

@@ -5,21 +5,24 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from benchctl.cli.args import EPILOG, add_profile, grid_size, name_list, positive_int, print_lines
+from benchctl.cli.args import EPILOG, add_profile, count, grid_size, name_list, print_lines
 
 
 def _cmd_generate(args: argparse.Namespace) -> int:
-    from benchctl.terminal import ProgressLine
+    from benchctl.calibration_files import calibration_lines
+    from benchctl.cgh import DEFAULT_METHOD
     from benchctl.profiles import load_profile
     from benchctl.runner.generate import run_generate
+    from benchctl.terminal import ProgressLine
 
     profile = load_profile(args.profile)
-    metrics = run_generate(args.target, profile, Path(args.out), method=args.method, iterations=args.iterations,
+    method = args.method or DEFAULT_METHOD
+    metrics = run_generate(args.target, profile, Path(args.out), method=method, iterations=args.iterations,
                            colours=args.colours, seed=args.seed, progress=ProgressLine, checkpoint=args.checkpoint)
     if metrics["checkpoint"]:
-        print(f"{args.method}: trained models from {metrics['checkpoint']}")
-    if metrics["optical_model"]:
-        print(f"fitted optical model: {metrics['optical_model']}")
+        print(f"{method}: trained models from {metrics['checkpoint']}")
+    for line in calibration_lines(metrics["calibration"]):
+        print(line)
     for name, colour in metrics["colours"].items():
         if colour["skipped"]:
             print(f"{name:>6}: skipped (black in the target)")
@@ -33,10 +36,13 @@ def _cmd_generate(args: argparse.Namespace) -> int:
 
 def _cmd_models(args: argparse.Namespace) -> int:
     from benchctl.profiles import load_profile
+    from benchctl.runner.calibration import Calibration
     from benchctl.runner.holograms import list_methods
 
     profile = load_profile(args.profile)
     shape = args.size or profile.require("slm").slm.shape
+    if profile.optics is not None:  # the lookup tables and optical model a checkpoint would meet here
+        profile = Calibration.store(profile).applied(profile)
     print(f"hologram methods at {shape[0]}x{shape[1]} (checkpoints for profile {profile.name!r}):")
     return print_lines(list_methods(shape, profile))
 
@@ -57,13 +63,13 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                                      "target are skipped.", epilog=EPILOG,
                          formatter_class=argparse.RawDescriptionHelpFormatter)
     gen.add_argument("target", help="chart or photo name (e.g. chart:siemens, photo:coffee) or image file")
-    gen.add_argument("--method", "-m", default="dpac",
-                     help="hologram method (default: dpac; `benchctl models` lists them all); learned ones, alone "
-                          "or refined as <learned>+sgd, need a trained checkpoint")
+    gen.add_argument("--method", "-m",
+                     help="hologram method (default: dpac, as in procedures; `benchctl models` lists them all); "
+                          "learned ones, alone or refined as <learned>+sgd, need a trained checkpoint")
     gen.add_argument("--checkpoint", type=Path, metavar="CKPT",
                      help="trained models for a learned method (default: the one shipped for the profile)")
-    gen.add_argument("--iterations", "-n", type=positive_int, help="iterations for iterative methods "
-                                                                  "(default: the method's own)")
+    gen.add_argument("--iterations", "-n", type=count, help="iterations for iterative methods (default: the "
+                                                           "method's own; 0: the method's start alone)")
     gen.add_argument("--colours", "--colors", type=name_list, metavar="LIST",
                      help="comma-separated laser channels, e.g. red,green (default: all in the profile)")
     gen.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
@@ -71,7 +77,11 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     add_profile(gen)
     gen.set_defaults(func=_cmd_generate)
 
-    models = sub.add_parser("models", help="hologram methods with family and parameter count at a grid size")
+    models = sub.add_parser("models", help="hologram methods with family and parameter count at a grid size",
+                            description="Every hologram method, its family and trainable parameters, and for a learned "
+                                        "one the checkpoint it would use here, with what its record says: below DPAC "
+                                        "on its validation images, trained without the lookup tables or the fitted "
+                                        "optical model this profile's bench now has.")
     models.add_argument("--size", type=grid_size, metavar="HxW", help="grid (default: the profile's SLM)")
     add_profile(models)
     models.set_defaults(func=_cmd_models)

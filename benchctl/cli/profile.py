@@ -6,12 +6,20 @@ import argparse
 
 
 def _cmd_profile_check(args: argparse.Namespace) -> int:
-    from benchctl.optics.plan import describe_plans
+    from benchctl.calibration_files import check_calibration
+    from benchctl.runner.geometry import describe_plans
     from benchctl.profiles import load_profile
+    from benchctl.runner.calibration import REGISTRATION_FILE, Calibration
 
     profile = load_profile(args.path)
     print(profile.describe())
     print(describe_plans(profile))
+    registration = None
+    if profile.slm is not None and profile.optics is not None:  # what calibration/<profile>/ holds for its geometry
+        store = Calibration.store(profile)
+        profile, registration = store.applied(profile), store.folder / REGISTRATION_FILE
+    for line in check_calibration(profile, registration):
+        print(line)
     print(f"{profile.path}: OK")
     return 0
 
@@ -20,6 +28,7 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     """Add this group's sub-commands to the `benchctl` sub-parsers (importing nothing heavy)."""
     profile = sub.add_parser("profile", help="hardware profiles").add_subparsers(
         dest="profile_command", metavar="ACTION", required=True)
-    check = profile.add_parser("check", help="validate a profile and print what it describes")
+    check = profile.add_parser("check", help="validate a profile and the calibration files it uses; print what it "
+                                             "describes")
     check.add_argument("path", nargs="?", help="profile TOML path or name (default: simulated)")
     check.set_defaults(func=_cmd_profile_check)

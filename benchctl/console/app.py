@@ -2,20 +2,24 @@
 
 Every route sits behind `AccessMiddleware` (token, Host, Origin). Device work runs on worker threads
 (`run_in_threadpool`), never on the event loop. The socket carries frames to the page (binary: a 4-byte header
-length, the JSON header, the frame's JPEG, then the zoom's JPEG if any) and state twice a second (text, JSON); every
-message the page sends on it is a heartbeat for the laser's dead-man switch.
+length, the JSON header, the frame's JPEG, then the zoom's JPEG if any) and state twice a second (text, JSON). The
+page answers each frame it has drawn with `ack <seq>` (the server keeps at most FRAMES_IN_FLIGHT frames
+unacknowledged, so a slow page never gets a backlog) and each state with `heartbeat`; every message it sends is a
+heartbeat for the laser's dead-man switch, so the page's heartbeats need no timer of its own (a browser slows a
+hidden tab's timers down to once a minute).
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import contextvars
 import json
 import struct
 import time
 from collections.abc import Awaitable, Callable
 from importlib import resources
-from typing import Any
+from typing import Any, TypeVar
 
 from starlette.applications import Starlette
 from starlette.concurrency import run_in_threadpool
@@ -31,8 +35,10 @@ from benchctl.errors import BadValueError, BenchctlError
 
 STATIC = {"console.js": "text/javascript", "console.css": "text/css", "index.html": "text/html"}
 STATE_PERIOD_S = 0.5
+FRAMES_IN_FLIGHT = 2  # frames sent to a page and not yet acknowledged, at most
 MAX_JSON_BYTES = 64 * 1024
 Handler = Callable[[Request], Awaitable[Response]]
+T = TypeVar("T")
 
 
 def create_app(console: Console, access: Access) -> AccessMiddleware:
@@ -40,24 +46,27 @@ def create_app(console: Console, access: Access) -> AccessMiddleware:
 
     def api(handler: Callable[[Request], Awaitable[Any]]) -> Handler:
         """A JSON endpoint: its result as JSON (a command's with `server_s`, the seconds it took inside the server,
-        device work included); a BenchctlError as 400 with its one line (nothing else changed)."""
+        device work included, and `server_cpu_s`, the CPU seconds of its work on a worker thread); a BenchctlError
+        as 400 with its one line (nothing else changed)."""
 
         async def endpoint(request: Request) -> Response:
-            started = time.perf_counter()
+            started, cpu = time.perf_counter(), _CPU.set([0.0])
             try:
                 result = await handler(request)
             except BenchctlError as exc:
                 return JSONResponse({"error": str(exc)}, status_code=400)
+            finally:
+                spent = _CPU.get()[0]
+                _CPU.reset(cpu)
             if request.method == "POST" and isinstance(result, dict):
-                result = {**result, "server_s": round(time.perf_counter() - started, 6)}
+                result = {**result, "server_s": round(time.perf_counter() - started, 6),
+                          "server_cpu_s": round(spent, 6)}
             return JSONResponse(result)
 
         return endpoint
 
     async def body(request: Request) -> dict[str, Any]:
-        raw = await request.body()
-        if len(raw) > MAX_JSON_BYTES:
-            raise BadValueError(f"request body of {len(raw)} bytes is above {MAX_JSON_BYTES}")
+        raw = await _capped(request, MAX_JSON_BYTES, "request body")
         try:
             data = json.loads(raw or b"{}")
         except ValueError:
@@ -79,13 +88,13 @@ def create_app(console: Console, access: Access) -> AccessMiddleware:
         return console.state()
 
     async def info(request: Request) -> dict[str, Any]:
-        return await run_in_threadpool(_info, console)
+        return await _in_thread(_info, console)
 
     async def power(request: Request) -> dict[str, Any]:
         text = (await body(request)).get("power")
         if not isinstance(text, str):
             raise BadValueError('give the power as {"power": "5mW"} or {"power": "10%"}')
-        return await run_in_threadpool(console.set_power, request.path_params["channel"], text)
+        return await _in_thread(console.set_power, request.path_params["channel"], text)
 
     async def emission(request: Request) -> dict[str, Any]:
         on = (await body(request)).get("on")
@@ -93,38 +102,31 @@ def create_app(console: Console, access: Access) -> AccessMiddleware:
             raise BadValueError('give emission as {"on": true} or {"on": false}')
         if on and console.procedures.active:
             raise BenchctlError("a procedure holds the laser; stop it first")
-        await run_in_threadpool(console.set_emission, request.path_params["channel"], on)
+        await _in_thread(console.set_emission, request.path_params["channel"], on)
         return {"ok": True}
 
     async def all_off(request: Request) -> dict[str, Any]:
         if console.procedures.active:  # the run holds the laser: stopping it switches emission off
-            await run_in_threadpool(console.procedures.stop)
+            await _in_thread(console.procedures.stop)
             return {"ok": True, "stopped": "procedure"}
-        await run_in_threadpool(console.all_off)
+        await _in_thread(console.all_off)
         return {"ok": True}
 
     async def slm(request: Request) -> dict[str, Any]:
         pattern = parse_pattern(await body(request))
-        return await run_in_threadpool(console.show, pattern)
+        return await _in_thread(console.show, pattern)
 
     async def thumbnail(request: Request) -> Response:
         if console.slm is None:
             return Response("no SLM\n", status_code=404, media_type="text/plain")
-        png = await run_in_threadpool(console.slm.thumbnail)
+        png = await _in_thread(console.slm.thumbnail)
         return Response(png, media_type="image/png", headers={"cache-control": "no-store"})
 
     async def upload(request: Request) -> dict[str, Any]:
-        limit = console.uploads.max_bytes
-        declared = request.headers.get("content-length")
-        if declared is not None and (not declared.isdigit() or int(declared) > limit):
-            raise BadValueError(f"upload of {declared} bytes is above the limit of {limit:,}")
-        data = bytearray()
-        async for chunk in request.stream():
-            data += chunk
-            if len(data) > limit:
-                raise BadValueError(f"upload is above the limit of {limit:,} bytes")
+        console.uploads.check_room()
+        data = await _capped(request, console.uploads.max_bytes, "upload")
         name = request.query_params.get("name", "image")
-        upload_id = await run_in_threadpool(console.uploads.add, bytes(data), name)
+        upload_id = await _in_thread(console.uploads.add, data, name)
         console.say(f"uploaded {name!r} as upload:{upload_id}")
         return {"target": f"upload:{upload_id}"}
 
@@ -137,7 +139,7 @@ def create_app(console: Console, access: Access) -> AccessMiddleware:
         frames = (await body(request)).get("frames")
         if frames is not None and (isinstance(frames, bool) or not isinstance(frames, int)):
             raise BadValueError(f"frames must be a whole number, got {frames!r}")
-        return await run_in_threadpool(console.capture, frames)
+        return await _in_thread(console.capture, frames)
 
     async def connect(request: Request) -> dict[str, Any]:
         name = (await body(request)).get("device")
@@ -147,20 +149,20 @@ def create_app(console: Console, access: Access) -> AccessMiddleware:
             raise BadValueError(f"no device {name!r} to connect (laser, slm or camera)")
         if console.procedures.active:
             raise BenchctlError("a procedure holds the devices; wait for it or stop it")
-        await run_in_threadpool(console.laser.connect if name == "laser" and console.laser else held.connect)
+        await _in_thread(console.laser.connect if name == "laser" and console.laser else held.connect)
         return {"connected": held.connected, "error": held.error}
 
     async def dry_run(request: Request) -> dict[str, Any]:
         name = (await body(request)).get("name")
-        return {"lines": await run_in_threadpool(console.procedures.dry_run, str(name))}
+        return {"lines": await _in_thread(console.procedures.dry_run, str(name))}
 
     async def start(request: Request) -> dict[str, Any]:
         name = (await body(request)).get("name")
-        await run_in_threadpool(console.procedures.start, str(name))
+        await _in_thread(console.procedures.start, str(name))
         return {"ok": True}
 
     async def stop(request: Request) -> dict[str, Any]:
-        await run_in_threadpool(console.procedures.stop)
+        await _in_thread(console.procedures.stop)
         return {"ok": True}
 
     async def report(request: Request) -> Response:
@@ -172,17 +174,19 @@ def create_app(console: Console, access: Access) -> AccessMiddleware:
     async def socket(websocket: WebSocket) -> None:
         await websocket.accept()
         loop = asyncio.get_running_loop()
-        fresh = asyncio.Event()
-        stop_listening = console.listen(lambda: loop.call_soon_threadsafe(fresh.set))
+        page = _Page()
+        stop_listening = console.listen(lambda: loop.call_soon_threadsafe(page.wake.set))
         console.pages += 1
         if console.laser is not None:
             console.laser.heartbeat()
-        sender = asyncio.create_task(_send(websocket, console, fresh))
+        sender = asyncio.create_task(_send(websocket, console, page))
         try:
             while True:
-                await websocket.receive_text()
+                message = await websocket.receive_text()
                 if console.laser is not None:
                     console.laser.heartbeat()
+                if message.startswith("ack "):
+                    page.ack(message[4:])
         except WebSocketDisconnect:
             pass
         finally:
@@ -208,23 +212,72 @@ def create_app(console: Console, access: Access) -> AccessMiddleware:
     return AccessMiddleware(Starlette(routes=routes), access)
 
 
-async def _send(websocket: WebSocket, console: Console, fresh: asyncio.Event) -> None:
-    """Frames as they come (the latest only: a slow page skips frames instead of queueing them) and the state."""
+class _Page:
+    """One page's socket: the frames it has not acknowledged yet, and the event that wakes its sender (a new frame,
+    an acknowledgement)."""
+
+    def __init__(self) -> None:
+        self.unacked: list[int] = []
+        self.wake = asyncio.Event()
+
+    def ack(self, text: str) -> None:
+        """The page has shown frame `text` (a number; anything else is only a heartbeat)."""
+        if text.isdigit():
+            self.unacked = [seq for seq in self.unacked if seq > int(text)]
+            self.wake.set()
+
+
+async def _send(websocket: WebSocket, console: Console, page: _Page) -> None:
+    """Frames as they come, the latest only and at most FRAMES_IN_FLIGHT not yet acknowledged (a slow page skips
+    frames instead of queueing them), and the state every STATE_PERIOD_S."""
     sent = 0
     next_state = 0.0
     loop = asyncio.get_running_loop()
     while True:
+        page.wake.clear()  # before looking: a wake-up that comes while this sends is kept for the wait below
         shown = console.latest
-        if shown is not None and shown.seq != sent:
+        if shown is not None and shown.seq != sent and len(page.unacked) < FRAMES_IN_FLIGHT:
             sent = shown.seq
+            page.unacked.append(sent)
             header = json.dumps({**shown.header, "zoom_bytes": len(shown.zoom or b""), "sent": time.time()}).encode()
             await websocket.send_bytes(struct.pack(">I", len(header)) + header + shown.jpeg + (shown.zoom or b""))
         if loop.time() >= next_state:
             next_state = loop.time() + STATE_PERIOD_S
             await websocket.send_text(json.dumps(console.state()))
-        fresh.clear()
         with contextlib.suppress(asyncio.TimeoutError):
-            await asyncio.wait_for(fresh.wait(), timeout=max(0.01, next_state - loop.time()))
+            await asyncio.wait_for(page.wake.wait(), timeout=max(0.01, next_state - loop.time()))
+
+
+async def _capped(request: Request, limit: int, what: str) -> bytes:
+    """The request's body, read no further than `limit` bytes (BadValueError beyond: a declared length is refused
+    before anything is read)."""
+    declared = request.headers.get("content-length")
+    if declared is not None and (not declared.isdigit() or int(declared) > limit):
+        raise BadValueError(f"{what} of {declared} bytes is above the limit of {limit:,}")
+    data = bytearray()
+    async for chunk in request.stream():
+        data += chunk
+        if len(data) > limit:
+            raise BadValueError(f"{what} is above the limit of {limit:,} bytes")
+    return bytes(data)
+
+
+_CPU: contextvars.ContextVar[list[float]] = contextvars.ContextVar("console_request_cpu")
+
+
+async def _in_thread(function: Callable[..., T], *args: Any) -> T:
+    """`function(*args)` on a worker thread (never on the event loop), its CPU seconds added to the request's."""
+
+    def timed() -> T:
+        start = time.thread_time()
+        try:
+            return function(*args)
+        finally:
+            spent = _CPU.get(None)  # the request's, copied into this thread's context
+            if spent is not None:
+                spent[0] += time.thread_time() - start
+
+    return await run_in_threadpool(timed)
 
 
 def _static(name: str) -> Response:

@@ -1,9 +1,9 @@
 """The console's one process: the devices it holds, the live view, the SLM patterns, captures and procedures.
 
 Threads: the live view renders frames on its own thread while a page is open; laser status is read on another
-twice a second, so a page's status request never waits for a device; commands and long work (holograms,
-captures) run on the server's worker threads, each device used by one thread at a time (`Held`). The server's
-event loop only moves bytes.
+twice a second, so a page's status request never waits for a device; commands and captures run on the server's
+worker threads, each device used by one thread at a time (`Held`); holograms are computed in a worker process
+(`holograms.HologramWorker`). The server's event loop only moves bytes.
 """
 
 from __future__ import annotations
@@ -92,6 +92,8 @@ class Console:
             for held in (self.slm.held if self.slm else None, self.camera):
                 if held is not None:
                     held.release()
+            if self.slm is not None:
+                self.slm.worker.close()
             for thread in self._threads:
                 if thread.is_alive() and thread is not threading.current_thread():
                     thread.join(timeout=5.0)
@@ -156,11 +158,8 @@ class Console:
             phase = slm.phase(pattern, progress=self._progress)
             return slm.show(pattern, phase)
 
-    def _progress(self, label: str) -> Callable[[int, int], None]:
-        def report(done: int, total: int) -> None:
-            self.job["progress"] = {"label": label, "done": done, "total": total}
-
-        return report
+    def _progress(self, label: str, done: int, total: int) -> None:
+        self.job["progress"] = {"label": label, "done": done, "total": total}
 
     def _job(self, name: str) -> _Job:
         if not self._busy.acquire(blocking=False):
@@ -220,15 +219,15 @@ class Console:
         assert self.camera is not None
         centre = self.view["zoom"]
         with self.camera.use() as camera:
-            started, clock = time.time(), time.perf_counter()
+            started, clock, cpu = time.time(), time.perf_counter(), time.thread_time()
             frame = camera.preview()
             zoom = None
             if centre is not None and camera.windowed_preview and frame.full_shape is not None:
                 zoom = camera.preview(preview.ZOOM_SIZE, preview.zoom_window(frame.full_shape, centre))
-            render_s = time.perf_counter() - clock
+            render = (time.perf_counter() - clock, time.thread_time() - cpu)
         self._seq += 1
         return preview.shown_frame(self._seq, frame, zoom, mode=self.view["mode"], zoom_centre=centre,
-                                   render_started=started, render_s=render_s)
+                                   render_started=started, render_s=render)
 
     def _publish(self, shown: preview.Shown) -> None:
         shown.header["overlay"] = self.registration_overlay(shown.header["full_shape"])

@@ -2,9 +2,10 @@
 
 The driver keeps every safety rule (limits refused before anything is sent, every setting read back, emission
 checked against interlock and faults, emission off at connect and at close); this module adds what a page that can
-disappear needs: emission stays on only while a page shows it. A page sends a heartbeat every second over its
-socket; when no heartbeat came for `deadman_s` (the tab closed, the network went, the browser hung) every channel
-is switched off. `all_off` is always allowed and tries every channel.
+disappear needs: emission stays on only while a page shows it. Every message a page sends over its socket is a
+heartbeat (it answers each state message and frame the server sends, and sends one every second besides); when no
+heartbeat came for `deadman_s` (the tab closed, the network went, the browser hung, the console's own process
+stopped answering) every channel is switched off. `all_off` is always allowed and tries every channel.
 """
 
 from __future__ import annotations
@@ -23,7 +24,8 @@ from benchctl.errors import BenchctlError
 from benchctl.profiles import Profile
 
 DEADMAN_S = 3.0  # no heartbeat from any page for this long: emission off
-HEARTBEAT_S = 1.0  # how often a page says it is there
+STALL_S = 0.5  # the watchdog woke this late: the process was stopped
+STALL_GRACE_S = 1.0  # after a stall, time for the server to read what the page sent meanwhile
 
 
 class LaserControl:
@@ -135,9 +137,20 @@ class LaserControl:
         self._last_heartbeat = time.monotonic()
 
     def _watchdog(self) -> None:
-        while not self._stop.wait(min(0.1, self.deadman_s / 4)):
-            silent = time.monotonic() - self._last_heartbeat
-            if self.emitting and silent > self.deadman_s:
+        """Every `period`, emission off if no page has been heard from for `deadman_s`. When this thread itself did
+        not run for a while (the whole process was stopped: a machine short of memory stalls every program, or
+        SIGSTOP), what a page sent meanwhile may still wait unread in the socket: the server gets STALL_GRACE_S to
+        read it before silence counts."""
+        period = min(0.1, self.deadman_s / 4)
+        due = time.monotonic() + period
+        judge_from = 0.0
+        while not self._stop.wait(period):
+            now = time.monotonic()
+            if now - due > STALL_S:
+                judge_from = now + STALL_GRACE_S
+            due = now + period
+            silent = now - self._last_heartbeat
+            if self.emitting and silent > self.deadman_s and now >= judge_from:
                 try:
                     self.all_off(f"dead-man: no page for {silent:.1f} s")
                 except BenchctlError as exc:

@@ -1,10 +1,11 @@
 """From a camera's live-view frame to what the page shows: demosaiced linear RGB, statistics, the display image.
 
 A frame is a RAW file (decoded like any capture: black level removed, scaled to the white level, saturated pixels
-flagged) or a body's JPEG (sRGB: decoded to linear light through the one sRGB conversion; 255 counts as
-saturated). Statistics are taken in linear light as fractions of full scale: a histogram per colour channel, peak,
-mean and the share of saturated pixels. The display image is scaled to fit the page, shown linear or
-gamma-encoded (sRGB), with saturated pixels painted magenta, and sent as JPEG.
+flagged, and the bins a binned readout says hold a saturated sensor pixel) or a body's JPEG (sRGB: decoded to linear
+light through the one sRGB conversion; 255 counts as saturated). Statistics are taken in linear light as fractions
+of full scale: a histogram per colour channel, peak, mean and the share of saturated pixels. The display image is
+scaled to fit the page, shown linear or gamma-encoded (sRGB), with saturated pixels painted magenta, and sent as
+JPEG.
 """
 
 from __future__ import annotations
@@ -60,16 +61,21 @@ def decode(frame: PreviewFrame, max_cols: int = DISPLAY_SIZE[1]) -> Linear:
         raise BenchctlError(f"camera live view: frame format {frame.format!r} is neither JPEG nor RAW")
     raw = decode_raw(frame.data)
     full_shape = frame.full_shape or (tuple(raw.mosaic.shape) if frame.window is None else None)
-    return _from_raw(raw, max_cols, frame.window, full_shape)
+    saturated = raw.saturated
+    bins = frame.metadata.get("saturated_bins")  # a binned readout's own word on its bins (the simulated camera's)
+    if bins is not None and np.shape(bins) == saturated.shape:
+        saturated = saturated | bins
+    return _from_raw(raw, saturated, max_cols, frame.window, full_shape)
 
 
-def _from_raw(raw: RawImage, max_cols: int, window: Window | None, full_shape: tuple[int, int] | None) -> Linear:
+def _from_raw(raw: RawImage, saturated: np.ndarray, max_cols: int, window: Window | None,
+              full_shape: tuple[int, int] | None) -> Linear:
     if raw.mosaic.shape[1] > 2 * max_cols:
         rgb = np.moveaxis(raw.planes(), 0, 2)
         rows, cols = rgb.shape[:2]
-        saturated = raw.saturated[:2 * rows, :2 * cols].reshape(rows, 2, cols, 2).any(axis=(1, 3))
+        saturated = saturated[:2 * rows, :2 * cols].reshape(rows, 2, cols, 2).any(axis=(1, 3))
     else:
-        rgb, saturated = raw.demosaic(), raw.saturated
+        rgb = raw.demosaic()
     return Linear(np.ascontiguousarray(rgb, dtype=np.float32), saturated, window, full_shape)
 
 
@@ -146,10 +152,12 @@ class Shown:
 
 
 def shown_frame(seq: int, frame: PreviewFrame, zoom: PreviewFrame | None, *, mode: Mode,
-                zoom_centre: tuple[float, float] | None, render_started: float, render_s: float) -> Shown:
+                zoom_centre: tuple[float, float] | None, render_started: float,
+                render_s: tuple[float, float]) -> Shown:
     """Decode, measure and encode one frame (and its zoom: the camera's own 1:1 window when it has one, else the
-    frame's crop at its own resolution)."""
-    started = time.perf_counter()
+    frame's crop at its own resolution). `render_s`: the seconds and CPU seconds the camera took for it; the
+    header has both for rendering and encoding (CPU seconds: this thread's, what a free core would take)."""
+    started, cpu = time.perf_counter(), time.thread_time()
     image = decode(frame)
     zoom_jpeg = None
     window = None
@@ -167,8 +175,9 @@ def shown_frame(seq: int, frame: PreviewFrame, zoom: PreviewFrame | None, *, mod
         "zoom_window": window, "stats": statistics(image),
         "source": {key: frame.metadata[key] for key in ("slm_frame", "lasers_on_w", "exposure_s", "iso", "bin")
                    if key in frame.metadata},
-        "render_started": render_started, "render_s": round(render_s, 6),
-        "encode_s": round(time.perf_counter() - started, 6), "published": time.time(),
+        "render_started": render_started, "render_s": round(render_s[0], 6), "render_cpu_s": round(render_s[1], 6),
+        "encode_s": round(time.perf_counter() - started, 6), "encode_cpu_s": round(time.thread_time() - cpu, 6),
+        "published": time.time(),
     }
     return Shown(seq, jpeg, zoom_jpeg, header)
 

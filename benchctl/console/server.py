@@ -23,6 +23,9 @@ from benchctl.console.security import LOOPBACK_NAMES, Access, new_token
 from benchctl.errors import BenchctlError
 from benchctl.profiles import Profile
 
+# torch threads in the console's process (the live view's light; holograms run in their own process). On a busy
+# 2-core machine one thread recomputed the light twice as fast as two, which waited for each other (docs/console.md).
+LIVE_VIEW_THREADS = 1
 
 
 class _Server(uvicorn.Server):
@@ -44,6 +47,31 @@ def is_loopback(address: str) -> bool:
         return address == "localhost"
 
 
+def url_host(name: str) -> str:
+    """`name` as a URL and a Host header write it (an IPv6 address in brackets)."""
+    name = name.strip("[]")
+    return f"[{name}]" if ":" in name else name
+
+
+def allowed_hosts(bind: str) -> tuple[str, ...]:
+    """The names a browser may put in the Host header: the loopback names, and the address the console listens
+    on; for every interface (0.0.0.0, ::) this computer's own names and addresses, as other computers reach it."""
+    if is_loopback(bind):
+        return LOOPBACK_NAMES
+    try:
+        everywhere = ipaddress.ip_address(bind.strip("[]")).is_unspecified
+    except ValueError:
+        everywhere = False
+    if not everywhere:
+        return (*LOOPBACK_NAMES, url_host(bind))
+    names = {socket.gethostname(), socket.getfqdn()}
+    try:
+        names |= {str(info[4][0]) for info in socket.getaddrinfo(socket.gethostname(), None)}
+    except OSError:  # a name that does not resolve: the names alone
+        pass
+    return (*LOOPBACK_NAMES, *sorted(url_host(name) for name in names))
+
+
 def listen(bind: str, port: int) -> socket.socket:
     """A listening socket on `bind`:`port` (0: a free port); one line naming the address when it cannot be had."""
     family = socket.AF_INET6 if ":" in bind.strip("[]") else socket.AF_INET
@@ -61,10 +89,12 @@ def listen(bind: str, port: int) -> socket.socket:
 def serve(profile: Profile, *, port: int, bind: str = "127.0.0.1", out: Path = Path("runs"),
           procedures: Path | None = None, deadman_s: float = DEADMAN_S, say: Callable[[str], None] = print) -> None:
     """Run the console until a termination signal; every device is closed (emission off first) however it ends."""
+    import torch
+
+    torch.set_num_threads(LIVE_VIEW_THREADS)
     sock = listen(bind, port)
     port = sock.getsockname()[1]
-    hosts = LOOPBACK_NAMES if is_loopback(bind) else (*LOOPBACK_NAMES, bind)
-    access = Access(new_token(), port, hosts)
+    access = Access(new_token(), port, allowed_hosts(bind))
     console = Console(profile, out, deadman_s=deadman_s, procedures_dir=procedures)
     try:
         console.start()
@@ -72,7 +102,9 @@ def serve(profile: Profile, *, port: int, bind: str = "127.0.0.1", out: Path = P
             say(line)
         config = uvicorn.Config(create_app(console, access), log_level="warning", lifespan="off",
                                 timeout_graceful_shutdown=2)
-        host = "127.0.0.1" if is_loopback(bind) else bind
+        host = "127.0.0.1" if is_loopback(bind) else url_host(bind)
+        if host.strip("[]") in ("0.0.0.0", "::"):
+            host = url_host(socket.gethostname())
         if not is_loopback(bind):
             say(f"WARNING: the console listens on {bind}, not only on this computer: anyone who can reach "
                 f"{bind}:{port} and has the token can switch the laser on")

@@ -5,7 +5,8 @@ hologram of a target (a bundled chart or photo, or an uploaded image) by a metho
 waves (defocus, astigmatism, coma, spherical) are added to any phase pattern: the quick way to correct a bench by
 hand. Every phase goes through `SLM.show_phase` (the colour's lookup table, phase offset, carrier, flips); the
 holograms are the ones a run displays (`runner.hologram_cache.hologram`: the same method, calibration, fitted model
-and cache). The request is a typed model, so a bad value is refused with its name before anything is computed.
+and cache), computed in the console's hologram worker process. The request is a typed model, so a bad value is
+refused with its name before anything is computed.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import msgspec
 import numpy as np
 
 from benchctl.console.devices import Held
+from benchctl.console.holograms import HologramWorker, Request
 from benchctl.console.uploads import Uploads
 from benchctl.devices.slm import SLM, open_slm
 from benchctl.errors import BadValueError, BenchctlError
@@ -62,6 +64,7 @@ class SlmControl:
         self.profile = profile
         self.uploads = uploads
         self.checkpoints = checkpoints  # name the page may choose -> checkpoint file
+        self.worker = HologramWorker()
         self.held: Held[SLM] = Held("SLM", lambda: open_slm(profile), SLM.close)
         self.shown: dict[str, Any] = {"kind": None}
         self.frame: np.ndarray | None = None
@@ -72,8 +75,8 @@ class SlmControl:
         return [channel.name for channel in self.profile.channels]
 
     def phase(self, pattern: Pattern, progress: Any = None) -> np.ndarray | None:
-        """The phase (radians, (H, W)) `pattern` shows, before encoding; None for blank. Holograms take long:
-        call this off the server's event loop."""
+        """The phase (radians, (H, W)) `pattern` shows, before encoding; None for blank. Holograms take long (in
+        the hologram worker; `progress(label, done, total)` as they go): call this off the server's event loop."""
         if pattern.kind == "blank":
             return None
         slm = self.profile.require("slm").slm
@@ -94,9 +97,9 @@ class SlmControl:
         return phase
 
     def _hologram(self, pattern: Pattern, progress: Any) -> np.ndarray:
-        """The hologram a run would display for this target, method and colour, decoded back to its phase."""
-        from benchctl.runner.hologram_cache import hologram
-        from benchctl.runner.holograms import target_plane
+        """The hologram a run would display for this target, method and colour (computed in the hologram worker),
+        decoded back to its phase."""
+        from benchctl.targets import target_plane
         from benchctl.targets import active_channels, load_target, prepare_target
 
         channel = self._channel(pattern)
@@ -116,10 +119,10 @@ class SlmControl:
             label = pattern.target
         if not active_channels(amplitude)[target_plane(self.profile.channel(channel))]:
             raise BadValueError(f"{label} is black in {channel}: nothing to show in that colour")
-        result = hologram(self.profile, amplitude, channel, method, iterations=iterations, seed=pattern.seed,
-                          checkpoint=checkpoint, progress=progress)
+        result = self.worker.compute(Request(self.profile, amplitude, channel, method, iterations, pattern.seed,
+                                             checkpoint), progress)
         self.last_hologram = {"seconds": round(result.seconds, 3), "cached": result.cached,
-                               "scores": {k: round(v, 3) for k, v in result.scores.items()}}
+                              "scores": {k: round(v, 3) for k, v in result.scores.items()}}
         with self.held.use() as device:
             return device.decode(result.gray, channel).astype(np.float64)
 

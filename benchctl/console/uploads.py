@@ -18,6 +18,7 @@ from benchctl.limits import check_pixels
 
 MAX_UPLOAD_BYTES = 32 * 1024 * 1024
 MAX_UPLOAD_PIXELS = 40_000_000  # a 40 Mpx photo; the ROI it is resized to is far smaller
+MAX_UPLOADS = 50  # per console start: the private folder holds at most 50 x 32 MB
 _SUFFIXES = {b"\x89PNG": ".png", b"\xff\xd8": ".jpg", b"BM": ".bmp", b"II*\x00": ".tif", b"MM\x00*": ".tif"}
 
 
@@ -31,9 +32,15 @@ class Uploads:
         self.names: dict[str, str] = {}  # id -> the name the browser gave (shown only, never used as a path)
         self._lock = threading.Lock()
 
+    def check_room(self) -> None:
+        """BadValueError when the console holds MAX_UPLOADS uploads already."""
+        if len(self.names) >= MAX_UPLOADS:
+            raise BadValueError(f"the console keeps at most {MAX_UPLOADS} uploads; restart it for more")
+
     def add(self, data: bytes, name: str) -> str:
-        """Check and keep one uploaded image; returns its id. BadValueError for too many bytes or pixels, or
-        anything that is not an image."""
+        """Check and keep one uploaded image; returns its id. BadValueError for too many bytes, pixels or uploads,
+        or anything that is not an image."""
+        self.check_room()
         if len(data) > self.max_bytes:
             raise BadValueError(f"upload {name!r}: {len(data):,} bytes is above the limit of {self.max_bytes:,}")
         suffix = next((s for magic, s in _SUFFIXES.items() if data.startswith(magic)), None)
@@ -43,6 +50,7 @@ class Uploads:
         if size is not None:
             self._check_pixels(name, *size)
         with self._lock:
+            self.check_room()
             upload_id = str(len(self.names) + 1)
             path = self.folder / f"upload-{upload_id}{suffix}"
             path.write_bytes(data)

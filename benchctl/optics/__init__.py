@@ -1,8 +1,8 @@
 """Physics and metrics: propagation, colour, metrics (torch), phase encoding (numpy). Imports nothing else from
 benchctl.
 
-The names below are loaded from their modules on first use, so a torch-free part (`phase_encoding`; `plan`: what
-a propagation will compute) can be imported without loading torch.
+The names below are loaded from their modules on first use, so a torch-free part (`phase_encoding`; `geometry`: a
+colour channel's optical geometry; `plan`: what a propagation will compute) can be imported without loading torch.
 """
 
 from __future__ import annotations
@@ -22,9 +22,11 @@ _HOME = {
     "PhaseLUT": "phase_encoding",
     "gray_to_phase": "phase_encoding",
     "phase_to_gray": "phase_encoding",
+    "Geometry": "geometry",
     "PropagationPlan": "plan",
     "plan_propagation": "plan",
     "Propagator": "propagation",
+    "PrunedPropagator": "propagation",
     "propagate": "propagation",
 }
 

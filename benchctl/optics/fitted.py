@@ -12,12 +12,10 @@ the phase the panel drives (`SLM.driven`), not to a hologram phase wrapped elsew
 
 from __future__ import annotations
 
-import functools
-import json
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -67,34 +65,20 @@ class FittedOptics:
         return (1 - self.zero_order) * field + self.zero_order if self.zero_order else field
 
     def to_dict(self) -> dict[str, object]:
-        """Profile units (waves, mm), as stored in calibration/<profile>/optical-model.json."""
+        """Profile units (waves, mm), as model calibration stores it."""
         return {"zernike_waves": dict(self.zernike_waves), "waist_mm": self.waist_m * 1e3,
                 "offset_mm": [v * 1e3 for v in self.offset_m], "crosstalk_px": self.crosstalk_px,
                 "zero_order": self.zero_order}
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, object]) -> FittedOptics:
+    def from_dict(cls, data: Mapping[str, Any]) -> FittedOptics:
+        """The model of `to_dict`'s form: an entry of an optical-model.json, checked by the caller (the file's
+        typed model is benchctl.calibration_files.FittedColour)."""
         waves = data.get("zernike_waves", {})
-        assert isinstance(waves, Mapping)
-        unknown = set(waves) - set(ZERNIKE_TERMS)
-        if unknown:
-            raise ValueError(f"unknown Zernike terms {sorted(unknown)} (known: {', '.join(ZERNIKE_TERMS)})")
         offset = data.get("offset_mm", (0.0, 0.0))
         return cls(tuple((name, float(waves[name])) for name in ZERNIKE_TERMS if name in waves),
                    float(data.get("waist_mm", 0.0)) * 1e-3, (float(offset[0]) * 1e-3, float(offset[1]) * 1e-3),
                    float(data.get("crosstalk_px", 0.0)), float(data.get("zero_order", 0.0)))
-
-    @staticmethod
-    def load(path: Path, channel: str) -> FittedOptics | None:
-        """`channel`'s model from an optical-model file (None if the file has none for it)."""
-        stat = Path(path).stat()
-        return _load(str(path), stat.st_mtime_ns, stat.st_size).get(channel)
-
-
-@functools.lru_cache(maxsize=4)
-def _load(path: str, mtime_ns: int, size: int) -> dict[str, FittedOptics]:
-    data = json.loads(Path(path).read_text())
-    return {name: FittedOptics.from_dict(entry) for name, entry in data.get("colours", {}).items()}
 
 
 @dataclass

@@ -121,17 +121,20 @@ def amplitude_scores(recon: torch.Tensor, target: torch.Tensor) -> dict[str, flo
     }
 
 
-def colour_scores(merged_linear: torch.Tensor, target_roi: torch.Tensor) -> dict[str, float]:
+def colour_scores(merged_linear: torch.Tensor, target_roi: torch.Tensor, *,
+                  with_ssim: bool = True) -> dict[str, float]:
     """Scores of a merged colour image (3, h, w) in linear intensity against the target amplitude (3, h, w): PSNR
-    over all planes at once, SSIM averaged over planes, in linear and sRGB."""
+    over all planes at once, in linear and sRGB, and (`with_ssim`) SSIM in sRGB averaged over planes."""
     h, w = merged_linear.shape[-2:]
     lin_t = target_roi.square().clamp(0, 1)
     srgb_r, srgb_t = linear_to_srgb(merged_linear), linear_to_srgb(lin_t)
-    return {
+    scores = {
         "psnr_linear_db": float(psnr(merged_linear.reshape(3 * h, w), lin_t.reshape(3 * h, w), data_range=1.0)),
         "psnr_srgb_db": float(psnr(srgb_r.reshape(3 * h, w), srgb_t.reshape(3 * h, w), data_range=1.0)),
-        "ssim_srgb": float(ssim(srgb_r, srgb_t, data_range=1.0).mean()),
     }
+    if with_ssim:
+        scores["ssim_srgb"] = float(ssim(srgb_r, srgb_t, data_range=1.0).mean())
+    return scores
 
 
 def pareto_front(points: Sequence[tuple[float, float]]) -> list[bool]:

@@ -8,12 +8,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 from numbers import Integral
-from typing import TYPE_CHECKING, Union
+from typing import Union
 
 import numpy as np
-
-if TYPE_CHECKING:
-    from benchctl.profiles import Profile
 
 Padding = Union[str, int]
 PADDING_MODES = ("auto", "2x", "none")
@@ -88,12 +85,9 @@ def reach_pixels(distance_m: float, wavelength_m: float,
 
 
 AUTO_TOLERANCE = 3.5e-3
-"""Relative L2 error that "auto" allows the wrapped tails of a full-band field (both axes together, modelled).
-
-Chosen by measurement (docs/propagation.md): at the paper geometry (3.74 um, 70 mm, 1088 x 1920 and
-2160 x 3840, 680 / 520 / 450 nm) the ROI error of "auto" stays within 1.53x that of "2x" (goal: 2x), and
-at 2160 x 3840 it pads 66-82 % of the 2x area. The measured ROI error is about 1.5x the modelled figure.
-"""
+"""Relative L2 error that "auto" allows the wrapped tails of a full-band field (both axes together, modelled):
+chosen so that at the paper geometry the ROI error of "auto" stays within the 2x goal of that of "2x" while it
+pads well under 2x's area (docs/propagation.md measures both)."""
 
 
 def wrapped_tail_power(n: int, reach: float, guard: int) -> float:
@@ -138,7 +132,7 @@ def _auto_guard(n: int, reach: float) -> int:
 def _fft_size(n: int) -> int:
     """Smallest multiple of 4 >= n whose prime factors are all 2, 3, 5 or 7: fast for pocketfft and cuFFT.
 
-    (Sizes with a single factor 2, like 6250, measured up to 30 % slower than their neighbours on a CPU.)
+    (Sizes with a single factor 2 are slower than their neighbours on a CPU: docs/propagation.md.)
     """
     m = max(4, n + (-n) % 4)
     while True:
@@ -240,16 +234,3 @@ def window_plan(plan: PropagationPlan, window: tuple[int, int, int, int]) -> Pro
         raise ValueError(f"window {window} (row, rows, col, cols) does not fit in the field {plan.shape}")
     shape = (min(ph, _fft_size(h + rows - 1)), min(pw, _fft_size(w + cols - 1)))
     return replace(plan, padded_shape=shape, window=(row, rows, col, cols), kernel_shape=plan.padded_shape)
-
-
-def describe_plans(profile: Profile) -> str:
-    """Per laser channel, the plan of the propagation SLM -> target at the profile's geometry (what
-    `OpticalSetup.from_profile(profile, channel).target_propagator().plan` is)."""
-    if profile.slm is None or profile.optics is None or not profile.channels:
-        return "  Propagation SLM -> target: not described (needs [slm], [optics] and [laser])"
-    lines = ["  Propagation SLM -> target (padding auto):"]
-    for channel in profile.channels:
-        plan = plan_propagation(profile.slm.shape, profile.optics.distance_m, channel.wavelength_m,
-                                profile.slm.pitch_m, aperture=profile.optics.iris_fraction)
-        lines.append(f"    {channel.name}: {plan.describe()}")
-    return "\n".join(lines)

@@ -204,3 +204,60 @@ def propagate(
     else:
         _CACHE.move_to_end(key)
     return prop(field)
+
+
+class PrunedPropagator:
+    """A `Propagator` evaluated faster where most of its grid is known to be zero (the simulator's live view):
+    `Propagator.__call__` with the same transfer function on the same
+    padded grid, computed as one-dimensional FFTs that skip what is known to be zero: the guard band's rows on the
+    way in, the spatial frequencies the transfer function zeroes (the Fourier iris, the band limit) both ways, and
+    the rows and columns outside the output on the way out. The result is the propagator's to float32 rounding;
+    with the iris at half the Nyquist frequency it takes about half the time. Keeps two work buffers: not safe to
+    call from two threads at once."""
+
+    def __init__(self, propagator: Propagator) -> None:
+        plan = propagator.plan
+        kernel = propagator.kernel(torch.complex64, "cpu")
+        passed = kernel != 0
+        # Per axis the frequencies that pass form one band around zero: indices [0, low) and [n - high, n).
+        (self.low_y, self.high_y), (self.low_x, self.high_x) = (_band(passed.any(dim=1)), _band(passed.any(dim=0)))
+        rows = torch.cat([kernel[:self.low_y], kernel[len(kernel) - self.high_y:]])
+        self.kernel = torch.cat([rows[:, :self.low_x], rows[:, kernel.shape[1] - self.high_x:]], dim=1)
+        self.shape, self.padded_shape = plan.shape, plan.padded_shape
+        self.window = plan.window or (0, plan.shape[0], 0, plan.shape[1])
+        (h, _), (ph, pw), cols = plan.shape, plan.padded_shape, self.low_x + self.high_x
+        self._rows = torch.zeros((max(h, self.window[1]), pw), dtype=torch.complex64)  # input rows, then output rows
+        self._cols = torch.zeros((ph, cols), dtype=torch.complex64)
+
+    def __call__(self, field: torch.Tensor) -> torch.Tensor:
+        (h, w), (ph, pw) = self.shape, self.padded_shape
+        row, rows, col, cols = self.window
+        low_y, high_y, low_x, high_x = self.low_y, self.high_y, self.low_x, self.high_x
+        padded = self._rows[:h]
+        padded[:, :w] = field
+        padded[:, w:] = 0
+        spectrum = torch.fft.fft(padded, dim=1)
+        self._cols[:h, :low_x] = spectrum[:, :low_x]
+        self._cols[:h, low_x:] = spectrum[:, pw - high_x:]
+        self._cols[h:] = 0
+        spectrum = torch.fft.fft(self._cols, dim=0)
+        spectrum[:low_y] *= self.kernel[:low_y]
+        spectrum[low_y:ph - high_y] = 0
+        spectrum[ph - high_y:] *= self.kernel[low_y:]
+        back = torch.fft.ifft(spectrum, dim=0)[row:row + rows]
+        out = self._rows[:rows]
+        out[:, :low_x] = back[:, :low_x]
+        out[:, low_x:pw - high_x] = 0
+        out[:, pw - high_x:] = back[:, low_x:]
+        return torch.fft.ifft(out, dim=1)[:, col:col + cols].clone()
+
+
+def _band(passed: torch.Tensor) -> tuple[int, int]:
+    """(low, high) such that exactly the indices [0, low) and [n - high, n) of `passed` (in FFT order) are True; a
+    set of any other shape is taken whole (nothing skipped, still exact)."""
+    n = len(passed)
+    low = int(torch.argmin(passed.int())) if not passed.all() else n
+    high = int(torch.argmin(passed.flip(0).int())) if low < n else 0
+    if low < n and bool(passed[low:n - high].any()):
+        return n, 0
+    return low, high

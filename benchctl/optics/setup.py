@@ -1,75 +1,32 @@
-"""The optical geometry a hologram is computed for: wavelength, SLM grid and pitch, distance, region of interest."""
+"""An optical setup: one colour channel's geometry with the bench as measured (a fitted optical model) and what
+the SLM shows of a phase; its propagators, and the one simulation of a hologram everyone uses."""
 
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from numbers import Integral, Real
-from typing import TYPE_CHECKING, Union
 
 import torch
 
 from benchctl.optics.fitted import FittedOptics
+from benchctl.optics.geometry import Geometry
 from benchctl.optics.metrics import centred_slices
 from benchctl.optics.propagation import Propagator
 
-if TYPE_CHECKING:  # optics imports nothing else from benchctl at run time; a profile is only read here
-    from benchctl.profiles import Profile
-
-Padding = Union[str, int]
-
-# Plausibility bounds: they catch values given in the wrong unit (520 for 520 nm, 3.74 for 3.74 um).
-_WAVELENGTH_RANGE_M = (100e-9, 20e-6)
-_PITCH_RANGE_M = (0.1e-6, 1e-3)
-
 REACH_TOLERANCE_RAD = 0.05
 """A phase the SLM shows further than this from the one asked for lies in a gap of its table: no gray level comes
-near it (a panel whose stroke falls short of 2 pi at this wavelength). Rounding to the nearest level of an 8-bit
-table moves a phase by at most 0.02 rad (0.04 where a table's levels are three times sparser than the mean)."""
-
-
-def _real(name: str, value: object) -> float:
-    if isinstance(value, bool) or not isinstance(value, Real):
-        raise ValueError(f"{name} must be a number, got {value!r}")
-    value = float(value)
-    if not math.isfinite(value):
-        raise ValueError(f"{name} must be finite, got {value}")
-    return value
-
-
-def _in_range(name: str, value: float, bounds: tuple[float, float], unit_hint: str) -> float:
-    low, high = bounds
-    if not low <= value <= high:
-        raise ValueError(f"{name}={value:g} is outside {low:g}..{high:g} m; {unit_hint}")
-    return value
-
-
-def _int_pair(name: str, value: object) -> tuple[int, int]:
-    if not isinstance(value, (tuple, list)) or len(value) != 2:
-        raise ValueError(f"{name} must be a pair (rows, cols), got {value!r}")
-    if any(isinstance(v, bool) or not isinstance(v, Integral) or v < 1 for v in value):
-        raise ValueError(f"{name} must be two positive integers, got {value!r}")
-    return int(value[0]), int(value[1])
+near it (a panel whose stroke falls short of 2 pi at this wavelength). Larger than the rounding to the nearest
+level of an 8-bit table, even where its levels are three times sparser than the mean."""
 
 
 @dataclass(frozen=True)
-class OpticalSetup:
-    """One colour channel of the bench as the hologram algorithms see it (SI units).
+class OpticalSetup(Geometry):
+    """One colour channel of the bench as the hologram algorithms see it: its `Geometry` (SI units), the bench as
+    measured (`field_model`) and what the SLM shows of a phase (`display`)."""
 
-    `shape` is the SLM grid (H, W); `roi` is the (rows, cols) region of the target plane, centred on the grid,
-    where the image must appear (the rest is "don't care"). `pitch_m` may be given as one number (square
-    pixels); it is stored as (dy, dx). The target plane lies `distance_m` > 0 downstream of the SLM (+z).
-    """
-
-    wavelength_m: float
-    pitch_m: tuple[float, float]
-    distance_m: float
-    shape: tuple[int, int]
-    roi: tuple[int, int]
-    padding: Padding = "auto"
-    aperture: float | None = None  # Fourier-plane iris radius in units of the SLM's Nyquist frequency
     # The bench as measured (model calibration): beam amplitude and wavefront error applied to every SLM field.
     field_model: FittedOptics | None = None
     # What the SLM shows of a hologram phase (its lookup table's quantisation), when optimisers should see it.
@@ -78,36 +35,16 @@ class OpticalSetup:
     _to_slm: Propagator = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        wavelength = _in_range("wavelength_m", _real("wavelength_m", self.wavelength_m), _WAVELENGTH_RANGE_M,
-                               "give the wavelength in metres (520 nm = 520e-9)")
-        raw_pitch = self.pitch_m if isinstance(self.pitch_m, (tuple, list)) else (self.pitch_m, self.pitch_m)
-        if len(raw_pitch) != 2:
-            raise ValueError(f"pitch_m must be a number or a pair (dy, dx), got {self.pitch_m!r}")
-        pitch = tuple(_in_range("pitch_m", _real("pitch_m", p), _PITCH_RANGE_M,
-                                "give the pixel pitch in metres (3.74 um = 3.74e-6)") for p in raw_pitch)
-        distance = _real("distance_m", self.distance_m)
-        if distance <= 0:
-            raise ValueError(f"distance_m must be > 0 (the target plane lies downstream of the SLM), got {distance}")
-        shape = _int_pair("shape", self.shape)
-        roi = _int_pair("roi", self.roi)
-        if roi[0] > shape[0] or roi[1] > shape[1]:
-            raise ValueError(f"roi {roi} does not fit in the SLM grid {shape}")
-        for name, value in (("wavelength_m", wavelength), ("pitch_m", pitch), ("distance_m", distance),
-                            ("shape", shape), ("roi", roi)):
-            object.__setattr__(self, name, value)
+        super().__post_init__()
         # Built now so that a bad `padding` fails here; transfer functions are computed on first use and cached.
-        object.__setattr__(self, "_to_target", self._propagator(distance))
-        object.__setattr__(self, "_to_slm", self._propagator(-distance))
+        object.__setattr__(self, "_to_target", self._propagator(self.distance_m))
+        object.__setattr__(self, "_to_slm", self._propagator(-self.distance_m))
 
     @classmethod
-    def from_profile(cls, profile: Profile, channel: str, padding: Padding = "auto") -> "OpticalSetup":
-        """The setup of one laser channel of a hardware profile (profile units converted to SI), with the channel's
-        fitted optical model if the profile names one (`optics.model`, set from calibration/<profile>/)."""
-        laser = profile.channel(channel)
-        model = FittedOptics.load(profile.optics.model, channel) if profile.optics.model else None
-        return cls(wavelength_m=laser.wavelength_m, pitch_m=profile.slm.pitch_m, distance_m=profile.optics.distance_m,
-                   shape=profile.slm.shape, roi=profile.optics.roi, padding=padding,
-                   aperture=profile.optics.iris_fraction, field_model=model)
+    def of(cls, geometry: Geometry, field_model: FittedOptics | None = None) -> OpticalSetup:
+        """The setup of `geometry`, lit through `field_model` (None: the ideal bench)."""
+        values = {item.name: getattr(geometry, item.name) for item in dataclasses.fields(Geometry)}
+        return cls(**values, field_model=field_model)
 
     def with_display(self, display: Callable[[torch.Tensor], torch.Tensor] | None) -> "OpticalSetup":
         """This setup with `display` (the SLM's `display_model`), sharing its propagators, their cached transfer
@@ -177,8 +114,7 @@ class OpticalSetup:
 
         Optimisers apply it after each step. The straight-through gradient of `displayed` cannot see a table's
         gap: a phase inside it is shown at the gap's edge whatever small step it takes, so it stays there while
-        the loss is computed elsewhere. Red SGD, 70 steps at 1088 x 1920 on a panel reaching 0.88 x 2 pi at
-        680 nm: 29.15 dB without this, 34.60 dB with it (docs/model_calibration.md)."""
+        the loss is computed elsewhere (docs/model_calibration.md measures what this gains)."""
         if self.display is None:
             return phase
         step = torch.remainder(self.display(phase.detach()) - phase + math.pi, 2 * math.pi) - math.pi

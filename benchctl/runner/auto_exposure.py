@@ -10,17 +10,18 @@ from typing import Annotated, Any, Callable, Literal
 import numpy as np
 from msgspec import Meta
 
-from benchctl.capture.colour_planes import PEAK_PERCENTILE, registered_plane
+from benchctl.capture.colour_planes import PEAK_PERCENTILE
 from benchctl.capture.exposure import choose_power
-from benchctl.capture.raw import RawImage, decode_raw
+from benchctl.capture.raw import RawImage
 from benchctl.capture.registration import cfa_planes
 from benchctl.devices.power import format_power
 from benchctl.profiles import LaserChannel
-from benchctl.runner.holograms import target_plane
-from benchctl.runner.procedure import Context, Step
-from benchctl.runner.steps import exposure_step, power_w
+from benchctl.runner.context import Context, Expose, Step
 
-Exposure = Literal["auto", "fixed"]
+from benchctl.runner.steps import measure, power_w, registered, unregistered
+from benchctl.targets import target_plane
+
+ExposureMode = Literal["auto", "fixed"]
 """"auto": a probe frame per colour sets the laser power so the peak lands at peak_goal; "fixed": setpoints."""
 PeakGoal = Annotated[float, Meta(gt=0.05, le=0.95)]
 """The fraction of full scale automatic exposure aims the peak at."""
@@ -29,38 +30,33 @@ PeakGoal = Annotated[float, Meta(gt=0.05, le=0.95)]
 def signal_stats(context: Context, image: RawImage, channel: LaserChannel) -> dict[str, float]:
     """Mean, peak and saturated fraction of `channel`'s CFA plane on the ROI's image (or the whole frame)."""
     colour = target_plane(channel)
-    registration = context.calibration.registrations().get(channel.name)
     saturated = float(np.mean([plane.mean() for plane, _ in cfa_planes(image.saturated, image.cfa, colour)]))
-    if registration is not None:
-        profile = context.profile
-        assert profile.slm is not None and profile.optics is not None
-        values = registered_plane(image, colour, np.asarray(registration["homography"]), profile.slm.shape,
-                                  profile.optics.roi)
+    if not unregistered(context, [channel]):
+        values = registered(context, image, channel)
     else:
         values = np.concatenate([plane.ravel() for plane, _ in cfa_planes(image.mosaic, image.cfa, colour)])
     return {"mean": float(values.mean()), "peak": float(np.percentile(values, PEAK_PERCENTILE)),
             "saturated_fraction": saturated}
 
 
-def probe_step(context: Context, key: str, folder: tuple[str, ...], channel: LaserChannel,
-               frame: Callable[[Context], np.ndarray], description: str, peak_goal: float) -> Step:
+def probe_step(context: Context, key: str, channel: LaserChannel, frame: Callable[[Context], np.ndarray],
+               description: str, peak_goal: float) -> Step:
     """One frame of `frame` at the working setpoint, no dark; its result's "auto_exposure" holds the power
     chosen for the captures that follow (`probed_power`)."""
-    exposure = exposure_step(context, key, folder, channel, power_w(context, channel), frame, description,
-                             frames=1, dark_frames=0, read_later=False)  # later steps use the power chosen
+    power = power_w(context, channel)
 
     def action(context: Context) -> dict[str, Any]:
-        result = exposure.action(context)
-        image = decode_raw(context.path(result["folder"], result["frames"][0]))
-        stats = signal_stats(context, image, channel)
-        choice = choose_power(result["setpoint_w"], stats["peak"], stats["saturated_fraction"] > 0, peak_goal,
+        # kept as a record: later steps use the power chosen, not the frame
+        probe = measure(context, channel, power, frame(context), frames=1, dark_frames=0, read_later=False)
+        stats = signal_stats(context, probe.image, channel)
+        choice = choose_power(probe.record["setpoint_w"], stats["peak"], stats["saturated_fraction"] > 0, peak_goal,
                               channel.max_power_mw * 1e-3)
         limit = " (the channel's max_power_mw)" if choice.limited_by_max else ""
         context.say(f"      auto exposure {channel.name}: peak {stats['peak']:.1%} at {format_power(choice.probe_w)}"
                     f" -> {format_power(choice.power_w)}{limit}")
-        return {**result, "auto_exposure": choice.as_dict()}
+        return {**probe.record, "auto_exposure": choice.as_dict()}
 
-    return Step(key, exposure.description, action, exposure.devices)
+    return Step(key, description, action, (Expose(channel.name, power, 1, 0),))
 
 
 def probed_power(probe_key: str) -> Callable[[Context], float]:

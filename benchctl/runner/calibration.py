@@ -1,20 +1,20 @@
 """Calibration kept between runs, per hardware profile: the camera-SLM registration and the SLM lookup tables.
 
     calibration/<profile name>/registration.json   per colour: homography (target-plane px -> camera active
-                                                    area px), reprojection error, when, for which geometry
+                                                    area px), reprojection error, when, for what (`validity`)
     calibration/<profile name>/lut-<colour>.csv    measured gray -> phase table (benchctl.devices.slm.lut format)
     calibration/<profile name>/lut.json            when and for which geometry each table was measured
     calibration/<profile name>/optical-model.json  per colour: fitted wavefront error (Zernike waves) and beam,
                                                     residual, when, for which geometry (model calibration)
 
-The root is $BENCHCTL_CALIBRATION_DIR, else ./calibration. A calibration made for another geometry (SLM grid,
-pitch, distance, ROI, camera) is not used; one older than STALE_DAYS is used with a warning. Each run copies the
-calibration it uses into its own folder, so resuming it or reading its report later sees the same numbers.
+The root is $BENCHCTL_CALIBRATION_DIR, else ./calibration. A colour's stored calibration is used only while what
+`validity` records for it is unchanged (its optical geometry, the SLM's bit depth and flips, the camera); one older
+than STALE_DAYS is used with a warning. Each run copies the calibration it uses into its own folder, so resuming it
+or reading its report later sees the same numbers.
 """
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 from datetime import datetime, timedelta
@@ -23,6 +23,7 @@ from typing import Any
 
 import msgspec
 
+from benchctl.calibration_files import LutIndex, OpticalModelFile, RegistrationFile, checked_json
 from benchctl.errors import BenchctlError
 from benchctl.files import ensure_dir, write_json
 from benchctl.profiles import Profile
@@ -39,25 +40,14 @@ def calibration_root() -> Path:
     return Path(os.environ.get(CALIBRATION_ENV) or "calibration")
 
 
-def geometry(profile: Profile) -> dict[str, Any]:
-    """What a calibration depends on: a stored one is valid only while all of this is unchanged."""
-    slm, optics = profile.require("slm", "optics").slm, profile.optics
-    assert slm is not None and optics is not None
-    camera = profile.camera
-    return {
-        "slm_grid": [slm.height, slm.width], "pitch_um": slm.pitch_um, "bit_depth": slm.bit_depth,
-        "flip": [slm.flip_y, slm.flip_x], "distance_mm": optics.distance_mm, "roi": list(optics.roi),
-        "camera": f"{camera.driver} {camera.model}".strip() if camera else None,
-    }
-
-
-def _read_json(path: Path) -> dict[str, Any] | None:
-    if not path.is_file():
-        return None
-    try:
-        return json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise BenchctlError(f"{path}: cannot read calibration: {exc}") from None
+def validity(profile: Profile, channel: str) -> dict[str, Any]:
+    """What a colour's stored calibration holds for: the channel's optical geometry (the fingerprint
+    `Geometry.to_dict`), the SLM's bit depth and flips, and the camera; a stored entry is used while all of it is
+    unchanged."""
+    slm, camera = profile.require("slm").slm, profile.camera
+    assert slm is not None
+    return {**profile.geometry(channel).to_dict(), "bit_depth": slm.bit_depth, "flip": [slm.flip_y, slm.flip_x],
+            "camera": f"{camera.driver} {camera.model}".strip() if camera else None}
 
 
 class Calibration:
@@ -66,7 +56,17 @@ class Calibration:
     def __init__(self, folder: Path, profile: Profile) -> None:
         self.folder = Path(folder)
         self.profile = profile
-        self.geometry = geometry(profile)
+        complete = profile.slm is not None and profile.optics is not None
+        self.validity = {c.name: validity(profile, c.name) for c in profile.channels} if complete else {}
+
+    def _valid(self, colour: str, entry: dict[str, Any]) -> bool:
+        return colour in self.validity and entry.get("geometry") == self.validity[colour]
+
+    def _for(self, colour: str) -> dict[str, Any]:
+        """What an entry stored for `colour` now is valid for."""
+        if colour not in self.validity:
+            raise BenchctlError(f"{self.profile.path}: no laser channel {colour!r} to calibrate")
+        return self.validity[colour]
 
     @classmethod
     def store(cls, profile: Profile) -> Calibration:
@@ -77,26 +77,25 @@ class Calibration:
 
     def registrations(self) -> dict[str, dict[str, Any]]:
         """Colour -> stored registration (a dict with "homography", "rms_px", ...) valid for this geometry."""
-        data = _read_json(self.folder / REGISTRATION_FILE)
+        data = checked_json(self.folder / REGISTRATION_FILE, RegistrationFile)
         if not data:
             return {}
-        return {colour: entry for colour, entry in data.get("colours", {}).items()
-                if entry.get("geometry") == self.geometry}
+        return {colour: entry for colour, entry in data.get("colours", {}).items() if self._valid(colour, entry)}
 
     def save_registration(self, colour: str, registration: dict[str, Any]) -> Path:
         """Store one colour's registration (other colours' entries stay)."""
         path = ensure_dir(self.folder) / REGISTRATION_FILE
-        data = _read_json(path) or {"profile": self.profile.name, "colours": {}}
-        data["colours"][colour] = {**registration, "geometry": self.geometry, "created": _now()}
+        data = checked_json(path, RegistrationFile) or {"profile": self.profile.name, "colours": {}}
+        data["colours"][colour] = {**registration, "geometry": self._for(colour), "created": _now()}
         return write_json(path, data)
 
     # -- lookup tables ----------------------------------------------------------------------------------------------
 
     def lut_files(self) -> dict[str, Path]:
         """Colour -> measured lookup-table file valid for this geometry."""
-        index = _read_json(self.folder / LUT_INDEX) or {}
+        index = checked_json(self.folder / LUT_INDEX, LutIndex) or {}
         return {colour: self.folder / entry["file"] for colour, entry in index.items()
-                if entry.get("geometry") == self.geometry and (self.folder / entry["file"]).is_file()}
+                if self._valid(colour, entry) and (self.folder / entry["file"]).is_file()}
 
     def lut_path(self, colour: str) -> Path:
         """Where the lookup table of `colour` is written."""
@@ -105,28 +104,28 @@ class Calibration:
     def record_lut(self, colour: str, details: dict[str, Any]) -> None:
         """Note in the index that lut-<colour>.csv was just measured (with `details` on how)."""
         path = ensure_dir(self.folder) / LUT_INDEX
-        index = _read_json(path) or {}
-        index[colour] = {"file": self.lut_path(colour).name, "geometry": self.geometry, "created": _now(), **details}
+        index = checked_json(path, LutIndex) or {}
+        index[colour] = {"file": self.lut_path(colour).name, "geometry": self._for(colour), "created": _now(),
+                         **details}
         write_json(path, index)
 
     def lut_info(self) -> dict[str, dict[str, Any]]:
         """The index entries of the valid tables."""
-        index = _read_json(self.folder / LUT_INDEX) or {}
+        index = checked_json(self.folder / LUT_INDEX, LutIndex) or {}
         return {colour: index[colour] for colour in self.lut_files()}
 
     # -- fitted optical model -------------------------------------------------------------------------------------
 
     def models(self) -> dict[str, dict[str, Any]]:
         """Colour -> fitted optical model entry (FittedOptics.to_dict() plus residual, created) for this geometry."""
-        data = _read_json(self.folder / MODEL_FILE) or {}
-        return {colour: entry for colour, entry in data.get("colours", {}).items()
-                if entry.get("geometry") == self.geometry}
+        data = checked_json(self.folder / MODEL_FILE, OpticalModelFile) or {}
+        return {colour: entry for colour, entry in data.get("colours", {}).items() if self._valid(colour, entry)}
 
     def save_model(self, colour: str, entry: dict[str, Any]) -> Path:
         """Store one colour's fitted model; entries fitted for another geometry are dropped (they no longer apply)."""
         path = ensure_dir(self.folder) / MODEL_FILE
         data = {"profile": self.profile.name, "colours": self.models()}
-        data["colours"][colour] = {**entry, "geometry": self.geometry, "created": _now()}
+        data["colours"][colour] = {**entry, "geometry": self._for(colour), "created": _now()}
         return write_json(path, data)
 
     # -- use ----------------------------------------------------------------------------------------------------------

@@ -1,7 +1,7 @@
 """`benchctl run`: plan a procedure, then run its steps into a new run folder (or finish an interrupted one).
 
 The plan is made before anything is touched, so `--dry-run` prints exactly the steps a run would take. A run
-logs each step as it starts and finishes; on any exit (error, Ctrl-C, SIGTERM) the bench closes with every
+logs each step as it starts and finishes; on any exit (error, Ctrl-C, SIGTERM) the instruments close with every
 laser channel off and the run's stop record says where it stopped (the first error is the one reported, even
 when a full disk stops the record-keeping too). `--resume` checks the run's own copy of the procedure against
 the hashes taken at its start before any of it runs, reloads it and the calibration, checks the profile is
@@ -21,16 +21,18 @@ from typing import Any
 
 import msgspec
 
+from benchctl.calibration_files import check_calibration
 from benchctl.errors import BenchctlError
 from benchctl.files import file_sha256, write_json
+from benchctl.memory import check_memory
 from benchctl.profiles import Profile, load_profile, resolve_profile_path
-from benchctl.runner.bench import Bench
-from benchctl.runner.calibration import Calibration
-from benchctl.runner.procedure import Context, Procedure, Step, load_procedure
+from benchctl.devices.power import format_power
+from benchctl.runner.calibration import REGISTRATION_FILE, Calibration
+from benchctl.runner.context import Context, Step
+from benchctl.runner.instruments import Instruments
+from benchctl.runner.layout import CALIBRATION_COPY, DEVICES, PROFILE_COPY, REPORT
+from benchctl.runner.procedure import Procedure, load_procedure
 from benchctl.runner.record import RunRecord, create_run, open_run
-
-PROFILE_COPY = "profile.toml"
-CALIBRATION_COPY = "calibration"
 
 
 @dataclass
@@ -43,12 +45,28 @@ class RunOutcome:
     headline: list[str]
 
 
+def _line(step: Step) -> str:
+    """A step as the dry run and the run print it: its description and every exposure it declares."""
+    return step.description + "".join(f"  [{expose.describe()}]" for expose in step.exposes)
+
+
 def _describe(steps: list[Step], procedure: Procedure, profile: Profile) -> list[str]:
+    """The dry run's account: every step with its exposures, then per laser channel the exposures and the highest
+    power the plan declares against the channel's limit (exposures whose power is chosen at run time are bounded
+    by the limit itself)."""
     lines = [f"procedure {procedure.name!r} ({procedure.kind}) on profile {profile.name!r} ({profile.path}): "
              f"{len(steps)} steps"]
-    for number, step in enumerate(steps, 1):
-        uses = f"  [{', '.join(step.devices)}]" if step.devices else ""
-        lines.append(f"  {number:>3}. {step.key}: {step.description}{uses}")
+    lines += [f"  {number:>3}. {step.key}: {_line(step)}" for number, step in enumerate(steps, 1)]
+    exposures = [expose for step in steps for expose in step.exposes]
+    for channel in profile.channels:
+        mine = [expose for expose in exposures if expose.channel == channel.name]
+        if mine:
+            known = [expose.power_w for expose in mine if expose.power_w is not None]
+            highest = f"at most {format_power(max(known))}" if known else "powers chosen at run time"
+            chosen = sum(expose.power_w is None for expose in mine)
+            later = f" ({chosen} at a power chosen at run time)" if known and chosen else ""
+            lines.append(f"  {channel.name}: {len(mine)} exposure(s), {highest}{later}; limit "
+                         f"{channel.max_power_mw:g} mW")
     return lines
 
 
@@ -89,12 +107,20 @@ def run_procedure(path: Path | None, *, profile: str | None = None, out: Path = 
         bench_profile = load_profile(profile)
         calibration = Calibration.store(bench_profile)
         record = None
-    effective = procedure.params.applied_to(calibration.applied(bench_profile))
-    with Bench(effective, say) as bench:
-        context = Context(effective, procedure.params, calibration, bench, record, say)
+    try:  # every calibration file the run will use, checked before a device opens
+        effective = procedure.params.applied_to(calibration.applied(bench_profile))
+        checked = check_calibration(effective, calibration.folder / REGISTRATION_FILE)
+    except BenchctlError as exc:
+        if record is None:
+            raise
+        raise BenchctlError(f"{exc} (a resumed run uses its own copy of the calibration: repair it, or copy the file "
+                            f"from {Calibration.store(bench_profile).folder} over it)") from None
+    checked += check_memory(effective, procedure.params, str(path or procedure.name))  # counts that scale memory
+    with Instruments(effective, say) as instruments:
+        context = Context(effective, procedure.params, calibration, instruments, record, say)
         steps = procedure.plan(context)
         if dry_run:
-            for line in _describe(steps, procedure, bench_profile):
+            for line in [*_describe(steps, procedure, bench_profile), *checked]:
                 say(line)
             code = [name for name in procedure.files if name.endswith(".py")]
             say("dry run: nothing was touched" if not code else
@@ -126,15 +152,18 @@ def _execute(steps: list[Step], context: Context, record: RunRecord) -> RunOutco
                 skipped.append(step.key)
                 continue
             current = step.key
-            context.say(f"[{number}/{len(steps)}] {step.description}")
+            context.say(f"[{number}/{len(steps)}] {_line(step)}")
             record.started(step.key)
             start = time.perf_counter()
+            context.step = step
             try:
                 result = step.action(context)
             except BaseException as exc:
                 _best_effort(context, "log the failed step",
                              functools.partial(record.failed, step.key, time.perf_counter() - start, exc))
                 raise
+            finally:
+                context.step = None
             record.finished(step.key, time.perf_counter() - start, result)
             ran.append(step.key)
         current = None
@@ -155,8 +184,8 @@ def _execute(steps: list[Step], context: Context, record: RunRecord) -> RunOutco
         context.say(f"resumed: {len(skipped)} finished step(s) kept, {len(ran)} run now")
     for line in headline:
         context.say(line)
-    context.say(f"record: {record.folder}" + (f"  (report: {record.folder / 'report.html'})"
-                                              if (record.folder / "report.html").is_file() else ""))
+    context.say(f"record: {record.folder}" + (f"  (report: {record.folder / REPORT})"
+                                              if (record.folder / REPORT).is_file() else ""))
     return RunOutcome(record.folder, ran, skipped, headline)
 
 
@@ -170,9 +199,9 @@ def _best_effort(context: Context, what: str, action: Callable[[], object]) -> N
 
 
 def _save_devices(context: Context, record: RunRecord) -> None:
-    """devices.json: identities of every device opened, in this and earlier attempts of the run."""
-    path = record.folder / "devices.json"
+    """The devices file: identities of every device opened, in this and earlier attempts of the run."""
+    path = record.folder / DEVICES
     known: dict[str, Any] = {}
     if path.is_file():
         known = json.loads(path.read_text())
-    write_json(path, {**known, **context.bench.identities})
+    write_json(path, {**known, **context.instruments.identities})

@@ -10,6 +10,8 @@ import numpy as np
 import torch
 
 import benchctl
+from benchctl.calibration_files import calibration_used
+from benchctl.cgh import DEFAULT_METHOD
 from benchctl.files import ensure_dir, write_json
 from benchctl.images import write_png
 from benchctl.optics import linear_to_srgb
@@ -47,7 +49,7 @@ def run_generate(
     profile: Profile,
     out_dir: Path,
     *,
-    method: str = "dpac",
+    method: str = DEFAULT_METHOD,
     iterations: int | None = None,
     colours: list[str] | None = None,
     seed: int = 0,
@@ -62,6 +64,7 @@ def run_generate(
     """
     started = time.time()
     profile.require("slm", "optics", "laser")  # the laser's channels are the colours generated
+    own_tables = profile.slm.lut
     profile = Calibration.store(profile).applied(profile)
     srgb = load_target(target, size=profile.optics.roi)
     amplitude = prepare_target(srgb, profile.slm.shape, profile.optics.roi)
@@ -82,6 +85,7 @@ def run_generate(
         "grid": list(profile.slm.shape),
         "roi": list(profile.optics.roi),
         "optical_model": str(profile.optics.model) if profile.optics.model else None,
+        "calibration": calibration_used(profile, own_tables),  # tables and model, with checksums
         "seed": seed,
         "started_unix": round(started, 3),
         **scene_metrics(scene),

@@ -1,9 +1,9 @@
 """Holograms computed once per target, method and geometry, and reused by later runs.
 
 The key is a hash of everything the displayed frame depends on: the target plane's amplitude, the method and
-its options (iterations, seed, checkpoint file contents), the optical geometry of the channel and the SLM
-encoding (bit depth, lookup table, offset, carrier, flips), plus a hash of benchctl's source, so an edited
-method never reuses holograms the old code made. An entry holds the
+its options (iterations, seed, checkpoint file contents), the channel's optical setup (its geometry fingerprint,
+`Geometry.to_dict`, and fitted model) and the SLM encoding (bit depth, lookup table, offset, carrier, flips),
+plus a hash of benchctl's source, so an edited method never reuses holograms the old code made. An entry holds the
 frame as displayed, the simulated reconstruction and its scores, and the seconds it took to compute.
 Entries live in $BENCHCTL_CACHE_DIR/holograms (default ~/.cache/benchctl/holograms); deleting them is safe.
 """
@@ -26,8 +26,10 @@ from benchctl.files import atomic_write_bytes, ensure_dir
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import Profile
 from benchctl.provenance import source_hash
-from benchctl.runner.holograms import compute_scene, target_plane
+from benchctl.runner.holograms import compute_scene
 from benchctl.runner.learned.checkpoint import find_checkpoint
+from benchctl.runner.setups import optical_setup
+from benchctl.targets import target_plane
 
 CACHE_ENV = "BENCHCTL_CACHE_DIR"
 
@@ -49,15 +51,12 @@ def cache_dir() -> Path:
     return Path(root) if root else Path.home() / ".cache" / "benchctl"
 
 
-def _key(profile: Profile, channel: str, plane: torch.Tensor, options: dict[str, Any]) -> str:
+def _key(profile: Profile, setup: OpticalSetup, channel: str, plane: torch.Tensor, options: dict[str, Any]) -> str:
     slm = profile.slm
     assert slm is not None
-    setup = OpticalSetup.from_profile(profile, channel)
     digest = hashlib.sha256()
     description = {
-        "code": source_hash(), "options": options, "wavelength_m": setup.wavelength_m,
-        "pitch_m": list(setup.pitch_m), "distance_m": setup.distance_m, "shape": list(setup.shape),
-        "roi": list(setup.roi), "aperture": setup.aperture, "bit_depth": slm.bit_depth,
+        "code": source_hash(), "options": options, "geometry": setup.geometry.to_dict(), "bit_depth": slm.bit_depth,
         "two_pi_gray": slm.two_pi_gray, "offset": slm.phase_offset_rad, "carrier": list(slm.grating_period_px),
         "flips": [slm.flip_y, slm.flip_x],
         "field_model": setup.field_model.to_dict() if setup.field_model else None,
@@ -71,24 +70,26 @@ def _key(profile: Profile, channel: str, plane: torch.Tensor, options: dict[str,
 
 
 def hologram(profile: Profile, target: torch.Tensor, channel: str, method: str, *, iterations: int | None,
-             seed: int, checkpoint: str | None,
-             progress: Callable[[str], Callable[[int, int], None]] | None = None) -> Hologram:
-    """The hologram of `channel` for `target` (3, H, W amplitude on the SLM grid): from the cache when this
-    exact computation was done before, else computed (compute_scene, one colour) and cached."""
+             seed: int, checkpoint: str | None, progress: Callable[[str], Callable[[int, int], None]] | None = None,
+             setup: OpticalSetup | None = None) -> Hologram:
+    """The hologram of `channel` for `target` (3, H, W amplitude on the SLM grid), computed for `setup` (default:
+    the channel's setup on `profile`): from the cache when this exact computation was done before, else computed
+    (compute_scene, one colour) and cached."""
+    setup = setup or optical_setup(profile, channel)
     network = get_method(method).network  # "ccnn-dcm4+sgd" runs ccnn-dcm4's checkpoint
     if checkpoint is None and network is not None:
         found = find_checkpoint(network, profile)  # what compute_scene will use: its bytes belong in the key
         checkpoint = str(found) if found else None
     options = {"method": method, "iterations": iterations, "seed": seed, "checkpoint": checkpoint}
     plane = target[target_plane(profile.channel(channel))]
-    path = cache_dir() / "holograms" / f"{_key(profile, channel, plane, options)}.npz"
+    path = cache_dir() / "holograms" / f"{_key(profile, setup, channel, plane, options)}.npz"
     if path.is_file():
         with np.load(path, allow_pickle=False) as data:
             return Hologram(data["gray"], data["reconstruction"], json.loads(str(data["scores"])),
                             float(data["seconds"]), cached=True)
     extra = {"checkpoint": Path(checkpoint)} if checkpoint else {}
     scene = compute_scene(target, profile, method, iterations=iterations, colours=[channel], seed=seed,
-                          progress=progress, **extra)
+                          progress=progress, setups={channel: setup}, **extra)
     result = scene.colours[0]
     assert not result.skipped and result.gray is not None and result.reconstruction is not None
     entry = Hologram(result.gray, result.reconstruction.numpy(), result.scores, result.seconds, cached=False)

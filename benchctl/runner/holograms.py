@@ -5,32 +5,32 @@ This is the in-memory core shared by `benchctl generate` and `benchctl bench spe
 
 from __future__ import annotations
 
-import functools
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from benchctl.cgh import Method, OpticalSetup, get_method, method_names
+from benchctl.capture.colour_planes import merge_colours
+from benchctl.checkpoint_notes import checkpoint_notes
+from benchctl.cgh import Method, get_method, method_names
 from benchctl.cgh.learned import LEARNED_METHODS, model_info
-from benchctl.devices.slm import SLM, slm_for
+from benchctl.devices.slm import slm_for
 from benchctl.errors import BadValueError, BenchctlError
-from benchctl.optics import amplitude_scores, colour_scores, crop_roi, lsq_scale
+from benchctl.optics import amplitude_scores, colour_scores, crop_roi
+from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import LaserChannel, Profile
 from benchctl.runner.learned.checkpoint import (
     cached_checkpoint,
     checkpoint_problem,
     find_checkpoint,
     learned_method,
-    profile_setups,
+    profile_geometries,
 )
-from benchctl.targets import active_channels
-
-RGB_PLANES = ("red", "green", "blue")
-
+from benchctl.runner.setups import optical_setups, optimised_setup
+from benchctl.targets import active_channels, target_plane
 
 @dataclass
 class ColourResult:
@@ -58,22 +58,15 @@ class SceneResult:
     checkpoint: Path | None = None  # the trained models a learned method used
 
 
-def target_plane(channel: LaserChannel) -> int:
-    """Which plane of an RGB target this laser channel displays: by name, else by wavelength band."""
-    if channel.name in RGB_PLANES:
-        return RGB_PLANES.index(channel.name)
-    if channel.wavelength_nm >= 590:
-        return 0
-    return 1 if channel.wavelength_nm >= 490 else 2
-
-
 def checkpoint_status(method: str, profile: Profile) -> str:
     """Where the trained checkpoint that `method` runs for `profile` is, or why there is none it can use."""
     path = find_checkpoint(get_method(method).network, profile)
     if path is None:
         return f"no trained checkpoint for profile {profile.name!r}"
     problem = checkpoint_problem(path, profile)
-    return f"{path}" if problem is None else f"{path} does not fit: {problem}"
+    if problem is not None:
+        return f"{path} does not fit: {problem}"
+    return "; ".join([str(path), *checkpoint_notes(cached_checkpoint(path).metadata(), profile)])
 
 
 def usable_methods(profile: Profile) -> list[str]:
@@ -129,22 +122,8 @@ def resolve_method(name: str, profile: Profile, checkpoint: Path | str | None = 
                             f"with `benchctl train --method {method.network} --data DIR --profile {profile.name}` "
                             "or pass --checkpoint FILE")
     runnable = learned_method(name, path)
-    cached_checkpoint(path).check(profile_setups(profile, channels), f"profile {profile.name!r}")
+    cached_checkpoint(path).check(profile_geometries(profile, channels), f"profile {profile.name!r}")
     return runnable, path
-
-
-@functools.lru_cache(maxsize=3)
-def shared_setup(setup: OpticalSetup) -> OpticalSetup:
-    """The first setup equal to `setup`: its transfer functions are computed once, not in every frame's time."""
-    return setup
-
-
-def optimised_setup(profile: Profile, channel: str, slm: SLM) -> OpticalSetup:
-    """`channel`'s shared setup as optimisers see it: through what `slm` drives where its table leaves phases out,
-    or always when the fitted model has crosstalk (which blurs the driven phase's jumps)."""
-    setup = shared_setup(OpticalSetup.from_profile(profile, channel))
-    crosstalk = setup.field_model is not None and setup.field_model.has_crosstalk
-    return setup.with_display(slm.display_model(channel, always=crosstalk))
 
 
 def select_channels(profile: Profile, names: list[str] | None) -> list[LaserChannel]:
@@ -164,6 +143,7 @@ def compute_scene(
     seed: int = 0,
     progress: Callable[[str], Callable[[int, int], None]] | None = None,
     checkpoint: Path | None = None,
+    setups: Mapping[str, OpticalSetup] | None = None,
 ) -> SceneResult:
     """Generate, quantise, display (in simulation) and score a hologram for each requested, non-black colour.
 
@@ -171,7 +151,7 @@ def compute_scene(
     given, is called with a label per colour and returns that colour's `(done, total)` callback. A learned
     method uses `checkpoint`, else the checkpoint shipped for the profile (`find_checkpoint`); it is refused
     (BenchctlError) when there is none or when it was trained for another geometry; a classical method given
-    a checkpoint is an error too.
+    a checkpoint is an error too. `setups`: the colours' optical setups (default: the profile's, `optical_setups`).
     """
     grid, roi = profile.slm.shape, profile.optics.roi
     if tuple(target_amplitude.shape) != (3, *grid):
@@ -182,26 +162,30 @@ def compute_scene(
                                                [c.name for c in channels if present[target_plane(c)]])
     slm = slm_for(profile)
     target_roi = crop_roi(target_amplitude, roi)
-    merged = torch.zeros_like(target_roi)
-    results = []
-    for channel in channels:
-        plane = target_plane(channel)
-        if not present[plane]:
-            results.append(ColourResult(channel.name, channel.wavelength_nm, skipped=True))
-            continue
-        setup = optimised_setup(profile, channel.name, slm)
+    lit = [channel for channel in channels if present[target_plane(channel)]]
+    setups = setups or optical_setups(profile, [channel.name for channel in lit])
+    computed: dict[str, tuple[float, np.ndarray, torch.Tensor]] = {}
+    for channel in lit:
+        setup = optimised_setup(setups[channel.name], slm, channel.name)
         start = time.perf_counter()
-        phase = generate(target_amplitude[plane], setup, iterations=iterations, seed=seed,
+        phase = generate(target_amplitude[target_plane(channel)], setup, iterations=iterations, seed=seed,
                          progress=progress(f"{method} {channel.name}") if progress else None)
         seconds = time.perf_counter() - start
         gray = slm.encode(phase, channel.name)
-        recon = setup.reconstruct_roi(torch.from_numpy(slm.driven(gray, channel.name)))
-        recon = recon * lsq_scale(recon, target_roi[plane])
-        merged[plane] = recon.square().clamp(0, 1)
+        computed[channel.name] = seconds, gray, setup.reconstruct_roi(torch.from_numpy(slm.driven(gray, channel.name)))
+    merged = merge_colours({target_plane(c): computed[c.name][2] for c in lit}, target_roi)
+    results = []
+    for channel in channels:
+        plane = target_plane(channel)
+        if channel.name not in computed:
+            results.append(ColourResult(channel.name, channel.wavelength_nm, skipped=True))
+            continue
+        seconds, gray, _ = computed[channel.name]
+        recon = merged.amplitude[plane]
         results.append(ColourResult(channel.name, channel.wavelength_nm, skipped=False, seconds=seconds,
                                     gray=gray, reconstruction=recon, scores=amplitude_scores(recon, target_roi[plane])))
     # the colour scores cover the planes computed: a --colours subset is not penalised for the planes it left out
-    computed = torch.zeros(3, 1, 1, dtype=target_roi.dtype)
-    computed[[target_plane(channel) for channel in channels]] = 1
-    return SceneResult(method, iterations, results, target_roi, merged, colour_scores(merged, target_roi * computed),
-                       checkpoint=used_checkpoint)
+    chosen = torch.zeros(3, 1, 1, dtype=target_roi.dtype)
+    chosen[[target_plane(channel) for channel in channels]] = 1
+    return SceneResult(method, iterations, results, target_roi, merged.linear,
+                       colour_scores(merged.linear, target_roi * chosen), checkpoint=used_checkpoint)

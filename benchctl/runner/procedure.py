@@ -1,4 +1,4 @@
-"""Procedures: what a procedure file says, and the API every procedure (built-in or a user's Python file) uses.
+"""Procedure files: what one says, and the procedure module (built-in or a user's Python file) it names.
 
 A procedure file is TOML:
 
@@ -8,16 +8,8 @@ A procedure file is TOML:
     [parameters]                       # decoded into the procedure's PARAMETERS model
     targets = ["chart:bars"]
 
-or a Python file given directly (its parameters then all take their defaults). A Python procedure defines
-
-    DESCRIPTION = "one line"
-    class PARAMETERS(Parameters, kw_only=True):   # or a group such as runner.steps.ExposureParameters
-        gray: Annotated[int, msgspec.Meta(ge=0)] = 128
-    def plan(context: Context) -> list[Step]: ...
-
-`plan` validates and returns the steps without touching a device or writing a file (that is what --dry-run
-prints); each `Step.action(context)` does one resumable piece of work, writes its files through
-`context.record` and returns a JSON-ready result that later steps read with `context.result(key)`.
+or a Python file given directly (its parameters then all take their defaults). A Python procedure is written on
+the procedure API (`benchctl.runner.api`): DESCRIPTION, PARAMETERS and plan(context) -> list[Step].
 """
 
 from __future__ import annotations
@@ -26,20 +18,16 @@ import importlib
 import importlib.util
 import sys
 from collections import Counter
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
-from typing import Any, TypeVar
+from typing import Any
 
 import msgspec
 
-from benchctl.terminal import ProgressLine
 from benchctl.errors import BenchctlError
-from benchctl.profiles import Profile
-from benchctl.runner.bench import Bench
-from benchctl.runner.calibration import Calibration
-from benchctl.runner.record import RunRecord
+from benchctl.runner.context import Context, Parameters, Step, check_exposures
+from benchctl.runner.layout import PROCEDURE_COPY
 from benchctl.schema import Model, decode
 
 if sys.version_info >= (3, 11):
@@ -53,22 +41,10 @@ BUILTINS = {
     "lut-calibration": "benchctl.runner.builtin.lut_calibration",
     "power-sweep": "benchctl.runner.builtin.power_sweep",
     "model-calibration": "benchctl.runner.builtin.model_calibration",
-    "citl": "benchctl.runner.builtin.citl",
+    "citl": "benchctl.runner.builtin.citl.procedure",
 }
 
 MAX_STEPS = 100_000  # a plan longer than this is a mistake (repeats = 1000000), not an experiment
-
-
-class Parameters(Model, kw_only=True):
-    """Base of every procedure's parameters (its PARAMETERS model; the file's [parameters] table is decoded into
-    it). Groups that several procedures share derive from it (runner.steps.ExposureParameters, ...)."""
-
-    def applied_to(self, profile: Profile) -> Profile:
-        """The profile the run uses: parameters that override a profile setting say so here (none by default)."""
-        return profile
-
-
-P = TypeVar("P", bound=Parameters)
 
 
 class ProcedureFile(Model, kw_only=True):
@@ -79,55 +55,6 @@ class ProcedureFile(Model, kw_only=True):
     description: str = ""  # default: the procedure's DESCRIPTION
     # Decoded into the procedure's PARAMETERS once the procedure is known.
     parameters: dict[str, Any] = msgspec.field(default_factory=dict)
-
-
-@dataclass(frozen=True)
-class Step:
-    """One resumable piece of a run. `devices`: which of laser, slm, camera it uses (dry-run shows them)."""
-
-    key: str
-    description: str
-    action: Callable[[Context], dict[str, Any]]
-    devices: tuple[str, ...] = ()
-
-
-@dataclass
-class Context:
-    """What a step sees: the profile in effect, the parameters, the bench, the calibration, the run record."""
-
-    profile: Profile
-    params: Parameters
-    calibration: Calibration
-    bench: Bench
-    record: RunRecord | None = None  # None during a dry run
-    say: Callable[[str], None] = print
-
-    def recalibrated(self) -> None:
-        """Apply lookup tables measured during this run to the profile later steps use."""
-        self.profile = self.params.applied_to(self.calibration.applied(self.calibration.profile))
-
-    def parameters(self, kind: type[P]) -> P:
-        """The procedure's parameters as `kind`: its PARAMETERS or a group they derive from, which the shared
-        steps need (ExposureParameters for exposure steps)."""
-        if not isinstance(self.params, kind):
-            raise BenchctlError(f"the procedure's PARAMETERS ({type(self.params).__name__}) must derive from "
-                                f"{kind.__module__}.{kind.__name__} for this step")
-        return self.params
-
-    def result(self, key: str) -> dict[str, Any]:
-        """The result a finished step recorded (this run, or the run being resumed)."""
-        if self.record is None:
-            raise BenchctlError(f"step {key!r}: no results during a dry run")
-        return self.record.result(key)
-
-    def path(self, *parts: str) -> Path:
-        """A file in the run folder."""
-        if self.record is None:
-            raise BenchctlError("no run folder during a dry run")
-        return self.record.path(*parts)
-
-    def progress(self, label: str) -> ProgressLine:
-        return ProgressLine(label)
 
 
 @dataclass(frozen=True)
@@ -149,6 +76,7 @@ class Procedure:
         repeated = {key for key, count in Counter(step.key for step in steps).items() if count > 1}
         if repeated:
             raise BenchctlError(f"procedure {self.name!r} plans step(s) {sorted(repeated)} more than once")
+        check_exposures(steps, context.profile)
         return steps
 
 
@@ -173,7 +101,7 @@ def _load_module(kind: str, base: Path, where: str, copies: Path | None = None) 
         raise BenchctlError(f"{path}: cannot load procedure: {type(exc).__name__}: {exc}") from exc
     for attribute in ("PARAMETERS", "plan"):
         if not hasattr(module, attribute):
-            raise BenchctlError(f"{path}: a Python procedure must define {attribute} (see benchctl.runner.procedure)")
+            raise BenchctlError(f"{path}: a Python procedure must define {attribute} (see benchctl.runner.api)")
     return _with_parameters(module, str(path)), {path.name: path.read_bytes()}
 
 
@@ -181,7 +109,7 @@ def _with_parameters(module: ModuleType, where: str) -> ModuleType:
     """`module`, whose PARAMETERS must be a Parameters model."""
     model = module.PARAMETERS
     if not (isinstance(model, type) and issubclass(model, Parameters)):
-        raise BenchctlError(f"{where}: PARAMETERS must be a class deriving from benchctl.runner.procedure.Parameters, "
+        raise BenchctlError(f"{where}: PARAMETERS must be a class deriving from benchctl.runner.api.Parameters, "
                             f"got {model!r}")
     return module
 
@@ -209,6 +137,6 @@ def load_procedure(path: str | Path, *, copies: Path | None = None) -> Procedure
     top = decode(raw, ProcedureFile, path)
     module, files = _load_module(top.procedure, path.parent, f"{path}: procedure", copies)
     params = decode(top.parameters, module.PARAMETERS, path, "parameters")
-    files = {"procedure.toml": data, **files}
+    files = {PROCEDURE_COPY: data, **files}
     return Procedure(top.name or path.stem, top.procedure, top.description or getattr(module, "DESCRIPTION", ""),
                      module, params, files)

@@ -1,19 +1,5 @@
-"""The run folder: the one place that knows its layout, its step log and how a run is resumed.
-
-    runs/<YYYYmmdd-HHMMSS>-<name>/
-      run.json          start record (procedure, versions, command) and, once it ends, the stop record
-      profile.toml      the hardware profile as used (bytes copied)
-      procedure.toml    the procedure as used (plus the .py file of a Python procedure)
-      calibration/      the camera-SLM registration and lookup tables the run used (copied at its start)
-      devices.json      identity of every device the run opened
-      steps.jsonl       one JSON line per event: a step started, finished (with its result and the checksums
-                        of the files it captured), failed, became invalid (a file later steps read changed) or
-                        was found with a damaged record (a file kept only as a record changed)
-      holograms/        SLM frames exactly as displayed (8-bit PNG)
-      raw/              RAW frames exactly as the camera delivered them, never modified
-      images/           decoded, registered and merged images (16-bit PNG)
-      state/            an iterative procedure's resumable state (CITL: phase and optimiser, the last two kept)
-      metrics.json, metrics.csv, report.html
+"""The run record: a run folder's start and stop records, its step log and how a run is resumed (what lies where
+in the folder: `runner.layout`).
 
 Every file is written atomically and every step-log line is on disk before the next action. A folder is never
 reused for a new run; `open_run` reopens one to resume it: it repairs a log line cut by a crash, and a step
@@ -36,9 +22,8 @@ from typing import Any
 from benchctl.errors import BenchctlError
 from benchctl.files import atomic_write_bytes, ensure_dir, file_sha256, write_json
 from benchctl.provenance import code_identity
+from benchctl.runner.layout import RUN_FILE, STEP_LOG
 
-RUN_FILE = "run.json"
-STEP_LOG = "steps.jsonl"
 PACKAGES = ("benchctl", "torch", "numpy", "pyserial", "pyusb", "opencv-contrib-python-headless", "rawpy")
 
 

@@ -1,10 +1,14 @@
-"""Building blocks the procedures share: targets, per-colour holograms, exposures, loading what was captured,
-saving images. Every step writes its files into the run folder and returns a small JSON-ready result.
+"""What procedures share: the parameter groups, the per-colour planning helpers, the step builders (hologram,
+exposure, measurement) and the savers that place every file of a run folder (through `runner.layout`).
+
+Every step writes its files into the run folder and returns a small JSON-ready result that later steps read.
 """
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -13,23 +17,26 @@ import numpy as np
 import torch
 from msgspec import Meta
 
+from benchctl.capture.colour_planes import registered_plane, roi_saturation
 from benchctl.capture.raw import RawImage, average_frames, decode_raw, subtract_dark
-from benchctl.cgh import Method
+from benchctl.cgh import DEFAULT_METHOD, Method
 from benchctl.devices.power import format_power, parse_power
 from benchctl.errors import BenchctlError
 from benchctl.files import file_sha256
 from benchctl.images import read_image, write_png
 from benchctl.optics import linear_to_srgb
 from benchctl.profiles import LaserChannel, NonNegative, NonNegativeInt, Profile
-from benchctl.runner.hologram_cache import hologram
+from benchctl.runner import layout
+from benchctl.runner.context import Context, Expose, P, Parameters, Step
+from benchctl.runner.hologram_cache import Hologram, hologram
 from benchctl.runner.holograms import resolve_method
-from benchctl.runner.procedure import Context, P, Parameters, Step
-from benchctl.runner.record import set_aside
-from benchctl.targets import CHART_PREFIX, PHOTO_PREFIX, load_target, prepare_target
+from benchctl.runner.instruments import Exposure
+from benchctl.targets import CHART_PREFIX, PHOTO_PREFIX, load_target, prepare_target, target_plane
 
 Frames = Annotated[int, Meta(ge=1)]  # RAW frames averaged per exposure
 DarkFrames = Annotated[int, Meta(ge=0)]  # with emission off, after each exposure
-Registration = Literal["auto", "stored"]  # "auto": register first when no stored registration fits; "stored": require
+RegistrationMode = Literal["auto", "stored"]
+""""auto": register first when no stored camera-SLM registration fits the geometry; "stored": require one."""
 
 
 class ExposureParameters(Parameters, kw_only=True):
@@ -52,11 +59,13 @@ class HologramParameters(ExposureParameters, kw_only=True):
     """The exposure parameters and how the holograms shown are computed. (Groups stack by derivation: a msgspec
     Struct has one base with fields.)"""
 
-    method: str = "dpac"
-    iterations: NonNegativeInt | None = None  # default: the method's own
+    method: str = DEFAULT_METHOD
+    iterations: NonNegativeInt | None = None  # default: the method's own (0: its start)
     seed: NonNegativeInt = 0
     checkpoint: str | None = None  # a trained model for a learned method
 
+
+# -- planning -------------------------------------------------------------------------------------------------------
 
 def carried(params: Parameters, kind: type[P]) -> P:
     """Another procedure's parameters (`kind`: registration's, when colour capture registers first) with the values
@@ -104,6 +113,12 @@ def unknown_setpoints(context: Context) -> None:
                                 f"(known: {', '.join(sorted(names))})")
 
 
+def unregistered(context: Context, used: list[LaserChannel]) -> list[LaserChannel]:
+    """The channels of `used` without a stored camera-SLM registration that fits the geometry."""
+    stored = context.calibration.registrations()
+    return [channel for channel in used if channel.name not in stored]
+
+
 def target_label(spec: str, taken: set[str]) -> str:
     """A short file-name label for a target: chart:bars -> bars, photo:coffee -> coffee, photos/cat.png -> cat
     (unique in `taken`)."""
@@ -124,23 +139,34 @@ def prepared_target(profile: Profile, spec: str) -> torch.Tensor:
     return prepare_target(load_target(spec, size=profile.optics.roi), profile.slm.shape, profile.optics.roi)
 
 
-def hologram_step(key: str, label: str, target: torch.Tensor, channel: LaserChannel,
-                  options: HologramParameters) -> Step:
-    """Compute (or take from the cache) `channel`'s hologram of `target` and keep the frame as displayed."""
-    def action(context: Context) -> dict[str, Any]:
-        result = hologram(context.profile, target, channel.name, options.method, iterations=options.iterations,
-                          seed=options.seed, checkpoint=options.checkpoint, progress=context.progress)
-        file = Path("holograms") / f"{label}-{channel.name}.png"
-        write_png(context.path(str(file)), result.gray)
-        np.save(context.path("images", label, f"simulated-{channel.name}.npy"), result.reconstruction)
-        how = "cached" if result.cached else f"{result.seconds:.2f} s"
-        context.say(f"      {options.method} {channel.name}: {how}, simulated PSNR "
-                    f"{result.scores['psnr_amplitude_db']:.2f} dB amplitude")
-        return {"file": str(file), "seconds": round(result.seconds, 4), "cached": result.cached,
-                "scores": {k: round(v, 4) for k, v in result.scores.items()},
-                "simulated": f"images/{label}/simulated-{channel.name}.npy"}
+# -- holograms ------------------------------------------------------------------------------------------------------
 
-    return Step(key, f"hologram {label} {channel.name} ({options.method})", action)
+def compute_hologram(context: Context, target: torch.Tensor, channel: LaserChannel,
+                     options: HologramParameters) -> Hologram:
+    """`channel`'s hologram of `target` (3, H, W amplitude on the SLM grid) as `options` say: its frame as
+    displayed, simulated reconstruction and scores; from the hologram cache when it was computed before."""
+    return hologram(context.profile, target, channel.name, options.method, iterations=options.iterations,
+                    seed=options.seed, checkpoint=options.checkpoint, progress=context.progress,
+                    setup=context.setup(channel.name))
+
+
+def hologram_step(key: str, label: str, target: torch.Tensor, channel: LaserChannel,
+                  options: HologramParameters | None = None) -> Step:
+    """Compute (or take from the cache) `channel`'s hologram of `target` with `options` (default: the procedure's
+    parameters) and keep the frame as displayed and the simulated reconstruction."""
+    def action(context: Context) -> dict[str, Any]:
+        how = options or context.parameters(HologramParameters)
+        result = compute_hologram(context, target, channel, how)
+        cached = "cached" if result.cached else f"{result.seconds:.2f} s"
+        context.say(f"      {how.method} {channel.name}: {cached}, simulated PSNR "
+                    f"{result.scores['psnr_amplitude_db']:.2f} dB amplitude")
+        return {"file": save_hologram(context, result.gray, f"{label}-{channel.name}.png"),
+                "seconds": round(result.seconds, 4), "cached": result.cached,
+                "scores": {k: round(v, 4) for k, v in result.scores.items()},
+                "simulated": save_array(context, result.reconstruction, label, f"simulated-{channel.name}.npy")}
+
+    method = options.method if options is not None else "the procedure's method"
+    return Step(key, f"hologram {label} {channel.name} ({method})", action)
 
 
 def displayed_frame(context: Context, hologram_key: str) -> np.ndarray:
@@ -148,53 +174,132 @@ def displayed_frame(context: Context, hologram_key: str) -> np.ndarray:
     return read_image(context.path(context.result(hologram_key)["file"]))
 
 
-def exposure_step(context: Context, key: str, folder: tuple[str, ...], channel: LaserChannel,
-                  watts: float | Callable[[Context], float], frame: Callable[[Context], np.ndarray],
-                  description: str, *, frames: int | None = None, dark_frames: int | None = None,
-                  read_later: bool = True) -> Step:
-    """Show a frame, expose it with `channel` alone at `watts` (a number, or a function of the context that
-    decides when the step runs, as automatic exposure does), keep the RAW frames and the dark frames in
-    raw/<folder>/ (counts: as given, else the procedure's `frames` / `dark_frames`). A retried step first moves
-    what its unfinished attempt left aside (kept, never deleted). The result records each file's checksum, which
-    a resumed run verifies: under "checksums" for files later steps read (a changed one is captured again), under
-    "archived" with `read_later=False` for a record no later step reads (a changed one is reported)."""
-    def action(context: Context) -> dict[str, Any]:
-        where = context.path("raw", *folder)
-        attempt = context.record.attempts.get(key, 1) if context.record else 1
-        if attempt > 1:
-            set_aside(where, attempt - 1)
-        power = watts(context) if callable(watts) else watts
-        result = context.bench.expose(where, channel.name, power, frame(context), frames=frames,
-                                      dark_frames=darks)
-        checksums = {str(Path("raw", *folder, name)): file_sha256(where / name)
-                     for name in [*result["frames"], *result["darks"]]}
-        return {**result, "folder": str(Path("raw", *folder)), "checksums" if read_later else "archived": checksums}
+def shown(hologram_key: str) -> Callable[[Context], np.ndarray]:
+    """The frame function of an exposure that shows what hologram step `hologram_key` kept."""
+    return lambda context: displayed_frame(context, hologram_key)
 
+
+# -- exposures ------------------------------------------------------------------------------------------------------
+
+@dataclass
+class Measurement:
+    """One exposure: what `Instruments.expose` reported, the JSON-ready record a step keeps (with, where the RAW
+    frames were kept, their folder and checksums), and the decoded image (lit frames' mean minus the darks')."""
+
+    exposure: Exposure
+    record: dict[str, Any]
+
+    @functools.cached_property
+    def image(self) -> RawImage:
+        """Decoded from the frames' bytes on first use (a step that only keeps the files never decodes)."""
+        lit = average_frames(decode_raw(frame.data) for frame in self.exposure.frames)
+        if not self.exposure.darks:
+            return lit
+        return subtract_dark(lit, average_frames(decode_raw(frame.data) for frame in self.exposure.darks))
+
+
+def measure(context: Context, channel: LaserChannel, power: float, frame: np.ndarray, *, frames: int,
+            dark_frames: int, keep: bool = True, read_later: bool = True) -> Measurement:
+    """Show `frame`, expose it with `channel` alone at `power`, capture `frames` RAW frames and `dark_frames`
+    dark ones: an exposure the running step declared. With `keep` the RAW files are kept in the step's raw folder
+    and the record holds each file's checksum, which a resumed run verifies: under "checksums" for files later
+    steps read (a changed one is captured again), under "archived" with `read_later=False` for a record no later
+    step reads (a changed one is reported)."""
+    exposure = context.expose(channel.name, power, frame, frames=frames, dark_frames=dark_frames, keep=keep)
+    record = dict(exposure.result)
+    if keep:
+        assert context.step is not None
+        folder = layout.raw_folder(context.step.key)
+        names = [*exposure.result["frames"], *exposure.result["darks"]]
+        record["folder"] = folder
+        record["checksums" if read_later else "archived"] = {
+            f"{folder}/{name}": file_sha256(context.path(f"{folder}/{name}")) for name in names}
+    return Measurement(exposure, record)
+
+
+def exposure_step(context: Context, key: str, channel: LaserChannel, watts: float | Callable[[Context], float],
+                  frame: Callable[[Context], np.ndarray], description: str, *, frames: int | None = None,
+                  dark_frames: int | None = None, read_later: bool = True) -> Step:
+    """A step that shows `frame(context)` and exposes it with `channel` alone at `watts` (a number, or a function
+    of the context that decides when the step runs, as automatic exposure does), keeping the RAW frames and dark
+    frames (counts: as given, else the procedure's `frames` / `dark_frames`) for later steps (`load_exposure`).
+    A retried step first moves what its unfinished attempt left aside (kept, never deleted)."""
     params = context.parameters(ExposureParameters)
-    frames = params.frames if frames is None else frames
+    count = params.frames if frames is None else frames
     darks = params.dark_frames if dark_frames is None else dark_frames
-    power_text = "the power automatic exposure chooses" if callable(watts) else format_power(watts)
-    return Step(key, f"{description}: {channel.name} alone at {power_text}, {frames} frame(s) + {darks} dark",
-                action, ("laser", "slm", "camera"))
+
+    def action(context: Context) -> dict[str, Any]:
+        power = watts(context) if callable(watts) else watts
+        return measure(context, channel, power, frame(context), frames=count, dark_frames=darks,
+                       read_later=read_later).record
+
+    declared = Expose(channel.name, None if callable(watts) else watts, count, darks)
+    return Step(key, description, action, (declared,))
 
 
 def load_exposure(context: Context, key: str) -> tuple[RawImage, RawImage | None]:
     """The averaged RAW frames of an exposure step, dark-subtracted, and its averaged dark (None if none)."""
     result = context.result(key)
     folder = context.path(result["folder"])
-    lit = average_frames([decode_raw(folder / name) for name in result["frames"]])
+    lit = average_frames(decode_raw(folder / name) for name in result["frames"])  # decoded one at a time
     if not result["darks"]:
         return lit, None
-    dark = average_frames([decode_raw(folder / name) for name in result["darks"]])
+    dark = average_frames(decode_raw(folder / name) for name in result["darks"])
     return subtract_dark(lit, dark), dark
 
 
-def write_linear16(path: Path, linear: np.ndarray | torch.Tensor, *, srgb: bool = False) -> str:
-    """A linear image in [0, 1] ((h, w) or (3, h, w)) as a 16-bit PNG, optionally sRGB-encoded for viewing."""
+def _registration(context: Context, channel: LaserChannel) -> tuple[int, np.ndarray, tuple[int, int],
+                                                                          tuple[int, int]]:
+    profile = context.profile
+    assert profile.slm is not None and profile.optics is not None
+    stored = context.calibration.registrations().get(channel.name)
+    if stored is None:
+        raise BenchctlError(f"no stored camera-SLM registration for {channel.name} on profile {profile.name!r}: run "
+                            "procedures/registration.toml first")
+    homography = np.asarray(stored["homography"], dtype=np.float64)
+    return target_plane(channel), homography, profile.slm.shape, profile.optics.roi
+
+
+def registered(context: Context, image: RawImage, channel: LaserChannel) -> np.ndarray:
+    """`channel`'s CFA plane of `image` on the target plane's ROI (linear, full scale 1), through the stored
+    camera-SLM registration."""
+    return registered_plane(image, *_registration(context, channel))
+
+
+def registered_saturation(context: Context, image: RawImage, channel: LaserChannel) -> float:
+    """The fraction of the ROI whose registered value draws on a saturated sensor pixel."""
+    return roi_saturation(image, *_registration(context, channel))
+
+
+# -- files ----------------------------------------------------------------------------------------------------------
+
+def save_hologram(context: Context, gray: np.ndarray, *name: str) -> str:
+    """An SLM frame exactly as displayed (8-bit PNG) under the run's holograms; returns its run-relative path."""
+    relative = layout.hologram_file(*name)
+    write_png(context.path(relative), gray)
+    return relative
+
+
+def save_image(context: Context, linear: np.ndarray | torch.Tensor, *name: str, srgb: bool = False) -> str:
+    """A linear image in [0, 1] ((h, w) or (3, h, w)) as a 16-bit PNG under the run's images, optionally
+    sRGB-encoded for viewing; returns its run-relative path."""
     image = torch.as_tensor(np.asarray(linear, dtype=np.float32)).clamp(0, 1)
     if srgb:
         image = linear_to_srgb(image)
     if image.dim() == 3:
         image = image.permute(1, 2, 0)
-    write_png(path, (image.numpy() * 65535).round().astype(np.uint16))
-    return path.name
+    relative = layout.image_file(*name)
+    write_png(context.path(relative), (image.numpy() * 65535).round().astype(np.uint16))
+    return relative
+
+
+def save_array(context: Context, array: np.ndarray | torch.Tensor, *name: str) -> str:
+    """An array (.npy) under the run's images; returns its run-relative path."""
+    relative = layout.image_file(*name)
+    np.save(context.path(relative), np.asarray(array))
+    return relative
+
+
+def state_path(context: Context, *name: str) -> Path:
+    """A file (or folder) of the run's resumable state."""
+    return context.path(layout.state_file(*name))

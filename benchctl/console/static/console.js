@@ -5,7 +5,8 @@ const COLOURS = ["#ff5050", "#40d060", "#5090ff"];
 let info = null;
 let socket = null;
 let frames = 0;
-let lastHeader = null;
+let lastSeq = 0;
+let drawnSeq = 0;
 let zoomUrl = null;
 let shownFrame = null;
 let laserState = {};
@@ -37,11 +38,10 @@ async function init() {
     option($("channel"), ch.name, `${ch.name} (${ch.wavelength_nm} nm)`);
     const row = document.createElement("tr");
     row.id = "laser-" + ch.name;
-    row.innerHTML = `<td class="ch-${ch.name}">${ch.name}<br><span class="muted small">${ch.wavelength_nm} nm,
-      ≤ ${ch.limit_mw} mW</span></td>
+    row.innerHTML = `<td class="ch-${ch.name}">${ch.name}<br><span class="muted small">${ch.wavelength_nm} nm<br>≤ ${ch.limit_mw} mW</span></td>
       <td><input class="setpoint" value="${ch.setpoint_mw}mW" title="e.g. 2mW, 0.5mW or 5%"></td>
       <td><button class="set">set</button></td><td><button class="emit">off</button></td>
-      <td class="readback small"></td><td class="status small"></td>`;
+      <td class="small"><span class="readback"></span><br><span class="status"></span></td>`;
     row.querySelector(".set").onclick = () => api(`/api/laser/${ch.name}/power`,
       { power: row.querySelector(".setpoint").value }).then((r) => say(`${ch.name}: setpoint ${r.setpoint_mw} mW (read back)`), () => {});
     row.querySelector(".emit").onclick = () => {
@@ -61,7 +61,7 @@ async function init() {
   }
   showFields();
   connect();
-  setInterval(() => { if (socket && socket.readyState === 1) socket.send("heartbeat"); }, 1000);
+  setInterval(() => send("heartbeat"), 1000);
 }
 
 function showFields() {
@@ -76,30 +76,39 @@ function showFields() {
 function connect() {
   socket = new WebSocket(`ws://${location.host}/ws`);
   socket.binaryType = "arraybuffer";
-  socket.onopen = () => { $("link").textContent = "connected"; $("link").className = "badge on"; };
+  socket.onopen = () => { $("link").textContent = "connected"; $("link").className = "badge on"; drawnSeq = 0; };
   socket.onclose = () => {
     $("link").textContent = "disconnected"; $("link").className = "badge off";
     setTimeout(connect, 1000);
   };
   socket.onmessage = (event) => {
-    if (typeof event.data === "string") state(JSON.parse(event.data)); else frame(event.data);
+    if (typeof event.data === "string") { send("heartbeat"); state(JSON.parse(event.data)); }
+    else frame(event.data).then((seq) => send("ack " + seq), () => send("ack " + lastSeq));
   };
 }
+
+// Every message to the server is a heartbeat for the laser's dead-man switch: the page answers what the server
+// sends (state twice a second, frames), so it needs no timer of its own; the interval is a second line.
+function send(text) { if (socket && socket.readyState === 1) socket.send(text); }
 
 async function frame(buffer) {
   const view = new DataView(buffer);
   const length = view.getUint32(0);
   const header = JSON.parse(new TextDecoder().decode(new Uint8Array(buffer, 4, length)));
+  lastSeq = header.seq;
   const zoomBytes = header.zoom_bytes;
   const jpeg = new Blob([new Uint8Array(buffer, 4 + length, buffer.byteLength - 4 - length - zoomBytes)],
     { type: "image/jpeg" });
   const bitmap = await createImageBitmap(jpeg);
+  if (header.seq < drawnSeq) { bitmap.close(); return header.seq; }  // a newer one was drawn meanwhile
+  drawnSeq = header.seq;
   const canvas = $("frame");
   if (canvas.width !== bitmap.width || canvas.height !== bitmap.height) {
     canvas.width = $("overlay").width = bitmap.width; canvas.height = $("overlay").height = bitmap.height;
-    $("frame-box").style.aspectRatio = `${bitmap.width} / ${bitmap.height}`;
+    $("frame-box").style.setProperty("--aspect", bitmap.width / bitmap.height);
   }
   canvas.getContext("2d").drawImage(bitmap, 0, 0);
+  bitmap.close();
   if (zoomBytes) {
     const zoom = new Blob([new Uint8Array(buffer, buffer.byteLength - zoomBytes)], { type: "image/jpeg" });
     if (zoomUrl) URL.revokeObjectURL(zoomUrl);
@@ -108,23 +117,27 @@ async function frame(buffer) {
     const w = header.zoom_window;
     $("zoom-caption").textContent = w ? `1:1 · rows ${w[0]}–${w[0] + w[2]}, cols ${w[1]}–${w[1] + w[3]}` : "1:1";
   } else { $("zoom-box").hidden = true; }
-  lastHeader = header;
   frames += 1;
   $("frame-count").textContent = frames;
   overlay(header);
   statistics(header.stats);
+  return header.seq;
 }
+
+const CHANNEL_COLOURS = { red: "#ff6b6b", green: "#5be37d", blue: "#6aa8ff" };
 
 function overlay(header) {
   const canvas = $("overlay"); const ctx = canvas.getContext("2d");
   ctx.clearRect(0, 0, canvas.width, canvas.height);
-  ctx.lineWidth = 2; ctx.setLineDash([8, 6]);
-  for (const [colour, corners] of Object.entries(header.overlay || {})) {
-    ctx.strokeStyle = "#ffd33d"; ctx.beginPath();
-    corners.forEach(([x, y], i) => (i ? ctx.lineTo : ctx.moveTo).call(ctx, x * canvas.width, y * canvas.height));
+  ctx.lineWidth = 2; ctx.font = "12px system-ui, sans-serif";
+  Object.entries(header.overlay || {}).forEach(([colour, corners], i) => {
+    const hue = CHANNEL_COLOURS[colour] || "#ffd33d";
+    ctx.setLineDash([8, 6]); ctx.lineDashOffset = 4 * i; ctx.strokeStyle = hue; ctx.beginPath();
+    corners.forEach(([x, y], k) => (k ? ctx.lineTo : ctx.moveTo).call(ctx, x * canvas.width, y * canvas.height));
     ctx.closePath(); ctx.stroke();
-    ctx.fillStyle = "#ffd33d"; ctx.fillText(colour, corners[0][0] * canvas.width + 4, corners[0][1] * canvas.height - 4);
-  }
+    // one label per colour, stacked above the rectangle's corner (registered colours usually nearly coincide)
+    ctx.fillStyle = hue; ctx.fillText(colour, corners[0][0] * canvas.width + 4, corners[0][1] * canvas.height - 6 - 14 * i);
+  });
   const w = header.zoom_window; const full = header.full_shape || header.shape;
   if (w && full) {
     ctx.setLineDash([]); ctx.strokeStyle = "#4c9bff";

@@ -3,9 +3,9 @@
 Per capture, for every laser channel that emits (and only those): the gray frame the simulated SLM shows
 becomes a phase through the simulator's own response ([sim.slm], deliberately not the profile's lookup table),
 lit by the laser's power (uniform, or a Gaussian beam), with a little unmodulated light from the pixel gaps;
-it is propagated to the target plane by the same Propagator the holograms are computed with
-(`OpticalSetup.from_profile(...).target_propagator()`, Fourier iris included) and becomes photons
-(P t lambda / (h c) times the optical efficiency). The three colour planes of electrons (each channel's
+it is propagated to the target plane by the same Propagator the holograms are computed with, at the profile's
+geometry (`OpticalSetup.of(profile.geometry(...)).target_propagator()`, Fourier iris included), and becomes
+photons (P t lambda / (h c) times the optical efficiency). The three colour planes of electrons (each channel's
 photons times its [R, G, B] quantum efficiency) are carried onto the sensor by the camera homography
 (magnification, rotation, offset; energy conserving) into only the box of sensor pixels the grid's image
 covers. The sensor adds shot noise (Poisson, electrons), read noise (Gaussian, electrons), the ISO gain,
@@ -19,7 +19,7 @@ import functools
 import math
 import time
 from collections import Counter
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from datetime import datetime
 from typing import Any
 
@@ -34,13 +34,16 @@ from benchctl.devices.errors import DeviceError
 from benchctl.devices.sim.protocol_sim import parse_url
 from benchctl.devices.sim.state import CAMERA_STATE, load_state, save_state
 from benchctl.devices.sim.slm import read_displayed, true_lut
-from benchctl.optics import Propagator, gray_to_phase, linear_to_srgb
+from benchctl.optics import Propagator, PrunedPropagator, gray_to_phase, linear_to_srgb
 from benchctl.optics.aberration import crosstalk_blur, gaussian_beam_power, tilt_phase, wavefront_phase
 from benchctl.optics.setup import OpticalSetup
-from benchctl.profiles import LaserChannel, Profile, SimSensorConfig
+from benchctl.profiles import LaserChannel, Profile, SimSensorConfig, SimSLMConfig
 
 PLANCK_J_S = 6.62607015e-34
 LIGHT_M_S = 299792458.0
+
+POISSON_BELOW = 50.0  # electrons in a live-view bin below which its shot noise is drawn as Poisson
+SATURATION_SAMPLES = 2_000_000  # sensor pixels a live-view frame evaluates, at most, to find saturated bins
 
 # A typical Bayer sensor's quantum efficiency behind its colour filters and IR-cut filter (electrons per photon):
 # wavelength nm, R, G, B. Channels without a [sim.sensor.response] entry use it, interpolated linearly.
@@ -143,26 +146,75 @@ def _illumination(shape: tuple[int, int], pitch_m: float | tuple[float, float], 
     return amplitude, torch.polar(torch.ones_like(amplitude), wavefront.to(torch.float32))
 
 
-def _target_irradiance(profile: Profile, channel: LaserChannel, gray: np.ndarray) -> torch.Tensor:
-    """Fraction of the beam's power on each target-plane pixel, (H, W) float64, for one channel.
+def _beam(profile: Profile, channel: LaserChannel) -> tuple[Any, ...]:
+    """The arguments of `_illumination` for `channel`, as the profile's [sim.beam] and [sim.aberration] say."""
+    slm, sim = profile.slm, profile.sim
+    assert slm is not None
+    beam = sim.beam
+    return (slm.shape, slm.pitch_m, beam.waist_mm, tuple(beam.offset_mm), tuple(beam.tilt_mrad),
+            channel.wavelength_m, tuple(sim.aberration.get(channel.name, {}).items()))
 
-    The driven phase (true response, blurred by crosstalk) modulates all but the pixel gaps' light; the beam's
-    tilt and the channel's wavefront error act on all of it; stray light spreads a fraction evenly."""
+
+def _panel_field(profile: Profile, channel: LaserChannel, gray: np.ndarray) -> torch.Tensor:
+    """The field leaving the panel (H, W) complex64: the driven phase (true response, blurred by crosstalk)
+    modulates all but the pixel gaps' light; the beam's tilt and the channel's wavefront error act on all of it."""
     slm, sim = profile.slm, profile.sim
     assert slm is not None
     driven = gray_to_phase(gray, true_lut(channel.wavelength_m, slm.bit_depth, sim.slm))
     phase = crosstalk_blur(torch.from_numpy(driven), sim.slm.crosstalk_px)
     gap = sim.slm.zero_order
-    beam = sim.beam
-    amplitude, wavefront = _illumination(slm.shape, slm.pitch_m, beam.waist_mm, tuple(beam.offset_mm),
-                                         tuple(beam.tilt_mrad), channel.wavelength_m,
-                                         tuple(sim.aberration.get(channel.name, {}).items()))
-    field = (torch.polar(amplitude * (1 - gap), phase) + amplitude * gap) * wavefront
-    with torch.inference_mode():
-        out = _propagator(OpticalSetup.from_profile(profile, channel.name))(field)
-    irradiance = out.abs().square().to(torch.float64)
-    stray = sim.imaging.stray_light
+    amplitude, wavefront = _illumination(*_beam(profile, channel))
+    return (torch.polar(amplitude * (1 - gap), phase) + amplitude * gap) * wavefront
+
+
+def _with_stray_light(profile: Profile, irradiance: torch.Tensor) -> torch.Tensor:
+    """Stray light spreads a fraction of the target plane's light evenly over it."""
+    stray = profile.sim.imaging.stray_light
     return (1 - stray) * irradiance + stray * irradiance.mean() if stray else irradiance
+
+
+def _target_irradiance(profile: Profile, channel: LaserChannel, gray: np.ndarray) -> torch.Tensor:
+    """Fraction of the beam's power on each target-plane pixel, (H, W) float64, for one channel: the panel's
+    field (`_panel_field`) propagated to the target plane, stray light added."""
+    field = _panel_field(profile, channel, gray)
+    with torch.inference_mode():
+        out = _propagator(OpticalSetup.of(profile.geometry(channel.name)))(field)
+    return _with_stray_light(profile, out.abs().square().to(torch.float64))
+
+
+@functools.lru_cache(maxsize=8)
+def _modulation(wavelength_m: float, bit_depth: int, response: SimSLMConfig) -> np.ndarray:
+    """Per gray level g the field the simulated panel passes of unit light, (1 - f) e^(i phase(g)) + f with f its
+    unmodulated fraction (complex64): `_panel_field` by table lookup where no crosstalk blurs the phase."""
+    table = (1 - response.zero_order) * np.exp(1j * true_lut(wavelength_m, bit_depth, response).phases)
+    return (table + response.zero_order).astype(np.complex64)
+
+
+@functools.lru_cache(maxsize=3)
+def _beam_field(*beam: Any) -> torch.Tensor:
+    """`_illumination(*beam)`'s amplitude times its tilt and wavefront error, (H, W) complex64, computed once."""
+    amplitude, wavefront = _illumination(*beam)
+    return amplitude * wavefront
+
+
+@functools.lru_cache(maxsize=3)
+def _pruned_propagator(setup: OpticalSetup) -> PrunedPropagator:
+    return PrunedPropagator(_propagator(setup))
+
+
+def _live_irradiance(profile: Profile, channel: LaserChannel, gray: np.ndarray) -> torch.Tensor:
+    """`_target_irradiance` (float32) as the live view computes it, faster: the panel's field by table lookup
+    where no crosstalk blurs the phase, propagated by `PrunedPropagator`."""
+    slm, response = profile.slm, profile.sim.slm
+    assert slm is not None
+    if response.crosstalk_px:
+        field = _panel_field(profile, channel, gray)
+    else:
+        field = torch.from_numpy(_modulation(channel.wavelength_m, slm.bit_depth, response)[gray])
+        field *= _beam_field(*_beam(profile, channel))
+    with torch.inference_mode():
+        out = _pruned_propagator(OpticalSetup.of(profile.geometry(channel.name)))(field)
+    return _with_stray_light(profile, out.real.square() + out.imag.square())
 
 
 def _lit_box(profile: Profile, homography: np.ndarray) -> tuple[int, int, int, int] | None:
@@ -177,10 +229,12 @@ def _lit_box(profile: Profile, homography: np.ndarray) -> tuple[int, int, int, i
     return (top, bottom, left, right) if top < bottom and left < right else None
 
 
-def _electron_planes(profile: Profile, gray: np.ndarray | None, powers_w: Mapping[str, float],
-                     exposure_s: float) -> np.ndarray:
+def _electron_planes(profile: Profile, gray: np.ndarray | None, powers_w: Mapping[str, float], exposure_s: float,
+                     irradiance: Callable[[Profile, LaserChannel, np.ndarray], torch.Tensor] = _target_irradiance,
+                     ) -> np.ndarray:
     """Mean photo-electrons per target-plane pixel as the sensor's R, G and B pixels collect them: (H, W, 3)
-    float32, the emitting channels' photons times their quantum efficiencies, before the camera geometry."""
+    float32, the emitting channels' photons times their quantum efficiencies, before the camera geometry.
+    `irradiance`: how each channel's light is computed (the live view's is faster)."""
     slm = profile.require("slm", "optics").slm
     assert slm is not None
     if gray is None:
@@ -192,8 +246,9 @@ def _electron_planes(profile: Profile, gray: np.ndarray | None, powers_w: Mappin
     for name, watts in powers_w.items():
         channel = profile.channel(name)
         photons = watts * exposure_s * channel.wavelength_m / (PLANCK_J_S * LIGHT_M_S) * profile.sim.beam.efficiency
-        irradiance = _target_irradiance(profile, channel, gray).numpy() * photons
-        electrons += (irradiance[..., None] * spectral_response(profile, channel)).astype(np.float32)
+        light = irradiance(profile, channel, gray).numpy() * photons
+        electrons += (light[..., None] * spectral_response(profile, channel).astype(light.dtype)).astype(
+            np.float32, copy=False)
     return electrons
 
 
@@ -274,6 +329,22 @@ def render_capture(profile: Profile, exposure_s: float | None = None, iso: int |
     return RawFrame(data, "dng", f"IMG_{number:04d}.DNG", metadata)
 
 
+def _binned_electrons(rng: np.random.Generator, expected: np.ndarray, read_variance: float) -> np.ndarray:
+    """Electrons a bin reads: its photo-electrons (Poisson, mean `expected`) plus its pixels' read noise (normal,
+    `read_variance`), float32. Where a bin expects POISSON_BELOW electrons or more the two are drawn as one normal of
+    their summed variance (Poisson's normal approximation, far finer than a preview shows; a third of the time)."""
+    few = expected < POISSON_BELOW
+    if few.all():
+        counts = rng.poisson(expected).astype(np.float32)
+    else:
+        counts = rng.standard_normal(expected.shape, dtype=np.float32)
+        counts *= np.sqrt(expected + np.float32(read_variance))
+        counts += expected
+        counts[few] = rng.poisson(expected[few])
+    counts[few] += rng.standard_normal(int(few.sum()), dtype=np.float32) * np.float32(math.sqrt(read_variance))
+    return counts
+
+
 class LiveView:
     """The simulated sensor's live view: what the camera shows while nobody captures, from the same physics as a
     capture (`render_capture`) at the size a screen needs.
@@ -281,10 +352,12 @@ class LiveView:
     A live-view frame is a binned readout of a window of the active area: each pixel is the mean of `bin` x `bin`
     sensor pixels of one CFA position (the Bayer layout is kept), with the shot and read noise of that mean, the
     gain, black level, clipping and quantisation of a capture. Only the light is expensive (a propagation per
-    emitting channel): it is computed once per SLM frame, laser state and exposure and reused until one changes,
-    so frames in between cost the resampling and the noise. Where one frame pixel covers two or more target-plane
-    pixels, those are averaged first (area sampling, not point sampling: a hologram's fine detail does not alias).
-    Saturation is that of the mean, which a single pixel in the bin may reach before it.
+    emitting channel, `_live_irradiance`: the capture's light, computed faster): it is computed once per SLM frame,
+    laser state and exposure and reused until one changes, so frames in between cost the resampling and the noise.
+    Where one frame pixel covers two or more target-plane pixels, those are averaged first (area sampling, not point
+    sampling: a hologram's fine detail does not alias). A bin's mean can stay below the white level while some of
+    its pixels reach it: the metadata's `saturated_bins` marks every bin that holds a sensor pixel whose mean signal
+    reaches the white level (noise aside).
     """
 
     def __init__(self, profile: Profile) -> None:
@@ -292,6 +365,7 @@ class LiveView:
         self._key: tuple | None = None
         self._planes: np.ndarray | None = None
         self._reduced: dict[int, np.ndarray] = {}
+        self._saturated: dict[tuple, np.ndarray | None] = {}
         self._frames = 0
 
     @property
@@ -321,8 +395,8 @@ class LiveView:
         if key != self._key or self._planes is None:
             gray, state = read_displayed() if shown is not None else (None, {})
             key = (state.get("frame"), key[1], exposure_s)  # the frame read, should a newer one have come
-            self._planes = _electron_planes(self.profile, gray, powers, exposure_s)
-            self._reduced = {}
+            self._planes = _electron_planes(self.profile, gray, powers, exposure_s, _live_irradiance)
+            self._reduced, self._saturated = {}, {}
             self._key = key
         return self._planes, {"slm_frame": key[0], "lasers_on_w": dict(key[1]),
                               "light_s": round(time.perf_counter() - start, 6)}
@@ -355,21 +429,81 @@ class LiveView:
         reduced, to_full = self._planes_at(binning / sensor_pixels_per_slm_pixel(self.profile))
         to_frame = np.array([[1 / binning, 0, (0.5 - left) / binning - 0.5],
                              [0, 1 / binning, (0.5 - top) / binning - 0.5], [0, 0, 1.0]])
-        mean = _sensor_electrons(self.profile, reduced, to_frame @ camera_homography(self.profile) @ to_full, shape,
-                                 (0, 0) if cfa else None)
+        homography = to_frame @ camera_homography(self.profile)
+        mean = _sensor_electrons(self.profile, reduced, homography @ to_full, shape, (0, 0) if cfa else None)
         self._frames += 1
         rng = np.random.default_rng([self.profile.sim.seed, 1 << 32, self._frames])  # apart from captures' streams
         pixels = binning * binning  # sensor pixels averaged into one frame pixel
         gain = dn_per_electron(sensor, iso)
-        counts = rng.poisson(mean * pixels).astype(np.float32)
+        counts = _binned_electrons(rng, (mean * pixels).astype(np.float32), sensor.read_noise_e**2 * pixels)
         counts *= np.float32(gain / pixels)
-        counts += rng.standard_normal(counts.shape, dtype=np.float32) * np.float32(
-            sensor.read_noise_e * gain / math.sqrt(pixels))
         counts += np.float32(sensor.black_level)
         np.rint(counts, out=counts)
         frame = np.clip(counts, 0, sensor.white_level).astype(np.uint16)
-        return frame, {**metadata, "frame": self._frames, "window": [top, left, rows, cols], "bin": round(binning, 4),
-                       "exposure_s": exposure_s, "iso": iso}
+        metadata = {**metadata, "frame": self._frames, "window": [top, left, rows, cols], "bin": round(binning, 4),
+                    "exposure_s": exposure_s, "iso": iso}
+        saturated = self._saturated_bins((top, left, rows, cols), binning, shape, iso)
+        if saturated is not None:
+            metadata["saturated_bins"] = saturated
+        return frame, metadata
+
+    def _saturated_bins(self, window: Window, binning: float, shape: tuple[int, int],
+                        iso: int) -> np.ndarray | None:
+        """(rows, cols) bool: the frame pixels whose bin holds a sensor pixel whose mean signal reaches the white
+        level (noise aside), that signal computed as a capture computes it; None where no bin does, or where a frame
+        pixel is one sensor pixel (its own value says it). Computed once per light, ISO and frame geometry.
+
+        A sensor pixel's signal is interpolated between its four nearest target-plane pixels, so it can reach the
+        white level only next to a target pixel that would on its own ("hot"). Only the bins within reach of a hot
+        pixel's image are candidates, and only their sensor pixels are evaluated (where that would be more than
+        SATURATION_SAMPLES pixels, all candidates are marked: never too few)."""
+        if binning <= 1:
+            return None
+        key = (iso, binning, *window, *shape)
+        if key not in self._saturated:
+            self._saturated[key] = self._find_saturated(window, binning, shape, iso)
+        return self._saturated[key]
+
+    def _find_saturated(self, window: Window, binning: float, shape: tuple[int, int], iso: int) -> np.ndarray | None:
+        assert self._planes is not None
+        sensor, spread = self.profile.sim.sensor, sensor_pixels_per_slm_pixel(self.profile)
+        # a sensor pixel gets a target pixel's electrons spread over its image's area (`_sensor_electrons`)
+        full = (sensor.white_level - sensor.black_level) / dn_per_electron(sensor, iso) * spread**2
+        if self._planes.max() < full:
+            return None
+        hot_y, hot_x = np.nonzero(np.maximum.reduce([self._planes[..., c] for c in range(3)]) >= full)
+        top, left = window[:2]
+        homography = camera_homography(self.profile)
+        images = homography[:2] @ np.stack([hot_x, hot_y, np.ones_like(hot_x)]).astype(np.float64)
+        candidates = np.zeros(shape, np.uint8)
+        rows = np.floor((images[1] - top + 0.5) / binning).astype(np.int64)
+        cols = np.floor((images[0] - left + 0.5) / binning).astype(np.int64)
+        inside = (rows >= -1) & (rows <= shape[0]) & (cols >= -1) & (cols <= shape[1])
+        candidates[np.clip(rows[inside], 0, shape[0] - 1), np.clip(cols[inside], 0, shape[1] - 1)] = 1
+        reach = math.ceil(1.5 * spread / binning) + 1  # bins a hot pixel's interpolation can touch
+        candidates = cv2.dilate(candidates, np.ones((2 * reach + 1,) * 2, np.uint8)).astype(bool)
+        bin_y, bin_x = np.nonzero(candidates)
+        n = math.ceil(binning) + 1  # sensor pixels per bin and axis, at most
+        if len(bin_y) * n * n > SATURATION_SAMPLES:
+            return candidates
+        offsets = np.arange(n)
+        first_y, first_x = np.ceil(bin_y * binning - 0.5), np.ceil(bin_x * binning - 0.5)
+        ys = first_y[:, None] + offsets  # (bins, n) sensor rows and columns of each bin, relative to the window
+        xs = first_x[:, None] + offsets
+        valid = ((ys < np.ceil((bin_y + 1) * binning - 0.5)[:, None])[:, :, None]
+                 & (xs < np.ceil((bin_x + 1) * binning - 0.5)[:, None])[:, None, :])
+        ys, xs = np.broadcast_arrays((ys + top)[:, :, None], (xs + left)[:, None, :])  # (bins, n, n) active area
+        target = np.linalg.solve(homography, np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)]))
+        points = xs.size
+        target = np.pad((target[:2] / target[2]).astype(np.float32), ((0, 0), (0, -points % 1024)))
+        # laid out 1024 wide: OpenCV maps are at most 32767 rows long
+        values = cv2.remap(self._planes, target[0].reshape(-1, 1024), target[1].reshape(-1, 1024), cv2.INTER_LINEAR,
+                           borderMode=cv2.BORDER_CONSTANT, borderValue=0).reshape(-1, 3)[:points]
+        colours = np.array(CFA_LAYOUTS[sensor.cfa]).reshape(2, 2)[ys.astype(np.int64) % 2, xs.astype(np.int64) % 2]
+        signal = np.take_along_axis(values, colours.reshape(-1, 1), axis=1).reshape(len(bin_y), n * n)
+        saturated = np.zeros(shape, bool)
+        saturated[bin_y, bin_x] = ((signal >= full) & valid.reshape(len(bin_y), -1)).any(axis=1)
+        return saturated if saturated.any() else None
 
     def dng(self, width: int, window: Window | None = None, *, exposure_s: float | None = None,
             iso: int | None = None) -> tuple[bytes, dict[str, Any]]:

@@ -13,6 +13,8 @@ above the channel's max_power_mw), so no colour is lost in read noise or clipped
 
 from __future__ import annotations
 
+import statistics
+from collections.abc import Iterable
 from typing import Annotated, Any, Literal
 
 import msgspec
@@ -20,31 +22,41 @@ import numpy as np
 import torch
 from msgspec import Meta
 
-from benchctl.cgh.method import get_method
-from benchctl.capture.colour_planes import PEAK_PERCENTILE, merge_capture, registered_plane, roi_saturation
-from benchctl.errors import BenchctlError
+from benchctl.capture.colour_planes import PEAK_PERCENTILE, merge_capture
+from benchctl.cgh import DEFAULT_METHOD, get_method
 from benchctl.optics import colour_scores, crop_roi
+from benchctl.optics.metrics import pareto_front
 from benchctl.profiles import LaserChannel
-from benchctl.runner.builtin import lut_calibration, registration
-from benchctl.runner.auto_exposure import Exposure, PeakGoal, probe_step, probed_power
-from benchctl.runner.procedure import Context, Step
-from benchctl.runner.report import colour_capture_report
-from benchctl.runner.holograms import target_plane
-from benchctl.runner.steps import (
+from benchctl.runner.api import (
+    BenchctlError,
+    Context,
+    ExposureMode,
     HologramParameters,
-    Registration,
+    PeakGoal,
+    RegistrationMode,
+    Report,
+    Step,
     channels,
     check_method,
-    displayed_frame,
     exposure_step,
+    figure,
+    front_plot,
     hologram_step,
     load_exposure,
     power_w,
     prepared_target,
+    probe_step,
+    probed_power,
+    registered,
+    registered_saturation,
+    save_image,
+    shown,
+    table,
     target_label,
+    target_plane,
     unknown_setpoints,
-    write_linear16,
 )
+from benchctl.runner.builtin import lut_calibration, registration
 from benchctl.targets import active_channels
 
 AUTO_LUT_GRAY_STEP = 16  # every 16th gray level: 17 exposures per colour, errors below 0.01 rad on the simulator
@@ -56,12 +68,12 @@ class ColourCaptureParameters(HologramParameters, kw_only=True):
 
     targets: Annotated[tuple[str, ...], Meta(min_length=1)] = ("chart:bars",)
     # one method, or several: each target is then captured with each, and the report draws their front
-    method: str | Annotated[tuple[str, ...], Meta(min_length=1)] = "dpac"
+    method: str | Annotated[tuple[str, ...], Meta(min_length=1)] = DEFAULT_METHOD
     repeats: Annotated[int, Meta(ge=1, le=1000)] = 1
-    registration: Registration = "auto"
+    registration: RegistrationMode = "auto"
     # "auto": measure the SLM's lookup table first for colours that have none; "skip": use what there is
     lut_calibration: Literal["auto", "skip"] = "auto"
-    exposure: Exposure = "auto"  # "auto": a probe frame per colour sets the power (peak at peak_goal); "fixed"
+    exposure: ExposureMode = "auto"  # "auto": a probe frame per colour sets the power (peak at peak_goal); "fixed"
     peak_goal: PeakGoal = 0.7  # fraction of full scale
 
 
@@ -125,15 +137,14 @@ def _capture_steps(context: Context, spec: str, label: str, lit: list[LaserChann
     if options.exposure == "auto":
         for channel in lit:
             key = f"probe/{label}/{channel.name}"
-            steps.append(probe_step(context, key, (label, "probe", channel.name), channel,
-                                    _shown(f"hologram/{label}/{channel.name}"), f"probe exposure {label}",
-                                    options.peak_goal))
+            steps.append(probe_step(context, key, channel, shown(f"hologram/{label}/{channel.name}"),
+                                    f"probe exposure {label}", options.peak_goal))
             powers[channel.name] = probed_power(key)
     for repeat in _repeats(options.repeats):
         for channel in lit:
-            steps.append(exposure_step(
-                context, f"capture/{label}{repeat}/{channel.name}", (label + repeat, channel.name), channel,
-                powers[channel.name], _shown(f"hologram/{label}/{channel.name}"), f"expose {label}{repeat}"))
+            steps.append(exposure_step(context, f"capture/{label}{repeat}/{channel.name}", channel,
+                                       powers[channel.name], shown(f"hologram/{label}/{channel.name}"),
+                                       f"expose {label}{repeat}"))
         steps.append(Step(f"process/{label}{repeat}", f"register, merge and score {label}{repeat}",
                           _processor(spec, label, repeat, lit, target, str(options.method))))
     return steps
@@ -143,54 +154,47 @@ def _repeats(count: int) -> list[str]:
     return [""] if count == 1 else [f"-r{n}" for n in range(1, count + 1)]
 
 
-def _shown(hologram_key: str):
-    return lambda context: displayed_frame(context, hologram_key)
-
-
 def _processor(spec: str, label: str, repeat: str, lit: list[LaserChannel], target: torch.Tensor, method: str):
     def action(context: Context) -> dict[str, Any]:
-        profile = context.profile
-        assert profile.slm is not None and profile.optics is not None
-        shape, roi = profile.slm.shape, profile.optics.roi
-        homographies = context.calibration.registrations()
-        target_roi = crop_roi(target, roi)
+        assert context.profile.optics is not None
+        target_roi = crop_roi(target, context.profile.optics.roi)
         planes, saturation, simulated = {}, {}, torch.zeros_like(target_roi)
         for channel in lit:
             index = target_plane(channel)
             image, _ = load_exposure(context, f"capture/{label}{repeat}/{channel.name}")
-            homography = np.asarray(homographies[channel.name]["homography"], dtype=np.float64)
-            planes[index] = registered_plane(image, index, homography, shape, roi)
-            saturation[index] = roi_saturation(image, index, homography, shape, roi)
+            planes[index] = registered(context, image, channel)
+            saturation[index] = registered_saturation(context, image, channel)
             sim = np.load(context.path(context.result(f"hologram/{label}/{channel.name}")["simulated"]))
             simulated[index] = torch.from_numpy(sim).square().clamp(0, 1)
-        merged = merge_capture(planes, target_roi, saturation=saturation)
-        folder = ("images", label + repeat)
+        capture = merge_capture(planes, target_roi, saturation=saturation)
+        folder = label + repeat
         files = {
-            "target": write_linear16(context.path(*folder, "target.png"), target_roi.square(), srgb=True),
-            "capture": write_linear16(context.path(*folder, "capture.png"), merged.merged_linear, srgb=True),
-            "capture_linear": write_linear16(context.path(*folder, "capture-linear.png"), merged.merged_linear),
-            "simulated": write_linear16(context.path(*folder, "simulated.png"), simulated, srgb=True),
+            "target": save_image(context, target_roi.square(), folder, "target.png", srgb=True),
+            "capture": save_image(context, capture.merged.linear, folder, "capture.png", srgb=True),
+            "capture_linear": save_image(context, capture.merged.linear, folder, "capture-linear.png"),
+            "simulated": save_image(context, simulated, folder, "simulated.png", srgb=True),
         }
         names = {target_plane(c): c.name for c in lit}
         for index, plane in planes.items():
             peak = float(max(plane.max(), 1e-12))
-            files[f"plane_{names[index]}"] = write_linear16(context.path(*folder, f"plane-{names[index]}.png"),
-                                                            np.clip(plane, 0, None) / peak)
+            files[f"plane_{names[index]}"] = save_image(context, np.clip(plane, 0, None) / peak, folder,
+                                                        f"plane-{names[index]}.png")
         per_colour = {}
         for channel in lit:
             index = target_plane(channel)
             generated = context.result(f"hologram/{label}/{channel.name}")
             per_colour[channel.name] = {
-                "capture": {k: round(v, 4) for k, v in merged.scores[index].items()},
+                "capture": {k: round(v, 4) for k, v in capture.scores[index].items()},
                 "simulated": generated["scores"], "generation_s": generated["seconds"],
-                "cached": generated["cached"], "gain": merged.gains[index], "saturated_fraction": saturation[index],
+                "cached": generated["cached"], "gain": capture.merged.gains[index],
+                "saturated_fraction": saturation[index],
                 "power_w": context.result(f"capture/{label}{repeat}/{channel.name}")["setpoint_w"],
                 "peak": round(float(np.percentile(planes[index], PEAK_PERCENTILE)), 4),
             }
         return {
-            "target": spec, "method": method, "label": label + repeat, "folder": "/".join(folder), "files": files,
-            "colours": per_colour, "warnings": list(merged.warnings),
-            "merged": {"capture": {k: round(v, 4) for k, v in merged.merged_scores.items()},
+            "target": spec, "method": method, "label": label + repeat, "files": files,
+            "colours": per_colour, "warnings": list(capture.warnings),
+            "merged": {"capture": {k: round(v, 4) for k, v in capture.merged_scores.items()},
                        "simulated": {k: round(v, 4) for k, v in colour_scores(simulated, target_roi).items()}},
         }
 
@@ -205,3 +209,87 @@ def _reporter(targets: list[tuple[str, str, list[LaserChannel]]], used: list[Las
         return colour_capture_report(context, results, [c.name for c in used])
 
     return action
+
+
+def _flat(prefix: str, scores: dict[str, Any]) -> dict[str, Any]:
+    return {f"{prefix}{key}": value for key, value in scores.items()}
+
+
+def colour_capture_report(context: Context, results: list[dict[str, Any]], colours: list[str]) -> dict[str, Any]:
+    """Per target: target / simulation / capture side by side, per-colour and merged scores, generation time
+    against error; metrics.json and metrics.csv (one row per target and colour, plus the merged row)."""
+    report = Report(f"Colour capture: {', '.join(r['label'] for r in results)}")
+    rows = []
+    for result in results:
+        label = result["label"]
+        for name, colour in result["colours"].items():
+            rows.append({"target": result["target"], "label": label, "colour": name,
+                         "generation_s": colour["generation_s"], "cached": colour["cached"], "gain": colour["gain"],
+                         "saturated_fraction": colour["saturated_fraction"], "power_w": colour["power_w"],
+                         "peak": colour["peak"],
+                         **_flat("simulated_", colour["simulated"]), **_flat("capture_", colour["capture"])})
+        rows.append({"target": result["target"], "label": label, "colour": "merged",
+                     **_flat("simulated_", result["merged"]["simulated"]),
+                     **_flat("capture_", result["merged"]["capture"])})
+        report.warn(*[f"{label}: {w}" for w in result["warnings"]])
+        pictures = "".join(figure(context, result["files"][key], caption) for key, caption in (
+            ("target", "target (sRGB)"), ("simulated", "simulated reconstruction"), ("capture", "merged capture")))
+        score_rows = [{"colour": name, "generation s": c["generation_s"],
+                       "simulated PSNR dB (amplitude)": c["simulated"]["psnr_amplitude_db"],
+                       "capture PSNR dB (amplitude)": c["capture"]["psnr_amplitude_db"],
+                       "simulated SSIM (sRGB)": c["simulated"]["ssim_srgb"],
+                       "capture SSIM (sRGB)": c["capture"]["ssim_srgb"], "gain": c["gain"],
+                       "laser mW": c["power_w"] * 1e3, "peak": c["peak"], "saturated": c["saturated_fraction"]}
+                      for name, c in result["colours"].items()]
+        merged = result["merged"]
+        merged_rows = [{"image": kind, "PSNR dB linear": s["psnr_linear_db"], "PSNR dB sRGB": s["psnr_srgb_db"],
+                        "SSIM sRGB": s["ssim_srgb"]} for kind, s in merged.items()]
+        report.section(f"Target {result['target']} ({label})", pictures)
+        report.section("Per colour (ROI, least-squares scaled)", table(score_rows), level=3)
+        report.section("Merged colour image", table(merged_rows), level=3)
+    speed = [{"label": r["label"], "colour": r["colour"], "generation s": r["generation_s"],
+              "simulated PSNR dB": r.get("simulated_psnr_amplitude_db"),
+              "capture PSNR dB": r.get("capture_psnr_amplitude_db")} for r in rows if r["colour"] != "merged"]
+    method = context.parameters(HologramParameters).method
+    methods = method if isinstance(method, str) else ", ".join(method)
+    report.section(f"Generation time against error ({methods})", table(speed),
+                   "<p>Generation time is the time it took to compute the hologram (for a cached hologram, when it "
+                   "was computed). PSNR in amplitude on the ROI after least-squares scaling.</p>")
+    front = method_front(results)
+    if len(front) > 1:
+        points = [(r["method"], r["seconds per frame"], r["capture PSNR dB sRGB"], r["on front"]) for r in front]
+        report.section("Speed against error across methods",
+                       front_plot(points, "seconds per frame (every colour)", "merged capture PSNR dB (sRGB)"),
+                       table(front), "<p>Per method, means over the targets: the time to compute one frame of every "
+                       "colour in the target, and the merged capture's PSNR. Filled markers are on the Pareto front: "
+                       "no other method is both at least as fast and at least as good.</p>")
+    headline = [f"{r['label']}: merged capture PSNR {r['merged']['capture']['psnr_srgb_db']:.2f} dB sRGB, SSIM "
+                f"{r['merged']['capture']['ssim_srgb']:.3f} (simulated {r['merged']['simulated']['psnr_srgb_db']:.2f} "
+                f"dB, {r['merged']['simulated']['ssim_srgb']:.3f}); generation "
+                + ", ".join(f"{n} {c['generation_s']:.2f} s" for n, c in r["colours"].items()) for r in results]
+    return report.write(context, {"procedure": "colour-capture", "method": method, "targets": results,
+                                  "front": front}, rows, colours, headline)
+
+
+def method_front(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One row per hologram method of a colour capture: mean seconds per frame (all colours of a target), mean
+    merged PSNR / SSIM captured and simulated, and whether it is on the Pareto front of time against captured
+    PSNR."""
+    groups: dict[str, list[dict[str, Any]]] = {}
+    for result in results:
+        groups.setdefault(result["method"], []).append(result)
+    rows = []
+    for method, group in groups.items():
+        rows.append({
+            "method": method, "targets": len(group),
+            "seconds per frame": _mean(sum(c["generation_s"] for c in r["colours"].values()) for r in group),
+            "capture PSNR dB sRGB": _mean(r["merged"]["capture"]["psnr_srgb_db"] for r in group),
+            "capture SSIM sRGB": _mean(r["merged"]["capture"]["ssim_srgb"] for r in group),
+            "simulated PSNR dB sRGB": _mean(r["merged"]["simulated"]["psnr_srgb_db"] for r in group),
+        })
+    on_front = pareto_front([(r["seconds per frame"], r["capture PSNR dB sRGB"]) for r in rows])
+    return [row | {"on front": flag} for row, flag in zip(rows, on_front)]
+
+
+def _mean(values: Iterable[float]) -> float:
+    return round(statistics.fmean(values), 4)

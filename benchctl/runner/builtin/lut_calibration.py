@@ -21,21 +21,23 @@ from benchctl.capture.lut_calibration import (
     phase_response,
     zero_order_signal,
 )
-from benchctl.devices.slm import slm_for
 from benchctl.devices.slm.lut import save_lut
 from benchctl.profiles import LaserChannel
-from benchctl.runner.calibration import Calibration
-from benchctl.runner.holograms import target_plane
-from benchctl.runner.procedure import Context, Step
-from benchctl.runner.report import lut_report
-from benchctl.runner.steps import (
+from benchctl.runner.api import (
+    Calibration,
+    Context,
     DarkFrames,
     ExposureParameters,
     Frames,
+    Report,
+    Step,
     channels,
     exposure_step,
+    line_plot,
     load_exposure,
     power_w,
+    table,
+    target_plane,
     unknown_setpoints,
 )
 
@@ -69,20 +71,16 @@ def lut_steps(context: Context, used: list[LaserChannel], params: LutCalibration
     for channel in used:
         watts = power_w(context, channel)
         for gray in grays:
-            steps.append(exposure_step(context, f"lut/{channel.name}/{gray}", ("lut", channel.name, f"gray-{gray:05d}"),
-                                       channel, watts, _grating(gray), f"grating 0/{gray}", frames=params.frames,
-                                       dark_frames=params.dark_frames))
+            steps.append(exposure_step(context, f"lut/{channel.name}/{gray}", channel, watts,
+                                       _grating(slm.shape, slm.bit_depth, gray), f"grating 0/{gray}",
+                                       frames=params.frames, dark_frames=params.dark_frames))
         steps.append(Step(f"lut/{channel.name}/fit", f"phase response and lookup table ({channel.name})",
                           _fitter(channel, grays)))
     return steps
 
 
-def _grating(gray: int):
-    def frame(context: Context) -> np.ndarray:
-        slm = context.bench.slm
-        return grating_frame(slm.shape, gray, bit_depth=slm.bit_depth)
-
-    return frame
+def _grating(shape: tuple[int, int], bit_depth: int, gray: int):
+    return lambda context: grating_frame(shape, gray, bit_depth=bit_depth)
 
 
 def _fitter(channel: LaserChannel, grays: list[int]):
@@ -97,17 +95,20 @@ def _fitter(channel: LaserChannel, grays: list[int]):
             signals.append(zero_order_signal(image, target_plane(channel), homography, slm.shape))
         phases = phase_response(np.array(grays), np.array(signals))
         lut = lut_from_response(np.array(grays), phases, slm.bit_depth)
-        for calibration in (context.calibration, Calibration.store(context.calibration.profile)):
+        run = context.record.name if context.record else None
+
+        def store(calibration: Calibration) -> None:
             save_lut(calibration.lut_path(channel.name), lut)
-            calibration.record_lut(channel.name, {"grays": len(grays), "run": context.record.name if context.record
-                                                  else None})
-        context.recalibrated()
-        table = lut.phases
+            calibration.record_lut(channel.name, {"grays": len(grays), "run": run})
+
+        context.save_calibration(store)
+        measured = lut.phases
         result = {"grays": grays, "signals": signals, "phases": [float(p) for p in phases],
-                  "depth_rad": float(table[-1] - table[0]), "file": f"calibration/lut-{channel.name}.csv"}
-        truth = slm_for(context.profile).ground_truth_lut(channel.wavelength_m)  # None on a real panel
+                  "depth_rad": float(measured[-1] - measured[0]),
+                  "file": context.calibration.lut_path(channel.name).name}
+        truth = context.slm.ground_truth_lut(channel.wavelength_m)  # None on a real panel
         if truth is not None:
-            error = table - table[0] - (truth - truth[0])
+            error = measured - measured[0] - (truth - truth[0])
             one_period = truth - truth[0] <= 2 * np.pi
             result["simulator"] = {"rms_rad": float(np.sqrt(np.mean(error[one_period] ** 2))),
                                    "max_rad": float(np.abs(error[one_period]).max())}
@@ -124,3 +125,22 @@ def _reporter(used: list[LaserChannel]):
         return lut_report(context, {c.name: context.result(f"lut/{c.name}/fit") for c in used})
 
     return action
+
+
+def lut_report(context: Context, fits: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """Measured gray -> phase per colour (plot), depth, and on the simulated bench the error against the truth."""
+    series = {name: ([float(g) for g in fit["grays"]], fit["phases"]) for name, fit in fits.items()}
+    rows = [{"colour": name, "grays measured": len(fit["grays"]), "phase depth rad": fit["depth_rad"],
+             "RMS vs simulator rad": (fit.get("simulator") or {}).get("rms_rad"),
+             "max vs simulator rad": (fit.get("simulator") or {}).get("max_rad"), "table": fit["file"]}
+            for name, fit in fits.items()]
+    signals = {name: ([float(g) for g in fit["grays"]], fit["signals"]) for name, fit in fits.items()}
+    report = Report("SLM lookup-table calibration")
+    report.section("Measured phase response", line_plot(series, "gray level", "phase - phase(0) (rad)"))
+    report.section("Zero-order signal", line_plot(signals, "gray level", "signal (full scale = 1)"))
+    report.section("Tables", table(rows), "<p>The tables are stored per profile and used by later runs for every "
+                   "channel whose table the profile does not name ([slm.lut]).</p>")
+    headline = [f"{r['colour']}: depth {r['phase depth rad']:.3f} rad"
+                + (f", RMS {r['RMS vs simulator rad']:.4f} rad vs the simulator"
+                   if r["RMS vs simulator rad"] is not None else "") for r in rows]
+    return report.write(context, {"procedure": "lut-calibration", "colours": fits}, rows, list(fits), headline)

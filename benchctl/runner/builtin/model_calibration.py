@@ -9,35 +9,36 @@ later runs find it (OpticalSetup.field_model).
 from __future__ import annotations
 
 import time
-from pathlib import Path
 from typing import Annotated, Any
 
 import numpy as np
 import torch
 from msgspec import Meta
 
-from benchctl.capture.colour_planes import registered_plane, roi_saturation
-from benchctl.devices.slm import slm_for
-from benchctl.errors import BenchctlError
-from benchctl.images import read_image, write_png
+from benchctl.images import read_image
 from benchctl.optics.aberration import ZERNIKE_TERMS
 from benchctl.optics.fitted import calibration_patterns, fit_optics
-from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import LaserChannel, NonNegativeInt, Positive
-from benchctl.runner.builtin import registration
-from benchctl.runner.calibration import Calibration
-from benchctl.runner.holograms import target_plane
-from benchctl.runner.procedure import Context, Step
-from benchctl.runner.report import model_calibration_report
-from benchctl.runner.steps import (
+from benchctl.runner.api import (
+    BenchctlError,
+    Calibration,
+    Context,
     ExposureParameters,
-    Registration,
+    RegistrationMode,
+    Report,
+    Step,
     channels,
     exposure_step,
+    line_plot,
     load_exposure,
     power_w,
+    registered,
+    registered_saturation,
+    save_hologram,
+    table,
     unknown_setpoints,
 )
+from benchctl.runner.builtin import registration
 
 MAX_SATURATED = 1e-3  # fraction of ROI pixels clipped in a capture above which the fit is refused
 DESCRIPTION = ("random-point and flat phase patterns per colour, captured, registered; wavefront, beam, crosstalk and "
@@ -47,8 +48,7 @@ DESCRIPTION = ("random-point and flat phase patterns per colour, captured, regis
 class ModelCalibrationParameters(ExposureParameters, kw_only=True):
     """The calibration patterns and the fit."""
 
-    # 4 patterns: on the test bench the fitted coefficients move by < 0.005 waves from 4 to 8
-    # (docs/model_calibration.md)
+    # 4 patterns: more move the fitted coefficients by little (docs/model_calibration.md)
     patterns: Annotated[int, Meta(ge=1)] = 4
     spacing_px: Annotated[int, Meta(ge=2)] = 6  # one focused point per spacing^2 ROI pixels
     fit_steps: Annotated[int, Meta(ge=2)] = 120  # Adam steps of the fit (half blurred, half sharp)
@@ -60,12 +60,12 @@ class ModelCalibrationParameters(ExposureParameters, kw_only=True):
     crosstalk: bool = True  # fit the SLM's pixel crosstalk too (a blur of the driven phase)
     # one crosstalk for the panel, the median of the colours' fits: the liquid crystal's fringing is the same in
     # pixels at every wavelength, and one colour's fit can trade it for the camera's blur, which SGD then
-    # over-compensates (docs/model_calibration.md: red 19.26 -> 22.06 dB on the quarter-size bench)
+    # over-compensates (docs/model_calibration.md)
     panel_crosstalk: bool = True
     zero_order: bool = True  # fit the fraction of the light the panel leaves unmodulated too
     camera_blur: bool = True  # compare through a fitted blur of the captures (camera optics, sampling, registration)
     seed: NonNegativeInt = 0  # of the random points
-    registration: Registration = "auto"
+    registration: RegistrationMode = "auto"
 
 
 PARAMETERS = ModelCalibrationParameters
@@ -82,8 +82,7 @@ def plan(context: Context) -> list[Step]:
         steps.append(Step(f"model/patterns/{channel.name}", f"{count} calibration patterns ({channel.name})",
                           _patterns(channel)))
         for k in range(count):
-            steps.append(exposure_step(context, f"model/capture/{channel.name}/{k}", ("model", channel.name, str(k)),
-                                       channel, power_w(context, channel),
+            steps.append(exposure_step(context, f"model/capture/{channel.name}/{k}", channel, power_w(context, channel),
                                        lambda ctx, c=channel.name, n=k: _pattern_frame(ctx, c, n),
                                        f"expose calibration pattern {k + 1}/{count}"
                                        + (" (flat)" if k == params.patterns else "")))
@@ -99,18 +98,15 @@ def plan(context: Context) -> list[Step]:
 
 def _patterns(channel: LaserChannel):
     def action(context: Context) -> dict[str, Any]:
-        setup = OpticalSetup.from_profile(context.profile, channel.name)
+        setup = context.setup(channel.name)
         params = context.parameters(ModelCalibrationParameters)
         phases = calibration_patterns(setup.slm_propagator(), setup.roi, params.patterns, seed=params.seed,
                                       spacing_px=params.spacing_px)
         if params.flat:
             phases = torch.cat([phases, torch.zeros_like(phases[:1])])
-        slm = slm_for(context.profile)
-        files = []
-        for k, phase in enumerate(phases):
-            file = Path("holograms") / f"model-{channel.name}-{'flat' if k == params.patterns else k}.png"
-            write_png(context.path(str(file)), slm.encode(phase, channel.name))
-            files.append(str(file))
+        files = [save_hologram(context, context.encode(phase, channel.name),
+                               f"model-{channel.name}-{'flat' if k == params.patterns else k}.png")
+                 for k, phase in enumerate(phases)]
         return {"files": files, "flat": params.flat}
 
     return action
@@ -122,19 +118,14 @@ def _pattern_frame(context: Context, channel: str, k: int) -> np.ndarray:
 
 def _fitter(channel: LaserChannel):
     def action(context: Context) -> dict[str, Any]:
-        profile = context.profile
-        assert profile.slm is not None and profile.optics is not None
-        setup = OpticalSetup.from_profile(profile, channel.name)
-        slm = slm_for(profile)
+        setup = context.setup(channel.name)
         registration_entry = context.calibration.registrations()[channel.name]
-        homography = np.asarray(registration_entry["homography"], dtype=np.float64)
         shown, captured, saturated = [], [], 0.0
         for k, file in enumerate(context.result(f"model/patterns/{channel.name}")["files"]):
-            shown.append(torch.from_numpy(slm.driven(read_image(context.path(file)), channel.name)))
+            shown.append(torch.from_numpy(context.slm.driven(read_image(context.path(file)), channel.name)))
             image, _ = load_exposure(context, f"model/capture/{channel.name}/{k}")
-            where = (target_plane(channel), homography, profile.slm.shape, profile.optics.roi)
-            captured.append(torch.from_numpy(registered_plane(image, *where)))
-            saturated = max(saturated, roi_saturation(image, *where))
+            captured.append(torch.from_numpy(registered(context, image, channel)))
+            saturated = max(saturated, registered_saturation(context, image, channel))
         if saturated > MAX_SATURATED:
             raise BenchctlError(f"model calibration {channel.name}: {saturated:.2%} of the ROI is saturated in a "
                                 "capture (the fit needs linear images): lower the setpoint or the exposure")
@@ -150,9 +141,7 @@ def _fitter(channel: LaserChannel):
         entry = {**fit.model.to_dict(), "residual": round(fit.residual, 5),
                  "initial_residual": round(fit.initial_residual, 5), "patterns": len(shown) - flat, "flat": flat,
                  "camera_blur_px": fit.camera_blur_px}
-        context.calibration.save_model(channel.name, entry)
-        Calibration.store(context.calibration.profile).save_model(channel.name, entry)
-        context.recalibrated()
+        context.save_calibration(lambda calibration: calibration.save_model(channel.name, entry))
         waves = ", ".join(f"{name} {value:+.3f}" for name, value in fit.model.zernike_waves)
         context.say(f"      {channel.name}: {waves} waves; waist {fit.model.waist_m * 1e3:.2f} mm; crosstalk "
                     f"{fit.model.crosstalk_px:.3f} px; zero order {fit.model.zero_order:.3f}; "
@@ -177,14 +166,14 @@ def _panel(used: list[LaserChannel]):
     def action(context: Context) -> dict[str, Any]:
         fitted = {c.name: context.result(f"model/fit/{c.name}")["crosstalk_px"] for c in used}
         shared = round(float(np.median(list(fitted.values()))), 5)
-        store = Calibration.store(context.calibration.profile)
         models = context.calibration.models()
-        for name, value in fitted.items():
-            entry = {key: item for key, item in models[name].items() if key not in ("geometry", "created")}
-            entry.update(crosstalk_px=shared, crosstalk_fitted_px=value)
-            context.calibration.save_model(name, entry)
-            store.save_model(name, entry)
-        context.recalibrated()
+
+        def store(calibration: Calibration) -> None:
+            for name, value in fitted.items():
+                entry = {key: item for key, item in models[name].items() if key not in ("geometry", "created")}
+                calibration.save_model(name, {**entry, "crosstalk_px": shared, "crosstalk_fitted_px": value})
+
+        context.save_calibration(store)
         context.say(f"      crosstalk {shared:.3f} px for every colour (fitted: "
                     + ", ".join(f"{name} {value:.3f}" for name, value in fitted.items()) + ")")
         return {"crosstalk_px": shared, "fitted_px": fitted}
@@ -203,3 +192,41 @@ def _reporter(used: list[LaserChannel], panel: bool):
         return model_calibration_report(context, fits, list(ZERNIKE_TERMS), notes)
 
     return action
+
+
+MODEL_NOTE = ("<p>Wavefront error at the SLM: ANSI/OSA Zernike terms, "
+              "RMS-normalised over the disc circumscribing the panel. Residual: RMS misfit of the registered captures "
+              "relative to their RMS, after the best gain and offset (gain alone for the flat pattern), with the ideal "
+              "model (before) and the fitted one (after). Crosstalk: one value for the panel where several colours "
+              "were fitted (the median of their fits: the liquid crystal's fringing is the same in pixels at every "
+              "wavelength; the residuals are those of each colour's own fit). Camera blur: the blur of the registered "
+              "captures (camera optics, sampling, resampling), fitted so that it is not taken for the bench's; "
+              "holograms do not use it. The model is stored per profile and used by generation, SGD and the "
+              "simulated scores of later runs.</p>")
+"""How to read the fitted-model table (the report says it under the table)."""
+
+
+def model_calibration_report(context: Context, fits: dict[str, dict[str, Any]], terms: list[str],
+                             warnings: list[str]) -> dict[str, Any]:
+    """Per colour: fitted Zernike coefficients (waves), beam, crosstalk, zero order, residual before and after; the
+    fit's loss curves."""
+    rows = [{"colour": name, **{f"{t} (waves)": f["zernike_waves"].get(t) for t in terms},
+             "waist mm": round(f["waist_mm"], 4), "offset mm": [round(v, 4) for v in f["offset_mm"]],
+             "crosstalk px": f.get("crosstalk_px", 0.0),
+             **({"crosstalk px, this colour's fit": f["crosstalk_fitted_px"]} if "crosstalk_fitted_px" in f else {}),
+             "zero order": f.get("zero_order", 0.0),
+             "camera blur px": f.get("camera_blur_px", 0.0),
+             "residual before": f["initial_residual"], "residual after": f["residual"],
+             "patterns": f"{f['patterns']}{' + flat' if f.get('flat') else ''}",
+             "fit s": f["seconds"],
+             "registered through a model": "yes" if f.get("registration_through_model") else "no"}
+            for name, f in fits.items()]
+    by_quantity = [{"": key, **{row["colour"]: row[key] for row in rows}} for key in rows[0] if key != "colour"]
+    curves = {name: (list(range(1, len(f["losses"]) + 1)), f["losses"]) for name, f in fits.items()}
+    report = Report("Model calibration")
+    report.warn(*warnings)
+    report.section("Fitted model", table(by_quantity), MODEL_NOTE)
+    report.section("Fit", line_plot(curves, "Adam step", "relative residual (first half blurred)"))
+    return report.write(context, {"procedure": "model-calibration", "colours": fits}, rows, list(fits),
+                        [f"{r['colour']}: residual {r['residual before']:.3f} -> {r['residual after']:.3f}"
+                         for r in rows])

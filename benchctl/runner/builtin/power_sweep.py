@@ -14,23 +14,27 @@ from typing import Annotated, Any
 import numpy as np
 from msgspec import Meta
 
+from benchctl.capture.colour_planes import PEAK_PERCENTILE
 from benchctl.devices.power import parse_power
-from benchctl.errors import BenchctlError
 from benchctl.profiles import LaserChannel
-from benchctl.runner.auto_exposure import signal_stats
-from benchctl.runner.procedure import Context, Step
-from benchctl.runner.report import power_sweep_report
-from benchctl.runner.steps import (
+from benchctl.runner.api import (
+    BenchctlError,
+    Context,
     Frames,
     HologramParameters,
+    Report,
+    Step,
     channels,
     check_method,
-    displayed_frame,
     exposure_step,
     hologram_step,
+    line_plot,
     load_exposure,
     power_w,
     prepared_target,
+    shown,
+    signal_stats,
+    table,
     unknown_setpoints,
 )
 
@@ -60,8 +64,7 @@ def plan(context: Context) -> list[Step]:
         hologram_key = f"hologram/sweep/{channel.name}"
         steps.append(hologram_step(hologram_key, "sweep", target, channel, params))
         for number, watts in enumerate(_levels(context, channel)):
-            steps.append(exposure_step(context, f"sweep/{channel.name}/{number}", ("sweep", channel.name, str(number)),
-                                       channel, watts, lambda ctx, k=hologram_key: displayed_frame(ctx, k),
+            steps.append(exposure_step(context, f"sweep/{channel.name}/{number}", channel, watts, shown(hologram_key),
                                        f"sweep level {number + 1}"))
     steps.append(Step("report", "linearity fits, exposure advice, report", _reporter(used)))
     return steps
@@ -131,3 +134,41 @@ def _reporter(used: list[LaserChannel]):
         return power_sweep_report(context, analyses)
 
     return action
+
+
+def power_sweep_report(context: Context, analyses: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """Signal against setpoint per colour (plot and table), linearity, and the exposure advice."""
+    report = Report("Laser power sweep")
+    rows, summary = [], []
+    for name, analysis in analyses.items():
+        for point in analysis["points"]:
+            rows.append({"colour": name, "setpoint_mw": point["setpoint_w"] * 1e3,
+                         "measured_mw": None if point["measured_w"] is None else point["measured_w"] * 1e3,
+                         "mean": point["mean"], "peak": point["peak"],
+                         "saturated_fraction": point["saturated_fraction"],
+                         "exposure_s": point["exposure_s"]})
+        if "warning" in analysis:
+            report.warn(analysis["warning"])
+            continue
+        fit = analysis["mean_fit"]
+        summary.append({"colour": name, "R^2": fit["r2"], "max deviation": fit["max_deviation"],
+                        "mean per mW": fit["slope"] * 1e-3, "offset": fit["offset"],
+                        "working setpoint mW": analysis["working_setpoint_w"] * 1e3,
+                        "peak at working setpoint": analysis["peak_at_working"],
+                        "recommended exposure s": analysis.get("recommended_exposure_s")})
+        if analysis["saturated_levels"]:
+            report.warn(f"{name}: {analysis['saturated_levels']} level(s) saturated (left out of the fits)")
+        if analysis["peak_at_working"] >= 1.0:
+            report.warn(f"{name}: the working setpoint saturates the sensor at this exposure")
+    series = {name: ([p["setpoint_w"] * 1e3 for p in a["points"]], [p["mean"] for p in a["points"]])
+              for name, a in analyses.items()}
+    report.section("Signal against setpoint", line_plot(series, "setpoint (mW)", "mean signal (full scale = 1)"))
+    report.section("Linearity and exposure", table(summary), "<p>Fits use the unsaturated levels. The recommended "
+                   f"exposure puts the peak ({PEAK_PERCENTILE:g}th percentile) at {PEAK_GOAL:.0%} of full scale at "
+                   "the working setpoint.</p>")
+    report.section("Measurements", table(rows))
+    headline = [f"{s['colour']}: R^2 {s['R^2']:.5f}, recommended exposure "
+                + (f"{s['recommended exposure s']:.4g} s" if s["recommended exposure s"] else "n/a")
+                for s in summary]
+    return report.write(context, {"procedure": "power-sweep", "colours": analyses}, rows, list(analyses),
+                        headline + report.warnings)

@@ -21,23 +21,26 @@ from benchctl.capture.registration import (
     fit_registration,
 )
 from benchctl.devices.camera import camera_for
-from benchctl.errors import BenchctlError
-from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import LaserChannel, Positive
-from benchctl.runner.calibration import Calibration
-from benchctl.runner.holograms import target_plane
-from benchctl.runner.procedure import Context, Step
-from benchctl.runner.report import registration_report
-from benchctl.runner.steps import (
+from benchctl.runner.api import (
+    BenchctlError,
+    Context,
     HologramParameters,
+    RegistrationMode,
+    Report,
+    Step,
     carried,
     channels,
-    displayed_frame,
     exposure_step,
+    figure,
     hologram_step,
     load_exposure,
     power_w,
+    shown,
+    table,
+    target_plane,
     unknown_setpoints,
+    unregistered,
 )
 
 DESCRIPTION = "dot-grid hologram per colour, captured; RANSAC homography stored for colour capture"
@@ -64,10 +67,10 @@ def plan(context: Context) -> list[Step]:
 
 
 def registration_first(context: Context, used: list[LaserChannel], params: HologramParameters,
-                       when: str) -> list[Step]:
+                       when: RegistrationMode) -> list[Step]:
     """The registration steps a procedure runs first for its colours without a stored registration, with the
     parameters it shares with registration (`when` is its own `registration` choice: "stored" refuses instead)."""
-    missing = [c for c in used if c.name not in context.calibration.registrations()]
+    missing = unregistered(context, used)
     if missing and when == "stored":
         raise BenchctlError(f"no stored camera-SLM registration for {', '.join(c.name for c in missing)} on profile "
                             f"{context.profile.name!r}: run procedures/registration.toml first, or set "
@@ -85,9 +88,8 @@ def registration_steps(context: Context, used: list[LaserChannel], params: Regis
     for channel in used:
         hologram_key = f"registration/hologram/{channel.name}"
         steps.append(hologram_step(hologram_key, LABEL, target, channel, params))
-        steps.append(exposure_step(context, f"registration/capture/{channel.name}", (LABEL, channel.name), channel,
-                                   power_w(context, channel), lambda ctx, k=hologram_key: displayed_frame(ctx, k),
-                                   "expose the dot grid"))
+        steps.append(exposure_step(context, f"registration/capture/{channel.name}", channel,
+                                   power_w(context, channel), shown(hologram_key), "expose the dot grid"))
         steps.append(Step(f"registration/fit/{channel.name}", f"find the dots and fit the homography ({channel.name})",
                           _fitter(channel, points, params.grid, params.max_rms_target_px)))
     return steps
@@ -100,10 +102,9 @@ def _fitter(channel: LaserChannel, points: np.ndarray, grid: tuple[int, int], ma
         fit = fit_registration(points, found, max_rms_target_px=max_rms_target_px)
         # Dots displayed through a fitted optical model land where they were meant to; through the ideal model an
         # aberrated bench scales and moves them, and the homography absorbs that (docs/model_calibration.md).
-        through_model = OpticalSetup.from_profile(context.profile, channel.name).field_model is not None
+        through_model = context.setup(channel.name).field_model is not None
         entry = {**fit.to_dict(), "through_model": through_model}
-        context.calibration.save_registration(channel.name, entry)
-        Calibration.store(context.calibration.profile).save_registration(channel.name, entry)
+        context.save_calibration(lambda calibration: calibration.save_registration(channel.name, entry))
         context.say(f"      {channel.name}: {fit.inliers}/{fit.points} dots, RMS {fit.rms_px:.3f} px, "
                     f"max {fit.max_px:.3f} px, {fit.scale:.3f} sensor px per SLM px")
         return {**entry, "scale": fit.scale, "mirrored": fit.mirrored, "simulator": _against_simulator(context, fit)}
@@ -133,4 +134,19 @@ def _reporter(used: list[LaserChannel]):
         return registration_report(context, fits)
 
     return action
+
+
+def registration_report(context: Context, fits: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """Per colour: dots used, reprojection error, scale, and (simulated bench) the error against the truth."""
+    rows = [{"colour": name, "inliers": f["inliers"], "points": f["points"], "rms px": f["rms_px"],
+             "max px": f["max_px"], "sensor px per SLM px": f["scale"], "mirrored": f["mirrored"],
+             "ROI corners vs simulator, max px": (f["simulator"] or {}).get("corner_error_max_px")}
+            for name, f in fits.items()]
+    pictures = "".join(figure(context, context.result(f"registration/hologram/{name}")["file"],
+                              f"dot-grid hologram {name}") for name in fits)
+    report = Report("Camera-SLM registration")
+    report.section("Fits", table(rows), pictures)
+    return report.write(context, {"procedure": "registration", "colours": fits}, rows, list(fits),
+                        [f"{r['colour']}: RMS {r['rms px']:.3f} px over {r['inliers']}/{r['points']} dots"
+                         for r in rows])
 

@@ -2,7 +2,7 @@
 
 A checkpoint (`torch.save` of plain dicts and tensors, read back with `weights_only=True`) holds:
 - `method`, `benchctl_version`, `torch_version`, `created_unix`;
-- per colour: the full optical geometry it was trained for (`geometry.geometry_of`), its validation metrics
+- per colour: the full optical geometry it was trained for (`Geometry.to_dict`), its validation metrics
   and its weights (float32, or float16 to keep shipped files small; always loaded back as float32);
 - `training`: loss, lr, epochs, steps, batch size, seed, data description, processes, the equivalent command;
 - for `--resume` only (the `.resume.pt` file written next to it): Adam's state per colour and where training
@@ -16,9 +16,9 @@ runnable form of a registered method that needs a checkpoint.
 
 from __future__ import annotations
 
+import functools
 import io
 import time
-from collections import OrderedDict
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,9 +31,10 @@ from benchctl.cgh import Method, get_method
 from benchctl.cgh.learned.models import LEARNED_METHODS, build_model
 from benchctl.errors import BadValueError, BenchctlError
 from benchctl.files import atomic_write_bytes, write_json
+from benchctl.optics.geometry import Geometry
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import Profile
-from benchctl.runner.learned.geometry import Geometry, geometry_differences, geometry_of, setup_from_geometry
+from benchctl.runner.geometry import geometry_differences
 
 FORMAT = "benchctl.learned-checkpoint"
 FORMAT_VERSION = 1
@@ -47,7 +48,7 @@ class Checkpoint:
     """A method's trained models, one per colour, with what they were trained for and how."""
 
     method: str
-    geometry: dict[str, Geometry]  # colour (laser channel name) -> geometry
+    geometry: dict[str, Geometry]  # colour (laser channel name) -> the geometry it was trained for
     weights: dict[str, dict[str, torch.Tensor]]  # colour -> state dict (float32 in memory)
     training: dict[str, Any] = field(default_factory=dict)
     metrics: dict[str, dict[str, float]] = field(default_factory=dict)  # colour -> validation metrics
@@ -70,7 +71,8 @@ class Checkpoint:
             "format": FORMAT, "format_version": FORMAT_VERSION, "method": self.method,
             "benchctl_version": self.benchctl_version, "torch_version": self.torch_version,
             "created_unix": round(self.created_unix, 3), "weights_dtype": self.weights_dtype,
-            "colours": {c: {"geometry": self.geometry[c], "metrics": self.metrics.get(c, {})} for c in self.geometry},
+            "colours": {c: {"geometry": self.geometry[c].to_dict(), "metrics": self.metrics.get(c, {})}
+                        for c in self.geometry},
             "training": self.training,
         }
 
@@ -106,23 +108,23 @@ class Checkpoint:
 
     def model(self, colour: str, device: torch.device | str = "cpu") -> torch.nn.Module:
         """The trained network for `colour`, float32, in eval mode, on `device`."""
-        model = build_model(self.method, setup_from_geometry(self.geometry[colour]))
+        model = build_model(self.method, OpticalSetup.of(self.geometry[colour]))
         try:
             model.load_state_dict(self.weights[colour])
         except RuntimeError as exc:
             raise BenchctlError(f"{self.path}: the {colour} weights do not fit {self.method}: {exc}") from None
         return model.to(device).eval()
 
-    def differences(self, setups: Mapping[str, OpticalSetup], where: str) -> list[str]:
-        """What keeps this checkpoint from serving `setups` (colour -> setup); empty when it fits.
+    def differences(self, geometries: Mapping[str, Geometry], where: str) -> list[str]:
+        """What keeps this checkpoint from serving `geometries` (colour -> geometry); empty when it fits.
 
         Differences shared by every colour are listed once, others with their colour's name.
         """
-        missing = [c for c in setups if c not in self.geometry]
+        missing = [c for c in geometries if c not in self.geometry]
         if missing:
             has = ", ".join(self.geometry)
             return [f"no model for colour {', '.join(map(repr, missing))} (the checkpoint has {has})"]
-        per_colour = {c: geometry_differences(self.geometry[c], geometry_of(s), where) for c, s in setups.items()}
+        per_colour = {c: geometry_differences(self.geometry[c], g, where) for c, g in geometries.items()}
         lists = [d for d in per_colour.values() if d]
         if not lists:
             return []
@@ -130,21 +132,21 @@ class Checkpoint:
             return lists[0]
         return [f"{c}: {'; '.join(d)}" for c, d in per_colour.items() if d]
 
-    def check(self, setups: Mapping[str, OpticalSetup], where: str) -> None:
-        """Refuse (BenchctlError naming each difference) unless this checkpoint fits `setups`."""
-        problems = self.differences(setups, where)
+    def check(self, geometries: Mapping[str, Geometry], where: str) -> None:
+        """Refuse (BenchctlError naming each difference) unless this checkpoint fits `geometries`."""
+        problems = self.differences(geometries, where)
         if problems:
             raise BenchctlError(f"checkpoint {self.path or '(unsaved)'} ({self.method}) does not fit {where}: "
                                 + "; ".join(problems))
 
-    def colour_for(self, setup: OpticalSetup) -> str:
-        """The colour whose recorded geometry is exactly `setup`'s; else a BenchctlError naming the differences
+    def colour_for(self, geometry: Geometry) -> str:
+        """The colour whose recorded geometry is exactly `geometry`; else a BenchctlError naming the differences
         from the colour of nearest wavelength."""
-        actual = geometry_of(setup)
-        for colour, geometry in self.geometry.items():
-            if not geometry_differences(geometry, actual, ""):
+        for colour, recorded in self.geometry.items():
+            if not geometry_differences(recorded, geometry, ""):
                 return colour
-        nearest = min(self.geometry, key=lambda c: abs(self.geometry[c]["wavelength_nm"] - actual["wavelength_nm"]))
+        nearest = min(self.geometry, key=lambda c: abs(self.geometry[c].wavelength_m - geometry.wavelength_m))
+        actual = geometry
         problems = geometry_differences(self.geometry[nearest], actual, "this optical setup")
         raise BenchctlError(f"checkpoint {self.path} ({self.method}) has no model for this optical setup; "
                             f"nearest is {nearest}: {'; '.join(problems)}")
@@ -185,9 +187,13 @@ def read_checkpoint(path: Path | str) -> Checkpoint:
     weights = _require(data, "weights", path)
     if set(colours) != set(weights) or not colours:
         raise BenchctlError(f"{path}: colours {sorted(colours)} and weights {sorted(weights)} do not agree")
+    try:
+        geometry = {c: Geometry.from_dict(v["geometry"]) for c, v in colours.items()}
+    except (KeyError, TypeError, ValueError) as exc:
+        raise BenchctlError(f"{path}: a recorded optical geometry is not one benchctl reads ({exc})") from None
     return Checkpoint(
         method=method,
-        geometry={c: dict(v["geometry"]) for c, v in colours.items()},
+        geometry=geometry,
         weights={c: {k: v.float() if v.is_floating_point() else v for k, v in weights[c].items()} for c in colours},
         training=dict(data.get("training", {})),
         metrics={c: dict(v.get("metrics", {})) for c, v in colours.items()},
@@ -202,12 +208,11 @@ def read_checkpoint(path: Path | str) -> Checkpoint:
     )
 
 
-_READ_CACHE: OrderedDict[tuple[str, int, int], Checkpoint] = OrderedDict()
-_MODEL_CACHE: OrderedDict[tuple[str, int, int, str, str], torch.nn.Module] = OrderedDict()
-_CACHE_SIZE = 6
+CACHE_SIZE = 6  # checkpoints (and models) kept read: a procedure's few methods and colours
 
 
 def _file_key(path: Path) -> tuple[str, int, int]:
+    """A checkpoint file's version: its resolved path, modification time and size."""
     try:
         stat = path.stat()
     except FileNotFoundError:
@@ -215,30 +220,24 @@ def _file_key(path: Path) -> tuple[str, int, int]:
     return str(path.resolve()), stat.st_mtime_ns, stat.st_size
 
 
-def _remember(cache: OrderedDict, key: Any, value: Any) -> Any:
-    cache[key] = value
-    cache.move_to_end(key)
-    while len(cache) > _CACHE_SIZE:
-        cache.popitem(last=False)
-    return value
+@functools.lru_cache(maxsize=CACHE_SIZE)
+def _read(path: str, mtime_ns: int, size: int) -> Checkpoint:
+    return read_checkpoint(path)
+
+
+@functools.lru_cache(maxsize=CACHE_SIZE)
+def _model(path: str, mtime_ns: int, size: int, colour: str, device: str) -> torch.nn.Module:
+    return _read(path, mtime_ns, size).model(colour, device)
 
 
 def cached_checkpoint(path: Path | str) -> Checkpoint:
-    """`read_checkpoint`, remembered per file (path, modification time and size) for repeated use."""
-    key = _file_key(Path(path))
-    if key in _READ_CACHE:
-        _READ_CACHE.move_to_end(key)
-        return _READ_CACHE[key]
-    return _remember(_READ_CACHE, key, read_checkpoint(path))
+    """`read_checkpoint`, remembered per version of the file, for repeated use."""
+    return _read(*_file_key(Path(path)))
 
 
 def cached_model(path: Path | str, colour: str, device: torch.device | str = "cpu") -> torch.nn.Module:
     """The eval-mode model of `colour` in checkpoint `path` on `device`, built once per (file, colour, device)."""
-    key = (*_file_key(Path(path)), colour, str(torch.device(device)))
-    if key in _MODEL_CACHE:
-        _MODEL_CACHE.move_to_end(key)
-        return _MODEL_CACHE[key]
-    return _remember(_MODEL_CACHE, key, cached_checkpoint(path).model(colour, device))
+    return _model(*_file_key(Path(path)), colour, str(torch.device(device)))
 
 
 def _repository_root() -> Path:
@@ -260,10 +259,10 @@ def find_checkpoint(method: str, profile: Profile) -> Path | None:
     return None
 
 
-def profile_setups(profile: Profile, channels: Sequence[str] | None = None) -> dict[str, OpticalSetup]:
-    """The optical setup of each named laser channel of `profile` (all channels by default)."""
+def profile_geometries(profile: Profile, channels: Sequence[str] | None = None) -> dict[str, Geometry]:
+    """The optical geometry of each named laser channel of `profile` (all channels by default)."""
     names = list(channels) if channels is not None else [c.name for c in profile.channels]
-    return {name: OpticalSetup.from_profile(profile, name) for name in names}
+    return {name: profile.geometry(name) for name in names}
 
 
 def checkpoint_problem(path: Path, profile: Profile, channels: Sequence[str] | None = None) -> str | None:
@@ -272,7 +271,7 @@ def checkpoint_problem(path: Path, profile: Profile, channels: Sequence[str] | N
         checkpoint = cached_checkpoint(path)
     except BenchctlError as exc:
         return str(exc)
-    problems = checkpoint.differences(profile_setups(profile, channels), f"profile {profile.name!r}")
+    problems = checkpoint.differences(profile_geometries(profile, channels), f"profile {profile.name!r}")
     return "; ".join(problems) or None
 
 
@@ -288,6 +287,6 @@ def learned_method(name: str, checkpoint_path: Path | str) -> Method:
         raise BadValueError(f"checkpoint {path} holds a {checkpoint.method} model, not {method.network}")
 
     def networks(setup: OpticalSetup, device: torch.device) -> torch.nn.Module:
-        return cached_model(path, cached_checkpoint(path).colour_for(setup), device)
+        return cached_model(path, cached_checkpoint(path).colour_for(setup.geometry), device)
 
     return method.trained(networks, str(path))

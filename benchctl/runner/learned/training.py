@@ -16,7 +16,6 @@ the weights stay identical; only rank 0 validates, prints and writes checkpoints
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import shlex
@@ -34,26 +33,24 @@ import torch.nn.functional as F
 from msgspec.structs import replace
 from torch import nn
 
-from benchctl.cgh.learned.models import LEARNED_METHODS, build_model
+from benchctl.cgh.learned.models import LEARNED_METHODS, VARIANTS, build_model
 from benchctl.cgh.method import get_method
 from benchctl.cgh.learned.vgg import PERCEPTUAL_WEIGHT, PerceptualLoss, load_vgg19
 from benchctl.terminal import ProgressLine
 from benchctl.errors import BadValueError, BenchctlError
 from benchctl.files import ensure_dir
-from benchctl.optics.fitted import FittedOptics
+from benchctl.memory import Estimate, check_training_memory, size_text, training_estimate
 from benchctl.optics.metrics import amplitude_scores, crop_roi, lsq_scale, psnr
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import Profile
-from benchctl.runner.calibration import Calibration
-from benchctl.runner.calibration import geometry as calibration_geometry
-from benchctl.runner.holograms import target_plane
+from benchctl.runner.calibration import Calibration, validity
+from benchctl.runner.geometry import grid_profile
 from benchctl.runner.learned.averaging import WeightAverage
 from benchctl.runner.learned.checkpoint import RESUME_SUFFIX, WEIGHT_DTYPES, Checkpoint, read_checkpoint
 from benchctl.runner.learned.data import ImageSource, describe_sources, image_sources, split_sources
-from benchctl.runner.learned.geometry import geometry_of, grid_profile
-from benchctl.runner.learned.memory import check_training_memory, step_bytes
 from benchctl.runner.learned.health import StepStats, TrainingHealth, clamped_fraction, gradient_norm
-from benchctl.targets import prepare_target
+from benchctl.runner.setups import optical_setups
+from benchctl.targets import prepare_target, target_plane
 
 LOSSES = ("mse", "l2-perceptual")
 MAX_LR = 0.1  # Adam on these networks diverges far below this; above it a value is a typo
@@ -203,6 +200,12 @@ class ReconstructionLoss(nn.Module):
         return loss
 
 
+def step_estimate(settings: TrainSettings, grid: tuple[int, int]) -> Estimate:
+    """The estimated peak memory of one training step of `settings` on `grid` (benchctl.memory)."""
+    variant = VARIANTS[settings.method]
+    return training_estimate(settings.method, variant.family, variant.factor, grid, settings.batch_size)
+
+
 def make_loss(kind: str, vgg_weights: Path | None = None) -> ReconstructionLoss:
     """The loss `--loss kind` names; l2-perceptual loads VGG19 from `vgg_weights` (required)."""
     if kind == "mse":
@@ -333,7 +336,7 @@ def training_setups(profile: Profile, size: tuple[int, int] | None,
     ROI scaled with the grid, as the paper trains at 1080p, 4K and 8K)."""
     bench = grid_profile(profile, size) if size else profile.require("slm", "optics")
     names = list(colours) if colours else [c.name for c in profile.require("laser").channels]
-    return {name: OpticalSetup.from_profile(bench, profile.channel(name).name) for name in names}
+    return optical_setups(bench, [profile.channel(name).name for name in names])
 
 
 def _geometry_note(profile: Profile, size: tuple[int, int] | None) -> str:
@@ -351,7 +354,7 @@ def train(profile: Profile, settings: TrainSettings, out_dir: Path, planes: Mapp
     loss_fn = make_loss(settings.loss, settings.vgg_weights)
     setups = training_setups(profile, settings.size, settings.colours)
     if not torch.cuda.is_available():  # the estimate is of CPU memory; a GPU's allocator says for itself
-        check_training_memory(settings.method, next(iter(setups.values())).shape, settings.batch_size)
+        check_training_memory(step_estimate(settings, next(iter(setups.values())).shape))
     train_set, val_set = split_sources(image_sources(settings.data), settings.val_fraction, settings.seed)
     job = Distributed.from_env()
     try:
@@ -391,8 +394,8 @@ def _train(profile: Profile, settings: TrainSettings, out_dir: Path, planes: Map
         f"(ROI {geometry.roi[0]}x{geometry.roi[1]}), {len(train_set)} training / {len(val_set)} validation images "
         f"from {settings.data}, {settings.epochs} epoch(s) of {steps_per_epoch} step(s) "
         f"(batch {settings.batch_size} x {job.world_size} process(es)), {total} step(s) in all, on {device}"
-        + (f", about {step_bytes(settings.method, geometry.shape, settings.batch_size) / 2**30:.1f} GiB per step"
-           if device.type == "cpu" else ""))
+        + (f", about {size_text(step_estimate(settings, geometry.shape).peak)} per step" if device.type == "cpu"
+           else ""))
     meta = {
         "loss": settings.loss, "lr": settings.lr, "epochs": settings.epochs, "batch_size": settings.batch_size,
         "seed": settings.seed, "val_fraction": settings.val_fraction, "max_steps": settings.max_steps,
@@ -457,7 +460,7 @@ def _train(profile: Profile, settings: TrainSettings, out_dir: Path, planes: Map
             history.append({"epoch": epoch + 1, "step": step, "complete": epoch_done,
                             "seconds": round(time.perf_counter() - started, 1), "metrics": metrics})
             checkpoint = Checkpoint(
-                method=settings.method, geometry={c: geometry_of(s) for c, s in setups.items()},
+                method=settings.method, geometry={c: s.geometry for c, s in setups.items()},
                 weights={c: m.state_dict() for c, m in kept.items()},
                 training=meta | {"steps": step, "epochs_done": position["epoch"], "history": history,
                                  "seconds": round(time.perf_counter() - started, 1)},
@@ -609,31 +612,15 @@ def with_model_calibration(profile: Profile, settings: TrainSettings) -> Profile
         if not path.is_file():
             raise BadValueError(f"{flag}: no such file")
         calibrated = replace(profile, optics=replace(profile.optics, model=path.resolve()))
-    entries = _model_entries(calibrated.optics.model, flag)
     for name in settings.colours or [channel.name for channel in profile.channels]:
-        fitted_for = (entries.get(profile.channel(name).name) or {}).get("geometry")
-        if fitted_for is not None and fitted_for != calibration_geometry(profile):
-            raise BadValueError(f"{flag}: {calibrated.optics.model} was fitted for another geometry than profile "
-                                f"{profile.name!r} ({_geometry_change(fitted_for, calibration_geometry(profile))})")
-        try:
-            model = FittedOptics.load(calibrated.optics.model, profile.channel(name).name)
-        except (ValueError, KeyError, TypeError) as exc:
-            raise BadValueError(f"{flag}: {calibrated.optics.model} is not an optical model file ({exc})") from None
-        if model is None:
+        entry = calibrated.fitted_model(profile.channel(name).name)  # a bad file: one line naming key and value
+        if entry is None:
             raise BadValueError(f"{flag}: {calibrated.optics.model} has no fitted model for {name!r}")
+        fitted_for, here = entry.get("geometry"), validity(profile, name)
+        if fitted_for is not None and fitted_for != here:
+            raise BadValueError(f"{flag}: {calibrated.optics.model} was fitted for another geometry than profile "
+                                f"{profile.name!r} ({_geometry_change(fitted_for, here)})")
     return calibrated
-
-
-def _model_entries(path: Path, flag: str) -> dict[str, Any]:
-    """The per-colour entries of an optical-model file (each may record the geometry it was fitted for)."""
-    try:
-        data = json.loads(Path(path).read_text())
-    except (OSError, ValueError) as exc:
-        raise BadValueError(f"{flag}: {path} is not an optical model file ({exc})") from None
-    colours = data.get("colours") if isinstance(data, dict) else None
-    if not isinstance(colours, dict):
-        raise BadValueError(f"{flag}: {path} is not an optical model file (no 'colours' table)")
-    return {name: entry for name, entry in colours.items() if isinstance(entry, dict)}
 
 
 def _geometry_change(fitted: Mapping[str, Any], now: Mapping[str, Any]) -> str:

@@ -1,13 +1,14 @@
-"""The bench a procedure runs on: the profile's laser, SLM and camera, each opened the first time a step needs
-it and all closed together (emission off first) however the run ends.
+"""The instruments a run uses: the profile's laser, SLM and camera, each opened the first time a step needs it
+and all closed together (emission off first, then the profile's setpoints back) however the run ends.
 
-`expose` is the one way procedures put light on the camera: frame on the SLM, only the wanted channel at its
+`expose` is the one way a run puts light on the camera: frame on the SLM, only the wanted channel at its
 setpoint, the settle time, RAW frames saved the moment they arrive, emission off again, then dark frames with
 every channel off. Laser safety (off at connect, off on any exit, limits, read-back) lives in the driver.
 """
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from contextlib import ExitStack
@@ -20,14 +21,16 @@ import numpy as np
 from benchctl.devices.camera import Camera, RawFrame, open_camera
 from benchctl.devices.errors import DeviceError
 from benchctl.devices.laser import Laser, open_laser
+from benchctl.devices.power import format_power
 from benchctl.devices.slm import SLM, open_slm
+from benchctl.errors import BenchctlError
 from benchctl.profiles import Profile
 
 DEVICES = ("laser", "slm", "camera")
 
 
-class Bench:
-    """Lazily opened devices of one profile; use as a context manager."""
+class Instruments:
+    """The lazily opened devices of one profile; use as a context manager."""
 
     def __init__(self, profile: Profile, say: Callable[[str], None] = print) -> None:
         self.profile = profile
@@ -36,21 +39,42 @@ class Bench:
         self._open: dict[str, Any] = {}
         self.identities: dict[str, Any] = {}
 
-    def __enter__(self) -> Bench:
+    def __enter__(self) -> Instruments:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
 
     def close(self) -> None:
-        """Close every opened device, the laser first (its close switches emission off)."""
+        """Close every opened device, the laser first: emission off, every channel's setpoint back to the profile's
+        (automatic exposure and power sweeps choose others; the next `laser on` must not surprise), then its ports
+        (closing switches emission off again)."""
         laser = self._open.pop("laser", None)
         try:
             if laser is not None:
-                laser.close()
+                try:
+                    laser.all_off()
+                    self._restore_setpoints(laser)
+                finally:
+                    laser.close()
         finally:
             self._open.clear()
             self._stack.close()
+
+    def _restore_setpoints(self, laser: Laser) -> None:
+        """Each channel's setpoint back to the profile's where the run left another, said; a channel that cannot be
+        set back is said too (the run's own error, if any, stays the one raised)."""
+        for channel in self.profile.channels:
+            target = channel.setpoint_mw * 1e-3
+            try:
+                held = laser.setpoint_w(channel.name)
+                if not math.isclose(held, target, rel_tol=1e-3, abs_tol=1e-9):
+                    laser.set_power(channel.name, target)
+                    self.say(f"laser: {channel.name} setpoint back to the profile's {format_power(target)} (the run "
+                             f"left {format_power(held)})")
+            except BenchctlError as exc:
+                self.say(f"laser: {channel.name}: could not set the setpoint back to the profile's "
+                         f"{format_power(target)}: {exc}")
 
     def _device(self, name: str, opener: Callable[[], Any], identify: Callable[[Any], Any]) -> Any:
         """The device called `name`, opened (and its identity noted) on first use."""
@@ -83,20 +107,14 @@ class Bench:
     def camera(self) -> Camera:
         return self._device("camera", lambda: open_camera(self.profile), lambda camera: camera.identity())
 
-    def expose(self, folder: Path, channel: str, power_w: float, frame: np.ndarray, *, frames: int,
-               dark_frames: int) -> dict[str, Any]:
-        """Show `frame` (gray levels as displayed), light it with `channel` alone at `power_w`, capture
-        `frames` RAW frames into `folder` (frame-000...), then with emission off `dark_frames` (dark-000...).
+    def expose(self, folder: Path | None, channel: str, power_w: float, frame: np.ndarray, *, frames: int,
+               dark_frames: int) -> Exposure:
+        """Show `frame` (gray levels as displayed), light it with `channel` alone at `power_w`, capture `frames`
+        RAW frames, then with emission off `dark_frames`, saved into `folder` as they arrive (frame-000...,
+        dark-000...; with `folder` None kept in memory only).
 
-        Returns what happened: file names, the read-back setpoint, the measured power, timings, the SLM frame
-        shown and the one each lit frame saw; a lit frame that saw another SLM frame is a DeviceError.
+        A lit frame that saw another SLM frame than the one shown is a DeviceError.
         """
-        return self.expose_frames(folder, channel, power_w, frame, frames=frames, dark_frames=dark_frames).result
-
-    def expose_frames(self, folder: Path | None, channel: str, power_w: float, frame: np.ndarray, *, frames: int,
-                      dark_frames: int) -> Exposure:
-        """`expose`, also returning the frames themselves and where the time went; with `folder` None the
-        frames are kept in memory only (nothing is written)."""
         laser, slm, camera = self.laser, self.slm, self.camera
         clock = time.perf_counter
         start = clock()
@@ -141,9 +159,11 @@ class Bench:
 
 @dataclass
 class Exposure:
-    """One exposure: `expose`'s JSON-ready result, the lit and dark frames (their bytes, and their paths when
-    saved), and seconds spent: display_s (showing the frame, settle included), capture_s (shutter release to
-    file received, every frame), laser_s (the rest: setpoint, emission on and off, read-backs)."""
+    """What one `expose` did: a JSON-ready result (file names, the read-back setpoint, the measured power, the SLM
+    frame shown and the one each lit frame saw, the camera's metadata), the lit and dark frames (their bytes, and
+    their paths when saved), and seconds spent: display_s (showing the frame, settle included), capture_s
+    (shutter release to file received, every frame), laser_s (the rest: setpoint, emission on and off,
+    read-backs)."""
 
     result: dict[str, Any]
     frames: list[RawFrame]

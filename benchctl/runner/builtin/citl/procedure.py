@@ -42,36 +42,40 @@ import numpy as np
 import torch
 from msgspec import Meta
 
-from benchctl.capture.colour_planes import merge_capture, registered_plane
-from benchctl.capture.raw import RawImage, average_frames, decode_raw, subtract_dark
 from benchctl.cgh.citl import straight_through_loss
-from benchctl.devices.camera import RawFrame
-from benchctl.devices.slm import slm_for
-from benchctl.errors import BenchctlError
-from benchctl.files import atomic_write_bytes, file_sha256
-from benchctl.images import read_image, write_png
-from benchctl.optics import crop_roi, linear_to_srgb, lsq_scale, psnr
-from benchctl.optics.setup import OpticalSetup
+from benchctl.files import atomic_write_bytes
+from benchctl.images import read_image
+from benchctl.optics import crop_roi, lsq_scale, psnr
 from benchctl.profiles import LaserChannel, Positive
-from benchctl.runner.builtin import registration
-from benchctl.runner.hologram_cache import hologram
-from benchctl.runner.holograms import optimised_setup, target_plane
-from benchctl.runner.auto_exposure import Exposure, PeakGoal, probe_step, probed_power
-from benchctl.runner.procedure import Context, Step
-from benchctl.runner.record import set_aside
-from benchctl.runner.report import citl_report
-from benchctl.runner.steps import (
+from benchctl.runner.api import (
+    BenchctlError,
+    Context,
     DarkFrames,
+    Expose,
+    ExposureMode,
     ExposureParameters,
     Frames,
-    Registration,
+    HologramParameters,
+    PeakGoal,
+    RegistrationMode,
+    Step,
     channels,
-    displayed_frame,
+    compute_hologram,
+    measure,
     power_w,
     prepared_target,
+    probe_step,
+    probed_power,
+    registered,
+    save_hologram,
+    save_image,
+    shown,
+    state_path,
+    target_plane,
     unknown_setpoints,
-    write_linear16,
 )
+from benchctl.runner.builtin import registration
+from benchctl.runner.builtin.citl.report import citl_report, merged_scores
 from benchctl.targets import active_channels
 
 DESCRIPTION = "camera in the loop: per colour, display, capture, register and step the phase on the captured error"
@@ -93,8 +97,8 @@ class CitlParameters(ExposureParameters, kw_only=True):
     # disk policy: RAW frames kept for the first and last iteration and every Nth (0: first and last only)
     keep_raw_every: Annotated[int, Meta(ge=0)] = 10
     baseline: bool = True  # capture model-only SGD at the same budget too
-    registration: Registration = "auto"
-    exposure: Exposure = "auto"  # "auto": a probe frame of the start hologram sets the power for every capture
+    registration: RegistrationMode = "auto"
+    exposure: ExposureMode = "auto"  # "auto": a probe frame of the start hologram sets the power for every capture
     peak_goal: PeakGoal = 0.7  # fraction of full scale
     device: Literal["auto", "cpu", "cuda"] = "auto"  # where the gradient runs; "auto": a CUDA GPU if there is one
 
@@ -122,22 +126,23 @@ def plan(context: Context) -> list[Step]:
                             f"{[c.name for c in channels(context)]}")
     steps = registration.registration_first(context, used, params, params.registration)
     count = params.iterations
-    devices = ("laser", "slm", "camera")
     for channel in used:
         name = channel.name
         steps.append(Step(f"citl/{name}/start", f"start hologram {name} ({params.start})",
                           _starter(target, channel)))
         if params.exposure == "auto":
-            steps.append(probe_step(context, f"citl/{name}/probe", ("citl", name, "probe"), channel,
-                                    lambda ctx, key=f"citl/{name}/start": displayed_frame(ctx, key),
+            steps.append(probe_step(context, f"citl/{name}/probe", channel, shown(f"citl/{name}/start"),
                                     "probe exposure of the start hologram", params.peak_goal))
+        power = None if params.exposure == "auto" else power_w(context, channel)
         for k in range(count + 1):
             what = "capture the final phase" if k == count else "capture, register, step the phase"
             steps.append(Step(f"citl/{name}/{k:04d}", f"CITL {name} iteration {k}/{count}: {what}",
-                              _iteration(target, channel, k), devices))
+                              _iteration(target, channel, k),
+                              (Expose(name, power, params.frames, params.dark_frames),)))
         if params.baseline:
             steps.append(Step(f"citl/{name}/baseline", f"model-only SGD {name} at {_budget(params)} iterations, "
-                              "captured", _baseline(target, channel), devices))
+                              "captured", _baseline(target, channel),
+                              (Expose(name, power, params.frames, params.dark_frames),)))
     steps.append(Step("report", "metrics.json, metrics.csv and report.html", _reporter(target, used)))
     return steps
 
@@ -175,10 +180,6 @@ def keeps_raw(k: int, iterations: int, every: int) -> bool:
     return k in (0, iterations) or (every > 0 and k % every == 0)
 
 
-def _setup(context: Context, channel: LaserChannel) -> OpticalSetup:
-    return optimised_setup(context.profile, channel.name, slm_for(context.profile))
-
-
 def _target_roi(context: Context, target: torch.Tensor, channel: LaserChannel) -> torch.Tensor:
     assert context.profile.optics is not None
     return crop_roi(target[target_plane(channel)], context.profile.optics.roi)
@@ -187,7 +188,7 @@ def _target_roi(context: Context, target: torch.Tensor, channel: LaserChannel) -
 # -- the optimiser state ----------------------------------------------------------------------------------------
 
 def _state_file(context: Context, channel: LaserChannel, k: int) -> Path:
-    return context.path("state", channel.name, f"{k:04d}.npz")
+    return state_path(context, channel.name, f"{k:04d}.npz")
 
 
 def _save_state(path: Path, phase: torch.Tensor, optimiser: torch.optim.Adam | None) -> None:
@@ -219,46 +220,32 @@ def _load_state(path: Path, learning_rate: float,
 
 # -- one capture, decoded and registered --------------------------------------------------------------------------
 
-def _measure(context: Context, key: str, channel: LaserChannel, gray: np.ndarray,
-             keep: tuple[str, ...] | None) -> tuple[np.ndarray, dict[str, Any], dict[str, float]]:
-    """Display `gray`, expose it (RAW saved under raw/<keep> when given, else only in memory), decode and register
-    the colour's plane: (ROI linear signal, JSON-ready record, seconds per stage)."""
-    params, profile = context.parameters(CitlParameters), context.profile
-    assert profile.slm is not None and profile.optics is not None
-    where = context.path("raw", *keep) if keep else None
-    attempt = context.record.attempts.get(key, 1) if context.record else 1
-    if where is not None and attempt > 1:
-        set_aside(where, attempt - 1)
+def _capture(context: Context, channel: LaserChannel, gray: np.ndarray,
+             keep: bool) -> tuple[np.ndarray, dict[str, Any], dict[str, float]]:
+    """Display `gray`, expose it (RAW files kept with `keep`, else only in memory), decode and register the
+    colour's plane: (ROI linear signal, JSON-ready record, seconds per stage)."""
+    params = context.parameters(CitlParameters)
     power = (probed_power(f"citl/{channel.name}/probe")(context) if params.exposure == "auto"
              else power_w(context, channel))
-    exposure = context.bench.expose_frames(where, channel.name, power, gray,
-                                           frames=params.frames, dark_frames=params.dark_frames)
+    measured = measure(context, channel, power, gray, frames=params.frames, dark_frames=params.dark_frames,
+                       keep=keep, read_later=False)
     clock = time.perf_counter
     start = clock()
-    image = _decoded(exposure.frames)
-    if exposure.darks:
-        image = subtract_dark(image, _decoded(exposure.darks))
+    image = measured.image
     decoded = clock()
-    homography = np.asarray(context.calibration.registrations()[channel.name]["homography"], dtype=np.float64)
-    plane = registered_plane(image, target_plane(channel), homography, profile.slm.shape, profile.optics.roi)
-    registered = clock()
+    plane = registered(context, image, channel)
+    registered_at = clock()
+    exposure = measured.exposure
     metadata = [frame.metadata for frame in (*exposure.frames, *exposure.darks)]
     render = sum(float(m.get("render_s", 0.0)) for m in metadata)
     transfer = sum(float(m.get("transfer_s", 0.0)) for m in metadata)
     timing = {"display_s": exposure.timing["display_s"], "laser_s": exposure.timing["laser_s"],
               "exposure_s": exposure.timing["capture_s"] - render - transfer, "transfer_s": transfer,
-              "render_s": render, "decode_s": decoded - start, "register_s": registered - decoded}
-    record: dict[str, Any] = {"setpoint_w": exposure.result["setpoint_w"], "slm_frame": exposure.result["slm_frame"],
-                              "saturated_fraction": round(float(image.saturation_fraction), 6)}
-    if where is not None:
-        names = [*exposure.result["frames"], *exposure.result["darks"]]
-        record["raw"] = str(Path("raw", *keep))
-        record["archived"] = {str(Path("raw", *keep, name)): file_sha256(where / name) for name in names}
+              "render_s": render, "decode_s": decoded - start, "register_s": registered_at - decoded}
+    record = {key: value for key, value in measured.record.items()
+              if key in ("setpoint_w", "slm_frame", "folder", "archived")}
+    record["saturated_fraction"] = round(float(image.saturation_fraction), 6)
     return plane, record, timing
-
-
-def _decoded(frames: list[RawFrame]) -> RawImage:
-    return average_frames([decode_raw(frame.data) for frame in frames])
 
 
 def _amplitude_error(plane: np.ndarray, target_roi: torch.Tensor) -> tuple[torch.Tensor, float, float]:
@@ -273,9 +260,8 @@ def _amplitude_error(plane: np.ndarray, target_roi: torch.Tensor) -> tuple[torch
 def _save_plane(context: Context, channel: LaserChannel, name: str, plane: np.ndarray) -> dict[str, Any]:
     """The registered plane as a 16-bit PNG on the ROI, scaled by its maximum (recorded to undo the scaling)."""
     peak = float(max(plane.max(), 1e-12))
-    file = Path("images", "citl", channel.name, f"{name}.png")
-    write_linear16(context.path(str(file)), np.clip(plane, 0, None) / peak)
-    return {"file": str(file), "full_scale": peak}
+    file = save_image(context, np.clip(plane, 0, None) / peak, "citl", channel.name, f"{name}.png")
+    return {"file": file, "full_scale": peak}
 
 
 # -- the steps ------------------------------------------------------------------------------------------------------
@@ -284,13 +270,12 @@ def _starter(target: torch.Tensor, channel: LaserChannel):
     def action(context: Context) -> dict[str, Any]:
         params = context.parameters(CitlParameters)
         iterations = params.start_iterations if params.start == "sgd" else None
-        result = hologram(context.profile, target, channel.name, params.start, iterations=iterations, seed=0,
-                          checkpoint=None, progress=context.progress)
-        file = Path("holograms", "citl", channel.name, "start.png")
-        write_png(context.path(str(file)), result.gray)
-        phase = torch.from_numpy(slm_for(context.profile).decode(result.gray, channel.name))
+        result = compute_hologram(context, target, channel,
+                                  HologramParameters(method=params.start, iterations=iterations))
+        file = save_hologram(context, result.gray, "citl", channel.name, "start.png")
+        phase = torch.from_numpy(context.decode(result.gray, channel.name))
         _save_state(_state_file(context, channel, 0), phase, None)
-        return {"file": str(file), "method": params.start, "iterations": iterations,
+        return {"file": file, "method": params.start, "iterations": iterations,
                 "seconds": round(result.seconds, 4), "simulated": {k: round(v, 4) for k, v in result.scores.items()}}
 
     return action
@@ -302,11 +287,9 @@ def _iteration(target: torch.Tensor, channel: LaserChannel, k: int):
         begin = clock()
         count, device = params.iterations, gradient_device(params.device)
         phase, optimiser = _load_state(_state_file(context, channel, k), params.learning_rate, device)
-        gray = slm_for(context.profile).encode(phase.detach(), channel.name)
+        gray = context.encode(phase.detach(), channel.name)
         keep = keeps_raw(k, count, params.keep_raw_every)
-        key = f"citl/{channel.name}/{k:04d}"
-        plane, record, timing = _measure(context, key, channel, gray,
-                                         ("citl", channel.name, f"{k:04d}") if keep else None)
+        plane, record, timing = _capture(context, channel, gray, keep)
         target_roi = _target_roi(context, target, channel)
         start = clock()
         captured, loss, score = _amplitude_error(plane, target_roi)
@@ -314,7 +297,7 @@ def _iteration(target: torch.Tensor, channel: LaserChannel, k: int):
             with torch.enable_grad():
                 optimiser.param_groups[0]["lr"] = learning_rate(params, k)
                 optimiser.zero_grad(set_to_none=True)
-                setup = _setup(context, channel)
+                setup = context.setup(channel.name, as_displayed=True)
                 straight_through_loss(phase, captured.to(device), target_roi.to(device), setup).backward()
                 optimiser.step()
                 with torch.no_grad():
@@ -324,9 +307,7 @@ def _iteration(target: torch.Tensor, channel: LaserChannel, k: int):
         start = clock()
         record.update(_save_plane(context, channel, f"{k:04d}", plane))
         if keep:
-            frame = Path("holograms", "citl", channel.name, f"{k:04d}.png")
-            write_png(context.path(str(frame)), gray)
-            record["hologram"] = str(frame)
+            record["hologram"] = save_hologram(context, gray, "citl", channel.name, f"{k:04d}.png")
         if k < count:
             _save_state(_state_file(context, channel, k + 1), phase, optimiser)
         if k > 0:
@@ -343,16 +324,13 @@ def _iteration(target: torch.Tensor, channel: LaserChannel, k: int):
 def _baseline(target: torch.Tensor, channel: LaserChannel):
     def action(context: Context) -> dict[str, Any]:
         budget = _budget(context.parameters(CitlParameters))
-        result = hologram(context.profile, target, channel.name, "sgd", iterations=budget, seed=0, checkpoint=None,
-                          progress=context.progress)
-        key = f"citl/{channel.name}/baseline"
-        plane, record, _ = _measure(context, key, channel, result.gray, ("citl", channel.name, "baseline"))
+        result = compute_hologram(context, target, channel, HologramParameters(method="sgd", iterations=budget))
+        plane, record, _ = _capture(context, channel, result.gray, keep=True)
         _, loss, score = _amplitude_error(plane, _target_roi(context, target, channel))
-        frame = Path("holograms", "citl", channel.name, "baseline.png")
-        write_png(context.path(str(frame)), result.gray)
+        frame = save_hologram(context, result.gray, "citl", channel.name, "baseline.png")
         context.say(f"      {channel.name}: model-only SGD ({budget} iterations) captured PSNR {score:.2f} dB")
         return {"iterations": budget, "loss": loss, "psnr_amplitude_db": round(score, 4), **record,
-                **_save_plane(context, channel, "baseline", plane), "hologram": str(frame),
+                **_save_plane(context, channel, "baseline", plane), "hologram": frame,
                 "simulated": {k: round(v, 4) for k, v in result.scores.items()}}
 
     return action
@@ -361,67 +339,47 @@ def _baseline(target: torch.Tensor, channel: LaserChannel):
 def _reporter(target: torch.Tensor, used: list[LaserChannel]):
     def action(context: Context) -> dict[str, Any]:
         assert context.profile.optics is not None
-        count, folder = context.parameters(CitlParameters).iterations, context.path()
+        params = context.parameters(CitlParameters)
+        count = params.iterations
         target_roi = crop_roi(target, context.profile.optics.roi)
         iterations = {c.name: [context.result(f"citl/{c.name}/{k:04d}") for k in range(count + 1)] for c in used}
-        baseline = ({c.name: context.result(f"citl/{c.name}/baseline") for c in used}
-                    if context.parameters(CitlParameters).baseline else {})
+        baseline = {c.name: context.result(f"citl/{c.name}/baseline") for c in used} if params.baseline else {}
 
         def planes(results: dict[str, dict[str, Any]]) -> dict[int, np.ndarray]:
-            return {target_plane(c): read_image(folder / results[c.name]["file"]) / 65535.0
+            return {target_plane(c): read_image(context.path(results[c.name]["file"])) / 65535.0
                     * results[c.name]["full_scale"] for c in used}
 
-        def merged(results: dict[str, dict[str, Any]], image: str) -> dict[str, Any]:
-            merge = merge_capture(planes(results), target_roi)
-            write_linear16(context.path("images", "citl", image), merge.merged_linear, srgb=True)
-            return {"scores": {k: round(v, 4) for k, v in merge.merged_scores.items()}, "warnings": merge.warnings,
-                    "image": f"images/citl/{image}"}
+        def merged(results: dict[str, dict[str, Any]], image: str | None = None) -> dict[str, Any]:
+            """The merged capture's scores (with SSIM, warnings and the image where `image` names it)."""
+            return merged_scores(context, planes(results), target_roi, image)
 
-        # Every iteration's merged PSNR; the full scoring (SSIM, warnings, the image) for the first and the last.
-        per_k: list[dict[str, Any]] = [
-            {"scores": merged_psnr(planes({name: rows[k] for name, rows in iterations.items()}), target_roi),
-             "warnings": []} for k in range(count + 1)]
-        for k, image in ((0, "merged-first.png"), (count, "merged-last.png")):
-            per_k[k] = merged({name: rows[k] for name, rows in iterations.items()}, image)
-        write_linear16(context.path("images", "citl", "target.png"), target_roi.square(), srgb=True)
-        disk = _disk(folder, iterations, used)
+        per_k = [merged({name: rows[k] for name, rows in iterations.items()},
+                        "merged-first.png" if k == 0 else "merged-last.png" if k == count else None)
+                 for k in range(count + 1)]
         return citl_report(context, {
-            "target": context.parameters(CitlParameters).target, "iterations": iterations, "merged": per_k,
+            "target": params.target, "iterations": iterations, "merged": per_k,
             "baseline": {"colours": baseline, "merged": merged(baseline, "merged-baseline.png"),
-                         "iterations": _budget(context.parameters(CitlParameters))} if baseline else None,
+                         "iterations": _budget(params)} if baseline else None,
             "start": {c.name: context.result(f"citl/{c.name}/start") for c in used},
-            "timing_keys": list(TIMING_KEYS), "disk": disk, "target_image": "images/citl/target.png"})
+            "timing_keys": list(TIMING_KEYS), "disk": _disk(context, iterations, used),
+            "target_image": save_image(context, target_roi.square(), "citl", "target.png", srgb=True)})
 
     return action
 
 
-def merged_psnr(planes: dict[int, np.ndarray], target_roi: torch.Tensor) -> dict[str, float]:
-    """The merged colour image's PSNR, linear and sRGB, as `merge_capture` balances and scores it (the same
-    numbers, without its SSIM: a run of hundreds of iterations scores each of them)."""
-    merged = torch.zeros_like(target_roi)
-    for colour, signal in planes.items():
-        measured = torch.from_numpy(np.sqrt(np.clip(np.asarray(signal, dtype=np.float32), 0.0, None)))
-        merged[colour] = (lsq_scale(measured, target_roi[colour]) * measured).square().clamp(0, 1)
-    rows = (3 * target_roi.shape[-2], target_roi.shape[-1])
-    linear = target_roi.square().clamp(0, 1)
-    return {"psnr_linear_db": round(float(psnr(merged.reshape(rows), linear.reshape(rows), 1.0)), 4),
-            "psnr_srgb_db": round(float(psnr(linear_to_srgb(merged).reshape(rows),
-                                             linear_to_srgb(linear).reshape(rows), 1.0)), 4)}
-
-
-def _disk(folder: Path, iterations: dict[str, list[dict[str, Any]]], used: list[LaserChannel]) -> dict[str, Any]:
+def _disk(context: Context, iterations: dict[str, list[dict[str, Any]]], used: list[LaserChannel]) -> dict[str, Any]:
     """Bytes the run keeps per iteration: registered planes (every iteration), RAW and displayed frames (the kept
     iterations), and the optimiser state (two iterations' worth at a time, one left at the end)."""
     def size(relative: str) -> int:
-        path = folder / relative
+        path = context.path(relative)
         return path.stat().st_size if path.is_file() else 0
 
     rows = [row for rows in iterations.values() for row in rows]
-    kept = [row for row in rows if "raw" in row]
+    kept = [row for row in rows if "folder" in row]
     raw = sum(size(name) for row in kept for name in row["archived"])
     frames = sum(size(row["hologram"]) for row in kept)
     planes = sum(size(row["file"]) for row in rows)
-    states = [p.stat().st_size for c in used for p in (folder / "state" / c.name).glob("*.npz")]
+    states = [p.stat().st_size for c in used for p in state_path(context, c.name).glob("*.npz")]
     return {"iterations": len(rows), "kept_raw_iterations": len(kept),
             "registered_bytes_per_iteration": round(planes / len(rows)),
             "raw_bytes_per_kept_iteration": round(raw / len(kept)) if kept else 0,

@@ -1,0 +1,110 @@
+"""The procedure API: everything a procedure uses, from one import (`from benchctl.runner.api import ...`).
+
+A procedure (a built-in, or a user's Python file) defines
+
+    DESCRIPTION = "one line"
+    class PARAMETERS(ExposureParameters, kw_only=True):   # Parameters, or a shared group it derives from
+        period_px: Annotated[float, msgspec.Meta(gt=2)] = 32.0
+    def plan(context: Context) -> list[Step]: ...
+
+`plan` validates and returns the steps without touching a device or writing a file (what --dry-run prints,
+with every exposure the steps declare checked against the profile's limits). Each step does one resumable piece
+of work and returns a JSON-ready result that later steps read with `context.result(key)`. The step builders
+and savers place every file in the run folder; a procedure names its files, never the folders they go in.
+
+- context: `Context` (profile, parameters, `Calibration`, optical setups, instruments), `Step`, `Expose`.
+- parameters: `Parameters`, the shared groups `ExposureParameters` and `HologramParameters`, and the types
+  `Frames`, `DarkFrames`, `RegistrationMode`, `ExposureMode`, `PeakGoal`.
+- planning: `channels`, `power_w`, `unknown_setpoints`, `unregistered`, `check_method`, `carried`,
+  `prepared_target`, `target_label`, `target_plane`.
+- holograms and steps: `compute_hologram`, `hologram_step`, `exposure_step`, `probe_step` with `probed_power`,
+  `measure` (an exposure inside a step of one's own, decoded), `shown` and `displayed_frame` (what a hologram
+  step kept).
+- captures: `load_exposure`, `registered`, `registered_saturation`, `signal_stats`.
+- files: `save_hologram`, `save_image`, `save_array`, `state_path`.
+- reports: `Report` with the HTML helpers `table`, `figure`, `line_plot`, `front_plot`.
+"""
+
+from benchctl.errors import BenchctlError
+from benchctl.runner.auto_exposure import ExposureMode, PeakGoal, probe_step, probed_power, signal_stats
+from benchctl.runner.calibration import Calibration
+from benchctl.runner.context import Context, Expose, Parameters, Step
+from benchctl.runner.plots import front_plot, line_plot
+from benchctl.runner.report import Report, figure, table
+from benchctl.runner.steps import (
+    DarkFrames,
+    ExposureParameters,
+    Frames,
+    HologramParameters,
+    Measurement,
+    RegistrationMode,
+    carried,
+    channels,
+    check_method,
+    compute_hologram,
+    displayed_frame,
+    exposure_step,
+    hologram_step,
+    load_exposure,
+    measure,
+    power_w,
+    prepared_target,
+    registered,
+    registered_saturation,
+    save_array,
+    save_hologram,
+    save_image,
+    shown,
+    state_path,
+    target_label,
+    unknown_setpoints,
+    unregistered,
+)
+from benchctl.targets import target_plane
+
+__all__ = [
+    "BenchctlError",
+    "Calibration",
+    "Context",
+    "DarkFrames",
+    "Expose",
+    "ExposureMode",
+    "ExposureParameters",
+    "Frames",
+    "HologramParameters",
+    "Measurement",
+    "Parameters",
+    "PeakGoal",
+    "RegistrationMode",
+    "Report",
+    "Step",
+    "carried",
+    "channels",
+    "check_method",
+    "compute_hologram",
+    "displayed_frame",
+    "exposure_step",
+    "figure",
+    "front_plot",
+    "hologram_step",
+    "line_plot",
+    "load_exposure",
+    "measure",
+    "power_w",
+    "prepared_target",
+    "probe_step",
+    "probed_power",
+    "registered",
+    "registered_saturation",
+    "save_array",
+    "save_hologram",
+    "save_image",
+    "shown",
+    "signal_stats",
+    "state_path",
+    "table",
+    "target_label",
+    "target_plane",
+    "unknown_setpoints",
+    "unregistered",
+]

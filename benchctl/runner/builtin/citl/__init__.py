@@ -1,0 +1,1 @@
+"""Camera in the loop (Peng et al. 2020): the procedure (`procedure`) and its report (`report`)."""

@@ -1,0 +1,108 @@
+"""Camera in the loop's report: captured PSNR against iteration (per colour and merged), first and last captures,
+model-only SGD at the same budget, seconds per iteration by stage, and the disk it took."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from benchctl.capture.colour_planes import captured_amplitude, merge_capture, merge_colours
+from benchctl.optics import colour_scores
+from benchctl.runner.api import Context, Report, figure, line_plot, save_image, table
+
+TIMING_NOTE = ("<p>display_s includes the SLM's settle time; exposure_s runs from shutter release to image ready "
+               "without the simulator's rendering (render_s, 0 on a real camera); transfer_s is the image download "
+               "where the driver reports it. The software part is decode + register + gradient (gradient_s averaged "
+               "over the iterations that step).</p>")
+
+
+def merged_scores(context: Context, planes: dict[int, np.ndarray], target_roi: torch.Tensor,
+                  image: str | None) -> dict[str, Any]:
+    """The merged colour image of one iteration's registered planes, scored as colour capture scores its merge:
+    with `image` fully (SSIM, warnings) and saved as that image; without, its PSNR alone (a run of hundreds of
+    iterations scores each of them)."""
+    if image is None:
+        merged = merge_colours({colour: captured_amplitude(plane) for colour, plane in planes.items()}, target_roi)
+        scores = colour_scores(merged.linear, target_roi, with_ssim=False)
+        return {"scores": {k: round(v, 4) for k, v in scores.items()}, "warnings": []}
+    capture = merge_capture(planes, target_roi)
+    return {"scores": {k: round(v, 4) for k, v in capture.merged_scores.items()}, "warnings": capture.warnings,
+            "image": save_image(context, capture.merged.linear, "citl", image, srgb=True)}
+
+
+def citl_report(context: Context, summary: dict[str, Any]) -> dict[str, Any]:
+    """Camera in the loop: captured PSNR against iteration (per colour and merged), first and last captures side by
+    side (and model-only SGD's at the same budget), seconds per iteration by stage, and the disk it took."""
+    iterations, merged, baseline = summary["iterations"], summary["merged"], summary["baseline"]
+    count = len(merged) - 1
+    steps = list(range(count + 1))
+    series = {f"{name} (amplitude)": (steps, [r["psnr_amplitude_db"] for r in rows])
+              for name, rows in iterations.items()}
+    series["merged (sRGB)"] = (steps, [m["scores"]["psnr_srgb_db"] for m in merged])
+    if baseline:
+        series["model-only SGD, merged (sRGB)"] = ([0, count], [baseline["merged"]["scores"]["psnr_srgb_db"]] * 2)
+    pictures = figure(context, summary["target_image"], "target (sRGB)")
+    pictures += figure(context, merged[0]["image"], "first capture (iteration 0, the start hologram)")
+    pictures += figure(context, merged[-1]["image"], f"last capture (iteration {count})")
+    if baseline:
+        pictures += figure(context, baseline["merged"]["image"], f"model-only SGD, {baseline['iterations']} iterations")
+    colour_rows = []
+    for name, rows in iterations.items():
+        row = {"colour": name, "start": summary["start"][name]["method"],
+               "start simulated PSNR dB": summary["start"][name]["simulated"].get("psnr_amplitude_db"),
+               "first PSNR dB": rows[0]["psnr_amplitude_db"], "last PSNR dB": rows[-1]["psnr_amplitude_db"],
+               "best PSNR dB": max(r["psnr_amplitude_db"] for r in rows)}
+        if baseline:
+            base = baseline["colours"][name]["psnr_amplitude_db"]
+            row.update({"model-only SGD PSNR dB": base,
+                        "CITL - SGD dB": round(rows[-1]["psnr_amplitude_db"] - base, 4)})
+        colour_rows.append(row)
+    merged_rows = [{"image": "first (iteration 0)", **merged[0]["scores"]},
+                   {"image": f"last (iteration {count})", **merged[-1]["scores"]}]
+    if baseline:
+        merged_rows.append({"image": f"model-only SGD ({baseline['iterations']} iterations)",
+                            **baseline["merged"]["scores"]})
+    keys = summary["timing_keys"]
+    timing_rows, slow = [], []
+    for name, rows in iterations.items():
+        mean = {key: sum(r["timing"][key] for r in rows) / len(rows) for key in keys}
+        stepped = rows[:-1] or rows  # the last iteration only captures: no gradient to average in
+        mean["gradient_s"] = sum(r["timing"]["gradient_s"] for r in stepped) / len(stepped)
+        software = mean["decode_s"] + mean["register_s"] + mean["gradient_s"]
+        hardware = mean["display_s"] + mean["exposure_s"]
+        device = rows[0].get("device", "cpu")
+        timing_rows.append({"colour": name, "gradient on": device, **{key: round(v, 4) for key, v in mean.items()},
+                            "software (decode+register+gradient)": round(software, 4),
+                            "display/settle + exposure": round(hardware, 4)})
+        if software > hardware:
+            slow.append(f"{name}: software {software:.3f} s per iteration exceeds display/settle + exposure "
+                        f"{hardware:.3f} s" + (" (the gradient ran on the CPU: parameters.device = 'auto' takes a "
+                                               "CUDA GPU when there is one)" if device == "cpu" else ""))
+    disk = summary["disk"]
+    csv_rows = [{"colour": name, "iteration": r["iteration"], "loss": r["loss"],
+                 "psnr_amplitude_db": r["psnr_amplitude_db"], **r["timing"]}
+                for name, rows in iterations.items() for r in rows]
+    csv_rows += [{"colour": "merged", "iteration": k, **{f"merged_{key}": value for key, value in m["scores"].items()}}
+                 for k, m in enumerate(merged)]
+    report = Report(f"Camera in the loop: {summary['target']}")
+    report.warn(*slow, *[w for m in (merged[0], merged[-1]) for w in m["warnings"]])
+    for name, rows in iterations.items():
+        clipped = max(r["saturated_fraction"] for r in rows)
+        if clipped > 0:
+            report.warn(f"{name}: up to {clipped:.4%} of the sensor's pixels clipped in an iteration's capture "
+                        "(the captured error reads low there): lower the setpoint")
+    report.section("Captured PSNR against iteration", line_plot(series, "iteration", "captured PSNR (dB)"),
+                   "<p>Per colour: amplitude PSNR of the registered capture on the ROI, least-squares scaled; merged: "
+                   "the colour image merged and balanced as colour capture does. Iteration k captures the phase after "
+                   "k Adam steps on the captured error.</p>", pictures)
+    report.section("Per colour", table(colour_rows))
+    report.section("Merged colour image", table(merged_rows))
+    report.section("Seconds per iteration (mean)", table(timing_rows), TIMING_NOTE)
+    report.section("Disk", table([{"what": k, "value": v} for k, v in disk.items()]))
+    first, last = merged[0]["scores"]["psnr_srgb_db"], merged[-1]["scores"]["psnr_srgb_db"]
+    headline = [f"{summary['target']}: merged capture PSNR {first:.2f} -> {last:.2f} dB sRGB over {count} CITL "
+                "iterations" + (f"; model-only SGD at {baseline['iterations']} iterations "
+                                f"{baseline['merged']['scores']['psnr_srgb_db']:.2f} dB" if baseline else "")]
+    return report.write(context, {"procedure": "citl", **summary}, csv_rows, list(iterations), headline + slow)

@@ -1,0 +1,200 @@
+"""What a procedure is made of: its Parameters, its Steps with the exposures they declare, and the Context every
+step runs in.
+
+A step declares each exposure it makes (`Expose`: which channel, at what power, how many frames), so the plan can
+be checked against the profile's limits and printed before anything runs, and a step that tries an exposure it
+did not declare is stopped before the laser is touched.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TypeVar
+
+import numpy as np
+import torch
+
+from benchctl.devices.power import format_power
+from benchctl.devices.slm import SLM, slm_for
+from benchctl.errors import BenchctlError
+from benchctl.optics.setup import OpticalSetup
+from benchctl.profiles import Profile
+from benchctl.runner import layout
+from benchctl.runner.calibration import Calibration
+from benchctl.runner.instruments import Exposure, Instruments
+from benchctl.runner.record import RunRecord, set_aside
+from benchctl.runner.setups import optical_setups, optimised_setup
+from benchctl.schema import Model
+from benchctl.terminal import ProgressLine
+
+POWER_TOLERANCE = 1e-9  # relative: a power equal to its limit in the last bits is at the limit
+
+
+class Parameters(Model, kw_only=True):
+    """Base of every procedure's parameters (its PARAMETERS model; the file's [parameters] table is decoded into
+    it). Groups that several procedures share derive from it (`ExposureParameters`, `HologramParameters`)."""
+
+    def applied_to(self, profile: Profile) -> Profile:
+        """The profile the run uses: parameters that override a profile setting say so here (none by default)."""
+        return profile
+
+
+P = TypeVar("P", bound=Parameters)
+
+
+@dataclass(frozen=True)
+class Expose:
+    """An exposure a step declares: show a frame, light `channel` alone at `power_w` (None: a power the step
+    decides when it runs, never above the channel's max_power_mw), capture `frames` RAW frames and then
+    `dark_frames` with emission off."""
+
+    channel: str
+    power_w: float | None
+    frames: int
+    dark_frames: int
+
+    def describe(self) -> str:
+        power = "a power chosen when the step runs" if self.power_w is None else format_power(self.power_w)
+        return f"{self.channel} alone at {power}, {self.frames} frame(s) + {self.dark_frames} dark"
+
+
+@dataclass(frozen=True)
+class Step:
+    """One resumable piece of a run: `action(context)` does it and returns a JSON-ready result; `exposes` declares
+    every exposure it makes (a step without any uses no device)."""
+
+    key: str
+    description: str
+    action: Callable[[Context], dict[str, Any]]
+    exposes: tuple[Expose, ...] = ()
+
+    @property
+    def devices(self) -> tuple[str, ...]:
+        """The devices the step uses: all three when it exposes, none otherwise."""
+        return ("laser", "slm", "camera") if self.exposes else ()
+
+
+def check_exposures(steps: list[Step], profile: Profile) -> None:
+    """Every declared exposure names a laser channel of `profile`, at a power within its max_power_mw, with at
+    least one frame: checked when planning, before anything is touched (BenchctlError naming the step)."""
+    for step in steps:
+        for expose in step.exposes:
+            channel = profile.channel(expose.channel)
+            if expose.power_w is not None and not 0 <= expose.power_w <= _limit_w(channel.max_power_mw):
+                raise BenchctlError(f"step {step.key!r}: {expose.channel} at {format_power(expose.power_w)} is "
+                                    f"outside 0..max_power_mw {channel.max_power_mw:g} mW")
+            if expose.frames < 1 or expose.dark_frames < 0:
+                raise BenchctlError(f"step {step.key!r}: {expose.frames} frame(s) + {expose.dark_frames} dark: "
+                                    "an exposure captures at least one frame")
+
+
+def _limit_w(max_power_mw: float) -> float:
+    return max_power_mw * 1e-3 * (1 + POWER_TOLERANCE)
+
+
+@dataclass
+class Context:
+    """What a step sees: the profile in effect (the bench's, with this run's calibration and parameters applied),
+    the parameters, the calibration, the instruments, the run record, and the step running now."""
+
+    profile: Profile
+    params: Parameters
+    calibration: Calibration
+    instruments: Instruments
+    record: RunRecord | None = None  # None during a dry run
+    say: Callable[[str], None] = print
+    step: Step | None = None  # set by the engine while a step runs
+    _setups: dict[str, OpticalSetup] = field(default_factory=dict, repr=False)
+
+    def recalibrated(self) -> None:
+        """Apply what a step of this run measured (lookup tables, optical model) to the profile and the optical
+        setups later steps use."""
+        self.profile = self.params.applied_to(self.calibration.applied(self.calibration.profile))
+        self._setups.clear()
+        self.__dict__.pop("slm", None)
+
+    def save_calibration(self, save: Callable[[Calibration], object]) -> None:
+        """Store what a step measured, with `save`, in this run's calibration and in the profile's store (where later
+        runs find it), and use it from now on."""
+        for calibration in (self.calibration, Calibration.store(self.calibration.profile)):
+            save(calibration)
+        self.recalibrated()
+
+    def parameters(self, kind: type[P]) -> P:
+        """The procedure's parameters as `kind`: its PARAMETERS or a group they derive from, which the shared
+        steps need (ExposureParameters for exposure steps)."""
+        if not isinstance(self.params, kind):
+            raise BenchctlError(f"the procedure's PARAMETERS ({type(self.params).__name__}) must derive from "
+                                f"{kind.__module__}.{kind.__name__} for this step")
+        return self.params
+
+    def setup(self, channel: str, *, as_displayed: bool = False) -> OpticalSetup:
+        """`channel`'s optical setup for this run (geometry and fitted model), built once; `as_displayed`: as
+        optimisers see it, through what the SLM shows of a phase (`setups.optimised_setup`)."""
+        if channel not in self._setups:
+            self._setups.update(optical_setups(self.profile, [channel]))
+        setup = self._setups[channel]
+        return optimised_setup(setup, self.slm, channel) if as_displayed else setup
+
+    @functools.cached_property
+    def slm(self) -> SLM:
+        """The profile's SLM as an encoder (phase <-> gray levels as displayed): the panel itself is not opened."""
+        return slm_for(self.profile)
+
+    def encode(self, phase: np.ndarray | torch.Tensor, channel: str) -> np.ndarray:
+        """The SLM frame (gray levels) that shows `phase` for `channel`."""
+        return self.slm.encode(phase, channel)
+
+    def decode(self, gray: np.ndarray, channel: str) -> np.ndarray:
+        """The phase an SLM frame shows for `channel` (the inverse of `encode`, to its gray-level step)."""
+        return self.slm.decode(gray, channel)
+
+    def result(self, key: str) -> dict[str, Any]:
+        """The result a finished step recorded (this run, or the run being resumed)."""
+        if self.record is None:
+            raise BenchctlError(f"step {key!r}: no results during a dry run")
+        return self.record.result(key)
+
+    def path(self, relative: str) -> Path:
+        """The run folder's file `relative` (as `runner.layout` names it and step results record it); parent
+        folders are created."""
+        if self.record is None:
+            raise BenchctlError("no run folder during a dry run")
+        return self.record.path(*Path(relative).parts)
+
+    def progress(self, label: str) -> ProgressLine:
+        return ProgressLine(label)
+
+    def expose(self, channel: str, power_w: float, frame: np.ndarray, *, frames: int, dark_frames: int,
+               keep: bool = True) -> Exposure:
+        """One exposure the running step declared (see `Instruments.expose`); with `keep`, its RAW frames are
+        saved in the step's raw folder (what an unfinished earlier attempt left there is set aside first), else
+        they stay in memory. An exposure the step did not declare is refused before any device is touched."""
+        step = self.step
+        if step is None:
+            raise BenchctlError("an exposure outside a running step")
+        max_mw = self.profile.channel(channel).max_power_mw
+        if power_w > _limit_w(max_mw):
+            raise BenchctlError(f"step {step.key!r} exposes {channel} at {format_power(power_w)}, above the channel's "
+                                f"max_power_mw {max_mw:g} mW")
+        if not any(_allows(expose, channel, power_w, frames, dark_frames) for expose in step.exposes):
+            raise BenchctlError(f"step {step.key!r} exposes {channel} at {format_power(power_w)}, {frames} frame(s) "
+                                f"+ {dark_frames} dark, which it did not declare (declared: "
+                                + ("; ".join(e.describe() for e in step.exposes) or "no exposure") + ")")
+        folder = None
+        if keep:
+            folder = self.path(layout.raw_folder(step.key))
+            attempt = self.record.attempts.get(step.key, 1) if self.record else 1
+            if attempt > 1:
+                set_aside(folder, attempt - 1)
+        return self.instruments.expose(folder, channel, power_w, frame, frames=frames, dark_frames=dark_frames)
+
+
+def _allows(expose: Expose, channel: str, power_w: float, frames: int, dark_frames: int) -> bool:
+    """Whether `expose` declared this exposure (a power chosen at run time: any, within the channel's limit)."""
+    limit = expose.power_w * (1 + POWER_TOLERANCE) if expose.power_w is not None else float("inf")
+    return (expose.channel == channel and 0 <= power_w <= limit and expose.frames == frames
+            and expose.dark_frames == dark_frames)

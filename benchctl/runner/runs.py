@@ -1,0 +1,163 @@
+"""`benchctl runs`: the run folders under runs/ at a glance, their scores side by side, and removing old ones.
+
+Read-only on what the run record writes (runner.record: run.json with its start and stop records, steps.jsonl whose
+last report step carries the headline; metrics.json from the procedure's report): listing or comparing a run
+changes nothing in it. Removing one needs the stop record unless forced (a run without one may still be running),
+and is only listed until confirmed with `yes`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from benchctl.errors import BenchctlError
+from benchctl.memory import size_text
+from benchctl.runner.record import RUN_FILE, RunRecord
+
+METRICS_FILE = "metrics.json"  # written by each procedure's report (runner.report)
+SCORE_WORDS = ("psnr", "ssim", "residual", "rms")  # the figures `compare` puts side by side
+UNFINISHED = "no stop record"
+
+
+@dataclass(frozen=True)
+class Run:
+    """One run folder as its records describe it."""
+
+    folder: Path
+    procedure: str
+    profile: str
+    start: str
+    status: str  # finished, failed, interrupted, or UNFINISHED (running, or ended by kill -9 / power loss)
+    headline: list[str]
+    bytes: int
+
+    @property
+    def started_unix(self) -> float:
+        try:
+            return time.mktime(time.strptime(self.start[:19], "%Y-%m-%dT%H:%M:%S"))
+        except ValueError:
+            return os.stat(self.folder / RUN_FILE).st_mtime
+
+
+def read_run(folder: Path) -> Run:
+    """The run in `folder`; a BenchctlError if it is not a run folder or its record cannot be read."""
+    folder = Path(folder)
+    if not (folder / RUN_FILE).is_file():
+        raise BenchctlError(f"{folder}: not a benchctl run folder (no {RUN_FILE})")
+    record = RunRecord(folder)
+    try:
+        info = record.info()
+        events = record.events()
+    except (OSError, ValueError) as exc:
+        raise BenchctlError(f"{folder}: cannot read the run's record: {exc}") from None
+    if not isinstance(info, dict):
+        raise BenchctlError(f"{folder / RUN_FILE}: not a run record (a JSON object)")
+    headline = next((list(e["result"]["headline"]) for e in reversed(events) if e.get("event") == "done"
+                     and isinstance(e.get("result"), dict) and e["result"].get("headline")), [])
+    stop = info.get("stop") or {}
+    return Run(folder, str(info.get("procedure", "?")), str(info.get("profile", "?")), str(info.get("start", "?")),
+               str(stop.get("status", UNFINISHED)), headline, _size(folder))
+
+
+def _size(folder: Path) -> int:
+    return sum(entry.stat().st_size for entry in folder.rglob("*") if entry.is_file() and not entry.is_symlink())
+
+
+def find_runs(root: Path) -> list[Run]:
+    """Every run folder directly under `root`, oldest first (folders that are not runs are left out)."""
+    root = Path(root)
+    if not root.is_dir():
+        return []
+    return sorted((read_run(child) for child in root.iterdir() if (child / RUN_FILE).is_file()),
+                  key=lambda run: run.start)
+
+
+def list_lines(root: Path) -> list[str]:
+    """One line per run: folder, procedure, profile, status, size, and its headline's first line."""
+    runs = find_runs(root)
+    if not runs:
+        return [f"no runs in {root}"]
+    lines = []
+    for run in runs:
+        headline = run.headline[:1] + ([f"(+{len(run.headline) - 1} more)"] if len(run.headline) > 1 else [])
+        lines.append("  ".join([run.folder.name, f"{run.procedure} on {run.profile}", run.status, size_text(run.bytes),
+                                *headline]).replace("  (+", " (+"))
+    total = sum(run.bytes for run in runs)
+    return lines + [f"{len(runs)} run(s) in {root}, {size_text(total)}"]
+
+
+def _flat(value: Any, key: str = "") -> Iterable[tuple[str, float]]:
+    """The numbers in a metrics tree as (dotted key, value); a list of records is keyed by each one's label."""
+    if isinstance(value, bool):
+        return
+    if isinstance(value, (int, float)):
+        yield key, float(value)
+    elif isinstance(value, dict):
+        for name, item in value.items():
+            yield from _flat(item, f"{key}.{name}" if key else str(name))
+    elif isinstance(value, list):
+        for index, item in enumerate(value):
+            label = next((item[k] for k in ("label", "colour", "name", "iteration") if isinstance(item, dict)
+                          and k in item), index)
+            yield from _flat(item, f"{key}[{label}]")
+
+
+def scores(folder: Path) -> dict[str, float]:
+    """The scores in a run's metrics.json (keys naming PSNR, SSIM, a residual or an RMS error)."""
+    path = Path(folder) / METRICS_FILE
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        return {}
+    except (OSError, ValueError) as exc:
+        raise BenchctlError(f"{path}: cannot read metrics: {exc}") from None
+    return {key: value for key, value in _flat(data)
+            if any(word in key.rsplit(".", 1)[-1].lower() for word in SCORE_WORDS)}
+
+
+def compare_lines(folders: list[Path]) -> list[str]:
+    """The runs' scores side by side: one row per score any of them has, one column per run ('-': not there)."""
+    runs = [read_run(folder) for folder in folders]
+    table = [scores(run.folder) for run in runs]
+    keys = list(dict.fromkeys(key for found in table for key in found))
+    if not keys:
+        return ["no scores in " + ", ".join(f"{run.folder / METRICS_FILE}" for run in runs)]
+    names = [run.folder.name for run in runs]
+    width = max(len("score"), *(len(key) for key in keys))
+    columns = [max(len(name), 9) for name in names]
+    lines = ["score".ljust(width) + "".join(f"  {name:>{size}}" for name, size in zip(names, columns)),
+             "procedure".ljust(width) + "".join(f"  {run.procedure:>{size}}" for run, size in zip(runs, columns))]
+    for key in keys:
+        cells = [f"{found[key]:.4g}" if key in found else "-" for found in table]
+        lines.append(key.ljust(width) + "".join(f"  {cell:>{size}}" for cell, size in zip(cells, columns)))
+    return lines
+
+
+def remove_runs(folders: list[Path], yes: bool, force: bool) -> list[str]:
+    """Remove run folders (only listed without `yes`); one without a stop record only with `force`."""
+    runs = [read_run(folder) for folder in folders]
+    unfinished = [run for run in runs if run.status == UNFINISHED]
+    if unfinished and not force:
+        raise BenchctlError(f"{unfinished[0].folder}: the run has {UNFINISHED}: it may still be running (or ended by "
+                            "kill -9 or a power loss); add --force to remove it anyway")
+    total = sum(run.bytes for run in runs)
+    if not yes:
+        return [f"would remove {run.folder} ({run.status}, {size_text(run.bytes)})" for run in runs] + [
+            f"{len(runs)} run(s), {size_text(total)}: add --yes to remove them"]
+    for run in runs:
+        shutil.rmtree(run.folder)
+    return [f"removed {run.folder} ({size_text(run.bytes)})" for run in runs] + [
+        f"{len(runs)} run(s) removed, {size_text(total)} freed"]
+
+
+def older_than(root: Path, days: float) -> list[Path]:
+    """The run folders under `root` that started more than `days` days ago."""
+    limit = time.time() - days * 86400
+    return [run.folder for run in find_runs(root) if run.started_unix < limit]

@@ -1,0 +1,151 @@
+"""The procedure API (`benchctl.runner.api`): one import is enough to write a procedure, the run-folder layout
+is benchctl's alone, and every exposure a step makes is declared, checked against the profile and enforced."""
+
+from __future__ import annotations
+
+import ast
+import json
+import re
+from pathlib import Path
+
+import pytest
+
+from benchctl.devices.sim import bench
+from benchctl.devices.sim.state import load_state
+from benchctl.errors import BenchctlError
+from benchctl.profiles import load_profile
+from benchctl.runner import layout
+from benchctl.runner.calibration import Calibration
+from benchctl.runner.engine import run_procedure
+
+REPO = Path(__file__).resolve().parents[1]
+PROCEDURE_FILES = sorted((REPO / "benchctl" / "runner" / "builtin").rglob("*.py")) + [
+    REPO / "procedures" / "grating_shift.py"]
+
+# A step that declares green at 1 mW and then tries more, or another colour.
+UNDECLARED = """\
+import numpy as np
+
+from benchctl.runner.api import Expose, ExposureParameters, Step, channels, measure
+
+PARAMETERS = ExposureParameters
+
+
+def plan(context):
+    green, red, blue = (next(c for c in channels(context) if c.name == name) for name in ("green", "red", "blue"))
+
+    def action(context):
+        frame = np.zeros(context.profile.slm.shape, np.uint8)
+        return measure(context, %s, %s, frame, frames=1, dark_frames=0).record
+
+    return [Step("expose", "expose", action, (Expose("green", 1e-3, 1, 0), Expose("red", None, 1, 0)))]
+"""
+
+# A plan that declares red above its max_power_mw (40 mW on the test bench).
+TOO_BRIGHT = """\
+from benchctl.runner.api import Expose, ExposureParameters, Step
+
+PARAMETERS = ExposureParameters
+
+
+def plan(context):
+    return [Step("blinding", "too bright", lambda context: {}, (Expose("red", 0.05, 1, 0),))]
+"""
+
+
+def _benchctl_imports(path: Path) -> list[str]:
+    """The benchctl modules a file imports (`from X import` and `import X`)."""
+    modules = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("benchctl"):
+            modules.append(node.module)
+        elif isinstance(node, ast.Import):
+            modules += [alias.name for alias in node.names if alias.name.startswith("benchctl")]
+    return modules
+
+
+@pytest.mark.parametrize("path", PROCEDURE_FILES, ids=lambda p: p.name if p.parent.name != "citl" else f"citl/{p.name}")
+def test_procedures_use_only_the_front_door_of_the_runner(path: Path) -> None:
+    runner = [m for m in _benchctl_imports(path) if m.startswith("benchctl.runner")]
+    allowed = {"benchctl.runner.api", "benchctl.runner.builtin"} | {  # built-ins building on built-ins
+        f"benchctl.runner.builtin.{name}" for name in ("citl.report",)}
+    assert set(runner) <= allowed, (path, runner)
+
+
+def test_the_example_imports_benchctl_once() -> None:
+    assert _benchctl_imports(REPO / "procedures" / "grating_shift.py") == ["benchctl.runner.api"]
+
+
+@pytest.mark.parametrize("path", [*PROCEDURE_FILES, *sorted((REPO / "benchctl" / "runner").glob("*.py"))],
+                         ids=lambda p: p.name)
+def test_only_the_layout_module_spells_the_run_folders(path: Path) -> None:
+    if path.name in ("layout.py", "hologram_cache.py"):  # the cache's own folder is not the run's
+        return
+    spelt = re.findall(r"""["'](?:raw|holograms|images|state)(?:/|["'])""", path.read_text())
+    assert spelt == [], path
+
+
+def test_the_readme_example_runs(tmp_path: Path, make_bench_profile) -> None:
+    """The procedure the README shows, run as it is on a bench with a stored registration for each colour."""
+    readme = (REPO / "README.md").read_text()
+    section = readme[readme.index("### Writing a procedure"):]
+    code = section[section.index("```python") + len("```python"):section.index("```", section.index("```python") + 9)]
+    (tmp_path / "flat.py").write_text(code)
+    profile = make_bench_profile()
+    for colour in ("red", "green", "blue"):
+        Calibration.store(profile).save_registration(colour, {"homography": bench.camera_homography(profile).tolist(),
+                                                              "rms_px": 0.0})
+    outcome = run_procedure(tmp_path / "flat.py", profile=str(profile.path), out=tmp_path / "runs",
+                            say=lambda _: None)
+    assert outcome.folder is not None and outcome.ran[-1] == "report"
+    metrics = json.loads((outcome.folder / layout.METRICS_JSON).read_text())
+    assert [row["colour"] for row in metrics["colours"]] == ["red", "green", "blue"]
+    assert all(row["mean"] > 0.01 for row in metrics["colours"]), metrics
+    assert (outcome.folder / layout.raw_folder("flat/green") / "frame-000.dng").is_file()
+    assert "Flat frames" in (outcome.folder / layout.REPORT).read_text()
+
+
+@pytest.mark.parametrize("channel, power, message", [
+    ("green", "2e-3", "step 'expose' exposes green at 2 mW, 1 frame(s) + 0 dark, which it did not declare "
+                      "(declared: green alone at 1 mW, 1 frame(s) + 0 dark; red alone at a power chosen when the "
+                      "step runs, 1 frame(s) + 0 dark)"),
+    ("blue", "1e-3", "step 'expose' exposes blue at 1 mW"),
+    ("red", "0.05", "step 'expose' exposes red at 50 mW, above the channel's max_power_mw 40 mW"),
+])
+def test_an_exposure_the_step_did_not_declare_is_refused_before_the_laser_is_touched(
+        tmp_path: Path, bench_profile_path: Path, channel: str, power: str, message: str) -> None:
+    (tmp_path / "undeclared.py").write_text(UNDECLARED % (channel, power))
+    with pytest.raises(BenchctlError, match=re.escape(message)):
+        run_procedure(tmp_path / "undeclared.py", profile=str(bench_profile_path), out=tmp_path / "runs",
+                      say=lambda _: None)
+    assert load_state("rgb-laser") == {}  # never connected: no setpoint, no emission
+
+
+def test_a_declared_exposure_above_the_channels_limit_is_refused_when_planning(
+        tmp_path: Path, bench_profile_path: Path) -> None:
+    (tmp_path / "bright.py").write_text(TOO_BRIGHT)
+    with pytest.raises(BenchctlError, match=r"step 'blinding': red at 50 mW is outside 0..max_power_mw 40 mW"):
+        run_procedure(tmp_path / "bright.py", profile=str(bench_profile_path), out=tmp_path / "runs",
+                      dry_run=True, say=lambda _: None)
+    assert not (tmp_path / "runs").exists()
+
+
+def test_the_dry_run_counts_exposures_chosen_at_run_time(tmp_path: Path, bench_profile_path: Path) -> None:
+    procedure = tmp_path / "capture.toml"
+    procedure.write_text('procedure = "colour-capture"\n[parameters]\ntargets = ["chart:bars"]\ncolours = ["red"]\n'
+                         'lut_calibration = "skip"\n')
+    lines: list[str] = []
+    run_procedure(procedure, profile=str(bench_profile_path), dry_run=True, say=lines.append)
+    profile = load_profile(bench_profile_path)
+    setpoint = profile.channel("red").setpoint_mw
+    assert f". probe/bars/red: probe exposure bars  [red alone at {setpoint:g} mW, 1 frame(s) + 0 dark]" in "\n".join(
+        lines)
+    assert ". capture/bars/red: expose bars  [red alone at a power chosen when the step runs, 2 frame(s) + 1 dark]" \
+        in "\n".join(lines)
+    assert f"  red: 3 exposure(s), at most {setpoint:g} mW (1 at a power chosen at run time); limit 40 mW" in lines
+
+
+@pytest.mark.parametrize("part", ["", "..", "a\\b", "/etc"])
+def test_layout_refuses_names_outside_its_folders(part: str) -> None:
+    with pytest.raises(ValueError, match="cannot name a file inside the run folder"):
+        layout.image_file("x", part)
