@@ -354,9 +354,15 @@ class Profile(ProfileFile, kw_only=True):
                 )
         if self.camera:
             cam = self.camera
-            exposure = f"{cam.exposure_s:g} s" if cam.exposure_s else "as set on the body"
-            lines.append(f"  Camera        {cam.driver} {cam.model}".rstrip() + f": exposure {exposure}, "
-                         f"ISO {cam.iso or 'as set on the body'}, {cam.frames} frame(s) per capture")
+            body = "as set on the camera" if cam.driver == "genicam" else "as set on the body"
+            exposure = f"{cam.exposure_s:g} s" if cam.exposure_s else body
+            if cam.driver == "genicam":  # a machine-vision camera has a pixel format and gain, not ISO
+                gain = body if cam.gain is None else f"{cam.gain:g}"
+                sensor = f"{cam.pixel_format or 'pixel format ' + body}, gain {gain}"
+            else:
+                sensor = f"ISO {cam.iso or body}"
+            lines.append(f"  Camera        {cam.driver} {cam.model}".rstrip() + f": exposure {exposure}, {sensor}, "
+                         f"{cam.frames} frame(s) per capture")
         return "\n".join(lines)
 
 
