@@ -234,8 +234,10 @@ def write_report(run_dir: Path, out: Callable[[str], None] = print) -> list[dict
               f"Bench: {size[0]}x{size[1]} (Fresnel-scaled), {plan['colour']}; data {plan['data']}; validation "
               f"(stopping rule): procedural images {VALIDATION_FIRST}-{VALIDATION_FIRST + VALIDATION_COUNT - 1}; "
               f"scores: held-out photographs {', '.join(photo_specs('eval'))}, mean over them; Adam lr "
-              f"{plan['lr']:g}; stop: < {plan['min_gain_db']:g} dB per doubling of steps from step "
-              f"{plan['min_steps']} on, cap {plan['max_steps']} steps; {plan['threads']} torch thread(s) per job.",
+              f"{plan['lr']:g}; stop: < {plan['min_gain_db']:g} dB per doubling of steps at "
+              f"{plan.get('patience', 1)} power-of-two step(s) in a row from step {plan['min_steps']} on, cap "
+              f"{plan['max_steps']} steps; {plan['threads']} torch thread(s) per job.",
+              f"Change of plan: {plan['rule_change']}." if plan.get("rule_change") else "",
               f"Unfinished jobs (not in the table): {', '.join(unfinished)}." if unfinished else "", ""]
     for line in lines + [""] + format_comparisons(found):
         out(line)
