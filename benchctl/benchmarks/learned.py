@@ -110,7 +110,8 @@ def training_step_memory(method: str, geometry: dict[str, Any], device: str) -> 
     model = build_model(method, setup).to(dev)
     optimiser = torch.optim.Adam(model.parameters(), lr=5e-4)
     amplitude = torch.zeros(1, 1, *setup.shape, device=dev)
-    amplitude[(..., *setup.roi_slices)] = torch.rand(setup.roi, device=dev)  # content does not change memory
+    rows, cols = setup.roi_slices
+    amplitude[..., rows, cols] = torch.rand(setup.roi, device=dev)  # content does not change memory
     amplitude = peak_normalised(amplitude)
     for propagator in (setup.slm_propagator(), setup.target_propagator()):
         propagator.kernel(torch.complex64, dev)
