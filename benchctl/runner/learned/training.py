@@ -275,8 +275,8 @@ def load_targets(sources: Sequence[ImageSource], grid: tuple[int, int], roi: tup
 
 def epoch_flips(seed: int, epoch: int, positions: Sequence[int]) -> list[tuple[bool, bool]]:
     """Random (horizontal, vertical) flips, fixed by (seed, epoch, position in the epoch)."""
-    return [tuple(bool(v) for v in np.random.default_rng([seed, epoch, p]).random(2) < 0.5)  # type: ignore[misc]
-            for p in positions]
+    flips = (np.random.default_rng([seed, epoch, p]).random(2) < 0.5 for p in positions)
+    return [(bool(horizontal), bool(vertical)) for horizontal, vertical in flips]
 
 
 def epoch_order(n: int, seed: int, epoch: int, length: int) -> np.ndarray:
