@@ -109,7 +109,8 @@ def bench_for(plan: dict[str, Any], job: dict[str, Any]) -> Profile:
     """The Fresnel-scaled bench of the plan, without the iris for a job that asks so."""
     bench = resized_profile(load_profile(plan["profile"]), tuple(plan["size"]))
     if not job.get("iris", True):
-        bench = msgspec.structs.replace(bench, optics=msgspec.structs.replace(bench.optics, iris_fraction=None))
+        optics = msgspec.structs.replace(bench.section("optics"), iris_fraction=None)
+        bench = msgspec.structs.replace(bench, optics=optics)
     return bench
 
 

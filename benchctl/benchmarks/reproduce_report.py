@@ -208,7 +208,7 @@ def dpac_reference(run_dir: Path, plan: dict[str, Any]) -> tuple[float, float]:
         saved = json.loads(path.read_text())
         return saved["psnr_db"], saved["ssim"]
     bench = bench_for(plan, {"iris": True})
-    grid, roi = bench.slm.shape, bench.optics.roi  # type: ignore[union-attr]
+    grid, roi = bench.section("slm").shape, bench.section("optics").roi
     psnrs, ssims = [], []
     for spec in photo_specs("eval"):
         scene = compute_scene(prepare_target(load_target(spec, size=roi), grid, roi), bench, "dpac",

@@ -259,7 +259,7 @@ def _placements(index: np.ndarray, quality: np.ndarray,
     filled = (weight > 0).astype(np.int64)
     score, count = window_sums(weight), window_sums(filled)
     n_u, n_v = score.shape
-    corners = sum(filled[i:i + n_u, j:j + n_v] for i in (0, du - 1) for j in (0, dv - 1))
+    corners = np.sum([filled[i:i + n_u, j:j + n_v] for i in (0, du - 1) for j in (0, dv - 1)], axis=0)
     starts = np.stack(np.meshgrid(np.arange(n_u), np.arange(n_v), indexing="ij"), axis=-1).reshape(-1, 2) + low
     return starts, score.ravel(), count.ravel(), 4 - corners.ravel()
 

@@ -124,7 +124,7 @@ class Calibration:
     def save_model(self, colour: str, entry: dict[str, Any]) -> Path:
         """Store one colour's fitted model; entries fitted for another geometry are dropped (they no longer apply)."""
         path = ensure_dir(self.folder) / MODEL_FILE
-        data = {"profile": self.profile.name, "colours": self.models()}
+        data: dict[str, Any] = {"profile": self.profile.name, "colours": self.models()}
         data["colours"][colour] = {**entry, "geometry": self._for(colour), "created": _now()}
         return write_json(path, data)
 

@@ -240,7 +240,7 @@ def open_run(folder: Path) -> RunRecord:
     record = RunRecord(folder)
     repair_log(folder / STEP_LOG)
     for event in record.events():
-        key = event.get("step")
+        key = event["step"]  # every event of the step log names its step
         if event.get("event") == "start":
             record.attempts[key] = max(record.attempts.get(key, 0), int(event.get("attempt", 1)))
         elif event.get("event") == "done":

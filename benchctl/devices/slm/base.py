@@ -173,7 +173,7 @@ class SLM(Connection):
 
     def _flipped(self, frame: np.ndarray) -> np.ndarray:
         """`frame` mirrored as the optics require (flip_y: rows, flip_x: columns); a view."""
-        return np.flip(frame, [axis for axis, on in ((0, self.config.flip_y), (1, self.config.flip_x)) if on])
+        return np.flip(frame, tuple(axis for axis, on in ((0, self.config.flip_y), (1, self.config.flip_x)) if on))
 
     def encode(self, phase: np.ndarray | torch.Tensor, channel: str) -> np.ndarray:
         """The gray frame `show_phase` would display for `phase` ((H, W) radians), without displaying it."""

@@ -103,7 +103,7 @@ def _fitter(channel: LaserChannel, grays: list[int]):
 
         context.save_calibration(store)
         measured = lut.phases
-        result = {"grays": grays, "signals": signals, "phases": [float(p) for p in phases],
+        result: dict[str, Any] = {"grays": grays, "signals": signals, "phases": [float(p) for p in phases],
                   "depth_rad": float(measured[-1] - measured[0]),
                   "file": context.calibration.lut_path(channel.name).name}
         truth = context.slm.ground_truth_lut(channel.wavelength_m)  # None on a real panel

@@ -198,7 +198,7 @@ def _save_state(path: Path, phase: torch.Tensor, optimiser: torch.optim.Adam | N
     if state:
         arrays.update({key: state[key].cpu().numpy() for key in ("step", "exp_avg", "exp_avg_sq")})
     buffer = io.BytesIO()
-    np.savez(buffer, **arrays)
+    np.savez(buffer, **arrays)  # type: ignore[arg-type]  # numpy's stub: a key could be its bool allow_pickle
     atomic_write_bytes(path, buffer.getvalue())
 
 
