@@ -224,7 +224,9 @@ def full_size_images(stream: BinaryIO) -> list[tuple[int, int]]:
     if header[:4] not in (b"II*\0", b"MM\0*"):
         return []
     order = "<" if header[:2] == b"II" else ">"
-    pending, seen, found = [struct.unpack(order + "I", header[4:])[0]], set(), []
+    pending: list[int] = [struct.unpack(order + "I", header[4:])[0]]
+    seen: set[int] = set()
+    found: list[tuple[int, int]] = []
     while pending and len(seen) < 64:  # a damaged file may chain IFDs in a loop
         offset = pending.pop(0)
         if offset == 0 or offset in seen:
