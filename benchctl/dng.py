@@ -1,4 +1,5 @@
-"""Writing a Bayer mosaic as a minimal DNG 1.4 file that LibRaw (rawpy) reads back bit-exactly.
+"""Writing a Bayer (or monochrome) mosaic as a minimal DNG 1.4 file that LibRaw (rawpy) reads back bit-exactly,
+and reading which kind of image a TIFF-based RAW file holds.
 
 The simulated camera uses this so that the capture pipeline decodes its frames with the same code as a real
 camera's. The file is the smallest layout LibRaw reads losslessly: a little-endian TIFF, the image as one
@@ -10,7 +11,10 @@ with missing rows.
 Verified with rawpy 0.28 / LibRaw 0.22: `raw_image` equals the mosaic; ActiveArea becomes
 `sizes.top_margin` / `left_margin` and crops `raw_image_visible`; ExposureTime and ISOSpeedRatings (EXIF IFD)
 come back as `other.shutter_speed` / `other.iso_speed`, DateTime as `other.timestamp`. rawpy 0.28 does not
-expose the camera make or model, so UniqueCameraModel is there for other readers only.
+expose the camera make or model, so UniqueCameraModel is there for other readers only. A monochrome file
+(PhotometricInterpretation LinearRaw, one sample per pixel, one black level) reads back bit for bit with
+`num_colors` 1. LibRaw cannot be asked what a file declares: after a monochrome file, it reads a CFA file that lacks
+its CFAPattern as one colour too (its state carries over), so `full_size_images` reads the declaration itself.
 """
 
 from __future__ import annotations
@@ -19,7 +23,7 @@ import re
 import struct
 from fractions import Fraction
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, BinaryIO, Sequence
 
 import numpy as np
 
@@ -34,9 +38,11 @@ CFA_LAYOUTS: dict[str, tuple[int, int, int, int]] = {
 }
 """Colour of the 2x2 CFA cell in row-major order (0 = red, 1 = green, 2 = blue), as in the CFAPattern tag."""
 
-_BYTE, _ASCII, _SHORT, _LONG, _RATIONAL, _SRATIONAL = 1, 2, 3, 4, 5, 10
+_BYTE, _ASCII, _SHORT, _LONG, _RATIONAL, _SRATIONAL, _IFD = 1, 2, 3, 4, 5, 10, 13
 _FORMATS = {_BYTE: "B", _ASCII: "B", _SHORT: "H", _LONG: "I", _RATIONAL: "I", _SRATIONAL: "i"}  # per number
 _D65 = 21  # CalibrationIlluminant code for the colour matrix
+CFA, LINEAR_RAW = 32803, 34892
+"""PhotometricInterpretation of a colour-filter-array image and of a linear one (monochrome with one sample)."""
 XYZ_TO_LINEAR_SRGB = (
     (3.2404542, -1.5371385, -0.4985314),
     (-0.9692660, 1.8760108, 0.0415560),
@@ -122,7 +128,7 @@ def dng_bytes(
         if len(set(blacks)) != 1:
             raise BadValueError(f"a monochrome DNG has one black level, got {blacks}")
         colour = [
-            _entry(262, _SHORT, [34892]),  # PhotometricInterpretation: LinearRaw
+            _entry(262, _SHORT, [LINEAR_RAW]),  # PhotometricInterpretation
             _entry(50713, _SHORT, [1, 1]),  # BlackLevelRepeatDim
             _entry(50714, _LONG, blacks[:1]),  # BlackLevel
             _entry(50721, _SRATIONAL, [_rational(v, signed=True) for v in matrix[1]]),  # ColorMatrix1: luminance
@@ -130,7 +136,7 @@ def dng_bytes(
         ]
     else:
         colour = [
-            _entry(262, _SHORT, [32803]),  # PhotometricInterpretation: CFA
+            _entry(262, _SHORT, [CFA]),  # PhotometricInterpretation
             _entry(33421, _SHORT, [2, 2]),  # CFARepeatPatternDim
             _entry(33422, _BYTE, pattern),  # CFAPattern
             _entry(50710, _BYTE, [0, 1, 2]),  # CFAPlaneColor: R G B
@@ -208,3 +214,42 @@ def _ifd(entries: list[tuple[int, int, int, bytes]], offset: int) -> bytes:
 def write_dng(path: Path | str, mosaic: np.ndarray, **options: Any) -> Path:
     """Write `dng_bytes(mosaic, **options)` to `path` atomically (a reader never sees half a frame)."""
     return atomic_write_bytes(Path(path), dng_bytes(mosaic, **options))
+
+
+def full_size_images(stream: BinaryIO) -> list[tuple[int, int]]:
+    """(PhotometricInterpretation, SamplesPerPixel) of each full-size image (NewSubFileType 0) of a TIFF-based file
+    (DNG, CR2, ...), in IFD 0's chain and their SubIFDs; [] for a file that is not a TIFF or names none."""
+    stream.seek(0)
+    header = stream.read(8)
+    if header[:4] not in (b"II*\0", b"MM\0*"):
+        return []
+    order = "<" if header[:2] == b"II" else ">"
+    pending: list[int] = [struct.unpack(order + "I", header[4:])[0]]
+    seen: set[int] = set()
+    found: list[tuple[int, int]] = []
+    while pending and len(seen) < 64:  # a damaged file may chain IFDs in a loop
+        offset = pending.pop(0)
+        if offset == 0 or offset in seen:
+            continue
+        seen.add(offset)
+        stream.seek(offset)
+        count_bytes = stream.read(2)
+        if len(count_bytes) < 2:
+            continue
+        table = stream.read(12 * struct.unpack(order + "H", count_bytes)[0] + 4)
+        values = {}
+        for at in range(0, len(table) - 15, 12):
+            tag, kind, count = struct.unpack_from(order + "HHI", table, at)
+            if tag in (254, 262, 277) and count == 1:
+                values[tag] = struct.unpack_from(order + ("H" if kind == _SHORT else "I"), table, at + 8)[0]
+            elif tag == 330 and kind in (_LONG, _IFD):  # SubIFDs: inline when one, else at an offset
+                if count == 1:
+                    pending.append(struct.unpack_from(order + "I", table, at + 8)[0])
+                else:
+                    stream.seek(struct.unpack_from(order + "I", table, at + 8)[0])
+                    pending.extend(struct.unpack(f"{order}{count}I", stream.read(4 * count)))
+        if len(table) >= 4:
+            pending.append(struct.unpack_from(order + "I", table, len(table) - 4)[0])  # the next IFD of the chain
+        if values.get(254, 0) == 0 and 262 in values:
+            found.append((values[262], values.get(277, 1)))
+    return found

@@ -91,8 +91,9 @@ def fit_estimate(profile: Profile, patterns: int, flat: bool, fit_steps: int) ->
     """Model calibration's fit of `patterns` captured patterns (and the `flat` one) over `fit_steps` steps, on the
     largest padded grid of the profile's channels."""
     profile.require("slm", "optics", "laser")
-    padded = max(math.prod(plan_propagation(profile.slm.shape, profile.optics.distance_m, channel.wavelength_m,
-                                            profile.slm.pitch_m, aperture=profile.optics.iris_fraction).padded_shape)
+    slm, optics = profile.section("slm"), profile.section("optics")
+    padded = max(math.prod(plan_propagation(slm.shape, optics.distance_m, channel.wavelength_m, slm.pitch_m,
+                                            aperture=optics.iris_fraction).padded_shape)
                  for channel in profile.channels)
     return Estimate(f"the model fit on a padded grid of {padded / 1e6:.3g} Mpx",
                     (FIT_BYTES_PER_PADDED_PX + FIT_BYTES_PER_PATTERN_PX * flat) * padded,

@@ -14,7 +14,7 @@ import os
 import re
 import sys
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal, overload
 
 import msgspec
 from msgspec import Meta
@@ -43,11 +43,17 @@ Fraction = Annotated[float, Meta(ge=0, le=1)]
 PositiveInt = Annotated[int, Meta(gt=0)]
 NonNegativeInt = Annotated[int, Meta(ge=0)]
 RowsCols = tuple[float, float]  # [rows, cols]
-CFALayout = Literal[tuple(CFA_LAYOUTS)]  # type: ignore[valid-type]  # the layouts benchctl.dng writes
-# The drivers of each kind (benchctl.drivers lists them once).
-LaserDriver = Literal[driver_names("laser")]  # type: ignore[valid-type]
-SLMDriver = Literal[driver_names("slm")]  # type: ignore[valid-type]
-CameraDriver = Literal[driver_names("camera")]  # type: ignore[valid-type]
+if TYPE_CHECKING:  # choices listed at run time, in the modules named below: plain strings to a type checker
+    CFALayout = str
+    LaserDriver = str
+    SLMDriver = str
+    CameraDriver = str
+else:
+    CFALayout = Literal[tuple(CFA_LAYOUTS)]  # the layouts benchctl.dng writes
+    # The drivers of each kind (benchctl.drivers lists them once).
+    LaserDriver = Literal[driver_names("laser")]
+    SLMDriver = Literal[driver_names("slm")]
+    CameraDriver = Literal[driver_names("camera")]
 # The Zernike terms of optics.aberration.ZERNIKE_TERMS (not imported: it imports torch; a test keeps them equal).
 ZernikeTerm = Literal["tilt_vertical", "tilt_horizontal", "astigmatism_oblique", "defocus", "astigmatism_vertical",
                       "coma_vertical", "coma_horizontal", "spherical"]
@@ -295,6 +301,20 @@ class Profile(ProfileFile, kw_only=True):
                 raise BenchctlError(f"{self.path}: this needs a [{section}] section, which the profile lacks")
         return self
 
+    @overload
+    def section(self, name: Literal["optics"]) -> OpticsConfig: ...
+    @overload
+    def section(self, name: Literal["slm"]) -> SLMConfig: ...
+    @overload
+    def section(self, name: Literal["laser"]) -> LaserConfig: ...
+    @overload
+    def section(self, name: Literal["camera"]) -> CameraConfig: ...
+
+    def section(self, name: str) -> Model:
+        """Device section `name` of this profile, or the BenchctlError of `require` if the profile lacks it."""
+        found: Model = getattr(self.require(name), name)
+        return found
+
     def channel(self, name: str) -> LaserChannel:
         """The laser channel called `name`."""
         self.require("laser")
@@ -314,9 +334,8 @@ class Profile(ProfileFile, kw_only=True):
     def geometry(self, channel: str) -> Geometry:
         """The optical geometry of laser channel `channel` in SI units: the one conversion from the profile's
         units, for everything that computes, calibrates or caches for this bench."""
-        slm, optics = self.require("slm", "optics").slm, self.optics
-        assert slm is not None and optics is not None
-        return Geometry(wavelength_m=self.channel(channel).wavelength_m, pitch_m=slm.pitch_m,
+        slm, optics = self.section("slm"), self.section("optics")
+        return Geometry(wavelength_m=self.channel(channel).wavelength_m, pitch_m=(slm.pitch_m, slm.pitch_m),
                         distance_m=optics.distance_m, shape=slm.shape, roi=optics.roi, aperture=optics.iris_fraction)
 
     def describe(self) -> str:
@@ -354,9 +373,15 @@ class Profile(ProfileFile, kw_only=True):
                 )
         if self.camera:
             cam = self.camera
-            exposure = f"{cam.exposure_s:g} s" if cam.exposure_s else "as set on the body"
-            lines.append(f"  Camera        {cam.driver} {cam.model}".rstrip() + f": exposure {exposure}, "
-                         f"ISO {cam.iso or 'as set on the body'}, {cam.frames} frame(s) per capture")
+            body = "as set on the camera" if cam.driver == "genicam" else "as set on the body"
+            exposure = f"{cam.exposure_s:g} s" if cam.exposure_s else body
+            if cam.driver == "genicam":  # a machine-vision camera has a pixel format and gain, not ISO
+                gain = body if cam.gain is None else f"{cam.gain:g}"
+                sensor = f"{cam.pixel_format or 'pixel format ' + body}, gain {gain}"
+            else:
+                sensor = f"ISO {cam.iso or body}"
+            lines.append(f"  Camera        {cam.driver} {cam.model}".rstrip() + f": exposure {exposure}, {sensor}, "
+                         f"{cam.frames} frame(s) per capture")
         return "\n".join(lines)
 
 

@@ -18,6 +18,7 @@ import difflib
 import math
 import operator
 import re
+import sys
 import types
 import typing
 from collections.abc import Callable, Mapping
@@ -28,9 +29,17 @@ import msgspec
 
 from benchctl.errors import BenchctlError
 
+if sys.version_info >= (3, 11):
+    from typing import dataclass_transform
+else:
+    from typing_extensions import dataclass_transform
+
 T = TypeVar("T", bound="Model")
 
 
+# msgspec's subclasses inherit frozen=True, but a type checker reads each subclass by PEP 681, where frozen is a
+# per-class default: frozen_default says what msgspec does, so subclasses need not repeat it.
+@dataclass_transform(frozen_default=True, field_specifiers=(msgspec.field,))
 class Model(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """Base of every configuration section: immutable, and an unknown key is an error, never ignored.
 

@@ -12,13 +12,14 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
+import msgspec
 import numpy as np
 import pytest
 
 from benchctl.capture.raw import RawImage, decode_raw
 from benchctl.cli import main
 from benchctl.devices.sim import bench
-from benchctl.dng import dng_bytes
+from benchctl.dng import CFA_LAYOUTS, dng_bytes
 from benchctl.profiles import Profile, load_profile
 
 if sys.version_info >= (3, 11):
@@ -200,6 +201,26 @@ def sim_exposure(profile: Profile, gray: np.ndarray | None, powers_w: dict[str, 
     mosaic = bench.render_mosaic(profile, gray, powers_w, exposure_s=0.01, iso=100, frame=frame)
     return decode_raw(dng_bytes(mosaic, cfa=sensor.cfa, black_level=sensor.black_level,
                                 white_level=sensor.white_level, active_area=sensor.active_area))
+
+
+def mono_exposure(profile: Profile, gray: np.ndarray | None, powers_w: dict[str, float], frame: int = 1,
+                  colour: int = 1) -> RawImage:
+    """`sim_exposure` by a monochrome sensor lit by one colour (plane index `colour`; no light: dark), written as a
+    monochrome DNG and decoded. Made from the simulator's renders with each of the four Bayer layouts: every pixel
+    is taken from a render in which its site carries that colour's filter, so the sensor responds to the colour
+    alike at every pixel (the filter's response; a flat mono response differs by a gain the merge's balance takes)."""
+    sensor = profile.sim.sensor
+    mono = np.zeros(sensor.shape, dtype=np.uint16)
+    filled = np.zeros(sensor.shape, dtype=bool)
+    site = np.indices(sensor.shape) % 2  # the margins are even: the full sensor's sites are the active area's
+    for layout, cells in CFA_LAYOUTS.items():
+        with_layout = msgspec.structs.replace(profile, sim=msgspec.structs.replace(
+            profile.sim, sensor=msgspec.structs.replace(sensor, cfa=layout)))
+        mosaic = bench.render_mosaic(with_layout, gray, powers_w, exposure_s=0.01, iso=100, frame=frame)
+        take = (np.reshape(cells, (2, 2))[site[0], site[1]] == colour) & ~filled
+        mono[take], filled[take] = mosaic[take], True
+    return decode_raw(dng_bytes(mono, cfa=None, black_level=sensor.black_level, white_level=sensor.white_level,
+                                active_area=sensor.active_area))
 
 
 def _merged(base: Mapping[str, Any], changes: Mapping[str, Any]) -> dict[str, Any]:

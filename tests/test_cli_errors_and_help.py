@@ -110,6 +110,21 @@ def write_frame(path: Path) -> Path:
     return path
 
 
+def test_camera_show_describes_a_monochrome_frame(tmp_path: Path, in_repo: None,
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """A mono sensor's frame: every colour reads every pixel (it divided by zero reading none before)."""
+    raw = np.full((24, 32), 100, np.uint16)
+    raw[2:, 2:] = 100 + 1998
+    raw[2, 2] = 4095
+    frame = tmp_path / "mono.dng"
+    frame.write_bytes(dng_bytes(raw, cfa=None, black_level=100, white_level=4095, active_area=(2, 2, 24, 32)))
+    assert main(["camera", "show", str(frame), "-o", str(tmp_path / "look.png")]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == f"{frame}: 30 x 22 px visible (width x height), monochrome (every colour reads every pixel)"
+    for colour, line in zip(("  red", "green", " blue"), lines[2:5]):  # mean (659 x 1998 / 3995 + 1) / 660
+        assert line == f"{colour}: peak 100.0% of full scale, mean 50.09%, saturated 0.152% (1 of 660 px)"
+
+
 def test_camera_show_describes_a_raw_frame_and_writes_a_preview(tmp_path: Path, in_repo: None,
                                                                capsys: pytest.CaptureFixture[str]) -> None:
     frame = write_frame(tmp_path / "frame.dng")

@@ -9,15 +9,19 @@ import shutil
 import subprocess
 import time
 from collections.abc import Iterator
+from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
 import pytest
+from test_mono_camera import finished_run, store_registration
 
+from benchctl.capture.raw import decode_raw
 from benchctl.cli import main
 from benchctl.devices.errors import DeviceError
 from benchctl.devices.slm import save_lut, slm_for
-from benchctl.devices.slm.display import DisplaySLM
+from benchctl.devices.slm import display as display_module
+from benchctl.devices.slm.display import DisplaySLM, presented_time
 from benchctl.devices.slm.edid import parse_edid
 from benchctl.optics.phase_encoding import PhaseLUT
 from benchctl.profiles import load_profile
@@ -30,7 +34,8 @@ pytestmark = pytest.mark.skipif(shutil.which("Xvfb") is None, reason="needs Debi
 @pytest.fixture(scope="module")
 def x_display() -> Iterator[str]:
     """Xvfb on a free display number: screen 0 320x240 with the EDID of a Dell P2415Q, screen 1 192x128 with that
-    of a Dell E178WFP (-noreset: the EDIDs stay when the client that set them leaves)."""
+    of a Dell E178WFP, each CRTC's gamma ramp the identity, as on a desktop (Xvfb leaves it uninitialised: zeros or
+    garbage); -noreset: all that stays when the client that set it leaves."""
     from Xlib import X, display
 
     number = next(n for n in range(90, 200) if not Path(f"/tmp/.X11-unix/X{n}").exists()
@@ -47,16 +52,23 @@ def x_display() -> Iterator[str]:
         time.sleep(0.2)
         connection = display.Display(name)
         for screen, blob in ((0, "dell-p2415q-hdmi1.4.bin"), (1, "dell-e178wfp-vga.bin")):
-            output = connection.screen(screen).root.xrandr_get_screen_resources().outputs[0]
-            connection.xrandr_change_output_property(output, connection.intern_atom("EDID"),
+            resources = connection.screen(screen).root.xrandr_get_screen_resources()
+            connection.xrandr_change_output_property(resources.outputs[0], connection.intern_atom("EDID"),
                                                      connection.intern_atom("INTEGER"), X.PropModeReplace,
                                                      (8, (EDIDS / blob).read_bytes()))
+            set_gamma(connection, resources.crtcs[0], 1.0)
         connection.sync()
         connection.close()
         yield name
     finally:
         server.terminate()
         server.wait()
+
+
+def set_gamma(connection: object, crtc: int, gamma: float) -> None:
+    """A 256-entry ramp out = in ** (1 / gamma) on every colour of `crtc` (1.0: the identity)."""
+    ramp = [round(65535 * (i / 255) ** (1 / gamma)) for i in range(256)]
+    connection.xrandr_set_crtc_gamma(crtc, 256, ramp, ramp, ramp)  # type: ignore[attr-defined]
 
 
 def profile_text(x_display: str, **slm: object) -> str:
@@ -112,6 +124,72 @@ def test_the_window_lands_on_the_output_named_by_its_edid_and_shows_exact_gray_l
         assert display_slm.displayed_frame() == len(patterns)
 
 
+def test_frames_are_presented_at_a_vblank_after_their_request(tmp_path: Path, x_display: str) -> None:
+    """Through X11 Present (Xvfb's fake 60 Hz vblank): each frame's presentation time is the vblank's, after the
+    request and before show_gray returned, later than the previous one; the pixels are still exact; the settle
+    wait counts from the vblank (so it is shorter than settle_ms by the time since then)."""
+    rng = np.random.default_rng(8)
+    with slm(tmp_path, x_display, edid_name="DELL E178WFP", settle_ms=50) as display_slm:
+        assert display_slm.info()["presentation"].startswith("X11 Present: vsync'd")
+        assert display_slm.info()["output"].startswith("screen (screen 1): 192x128")
+        waits: list[float] = []
+        display_slm.sleep = waits.append
+        spans = []
+        for _ in range(4):
+            pattern = rng.integers(0, 256, (SLM_SCREEN[1], SLM_SCREEN[0]), dtype=np.uint8)
+            before = datetime.now(timezone.utc)
+            display_slm.show_gray(pattern)
+            spans.append((before, datetime.fromisoformat(display_slm.presented_at), datetime.now(timezone.utc)))
+            assert np.array_equal(read_back(x_display, display_slm)[:, :, 1], pattern)
+    for before, presented, after in spans:
+        assert before <= presented <= after
+    presented = [span[1] for span in spans]
+    assert presented == sorted(presented) and len(set(presented)) == len(presented)
+    assert all(0 < wait < 0.05 for wait in waits)
+
+
+def test_a_frame_the_server_does_not_present_in_time_is_an_error_and_the_next_one_shows(
+        tmp_path: Path, x_display: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    pattern = np.full((SLM_SCREEN[1], SLM_SCREEN[0]), 99, np.uint8)
+    with slm(tmp_path, x_display, edid_name="DELL E178WFP") as display_slm:
+        timeout_s = display_module.PRESENT_TIMEOUT_S
+        monkeypatch.setattr(display_module, "PRESENT_TIMEOUT_S", 0.0)  # no vblank comes that fast
+        with pytest.raises(DeviceError) as caught:
+            display_slm.show_gray(pattern)
+        assert str(caught.value) == ("SLM (display slm.edid_name = 'DELL E178WFP'): the X server did not complete "
+                                     "presenting frame 1 within 0 s: is the output switched off or in power saving?")
+        monkeypatch.setattr(display_module, "PRESENT_TIMEOUT_S", timeout_s)
+        display_slm.show_gray(pattern + 1)  # frame 1's late notification is passed over
+        assert np.array_equal(read_back(x_display, display_slm)[:, :, 0], pattern + 1)
+
+
+def test_without_present_frames_go_straight_into_the_window(tmp_path: Path, x_display: str,
+                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    """An X server without the Present extension (Xvfb always has it, so the client is told it has not): the frame
+    is written into the window, exact; presented_at is when XSync returned, the settle wait is settle_ms, and the
+    record says so."""
+    from Xlib import display
+
+    asked = display.Display.query_extension
+    monkeypatch.setattr(display.Display, "query_extension",
+                        lambda self, name: None if name == "Present" else asked(self, name))
+    pattern = (np.indices((SLM_SCREEN[1], SLM_SCREEN[0])).sum(axis=0) % 251).astype(np.uint8)
+    with slm(tmp_path, x_display, edid_name="DELL E178WFP", settle_ms=20) as display_slm:
+        assert display_slm.info()["presentation"].startswith("XPutImage into the window: no Present extension")
+        waits: list[float] = []
+        display_slm.sleep = waits.append
+        before = datetime.now(timezone.utc)
+        display_slm.show_gray(pattern)
+        assert before <= datetime.fromisoformat(display_slm.presented_at) <= datetime.now(timezone.utc)
+        assert np.array_equal(read_back(x_display, display_slm)[:, :, 2], pattern) and waits == [0.02]
+
+
+def test_a_present_time_off_this_machines_clock_is_not_taken() -> None:
+    assert presented_time(2_500_000, 2.4, 2.6) == 2.5
+    assert presented_time(2_500_000, 2.6, 2.7) is None  # before the request: another machine's clock
+    assert presented_time(9_000_000, 2.6, 2.7) is None
+
+
 def test_phases_through_lookup_tables_reach_the_screen_as_encoded(tmp_path: Path, x_display: str) -> None:
     measured = PhaseLUT(np.linspace(0.0, 1.8 * np.pi, 256) ** 1.1 / (1.8 * np.pi) ** 0.1)
     table = save_lut(tmp_path / "green.csv", measured)
@@ -144,6 +222,23 @@ def test_a_missing_output_or_another_mode_is_one_line_naming_what_there_is(tmp_p
         slm(tmp_path, x_display, output="screen").open()
     with pytest.raises(DeviceError, match=r"^cannot connect to X display ':1999'"):
         slm(tmp_path, ":1999", edid_name="DELL E178WFP").open()
+
+
+def test_an_output_whose_gamma_ramp_is_not_the_identity_is_refused(tmp_path: Path, x_display: str) -> None:
+    from Xlib import display
+
+    connection = display.Display(x_display)
+    crtc = connection.screen(1).root.xrandr_get_screen_resources().crtcs[0]
+    try:
+        set_gamma(connection, crtc, 2.2)
+        connection.sync()
+        with pytest.raises(DeviceError, match=r"^screen: its red gamma ramp is not the identity, so the panel would "
+                                              r"not get the gray levels sent: `xrandr --output screen --gamma 1:1:1`"):
+            slm(tmp_path, x_display, edid_name="DELL E178WFP").open()
+    finally:
+        set_gamma(connection, crtc, 1.0)
+        connection.sync()  # close() alone may leave the request unsent
+        connection.close()
 
 
 def test_devices_lists_the_desktop_outputs(x_display: str, capsys: pytest.CaptureFixture[str],
@@ -185,3 +280,52 @@ def test_edid_refusals() -> None:
     with pytest.raises(DeviceError, match="not an EDID: 12 bytes"):
         parse_edid(b"\0" * 12)
     assert os.path.getsize(EDIDS / "dell-e178wfp-vga.bin") == 128
+
+
+LAB_EDITS = [  # (line of hardware_profiles/genicam_hdmi.toml, what this lab writes there): CHECK lines only
+    ("roi = [880, 1600] ", "roi = [96, 160] "),
+    ('edid_name = "GAEA-2" ', 'edid_name = "DELL E178WFP" '),
+    ('# x_display = ":0" ', 'x_display = "{x_display}" '),
+    ("width = 1920 ", "width = 192 "),
+    ("height = 1080 ", "height = 128 "),
+    ('port = "/dev/ttyUSB0" ', 'port = "sim://rgb-laser" '),
+    ('serial = "12345678" ', 'serial = "1" '),
+    ('pixel_format = "BayerRG12" ', 'pixel_format = "Mono16" '),
+    ("# region = [0, 0, 2048, 2048] ", "region = [0, 0, 384, 256] "),
+]
+
+
+def test_a_lab_runs_the_colour_capture_after_editing_only_the_example_profile(tmp_path: Path,
+                                                                              x_display: str) -> None:
+    """The issue's "done when": hardware_profiles/genicam_hdmi.toml with only lines marked CHECK changed, for a
+    bench whose SLM is the Dell E178WFP output of this X server, whose camera is Aravis's fake camera in Mono16 and
+    whose laser is the simulated unit speaking the profile's protocol; the shipped colour capture runs on it. The
+    procedure is told to use a stored registration and to skip lookup-table calibration (the fake camera draws its
+    own pattern, so neither can be measured on it), and to take one frame without dark (its pattern moves from
+    frame to frame)."""
+    text = (Path(__file__).parents[1] / "hardware_profiles" / "genicam_hdmi.toml").read_text()
+    lines = text.splitlines()
+    for line, edited in LAB_EDITS:
+        (number,) = [n for n, text_line in enumerate(lines) if text_line.startswith(line)]
+        assert "CHECK" in lines[number] or "CHECK" in lines[number - 1], line  # (height's is on width's line)
+        lines[number] = edited.format(x_display=x_display) + lines[number][len(line):]
+    profile = tmp_path / "lab.toml"
+    profile.write_text("\n".join(lines) + "\n")
+    store_registration(profile, 2.0, (0.5, 0.5))
+    procedure_text = (Path(__file__).parents[1] / "procedures" / "colour_capture.toml").read_text()
+    procedure = tmp_path / "capture.toml"
+    procedure.write_text(procedure_text.replace('registration = "auto"', 'registration = "stored"').replace(
+        "frames = 2 ", "frames = 1 ").replace("dark_frames = 1 ", "dark_frames = 0 ").replace(
+        "[parameters]", '[parameters]\nlut_calibration = "skip"'))
+    assert main(["run", str(procedure), "--profile", str(profile), "--out", str(tmp_path / "runs")]) == 0
+    folder, metrics, done = finished_run(tmp_path / "runs")
+    devices = json.loads((folder / "devices.json").read_text())
+    assert devices["slm"]["presentation"].startswith("X11 Present: vsync'd")
+    assert "DELL E178WFP serial G340H86P4FLH" in devices["slm"]["output"]
+    assert devices["camera"]["pixel_format"] == "Mono16 (16 bit, mono)"
+    exposures = [step["result"] for step in done if step["step"].startswith(("probe/", "capture/"))]
+    presented = [datetime.fromisoformat(result["slm_presented_at"]) for result in exposures]
+    assert len(presented) == 6 and presented == sorted(presented)
+    for result in exposures:
+        assert decode_raw(folder / result["folder"] / result["frames"][0]).layout == "mono"
+    assert set(metrics["targets"][0]["colours"]) == {"red", "green", "blue"}

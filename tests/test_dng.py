@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import rawpy
 
-from benchctl.dng import CFA_LAYOUTS, dng_bytes, write_dng
+from benchctl.dng import CFA, CFA_LAYOUTS, LINEAR_RAW, dng_bytes, full_size_images, write_dng
 from benchctl.errors import BadValueError
 
 SHAPE = (64, 96)
@@ -106,6 +106,48 @@ def test_odd_active_area_origin_is_refused() -> None:
         dng_bytes(random_mosaic(), active_area=(2, 4, 66, 91))
 
 
+def test_monochrome_is_read_by_libraw_as_one_colour_with_its_levels_and_crop() -> None:
+    """What decode_raw relies on for a monochrome sensor (LinearRaw, one sample per pixel): the values bit for bit,
+    one colour (`num_colors`; the 1x1 raw_pattern and the colour_desc mean nothing here), the one black level on
+    every channel, the white level and the active area's crop; LibRaw's own output is one channel."""
+    mosaic = random_mosaic(seed=4, bits=12)
+    data = dng_bytes(mosaic, cfa=None, black_level=64, white_level=4095, active_area=(2, 4, 61, 91))
+    assert ifd0_entries(data)[262][:2] == (3, 1) and 33422 not in ifd0_entries(data)  # LinearRaw, no CFAPattern
+    with rawpy.imread(io.BytesIO(data)) as raw:
+        np.testing.assert_array_equal(raw.raw_image, mosaic)
+        np.testing.assert_array_equal(raw.raw_image_visible, mosaic[2:61, 4:91])
+        assert raw.num_colors == 1 and raw.raw_pattern.shape == (1, 1)
+        assert raw.black_level_per_channel == [64] * 4 and raw.white_level == 4095
+        rgb = raw.postprocess(gamma=(1, 1), no_auto_bright=True, output_bps=16, user_wb=[1.0, 1.0, 1.0, 1.0],
+                              output_color=rawpy.ColorSpace.raw, adjust_maximum_thr=0.0)
+    assert rgb.shape == (59, 87, 1)
+
+
+def under_a_thumbnail(data: bytes, sub_ifds: int) -> bytes:
+    """The file laid out as cameras write DNGs: IFD 0 a small RGB preview (NewSubFileType 1) whose SubIFDs tag
+    points `sub_ifds` times at the original IFD 0 (inline when one, else through an array)."""
+    (raw_ifd,) = struct.unpack_from("<I", data, 4)
+    array = len(data)
+    tail = struct.pack(f"<{sub_ifds}I", *[raw_ifd] * sub_ifds) if sub_ifds > 1 else b""
+    thumbnail = array + len(tail)
+    pointer = raw_ifd if sub_ifds == 1 else array
+    entries = [(254, 4, 1, 1), (262, 3, 1, 2), (277, 3, 1, 3), (330, 4, sub_ifds, pointer)]
+    records = [struct.pack("<HHII", tag, kind, count, value) for tag, kind, count, value in entries]  # SHORTs too:
+    # a value left-aligned in the 4 bytes, little-endian, is the same bytes as a LONG
+    ifd = struct.pack("<H", len(entries)) + b"".join(records) + struct.pack("<I", 0)
+    return data[:4] + struct.pack("<I", thumbnail) + data[8:] + tail + ifd
+
+
+def test_full_size_images_says_what_the_file_declares() -> None:
+    mono, bayer = dng_bytes(random_mosaic(), cfa=None), dng_bytes(random_mosaic(), cfa="GBRG")
+    assert full_size_images(io.BytesIO(mono)) == [(LINEAR_RAW, 1)]
+    assert full_size_images(io.BytesIO(bayer)) == [(CFA, 1)]
+    for sub_ifds in (1, 2):  # the preview is not a full-size image; the raw one is found once
+        assert full_size_images(io.BytesIO(under_a_thumbnail(mono, sub_ifds))) == [(LINEAR_RAW, 1)]
+    assert full_size_images(io.BytesIO(b"\x89PNG\r\n\x1a\n" + bytes(40))) == []
+    assert full_size_images(io.BytesIO(mono[:len(mono) // 2])) == []  # the directory is written last
+
+
 def test_exposure_iso_and_datetime_read_back() -> None:
     data = dng_bytes(random_mosaic(), white_level=16383, exposure_s=1 / 125, iso=800,
                      datetime="2024:05:31 14:03:59")
@@ -172,6 +214,7 @@ def test_write_dng_writes_the_same_bytes_atomically(tmp_path) -> None:
         (np.zeros(SHAPE, dtype=np.uint16), {"cfa": "RGBG"}, "unknown CFA layout"),
         (np.zeros(SHAPE, dtype=np.uint16), {"black_level": 4095, "white_level": 4095}, "black levels"),
         (np.zeros(SHAPE, dtype=np.uint16), {"black_level": [1, 2, 3]}, "one per CFA position"),
+        (np.zeros(SHAPE, dtype=np.uint16), {"cfa": None, "black_level": [1, 2, 1, 1]}, "monochrome DNG has one"),
         (np.zeros(SHAPE, dtype=np.uint16), {"white_level": 70000}, "white_level"),
         (np.zeros(SHAPE, dtype=np.uint16), {"color_matrix": [[1, 0], [0, 1]]}, "3x3"),
         (np.zeros(SHAPE, dtype=np.uint16), {"as_shot_neutral": (1, 0, 1)}, "as_shot_neutral"),

@@ -190,6 +190,9 @@ def test_discovery_and_the_command_line(tmp_path: Path, capsys: pytest.CaptureFi
     profile.write_text('[camera]\ndriver = "genicam"\nserial = "1"\npixel_format = "BayerGR8"\nexposure_s = 0.004\n'
                        'region = [0, 0, 64, 48]\n')
     assert isinstance(camera_for(load_profile(profile)), GenicamCamera)
+    assert main(["profile", "check", str(profile)]) == 0
+    assert "Camera        genicam: exposure 0.004 s, BayerGR8, gain as set on the camera, 1 frame(s) per capture" \
+        in capsys.readouterr().out
     assert main(["camera", "info", "--profile", str(profile)]) == 0
     info = capsys.readouterr().out
     for line in ("driver: genicam", "model: Fake", "serial: 1", "pixel_format: BayerGR8 (8 bit, GRBG)",

@@ -11,7 +11,7 @@ import pytest
 
 from benchctl.benchmarks import reproduce_job
 from benchctl.benchmarks.reproduce import DEFAULT_METHODS, new_plan, reproduce_command
-from benchctl.benchmarks.reproduce_job import run_job
+from benchctl.benchmarks.reproduce_job import Evaluation, doubling_gain, flat_doublings, run_job
 from benchctl.benchmarks.reproduce_report import PAPER
 from benchctl.cli import main
 from benchctl.errors import BadValueError, BenchctlError
@@ -154,12 +154,32 @@ def test_reproduce_user_mistakes_are_one_line_errors(capsys, small_profile_path:
 
 def test_the_recorded_reproduction_command_names_every_setting_and_only_a_given_profile() -> None:
     settings = dict(size=(136, 240), methods=["ccnn", "ccnn-dcm4"], seeds=[42, 43], ablation_seeds=None, colour="red",
-                    data="procedural:2", lr=5e-4, max_steps=8192, min_steps=1024, min_gain_db=0.2, iris_test=True,
+                    data="procedural:2", lr=5e-4, max_steps=8192, min_steps=1024, min_gain_db=0.2, patience=2,
+                    iris_test=True,
                     jobs=2, threads=1)
     default = reproduce_command(None, Path("out dir"), **settings)
     assert default == ("benchctl bench reproduce --size 136x240 --methods ccnn,ccnn-dcm4 --seeds 42,43 --colour red "
-                       "--data procedural:2 --lr 0.0005 --max-steps 8192 --min-steps 1024 --min-gain 0.2 --jobs 2 "
+                       "--data procedural:2 --lr 0.0005 --max-steps 8192 --min-steps 1024 --min-gain 0.2 --patience 2 "
+                       "--jobs 2 "
                        "--threads 1 --out 'out dir'")
     named = reproduce_command("simulated", Path("o"), **settings | {"iris_test": False, "ablation_seeds": [7]})
     assert named.startswith("benchctl bench reproduce --profile simulated --size 136x240 ")
     assert "--ablation-seeds 7 " in named and "--no-iris-test" in named
+
+
+def _curve(values: dict[int, float]) -> list[Evaluation]:
+    return [Evaluation(step, 0.0, 0.0, val, 0.0, 0.0) for step, val in values.items()]
+
+
+def test_one_dip_of_a_noisy_curve_does_not_end_a_job_two_flat_doublings_do() -> None:
+    """ccnn-dcm4 (seed 42, 136 x 240) dipped at step 1024 after rising 1.3 dB over its last doubling: with patience 1
+    that ended it; the rule asks for `patience` power-of-two evaluations in a row that each gained < min_gain."""
+    rising = {256: 23.38, 362: 23.94, 512: 24.57, 724: 24.49, 1024: 23.98}
+    curve = _curve(rising)
+    assert doubling_gain(curve) == pytest.approx(-0.02, abs=1e-9)
+    assert flat_doublings(curve, 1024, 0.2) == 1  # a stop under patience 1, not under 2
+    flat = _curve(rising | {1448: 24.1, 2048: 24.2})
+    assert doubling_gain(flat) == pytest.approx((24.2 + 24.1 - 23.98 - 24.49) / 2)
+    assert flat_doublings(flat, 1024, 0.2) == 2
+    assert flat_doublings(_curve(rising | {1448: 25.0, 2048: 25.4}), 1024, 0.2) == 0  # rising again
+    assert flat_doublings(flat, 2048, 0.2) == 1  # evaluations before min_steps do not count

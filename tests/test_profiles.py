@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import shutil
 from pathlib import Path
 
@@ -177,6 +178,9 @@ def test_a_profile_may_describe_only_some_devices(small_profile_path: Path) -> N
     assert [ch.name for ch in profile.channels] == ["red", "green", "blue"]
     with pytest.raises(BenchctlError, match=r"needs a \[slm\] section, which the profile lacks"):
         profile.require("laser", "slm")
+    assert profile.section("laser") is profile.laser  # the section itself, typed without its None
+    with pytest.raises(BenchctlError, match=rf"^{re.escape(str(small_profile_path))}: this needs a \[optics\] section"):
+        profile.section("optics")
     small_profile_path.write_text('name = "empty"\n')
     assert "no device section: give at least one of optics, slm, laser" in error_of(small_profile_path)
 

@@ -11,7 +11,8 @@ import pytest
 from test_dng import without_tag
 
 from benchctl.dng import CFA_LAYOUTS, dng_bytes, write_dng
-from benchctl.capture.raw import RawImage, average_frames, decode_raw, linear_rgb, subtract_dark
+from benchctl.capture.raw import MONO, RawImage, average_frames, decode_raw, linear_rgb, subtract_dark
+from benchctl.capture.registration import cfa_positions
 from benchctl.errors import BadValueError, BenchctlError
 
 SHAPE = (64, 96)
@@ -177,6 +178,43 @@ def test_subtract_dark_keeps_signed_values() -> None:
         subtract_dark(light, dataclasses.replace(dark, mosaic=dark.mosaic[:, :-2]))
 
 
+def test_a_monochrome_frame_is_one_plane_that_every_colour_reads() -> None:
+    """A monochrome sensor's DNG (LinearRaw): exact linear values over the active area, MONO in every cell, so
+    every colour's CFA positions are all four cells; planes() bins 2x2 for each colour, demosaic() and LibRaw's
+    output carry the mosaic in R, G and B; the clip level is flagged."""
+    counts = (BLACK + 7 * np.arange(SHAPE[0] * SHAPE[1]) % (WHITE - BLACK + 500)).astype(np.uint16).reshape(SHAPE)
+    data = dng_bytes(counts, cfa=None, black_level=BLACK, white_level=WHITE, active_area=(2, 4, 62, 92))
+    image = decode_raw(data)
+    visible = counts[2:62, 4:92]
+    assert image.layout == "mono" and image.monochrome and np.array_equal(image.cfa, np.full((2, 2), MONO))
+    np.testing.assert_array_equal(image.mosaic, (visible.astype(np.float32) - BLACK) / np.float32(WHITE - BLACK))
+    np.testing.assert_array_equal(image.saturated, visible >= WHITE)
+    assert image.saturated.any() and image.white_level == WHITE and (image.black_levels == BLACK).all()
+    for colour in range(3):
+        assert cfa_positions(image.cfa, colour) == [(0, 0), (0, 1), (1, 0), (1, 1)]
+    binned = image.mosaic.reshape(30, 2, 44, 2).mean(axis=(1, 3))
+    planes = image.planes()
+    assert planes.shape == (3, 30, 44)
+    for plane in planes:
+        np.testing.assert_allclose(plane, binned, rtol=1e-6)
+    np.testing.assert_array_equal(image.demosaic(), np.repeat(image.mosaic[:, :, None], 3, axis=2))
+    clipped = np.clip(image.mosaic, 0, 1)[:, :, None]
+    full, half = linear_rgb(data), linear_rgb(data, half_size=True)
+    assert full.shape == (60, 88, 3) and half.shape == (30, 44, 3)
+    assert (full - clipped).max() <= 1e-7 and (full - clipped).min() >= -1 / 65535  # rounded down to 16 bits
+    np.testing.assert_allclose(half, np.repeat(full.reshape(30, 2, 44, 2, 3).mean(axis=(1, 3))[..., :1], 3, axis=2),
+                               atol=1e-6)
+
+
+def test_monochrome_and_bayer_frames_are_not_mixed() -> None:
+    mono = decode_raw(dng_bytes(uniform_field("RGGB"), cfa=None, black_level=BLACK, white_level=WHITE))
+    with pytest.raises(BadValueError, match=r"cannot average .*RGGB.* with .*mono"):
+        average_frames([mono, frame(1000)])
+    with pytest.raises(BadValueError, match=r"cannot subtract dark frame .*RGGB.* with .*mono"):
+        subtract_dark(mono, frame(1000))
+    assert average_frames([mono, mono]).layout == "mono"
+
+
 def test_path_and_bytes_decode_the_same(tmp_path: Path) -> None:
     data = dng_bytes(uniform_field("GBRG"), cfa="GBRG", black_level=BLACK, white_level=WHITE)
     path = write_dng(tmp_path / "frame.dng", uniform_field("GBRG"), cfa="GBRG", black_level=BLACK, white_level=WHITE)
@@ -212,6 +250,11 @@ def test_truncated_dng_is_a_clear_error(length: int) -> None:
 
 
 def test_file_without_cfa_pattern_is_refused() -> None:
+    """Refused on its own, and after a monochrome file, when LibRaw (its state carried over) reads it as one colour
+    too: the file's own PhotometricInterpretation (CFA) says it is not monochrome."""
     data = without_tag(RGGB_FILE, 33422)
-    with pytest.raises(BenchctlError, match="not a 2x2 Bayer RAW file"):
+    with pytest.raises(BenchctlError, match=r"no CFA tag\?|without its CFAPattern tag\?"):
+        decode_raw(data)
+    assert decode_raw(dng_bytes(uniform_field("RGGB"), cfa=None, black_level=BLACK, white_level=WHITE)).monochrome
+    with pytest.raises(BenchctlError, match=r"no CFA tag\?|without its CFAPattern tag\?"):
         decode_raw(data)

@@ -59,12 +59,14 @@ def profile(make_bench_profile: Callable[..., Profile]) -> Profile:
 
 
 def dot_grid_capture(profile: Profile, channel: str, method: str = "dpac", grid: tuple[int, int] = (12, 21),
-                     power_w: float | None = None) -> tuple[RawImage, np.ndarray]:
-    """The dot-grid hologram for `channel`, encoded by the profile's SLM (its tables and flips), captured."""
+                     power_w: float | None = None, exposure: Callable[..., RawImage] = sim_exposure,
+                     ) -> tuple[RawImage, np.ndarray]:
+    """The dot-grid hologram for `channel`, encoded by the profile's SLM (its tables and flips), captured (by
+    `exposure`, conftest's sim_exposure or mono_exposure)."""
     amplitude, points = dot_grid_target(profile.slm.shape, profile.optics.roi, grid)
     phase = get_method(method)(amplitude, optical_setup(profile, channel))
     gray = slm_for(profile).encode(phase, channel)
-    return sim_exposure(profile, gray, {channel: POWERS_W[channel] if power_w is None else power_w}), points
+    return exposure(profile, gray, {channel: POWERS_W[channel] if power_w is None else power_w}), points
 
 
 def roi_corners(profile: Profile) -> np.ndarray:

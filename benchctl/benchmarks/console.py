@@ -81,16 +81,17 @@ def _start(profile: str | None, folder: Path) -> tuple[subprocess.Popen[str], st
     command = [sys.executable, "-m", "benchctl", "console", "--port", "0", "--out", str(folder / "runs"),
                "--deadman", "60"] + (["--profile", profile] if profile else [])
     process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
-    assert process.stdout is not None
+    stdout = process.stdout
+    assert stdout is not None
     lines: list[str] = []
     while True:
-        line = process.stdout.readline()
+        line = stdout.readline()
         if not line:
             raise BenchctlError("console bench: the console did not start: " + " | ".join(lines[-5:]))
         lines.append(line.strip())
         match = re.search(r"http://\S+", line)
         if match:
-            threading.Thread(target=lambda: [None for _ in process.stdout], daemon=True).start()  # keep draining
+            threading.Thread(target=lambda: [None for _ in stdout], daemon=True).start()  # keep draining
             return process, match.group(0)
 
 
@@ -150,14 +151,22 @@ def _measure(client: _Client, seconds: float, repeats: int, say: Callable[[str],
         t0 = time.time()
         reply = client.call(f"/api/laser/{channel}/emission", {"on": on})
         t1 = time.time()
-        header, arrived = client.frame_showing(lambda source, on=on: (channel in source.get("lasers_on_w", {})) == on)
+
+        def laser_shown(source: dict[str, Any], on: bool = on) -> bool:
+            return (channel in source.get("lasers_on_w", {})) == on
+
+        header, arrived = client.frame_showing(laser_shown)
         laser_rows.append(_split(t0, t1, reply, header, arrived))
     client.call(f"/api/laser/{channel}/emission", {"on": True})
     for index in range(repeats):
         t0 = time.time()
         reply = client.call("/api/slm", {"kind": "grating", "period_px": 10 + 2 * (index % 2), "channel": channel})
         t1 = time.time()
-        header, arrived = client.frame_showing(lambda source, frame=reply["frame"]: source.get("slm_frame") == frame)
+
+        def slm_shown(source: dict[str, Any], frame: int = reply["frame"]) -> bool:
+            return source.get("slm_frame") == frame
+
+        header, arrived = client.frame_showing(slm_shown)
         slm_rows.append(_split(t0, t1, reply, header, arrived))
     for label, rows in (("laser emission", laser_rows), ("SLM grating", slm_rows)):
         m = _median(rows)

@@ -61,7 +61,10 @@ def run_genicam_bench(width: int = 2048, height: int = 2048, fmt: str = "BayerRG
     stream = camera.create_stream(None, None)
     for _ in range(BUFFERS):
         stream.push_buffer(module.Buffer.new_allocate(camera.get_payload()))
-    numpy_s, dng_s, ids, incomplete = [], [], [], 0
+    numpy_s: list[float] = []
+    dng_s: list[float] = []
+    ids: list[int] = []
+    incomplete = 0
     camera.start_acquisition()
     try:
         started = None

@@ -26,7 +26,7 @@ import statistics
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -75,18 +75,23 @@ def inference_seconds(model: torch.nn.Module, amplitude: torch.Tensor, repeats: 
     return statistics.median(times)
 
 
-def _proc_status() -> dict[str, int] | None:
-    """VmRSS and VmHWM of this process in bytes (Linux), or None where /proc is missing."""
+_PEAK_NEEDS = "peak resident memory needs Linux's /proc/self/status and /proc/self/clear_refs"
+
+
+def _proc_status() -> dict[str, int]:
+    """VmRSS and VmHWM of this process in bytes (Linux); a BenchctlError where /proc does not give them."""
     try:
         lines = Path("/proc/self/status").read_text().splitlines()
     except OSError:
-        return None
+        lines = []
     values = {}
     for line in lines:
         key, _, rest = line.partition(":")
         if key in ("VmRSS", "VmHWM"):
             values[key] = int(rest.split()[0]) * 1024
-    return values if len(values) == 2 else None
+    if len(values) != 2:
+        raise BenchctlError(_PEAK_NEEDS)
+    return values
 
 
 def _reset_peak() -> bool:
@@ -110,7 +115,8 @@ def training_step_memory(method: str, geometry: dict[str, Any], device: str) -> 
     model = build_model(method, setup).to(dev)
     optimiser = torch.optim.Adam(model.parameters(), lr=5e-4)
     amplitude = torch.zeros(1, 1, *setup.shape, device=dev)
-    amplitude[(..., *setup.roi_slices)] = torch.rand(setup.roi, device=dev)  # content does not change memory
+    rows, cols = setup.roi_slices
+    amplitude[..., rows, cols] = torch.rand(setup.roi, device=dev)  # content does not change memory
     amplitude = peak_normalised(amplitude)
     for propagator in (setup.slm_propagator(), setup.target_propagator()):
         propagator.kernel(torch.complex64, dev)
@@ -126,14 +132,13 @@ def training_step_memory(method: str, geometry: dict[str, Any], device: str) -> 
         peak = torch.cuda.max_memory_allocated(dev) - before
         how = "torch.cuda.max_memory_allocated during the step minus memory allocated before it"
     else:
-        status = _proc_status()
-        if status is None or not _reset_peak():
-            raise BenchctlError("peak resident memory needs Linux's /proc/self/status and /proc/self/clear_refs")
-        before = _proc_status()["VmRSS"]  # type: ignore[index]
+        if not _reset_peak():
+            raise BenchctlError(_PEAK_NEEDS)
+        before = _proc_status()["VmRSS"]
         start, start_cpu = time.perf_counter(), time.process_time()
         training_step(model, optimiser, setup, amplitude, loss_fn)
         seconds, cpu_seconds = time.perf_counter() - start, time.process_time() - start_cpu
-        peak = _proc_status()["VmHWM"] - before  # type: ignore[index]
+        peak = _proc_status()["VmHWM"] - before
         how = "peak resident set (VmHWM, reset before the step) minus resident set before the step"
     return {"peak_bytes": int(peak), "baseline_bytes": int(before), "step_seconds": seconds,
             "step_cpu_seconds": cpu_seconds, "measure": how}
@@ -242,7 +247,7 @@ def _checkpoints(paths: Sequence[Path], methods: list[str], bench: Profile) -> d
 
 
 def _scores(bench: Profile, method: str, checkpoint: Path, targets: Sequence[str]) -> dict[str, float]:
-    grid, roi = bench.slm.shape, bench.optics.roi  # type: ignore[union-attr]
+    grid, roi = bench.section("slm").shape, bench.section("optics").roi
     psnrs, ssims = [], []
     for target in targets:
         scene = compute_scene(prepare_target(load_target(target, size=roi), grid, roi), bench, method,
@@ -285,7 +290,7 @@ def run_learned_bench(
     plane = prepare_target(load_target(DEFAULT_TARGETS[0], size=roi), grid, roi)[target_plane(channel)]
     amplitude = (plane / plane.max())[None, None].to(device)
     out(f"grid {grid[0]}x{grid[1]}, ROI {roi[0]}x{roi[1]}, {channel.name} {channel.wavelength_nm:g} nm, pitch "
-        f"{bench.slm.pitch_um:g} um, distance {bench.optics.distance_mm:g} mm, on {device}"  # type: ignore[union-attr]
+        f"{bench.section('slm').pitch_um:g} um, distance {bench.section('optics').distance_mm:g} mm, on {device}"
         f" ({torch.get_num_threads()} threads); inference: median of {repeats} after a warm-up")
     rows = []
     for name in names:
@@ -316,13 +321,19 @@ def run_learned_bench(
     return rows
 
 
-def _add_ratios(rows: list[dict[str, Any]]) -> None:
+def with_baselines(rows: list[dict[str, Any]]) -> Iterator[tuple[dict[str, Any], dict[str, Any]]]:
+    """Each row (a dict with "method" and "family") with its family's baseline row, the baseline's name recorded in
+    the row as "baseline"; rows whose baseline was not measured are left out."""
     by_name = {r["method"]: r for r in rows}
     for row in rows:
         base = by_name.get(BASELINES[row["family"]])
-        if base is None:
-            continue
-        row["baseline"] = base["method"]
+        if base is not None:
+            row["baseline"] = base["method"]
+            yield row, base
+
+
+def _add_ratios(rows: list[dict[str, Any]]) -> None:
+    for row, base in with_baselines(rows):
         row["parameters_ratio"] = row["parameters"] / base["parameters"]
         row["speedup"] = base["inference_seconds"] / row["inference_seconds"]
         if "train_step_peak_mib" in row and base.get("train_step_peak_mib"):

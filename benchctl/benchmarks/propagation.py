@@ -83,7 +83,7 @@ def run_propagation_bench(
         phase = (2.0 * torch.rand(tuple(shape), generator=generator, dtype=torch.float64) - 1.0) * math.pi
         field64 = torch.polar(torch.ones_like(phase), phase).to(device)
         field32 = field64.to(torch.complex64)
-        bench = grid_profile(profile.require("slm", "optics", "laser"), tuple(shape))
+        bench = grid_profile(profile.require("slm", "optics", "laser"), (shape[0], shape[1]))
         for channel in bench.channels:
             colour, geometry = channel.name, bench.geometry(channel.name)
             wavelength_m = geometry.wavelength_m
@@ -107,7 +107,7 @@ def run_propagation_bench(
                 for mode, p in props.items():
                     bare[mode].append(timed(_fft_pair, bare_inputs[mode]))
                     times[mode].append(timed(p, field32))
-            block = []
+            block: list[dict[str, Any]] = []
             for mode, p in props.items():
                 block.append({
                     "size": f"{shape[0]}x{shape[1]}",

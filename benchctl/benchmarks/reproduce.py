@@ -101,6 +101,7 @@ def new_plan(run_dir: Path, profile: Profile, *, size: tuple[int, int] = DEFAULT
              methods: Sequence[str] = DEFAULT_METHODS, seeds: Sequence[int] = DEFAULT_SEEDS,
              ablation_seeds: Sequence[int] | None = None, colour: str = "red", data: str = DEFAULT_DATA,
              lr: float = PAPER_LR, max_steps: int = 8192, min_steps: int = 1024, min_gain_db: float = 0.2,
+             patience: int = 2,
              first_evaluation: int = 32, iris_test: bool = True, threads: int = 1,
              command: str | None = None) -> dict[str, Any]:
     """Write `run_dir/plan.json` for a new run (refusing a folder that holds one) and return the plan."""
@@ -115,8 +116,10 @@ def new_plan(run_dir: Path, profile: Profile, *, size: tuple[int, int] = DEFAULT
     profile.channel(colour)  # refuses an unknown colour, naming the channels
     if first_evaluation < 1 or first_evaluation & (first_evaluation - 1):
         raise BadValueError(f"--first-evaluation must be a power of two, got {first_evaluation}")
+    if not 1 <= patience <= 8:
+        raise BadValueError(f"--patience must lie between 1 and 8 doublings, got {patience}")
     plan = {"profile": str(Path(profile.path).resolve()), "size": list(size), "colour": colour, "data": data,
-            "lr": lr, "max_steps": max_steps, "min_steps": min_steps, "min_gain_db": min_gain_db,
+            "lr": lr, "max_steps": max_steps, "min_steps": min_steps, "min_gain_db": min_gain_db, "patience": patience,
             "first_evaluation": first_evaluation, "threads": threads, "seeds": list(seeds),
             "jobs": plan_jobs(methods, seeds, list(ablation_seeds or seeds[:1]), iris_test), "command": command,
             "torch": torch.__version__}
@@ -211,15 +214,15 @@ def run_reproduction(run_dir: Path, *, jobs: int = 2, memory: bool = True,
 
 def reproduce_command(profile: str | None, out_dir: Path, *, size: tuple[int, int], methods: Sequence[str],
                       seeds: Sequence[int], ablation_seeds: Sequence[int] | None, colour: str, data: str, lr: float,
-                      max_steps: int, min_steps: int, min_gain_db: float, iris_test: bool, jobs: int,
-                      threads: int) -> str:
+                      max_steps: int, min_steps: int, min_gain_db: float, patience: int, iris_test: bool,
+                      jobs: int, threads: int) -> str:
     """The `benchctl bench reproduce` command line that asks for exactly these settings."""
     words = ["benchctl", "bench", "reproduce", *(["--profile", profile] if profile else []),
              "--size", f"{size[0]}x{size[1]}", "--methods", ",".join(methods),
              "--seeds", ",".join(map(str, seeds))]
     words += ["--ablation-seeds", ",".join(map(str, ablation_seeds))] if ablation_seeds else []
     words += ["--colour", colour, "--data", data, "--lr", f"{lr:g}", "--max-steps", str(max_steps),
-              "--min-steps", str(min_steps), "--min-gain", f"{min_gain_db:g}"]
+              "--min-steps", str(min_steps), "--min-gain", f"{min_gain_db:g}", "--patience", str(patience)]
     words += [] if iris_test else ["--no-iris-test"]
     words += ["--jobs", str(jobs), "--threads", str(threads)]
     return shlex.join(words + ["--out", str(out_dir)])

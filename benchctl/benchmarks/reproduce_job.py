@@ -4,13 +4,15 @@ validation score flattens, resumable exactly at any interruption.
 A job trains with the `benchctl train` recipe (seeded image order and flips per step, Adam, MSE on the ROI
 after the least-squares scale, batch 1) and is evaluated on a schedule of half-octave steps (32, 45, 64, 91,
 128, ...): on validation images never trained on (procedural images from VALIDATION_FIRST on), which decide
-when it stops, and on the held-out photographs, which the tables report. It stops at the first power-of-two
-step from `min_steps` on where the validation score gained less than `min_gain_db` over the last doubling of
-steps (each side the mean of its two half-octave evaluations, to halve the noise of batch-1 training), at the
-step cap, or when the network stops learning or diverges (`health.TrainingHealth`); `done.json` says which.
+when it stops, and on the held-out photographs, which the tables report. It stops once `patience`
+power-of-two steps in a row (from `min_steps` on) each gained less than `min_gain_db` over their doubling of
+steps (each side the mean of its two half-octave evaluations, to halve the noise of batch-1 training; more
+than one in a row, so that one dip of a noisy curve does not end it), at the step cap, or when the network
+stops learning or diverges (`health.TrainingHealth`); `done.json` says which.
 
 Its state (weights, Adam's state, step, clocks and the curve) is written atomically at every evaluation and
-every `SAVE_EVERY_S` seconds; the data order depends on the step alone, so a resumed job continues exactly.
+every `SAVE_EVERY_S` seconds, and kept when the job ends (a later run with a higher cap can continue it); the
+data order depends on the step alone, so a resumed job continues exactly.
 
     python -m benchctl.benchmarks.reproduce_job RUN_DIR JOB_NAME
 """
@@ -86,11 +88,29 @@ def doubling_gain(curve: Sequence[Evaluation]) -> float | None:
     return (curve[-1].val_psnr + curve[-2].val_psnr - curve[-3].val_psnr - curve[-4].val_psnr) / 2
 
 
+def flat_doublings(curve: Sequence[Evaluation], min_steps: int, min_gain_db: float) -> int:
+    """How many power-of-two evaluations in a row (from `min_steps` on, counted back from the newest) gained less than
+    `min_gain_db` over their doubling of steps."""
+    count = 0
+    for i in range(len(curve) - 1, -1, -1):
+        step = curve[i].step
+        if step < min_steps:
+            break
+        if not math.log2(step).is_integer():
+            continue
+        gain = doubling_gain(curve[:i + 1])
+        if gain is None or gain >= min_gain_db:
+            break
+        count += 1
+    return count
+
+
 def bench_for(plan: dict[str, Any], job: dict[str, Any]) -> Profile:
     """The Fresnel-scaled bench of the plan, without the iris for a job that asks so."""
     bench = resized_profile(load_profile(plan["profile"]), tuple(plan["size"]))
     if not job.get("iris", True):
-        bench = msgspec.structs.replace(bench, optics=msgspec.structs.replace(bench.optics, iris_fraction=None))
+        optics = msgspec.structs.replace(bench.section("optics"), iris_fraction=None)
+        bench = msgspec.structs.replace(bench, optics=optics)
     return bench
 
 
@@ -205,8 +225,8 @@ def run_job(run_dir: Path, name: str, out: Any = print) -> dict[str, Any]:
                 + (f", {gain:+.2f} dB over the last doubling" if gain is not None else ""))
             if reason is None and step >= plan["max_steps"]:
                 reason = "step cap"
-            elif (reason is None and step >= plan["min_steps"] and math.log2(step).is_integer() and gain is not None
-                  and gain < plan["min_gain_db"]):
+            elif (reason is None and math.log2(step).is_integer()
+                  and flat_doublings(curve, plan["min_steps"], plan["min_gain_db"]) >= plan.get("patience", 1)):
                 reason = "converged"
             save()
             saved_at = time.perf_counter()
@@ -218,7 +238,6 @@ def run_job(run_dir: Path, name: str, out: Any = print) -> dict[str, Any]:
             "curve": [asdict(e) for e in curve],
             "inference_seconds": inference_seconds(model, held_out.inputs[0], repeats=5)}
     write_json(folder / "done.json", done)
-    state_path.unlink(missing_ok=True)  # the weights are no longer needed: done.json holds the result
     return done
 
 

@@ -18,13 +18,12 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from benchctl.benchmarks.learned import BASELINES, with_baselines
 from benchctl.benchmarks.reproduce_job import VALIDATION_COUNT, VALIDATION_FIRST, bench_for, read_done, read_progress
 from benchctl.cgh.learned.models import VARIANTS
 from benchctl.files import atomic_write_bytes, write_csv, write_json
 from benchctl.runner.holograms import compute_scene
 from benchctl.targets import load_target, photo_specs, prepare_target
-
-BASELINES = {"holonet": "holonet", "ccnn": "ccnn"}
 
 PAPER: dict[str, tuple[float, float, str]] = {
     "holonet": (30.47, 0.9257, "T4"),
@@ -127,12 +126,7 @@ def table_rows(groups: dict[tuple[str, bool], list[dict[str, Any]]], memory: dic
             "train_step_peak_mib": memory.get(method),
         }
         rows.append(row)
-    by_label = {r["method"]: r for r in rows}
-    for row in rows:
-        base = by_label.get(BASELINES[row["family"]])
-        if base is None:
-            continue
-        row["baseline"] = base["method"]
+    for row, base in with_baselines(rows):
         for key in ("psnr_db", "best_val_psnr_db", "steps_psnr_db", "time_psnr_db"):
             row[key.replace("psnr_db", "delta_db")] = row[key][0] - base[key][0]
         row["speedup"] = base["inference_seconds"] / row["inference_seconds"]
@@ -214,7 +208,7 @@ def dpac_reference(run_dir: Path, plan: dict[str, Any]) -> tuple[float, float]:
         saved = json.loads(path.read_text())
         return saved["psnr_db"], saved["ssim"]
     bench = bench_for(plan, {"iris": True})
-    grid, roi = bench.slm.shape, bench.optics.roi  # type: ignore[union-attr]
+    grid, roi = bench.section("slm").shape, bench.section("optics").roi
     psnrs, ssims = [], []
     for spec in photo_specs("eval"):
         scene = compute_scene(prepare_target(load_target(spec, size=roi), grid, roi), bench, "dpac",
@@ -240,8 +234,10 @@ def write_report(run_dir: Path, out: Callable[[str], None] = print) -> list[dict
               f"Bench: {size[0]}x{size[1]} (Fresnel-scaled), {plan['colour']}; data {plan['data']}; validation "
               f"(stopping rule): procedural images {VALIDATION_FIRST}-{VALIDATION_FIRST + VALIDATION_COUNT - 1}; "
               f"scores: held-out photographs {', '.join(photo_specs('eval'))}, mean over them; Adam lr "
-              f"{plan['lr']:g}; stop: < {plan['min_gain_db']:g} dB per doubling of steps from step "
-              f"{plan['min_steps']} on, cap {plan['max_steps']} steps; {plan['threads']} torch thread(s) per job.",
+              f"{plan['lr']:g}; stop: < {plan['min_gain_db']:g} dB per doubling of steps at "
+              f"{plan.get('patience', 1)} power-of-two step(s) in a row from step {plan['min_steps']} on, cap "
+              f"{plan['max_steps']} steps; {plan['threads']} torch thread(s) per job.",
+              f"Change of plan: {plan['rule_change']}." if plan.get("rule_change") else "",
               f"Unfinished jobs (not in the table): {', '.join(unfinished)}." if unfinished else "", ""]
     for line in lines + [""] + format_comparisons(found):
         out(line)

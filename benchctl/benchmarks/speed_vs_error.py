@@ -99,7 +99,7 @@ def front_rows(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
 def _load_targets(targets: Sequence[str], profile: Profile, out: Callable[[str], None]) -> dict[str, torch.Tensor]:
     """Each target as (3, H, W) amplitude on the grid; one that cannot be loaded is skipped with the reason, and
     when none can, the first reason is the error."""
-    grid, roi = profile.slm.shape, profile.optics.roi
+    grid, roi = profile.section("slm").shape, profile.section("optics").roi
     amplitudes, errors = {}, []
     for spec in targets:
         try:
@@ -143,12 +143,13 @@ def run_speed_vs_error(
     for name in methods:
         get_method(name)  # an unknown name fails here, before any work, listing the known ones
     amplitudes = _load_targets(targets, profile, out)
-    grid, roi = profile.slm.shape, profile.optics.roi
+    slm, optics = profile.section("slm"), profile.section("optics")
+    grid, roi = slm.shape, optics.roi
     unit = _propagation_seconds(profile, colours[0] if colours else profile.channels[0].name)
     # Warm-up: every colour's transfer functions are built here once, outside the timed frames.
     compute_scene(next(iter(amplitudes.values())), profile, "dpac", colours=colours)
-    out(f"grid {grid[0]}x{grid[1]}, ROI {roi[0]}x{roi[1]}, distance {profile.optics.distance_mm:g} mm, "
-        f"pitch {profile.slm.pitch_um:g} um, targets: {', '.join(amplitudes)}")
+    out(f"grid {grid[0]}x{grid[1]}, ROI {roi[0]}x{roi[1]}, distance {optics.distance_mm:g} mm, "
+        f"pitch {slm.pitch_um:g} um, targets: {', '.join(amplitudes)}")
     out(f"one propagation ({colours[0] if colours else profile.channels[0].name}, measured in this run): "
         f"{unit * 1e3:.2f} ms; "
         "'x prop' = seconds per frame / that")
@@ -162,7 +163,7 @@ def run_speed_vs_error(
                 scene = compute_scene(amplitude, profile, method, iterations=iterations, colours=colours, seed=seed,
                                       progress=_recording(progress, last))
                 done = [c for c in scene.colours if not c.skipped]
-                row = {
+                row: dict[str, Any] = {  # a CSV row: numbers, and "" where a method has no budget
                     "method": method,
                     "iterations": iterations if iterations is not None else "",
                     "iterations_run": _mean(list(last.values())) if iterations is not None else "",

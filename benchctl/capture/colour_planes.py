@@ -40,7 +40,7 @@ def registered_plane(raw: RawImage, colour: int, homography: np.ndarray, shape: 
     the centred ROI of a target plane of `shape`; `homography` maps target pixels to active-area mosaic pixels."""
     warped = [warp_to_roi(plane, plane_homography(homography, offset), shape, roi)
               for plane, offset in cfa_planes(raw.mosaic, raw.cfa, colour)]
-    return np.mean(warped, axis=0, dtype=np.float32) if len(warped) > 1 else warped[0]
+    return np.stack(warped).mean(axis=0, dtype=np.float32) if len(warped) > 1 else warped[0]
 
 
 def registered_saturation(raw: RawImage, colour: int, homography: np.ndarray, shape: tuple[int, int],

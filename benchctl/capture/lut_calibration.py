@@ -35,9 +35,8 @@ interpolates them to every level with a monotone cubic (PCHIP), phase(0) = 0.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
-
 import numpy as np
+from numpy.typing import ArrayLike
 
 from benchctl.capture.colour_planes import registered_plane, registered_saturation
 from benchctl.capture.raw import RawImage
@@ -125,7 +124,7 @@ def _name(raw: RawImage) -> str:
     return raw.source if len(raw.source) < 60 else raw.source[:57] + "..."
 
 
-def _checked_grays(grays: Sequence[int], values: Sequence[float], what: str) -> tuple[np.ndarray, np.ndarray]:
+def _checked_grays(grays: ArrayLike, values: ArrayLike, what: str) -> tuple[np.ndarray, np.ndarray]:
     g = np.asarray(grays, dtype=np.float64)
     v = np.asarray(values, dtype=np.float64)
     if g.ndim != 1 or g.shape != v.shape or len(g) < 3:
@@ -162,7 +161,7 @@ def _turns(c: np.ndarray) -> list[int]:
     return turns
 
 
-def phase_response(grays: Sequence[int], signals: Sequence[float]) -> np.ndarray:
+def phase_response(grays: ArrayLike, signals: ArrayLike) -> np.ndarray:
     """Phase difference d(g) = phase(g) - phase(0) in radians at the measured grays (which start at 0 and
     increase), from their gratings' zero-order signals, unwrapped (module docstring)."""
     g, signal = _checked_grays(grays, signals, "signals")
@@ -233,7 +232,7 @@ def _pchip(x: np.ndarray, y: np.ndarray, at: np.ndarray) -> np.ndarray:
             + (-2 * t**3 + 3 * t**2) * y[k + 1] + (t**3 - t**2) * h[k] * slope[k + 1])
 
 
-def lut_from_response(grays: Sequence[int], phases: Sequence[float], bit_depth: int) -> PhaseLUT:
+def lut_from_response(grays: ArrayLike, phases: ArrayLike, bit_depth: int) -> PhaseLUT:
     """The full lookup table (every level of a `bit_depth`-bit SLM) from phases measured at `grays` (from 0 to
     the last level): shifted so phase(0) = 0, made non-decreasing, interpolated monotonically (PCHIP)."""
     g, phase = _checked_grays(grays, phases, "phases")
@@ -247,7 +246,7 @@ def lut_from_response(grays: Sequence[int], phases: Sequence[float], bit_depth: 
     return PhaseLUT(table)
 
 
-def calibrate_lut(grays: Sequence[int], signals: Sequence[float], bit_depth: int) -> PhaseLUT:
+def calibrate_lut(grays: ArrayLike, signals: ArrayLike, bit_depth: int) -> PhaseLUT:
     """The lookup table measured by gratings at `grays` with these zero-order signals (phase_response, then
     lut_from_response)."""
     return lut_from_response(grays, phase_response(grays, signals), bit_depth)

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchctl.capture.raw import RawImage, decode_raw
+from benchctl.capture.raw import MONO, RawImage, decode_raw
 from benchctl.images import write_png
 
 COLOURS = ("red", "green", "blue")
@@ -23,10 +23,11 @@ def frame_lines(image: RawImage) -> list[str]:
     white level) and the fraction of its pixels at the clip level."""
     rows, cols = image.mosaic.shape
     black = ", ".join(f"{level:g}" for level in image.black_levels.ravel())
-    lines = [f"{image.source}: {cols} x {rows} px visible (width x height), {image.layout} Bayer",
+    lines = [f"{image.source}: {cols} x {rows} px visible (width x height), "
+             + ("monochrome (every colour reads every pixel)" if image.monochrome else f"{image.layout} Bayer"),
              f"black level {black} (per CFA position, {image.layout}), white level {image.white_level:g}"]
     for index, colour in enumerate(COLOURS):
-        cells = [(i, j) for i in range(2) for j in range(2) if image.cfa[i, j] == index]
+        cells = [(i, j) for i in range(2) for j in range(2) if image.cfa[i, j] in (index, MONO)]
         signal = [image.mosaic[i::2, j::2] for i, j in cells]
         pixels = sum(plane.size for plane in signal)
         clipped = sum(int(image.saturated[i::2, j::2].sum()) for i, j in cells)

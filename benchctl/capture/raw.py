@@ -3,7 +3,10 @@
 Scores compare light intensities, so every frame is used as linear signal: black level subtracted per CFA
 position, divided by (white - black), no white balance, no brightness or gamma curve, no colour matrix.
 `decode_raw` reads the Bayer mosaic without LibRaw's processing; the colour layout comes from the file
-(`raw_pattern` + `color_desc`), never from an assumption about the camera.
+(`raw_pattern` + `color_desc`), never from an assumption about the camera. A monochrome sensor's frame (a
+LinearRaw DNG with one sample per pixel, as a Mono8..16 machine-vision camera gives) has no colour layout: every
+pixel records whichever colour lights it, so its cells are all MONO and every colour's plane is read from all of
+them (a colour capture exposes one colour at a time).
 
 LibRaw traps this module avoids (verified with rawpy 0.28 / LibRaw 0.22):
 - `raw_image_visible` is a view into LibRaw's memory: everything is computed before the file is closed.
@@ -13,6 +16,10 @@ LibRaw traps this module avoids (verified with rawpy 0.28 / LibRaw 0.22):
   75 % of the white level by that maximum (a gain that changes from frame to frame), and without `user_wb`
   LibRaw multiplies the channels by its daylight balance (derived from the file's colour matrix, so it
   depends on the camera). `linear_rgb` sets every option that matters.
+- A monochrome DNG comes back with `num_colors` 1, a 1x1 `raw_pattern` ([[6]]) and `color_desc` "GMCY", which
+  mean nothing there; its one black level is repeated in `black_level_per_channel`, and `postprocess()` returns
+  one channel. `num_colors` is what tells it from a CFA file that lost its CFAPattern (LibRaw then invents a
+  3-colour pattern, refused below).
 """
 
 from __future__ import annotations
@@ -27,9 +34,12 @@ import cv2
 import numpy as np
 import rawpy
 
+from benchctl.dng import CFA, LINEAR_RAW, full_size_images
 from benchctl.errors import BadValueError, BenchctlError
 
 _CELLS = ((0, 0), (0, 1), (1, 0), (1, 1))
+MONO = 3
+"""`RawImage.cfa` code of a monochrome sensor's pixel: it records every colour (the colour exposed decides which)."""
 _BAYER_TO_RGB = {  # OpenCV names a pattern by the second row's 2nd and 3rd pixels: RGGB is "BG"
     "RGGB": cv2.COLOR_BayerBG2RGB,
     "BGGR": cv2.COLOR_BayerRG2RGB,
@@ -40,10 +50,11 @@ _BAYER_TO_RGB = {  # OpenCV names a pattern by the second row's 2nd and 3rd pixe
 
 @dataclass(frozen=True, eq=False)
 class RawImage:
-    """A decoded frame: the visible Bayer mosaic as linear signal (0 = black, 1 = white level).
+    """A decoded frame: the visible Bayer (or monochrome) mosaic as linear signal (0 = black, 1 = white level).
 
     mosaic: float32 (H, W), (raw - black) / (white - black) per CFA position; noise below black stays negative.
-    cfa: (2, 2) colour of each CFA position at the top-left of the mosaic, 0 = R, 1 = G, 2 = B.
+    cfa: (2, 2) colour of each CFA position at the top-left of the mosaic, 0 = R, 1 = G, 2 = B; MONO in every
+    cell for a monochrome sensor.
     saturated: bool (H, W), raw value at or above the white level (or the camera's per-channel clip level).
     black_levels: float (2, 2) per CFA position, and white_level, in raw counts, as the file states them.
     source: the file the frame came from ('<bytes>' for data in memory), or how it was combined.
@@ -57,9 +68,14 @@ class RawImage:
     source: str
 
     @property
+    def monochrome(self) -> bool:
+        """True for a monochrome sensor's frame (no colour filters)."""
+        return bool((self.cfa == MONO).all())
+
+    @property
     def layout(self) -> str:
-        """The CFA layout name, e.g. 'RGGB'."""
-        return "".join("RGB"[c] for c in self.cfa.flat)
+        """The CFA layout name, e.g. 'RGGB', or 'mono'."""
+        return "mono" if self.monochrome else "".join("RGB"[c] for c in self.cfa.flat)
 
     @property
     def saturation_fraction(self) -> float:
@@ -67,10 +83,11 @@ class RawImage:
         return float(self.saturated.mean())
 
     def planes(self) -> np.ndarray:
-        """(3, H/2, W/2) float32: R, mean of the two Gs, B, each from its own CFA position (no interpolation)."""
+        """(3, H/2, W/2) float32: R, mean of the two Gs, B, each from its own CFA position (no interpolation);
+        monochrome: each the mean of the 2x2 cell."""
         rows, cols = (n - n % 2 for n in self.mosaic.shape)
         cells = [self.mosaic[i:rows:2, j:cols:2] for i, j in _CELLS]
-        return np.stack([np.mean([cell for cell, c in zip(cells, self.cfa.flat) if c == colour], axis=0)
+        return np.stack([np.mean([cell for cell, c in zip(cells, self.cfa.flat) if c in (colour, MONO)], axis=0)
                          for colour in range(3)]).astype(np.float32)
 
     def demosaic(self) -> np.ndarray:
@@ -78,8 +95,10 @@ class RawImage:
 
         OpenCV demosaics integers, so the mosaic is mapped affinely onto 0..65535 (covering its full range,
         negatives included) and back; bilinear interpolation commutes with that map, so only the
-        quantisation step (range / 65535) is added.
+        quantisation step (range / 65535) is added. Monochrome: the mosaic itself in all three channels.
         """
+        if self.monochrome:
+            return np.repeat(self.mosaic[:, :, None], 3, axis=2)
         low = min(0.0, float(self.mosaic.min()))
         high = max(1.0, float(self.mosaic.max()))
         scale = 65535.0 / (high - low)
@@ -119,21 +138,7 @@ def _reason(exc: Exception) -> str:
 def decode_raw(source: Path | str | bytes) -> RawImage:
     """Decode a RAW file (a path, or its bytes) to a linear `RawImage` of the visible sensor area."""
     with _opened(source) as (raw, name):
-        try:
-            pattern = raw.raw_pattern
-        except NotImplementedError:  # a LibRaw `filters` code rawpy has no pattern for (e.g. DNG without CFA tag)
-            pattern = None
-        if pattern is None or pattern.shape != (2, 2):
-            shape = "none" if pattern is None else "x".join(map(str, pattern.shape))
-            raise BenchctlError(f"{name} is not a 2x2 Bayer RAW file (CFA pattern: {shape}; no CFA tag?)")
-        sizes = raw.sizes
-        index = np.roll(pattern, (-sizes.top_margin, -sizes.left_margin), axis=(0, 1))  # layout at visible origin
-        desc = raw.color_desc.decode("ascii", "replace")
-        letters = "".join(desc[i] if i < len(desc) else "?" for i in index.flat)
-        if sorted(letters) != ["B", "G", "G", "R"]:
-            raise BenchctlError(f"{name}: CFA colours {letters} are not an RGB Bayer pattern")
-        cfa = np.array(["RGB".index(letter) for letter in letters], dtype=np.uint8).reshape(2, 2)
-
+        cfa, index = _layout(raw, name, source)
         per_channel = raw.black_level_per_channel
         black = np.array([per_channel[i] for i in index.flat], dtype=np.float64).reshape(2, 2)
         white = float(raw.white_level)
@@ -152,17 +157,52 @@ def decode_raw(source: Path | str | bytes) -> RawImage:
     return RawImage(mosaic, cfa, saturated, black, white, name)
 
 
+def _layout(raw: rawpy.RawPy, name: str, source: Path | str | bytes) -> tuple[np.ndarray, np.ndarray]:
+    """(cfa, index): the colour of each 2x2 cell at the visible origin (MONO everywhere for a monochrome sensor)
+    and LibRaw's channel index there (for the per-channel black and clip levels)."""
+    if raw.num_colors == 1:  # one colour: a monochrome sensor (one black level, channel 0) if the file says so
+        with io.BytesIO(source) if isinstance(source, (bytes, bytearray)) else open(source, "rb") as stream:
+            images = full_size_images(stream)
+        if (LINEAR_RAW, 1) not in images or any(kind == CFA for kind, _ in images):
+            raise BenchctlError(f"{name}: LibRaw reads one colour, but the file declares no monochrome image "
+                                f"(PhotometricInterpretation, samples: {images or 'none'}); a CFA file without "
+                                "its CFAPattern tag?")
+        return np.full((2, 2), MONO, dtype=np.uint8), np.zeros((2, 2), dtype=np.intp)
+    try:
+        pattern = raw.raw_pattern
+    except NotImplementedError:  # a LibRaw `filters` code rawpy has no pattern for (e.g. DNG without CFA tag)
+        pattern = None
+    if pattern is None or pattern.shape != (2, 2):
+        shape = "none" if pattern is None else "x".join(map(str, pattern.shape))
+        raise BenchctlError(f"{name} is not a 2x2 Bayer RAW file (CFA pattern: {shape}; no CFA tag?)")
+    sizes = raw.sizes
+    index = np.roll(pattern, (-sizes.top_margin, -sizes.left_margin), axis=(0, 1))  # layout at visible origin
+    desc = raw.color_desc.decode("ascii", "replace")
+    letters = "".join(desc[i] if i < len(desc) else "?" for i in index.flat)
+    if sorted(letters) != ["B", "G", "G", "R"]:
+        raise BenchctlError(f"{name}: CFA colours {letters} are not an RGB Bayer pattern")
+    return np.array(["RGB".index(letter) for letter in letters], dtype=np.uint8).reshape(2, 2), index
+
+
 def linear_rgb(source: Path | str | bytes, half_size: bool = False) -> np.ndarray:
     """(H, W, 3) float32 camera RGB from LibRaw's own demosaic, on the same linear scale as `RawImage.mosaic`.
 
     Uses the linear recipe (gamma 1, no auto-brightness, no white balance, raw colour space, no per-frame
     maximum adjustment). LibRaw clips to 0 .. white and rounds down to 16 bits (at most 1 / 65535 low).
-    half_size: one pixel per 2x2 cell, the two greens averaged (fast, no interpolation).
+    half_size: one pixel per 2x2 cell, the two greens averaged (fast, no interpolation). A monochrome frame
+    (one channel from LibRaw, which does not halve it) is given in all three channels, its 2x2 cells averaged
+    for half_size.
     """
     with _opened(source) as (raw, _):
         rgb = raw.postprocess(gamma=(1, 1), no_auto_bright=True, output_bps=16, user_wb=[1.0, 1.0, 1.0, 1.0],
                               output_color=rawpy.ColorSpace.raw, adjust_maximum_thr=0.0, half_size=half_size)
-    return rgb.astype(np.float32) / np.float32(65535.0)
+    linear = rgb.astype(np.float32) / np.float32(65535.0)
+    if linear.shape[2] == 1:
+        if half_size:
+            rows, cols = (n // 2 for n in linear.shape[:2])
+            linear = linear[:2 * rows, :2 * cols].reshape(rows, 2, cols, 2, 1).mean(axis=(1, 3))
+        linear = np.repeat(linear, 3, axis=2)
+    return linear
 
 
 def _check_same_grid(reference: RawImage, other: RawImage, action: str) -> None:

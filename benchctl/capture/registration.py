@@ -36,7 +36,7 @@ import cv2
 import numpy as np
 import torch
 
-from benchctl.capture.raw import RawImage
+from benchctl.capture.raw import MONO, RawImage
 from benchctl.errors import BadValueError, BenchctlError
 from benchctl.optics.metrics import centred_slices
 
@@ -259,7 +259,7 @@ def _placements(index: np.ndarray, quality: np.ndarray,
     filled = (weight > 0).astype(np.int64)
     score, count = window_sums(weight), window_sums(filled)
     n_u, n_v = score.shape
-    corners = sum(filled[i:i + n_u, j:j + n_v] for i in (0, du - 1) for j in (0, dv - 1))
+    corners = np.sum([filled[i:i + n_u, j:j + n_v] for i in (0, du - 1) for j in (0, dv - 1)], axis=0)
     starts = np.stack(np.meshgrid(np.arange(n_u), np.arange(n_v), indexing="ij"), axis=-1).reshape(-1, 2) + low
     return starts, score.ravel(), count.ravel(), 4 - corners.ravel()
 
@@ -340,8 +340,10 @@ def find_dots(image: np.ndarray, grid: tuple[int, int] = DEFAULT_GRID) -> np.nda
 
 
 def cfa_positions(cfa: np.ndarray, colour: int) -> list[tuple[int, int]]:
-    """(dy, dx) cell positions of `colour` (0 R, 1 G, 2 B) in a (2, 2) CFA layout: one for R and B, two for G."""
-    positions = [(int(dy), int(dx)) for dy, dx in np.argwhere(np.asarray(cfa) == colour)]
+    """(dy, dx) cell positions of `colour` (0 R, 1 G, 2 B) in a (2, 2) CFA layout: one for R and B, two for G, all
+    four on a monochrome sensor (each warped on its own and averaged, so every pixel counts)."""
+    cells = np.asarray(cfa)
+    positions = [(int(dy), int(dx)) for dy, dx in np.argwhere((cells == colour) | (cells == MONO))]
     if not positions:
         raise BenchctlError(f"colour {colour} does not occur in the CFA layout {np.asarray(cfa).tolist()}")
     return positions

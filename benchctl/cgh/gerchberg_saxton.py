@@ -51,8 +51,11 @@ def _gerchberg_saxton(target: torch.Tensor, setup: OpticalSetup, iterations: Opt
     # subtracted and the phase W removed (the phase-only projection; A > 0 does not change the angle). The
     # diffuser start has no scale to subtract f at.
     model = setup.field_model
-    factor = setup.slm_factor().to(target.device) if model is not None else None
-    unmodulated = factor * model.zero_order if factor is not None and model.zero_order else None
+    factor: torch.Tensor | None = None
+    unmodulated: torch.Tensor | None = None
+    if model is not None:
+        factor = setup.slm_factor().to(target.device)
+        unmodulated = factor * model.zero_order if model.zero_order else None
     with torch.no_grad():
         phase = _slm_phase(to_slm(torch.polar(target, start)), factor)
         for done in range(1, iterations + 1):

@@ -24,7 +24,8 @@ def _cmd_bench_speed(args: argparse.Namespace) -> int:
     profile = load_profile(args.profile).require("slm", "optics", "laser")
     if args.full and args.size:
         raise BadValueError("--full runs at the profile's own grid; leave out --size")
-    size = profile.slm.shape if args.full else args.size or (profile.slm.height // 4, profile.slm.width // 4)
+    slm = profile.section("slm")
+    size = slm.shape if args.full else args.size or (slm.height // 4, slm.width // 4)
     run_speed_vs_error(resized_profile(profile, size), targets=tuple(args.targets or DEFAULT_TARGETS),
                        methods=tuple(args.methods) if args.methods else None,
                        budgets=args.iterations or (FULL_BUDGETS if args.full else DEFAULT_BUDGETS),
@@ -87,9 +88,10 @@ def _cmd_bench_reproduce(args: argparse.Namespace) -> int:
     methods = args.methods or list(DEFAULT_METHODS)
     settings = dict(size=args.size, methods=methods, seeds=args.seeds, ablation_seeds=args.ablation_seeds,
                     colour=args.colour, data=args.data, lr=args.lr, max_steps=args.max_steps, min_steps=args.min_steps,
-                    min_gain_db=args.min_gain, iris_test=not args.no_iris_test, threads=args.threads)
-    command = reproduce_command(args.profile, args.out, jobs=args.jobs, **settings)  # type: ignore[arg-type]
-    new_plan(args.out, load_profile(args.profile), command=command, **settings)  # type: ignore[arg-type]
+                    min_gain_db=args.min_gain, patience=args.patience, iris_test=not args.no_iris_test,
+                    threads=args.threads)
+    command = reproduce_command(args.profile, args.out, jobs=args.jobs, **settings)
+    new_plan(args.out, load_profile(args.profile), command=command, **settings)
     run_reproduction(args.out, jobs=args.jobs, memory=not args.no_memory)
     return 0
 
@@ -177,7 +179,7 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                            (("--frames",), {"type": positive_int, "default": 100, "help": "default: 100"}),
                            (("--frame-rate",), {"type": float, "metavar": "FPS",
                                                 "help": "the fake camera's frame rate (default: its own, 25)"})):
-        genicam.add_argument(*flags, **options)  # type: ignore[arg-type]
+        genicam.add_argument(*flags, **options)
     genicam.set_defaults(func=_cmd_bench_genicam)
 
     reproduce = bench.add_parser(
@@ -214,6 +216,9 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     reproduce.add_argument("--min-gain", type=float, default=0.2, metavar="DB",
                            help="stop once the validation score gains less than this per doubling of steps "
                                 "(default: 0.2)")
+    reproduce.add_argument("--patience", type=positive_int, default=2, metavar="N",
+                           help="stop once N power-of-two steps in a row each gained less than --min-gain "
+                                "(default: 2: one dip of a noisy curve does not end a job)")
     reproduce.add_argument("--no-iris-test", action="store_true",
                            help="skip training holonet-dcm2 and holonet-lowdef2 again on the bench without its iris")
     reproduce.add_argument("--jobs", type=positive_int, default=2, help="jobs trained at a time (default: 2)")

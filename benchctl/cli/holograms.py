@@ -40,7 +40,7 @@ def _cmd_models(args: argparse.Namespace) -> int:
     from benchctl.runner.holograms import list_methods
 
     profile = load_profile(args.profile)
-    shape = args.size or profile.require("slm").slm.shape
+    shape = args.size or profile.section("slm").shape
     if profile.optics is not None:  # the lookup tables and optical model a checkpoint would meet here
         profile = Calibration.store(profile).applied(profile)
     print(f"hologram methods at {shape[0]}x{shape[1]} (checkpoints for profile {profile.name!r}):")

@@ -19,7 +19,7 @@ import struct
 import time
 from collections.abc import Awaitable, Callable
 from importlib import resources
-from typing import Any, TypeVar
+from typing import Any, TypeVar, get_args
 
 from starlette.applications import Starlette
 from starlette.concurrency import run_in_threadpool
@@ -143,8 +143,9 @@ def create_app(console: Console, access: Access) -> AccessMiddleware:
 
     async def connect(request: Request) -> dict[str, Any]:
         name = (await body(request)).get("device")
-        held = {"laser": console.laser.held if console.laser else None,
-                "slm": console.slm.held if console.slm else None, "camera": console.camera}.get(name)
+        devices = {"laser": console.laser.held if console.laser else None,
+                   "slm": console.slm.held if console.slm else None, "camera": console.camera}
+        held = devices.get(name) if isinstance(name, str) else None
         if held is None:
             raise BadValueError(f"no device {name!r} to connect (laser, slm or camera)")
         if console.procedures.active:
@@ -281,7 +282,7 @@ async def _in_thread(function: Callable[..., T], *args: Any) -> T:
 
 
 def _static(name: str) -> Response:
-    data = resources.files("benchctl.console").joinpath("static", name).read_bytes()
+    data = (resources.files("benchctl.console") / "static" / name).read_bytes()
     return Response(data, media_type=STATIC[name], headers={"cache-control": "no-store"})
 
 
@@ -296,7 +297,7 @@ def _info(console: Console) -> dict[str, Any]:
         "profile": profile.name,
         "channels": [{"name": c.name, "wavelength_nm": c.wavelength_nm, "limit_mw": c.max_power_mw,
                       "setpoint_mw": c.setpoint_mw} for c in profile.channels],
-        "zernike": list(ZernikeName.__args__),
+        "zernike": list(get_args(ZernikeName)),
         "targets": list(list_targets()),
         "methods": usable_methods(profile) if console.slm is not None else [],
         "checkpoints": list(console.slm.checkpoints) if console.slm else [],

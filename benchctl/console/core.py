@@ -61,7 +61,7 @@ class Console:
         self.keep_previewing = False  # render frames with no page open (benchmarks)
         self._seq = 0
         self._frame_times: deque[float] = deque(maxlen=30)
-        self._listeners: list[Callable[[], None]] = []
+        self._listeners: list[Callable[[], object]] = []
         self._busy = threading.Lock()  # one long job (hologram, capture) at a time
         self._stop = threading.Event()
         self._threads = [threading.Thread(target=self._preview_loop, name="console live view", daemon=True),
@@ -236,7 +236,7 @@ class Console:
         for listener in list(self._listeners):
             listener()
 
-    def listen(self, listener: Callable[[], None]) -> Callable[[], None]:
+    def listen(self, listener: Callable[[], object]) -> Callable[[], None]:
         """Call `listener` (from the live-view thread) after every new frame; returns the function that stops it."""
         self._listeners.append(listener)
         return lambda: self._listeners.remove(listener)

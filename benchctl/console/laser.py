@@ -33,8 +33,7 @@ class LaserControl:
 
     def __init__(self, profile: Profile, say: Callable[[str], None], deadman_s: float = DEADMAN_S) -> None:
         self.profile = profile
-        self.config = profile.require("laser").laser
-        assert self.config is not None
+        self.config = profile.section("laser")
         self.held: Held[Laser] = Held("laser", lambda: open_laser(self.config), Laser.close)
         self.say = say
         self.deadman_s = deadman_s

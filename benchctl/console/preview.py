@@ -73,7 +73,7 @@ def _from_raw(raw: RawImage, saturated: np.ndarray, max_cols: int, window: Windo
     if raw.mosaic.shape[1] > 2 * max_cols:
         rgb = np.moveaxis(raw.planes(), 0, 2)
         rows, cols = rgb.shape[:2]
-        saturated = saturated[:2 * rows, :2 * cols].reshape(rows, 2, cols, 2).any(axis=(1, 3))
+        saturated = np.asarray(saturated[:2 * rows, :2 * cols].reshape(rows, 2, cols, 2).any(axis=(1, 3)))
     else:
         rgb = raw.demosaic()
     return Linear(np.ascontiguousarray(rgb, dtype=np.float32), saturated, window, full_shape)

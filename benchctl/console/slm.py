@@ -79,8 +79,7 @@ class SlmControl:
         the hologram worker; `progress(label, done, total)` as they go): call this off the server's event loop."""
         if pattern.kind == "blank":
             return None
-        slm = self.profile.require("slm").slm
-        assert slm is not None
+        slm = self.profile.section("slm")
         rows, cols = slm.shape
         if pattern.kind == "flat":
             phase = np.full((rows, cols), pattern.phase_rad)
@@ -93,7 +92,8 @@ class SlmControl:
         if pattern.zernike:
             from benchctl.optics.aberration import wavefront_phase
 
-            phase = phase + wavefront_phase((rows, cols), slm.pitch_m, dict(pattern.zernike)).numpy()
+            waves: dict[str, float] = {term: value for term, value in pattern.zernike.items()}
+            phase = phase + wavefront_phase((rows, cols), slm.pitch_m, waves).numpy()
         return phase
 
     def _hologram(self, pattern: Pattern, progress: Any) -> np.ndarray:
@@ -103,8 +103,7 @@ class SlmControl:
         from benchctl.targets import active_channels, load_target, prepare_target
 
         channel = self._channel(pattern)
-        slm, optics = self.profile.require("slm", "optics").slm, self.profile.optics
-        assert slm is not None and optics is not None
+        slm, optics = self.profile.section("slm"), self.profile.section("optics")
         if pattern.kind == "dots":
             from benchctl.capture.registration import dot_grid_target
 
@@ -142,8 +141,7 @@ class SlmControl:
 
     def thumbnail(self) -> bytes:
         """What the panel shows now, THUMBNAIL_WIDTH pixels wide, as PNG (gray 0 before anything was shown)."""
-        slm = self.profile.require("slm").slm
-        assert slm is not None
+        slm = self.profile.section("slm")
         frame = self.frame if self.frame is not None else np.zeros(slm.shape, np.uint8)
         if frame.dtype != np.uint8:
             frame = (frame >> (slm.bit_depth - 8)).astype(np.uint8)

@@ -37,9 +37,9 @@ class SerialPort(Protocol):
     @property
     def in_waiting(self) -> int: ...
 
-    def read(self, size: int = 1) -> bytes: ...
+    def read(self, size: int = 1, /) -> bytes: ...
 
-    def write(self, data: bytes) -> int | None: ...
+    def write(self, data: bytes, /) -> int | None: ...
 
     def flush(self) -> None: ...
 
@@ -52,7 +52,7 @@ class ErrorReply(DeviceError):
     """The device answered a command with its error reply (the message carries the device's text)."""
 
 
-def open_port(url: str, *, baudrate: int, timeout_s: float, name: str) -> serial.SerialBase:
+def open_port(url: str, *, baudrate: int, timeout_s: float, name: str) -> SerialPort:
     """Open `url` (device path or pyserial URL, sim:// included) or raise a DeviceError that says why not."""
     if SIM_HANDLERS not in serial.protocol_handler_packages:
         serial.protocol_handler_packages.append(SIM_HANDLERS)

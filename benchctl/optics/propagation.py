@@ -41,16 +41,17 @@ def transfer_function(plan: PropagationPlan, dtype: torch.dtype = torch.complex6
     For a windowed plan (`window_plan`): the transfer function of `plan.kernel_shape`, whose impulse response
     (computed in float64) is folded onto the smaller padded grid at the offsets the window needs.
     """
-    if plan.window is None or plan.kernel_shape == plan.padded_shape:
+    window, kernel_shape = plan.window, plan.kernel_shape
+    if window is None or kernel_shape is None or kernel_shape == plan.padded_shape:
         return _transfer_function(plan, dtype, device)
-    full = _transfer_function(replace(plan, padded_shape=plan.kernel_shape), torch.complex128, device)
+    full = _transfer_function(replace(plan, padded_shape=kernel_shape), torch.complex128, device)
     response = torch.fft.ifft2(full)
     del full
     folded = response.new_zeros(plan.padded_shape)
-    (row, rows, col, cols), (h, w) = plan.window, plan.shape
+    (row, rows, col, cols), (h, w) = window, plan.shape
     offset_y = torch.arange(row - h + 1, row + rows, device=response.device)
     offset_x = torch.arange(col - w + 1, col + cols, device=response.device)
-    (m_y, m_x), (k_y, k_x) = plan.padded_shape, plan.kernel_shape
+    (m_y, m_x), (k_y, k_x) = plan.padded_shape, kernel_shape
     folded[(offset_y % m_y)[:, None], (offset_x % m_x)[None, :]] = \
         response[(offset_y % k_y)[:, None], (offset_x % k_x)[None, :]]
     return torch.fft.fft2(folded).to(dtype)
@@ -192,11 +193,11 @@ def propagate(
     `aperture`, if given, is a Fourier-plane iris (radius as a fraction of the grid's Nyquist frequency).
     """
     _check_shape(field)
-    key = (tuple(field.shape[-2:]), float(distance_m), float(wavelength_m), pitch_pair(pitch_m), padding, band_limit,
-           aperture)
+    shape = (int(field.shape[-2]), int(field.shape[-1]))
+    key = (shape, float(distance_m), float(wavelength_m), pitch_pair(pitch_m), padding, band_limit, aperture)
     prop = _CACHE.get(key)
     if prop is None:
-        prop = Propagator(key[0], distance_m, wavelength_m, pitch_m, padding=padding, band_limit=band_limit,
+        prop = Propagator(shape, distance_m, wavelength_m, pitch_m, padding=padding, band_limit=band_limit,
                           aperture=aperture)
         _CACHE[key] = prop
         if len(_CACHE) > _CACHE_SIZE:

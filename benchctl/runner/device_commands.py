@@ -56,13 +56,13 @@ def _status_line(s: ChannelStatus) -> str:
 
 def laser_status(profile: Profile) -> list[str]:
     """Identity and one line per channel: wavelength, setpoint, measured power, emission, interlock, faults."""
-    with open_laser(profile.require("laser").laser, observe=True) as laser:
+    with open_laser(profile.section("laser"), observe=True) as laser:
         return [f"laser: {laser.identity()}"] + [_status_line(laser.status(name)) for name in laser.channel_names]
 
 
 def laser_set(profile: Profile, channel: str, power: str) -> list[str]:
     """Change one channel's setpoint (emission stays off); the device's read-back value is reported."""
-    with open_laser(profile.require("laser").laser) as laser:
+    with open_laser(profile.section("laser")) as laser:
         watts = laser.set_power(channel, power)
         return laser.connect_report() + [f"{channel}: setpoint {format_power(watts)} (read back)"]
 
@@ -71,7 +71,7 @@ def laser_on(profile: Profile, channel: str, duration_s: float | None, leave_on:
              out: Callable[[str], None] = print, sleep: Callable[[float], None] = wait) -> list[str]:
     """Emission on `channel` for `duration_s` (None: until Ctrl-C), then off unless `leave_on`."""
     try:
-        with open_laser(profile.require("laser").laser) as laser:
+        with open_laser(profile.section("laser")) as laser:
             for line in laser.connect_report():
                 out(line)
             laser.set_emission(channel, True)
@@ -133,8 +133,7 @@ def sim_fault(device: str, faults: list[str], clear: bool, profile: Profile) -> 
 def laser_off(profile: Profile, channel: str, wait_s: float = HOLDER_EXIT_S) -> list[str]:
     """Emission off on one channel or on all ('all'); connecting already turns every channel off. A command
     holding the laser (a run, `laser on`) is sent SIGTERM first: it switches emission off and exits."""
-    config = profile.require("laser").laser
-    assert config is not None
+    config = profile.section("laser")
     lines = stop_laser_holders(sorted({config.port_of(ch) for ch in config.channels}), wait_s)
     with open_laser(config) as laser:
         names = laser.channel_names if channel == "all" else [channel]
@@ -255,7 +254,7 @@ def slm_blank(profile: Profile) -> list[str]:
 
 def camera_info(profile: Profile) -> list[str]:
     """What the camera says it is, and the capture settings the profile gives."""
-    config = profile.require("camera").camera
+    config = profile.section("camera")
     with _open_camera(profile) as camera:
         lines = _human_lines(camera.identity(), "")
     exposure = f"{config.exposure_s:g} s" if config.exposure_s else "as set on the camera"
@@ -275,17 +274,19 @@ def camera_capture(profile: Profile, output: Path, frames: int | None) -> list[s
         raise BenchctlError(f"{taken[0]} exists; captured files never replace one (choose another --output)")
     with _open_camera(profile) as camera:
         captured = camera.capture(output.parent, frames=frames, stem=output.stem)
+    targets: list[Path] = []
+    for frame in captured:
+        assert frame.path is not None  # capture saves every frame to the folder it is given
+        targets.append(frame.path)
     if len(captured) == 1:
         single = output if output.suffix else output.with_suffix(captured[0].suffix)
         try:
-            os.link(captured[0].path, single)  # never replaces, unlike a rename
+            os.link(targets[0], single)  # never replaces, unlike a rename
         except FileExistsError:
             raise BenchctlError(f"{single} appeared during the capture and is kept; the frame is "
-                                f"{captured[0].path}") from None
-        captured[0].path.unlink()
+                                f"{targets[0]}") from None
+        targets[0].unlink()
         targets = [single]
-    else:
-        targets = [frame.path for frame in captured]
     return [f"captured {target} ({frame.format}, {len(frame.data)} bytes, camera name {frame.file_name})"
             for target, frame in zip(targets, captured)]
 

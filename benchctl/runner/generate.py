@@ -64,16 +64,17 @@ def run_generate(
     """
     started = time.time()
     profile.require("slm", "optics", "laser")  # the laser's channels are the colours generated
-    own_tables = profile.slm.lut
+    own_tables = profile.section("slm").lut
     profile = Calibration.store(profile).applied(profile)
-    srgb = load_target(target, size=profile.optics.roi)
-    amplitude = prepare_target(srgb, profile.slm.shape, profile.optics.roi)
+    slm, optics = profile.section("slm"), profile.section("optics")
+    srgb = load_target(target, size=optics.roi)
+    amplitude = prepare_target(srgb, slm.shape, optics.roi)
     scene = compute_scene(amplitude, profile, method, iterations=iterations, colours=colours, seed=seed,
                           progress=progress, checkpoint=checkpoint)
     out_dir = ensure_dir(Path(out_dir))  # only once there is something to write
     files = []
     for c in scene.colours:
-        if not c.skipped:
+        if c.gray is not None:  # a skipped colour has none
             files.append(write_png(out_dir / f"phase_{c.channel}.png", c.gray).name)
     files.append(write_png(out_dir / "target.png", _srgb8(scene.target_roi.square())).name)
     files.append(write_png(out_dir / "reconstruction.png", _srgb8(scene.merged_linear)).name)
@@ -82,9 +83,9 @@ def run_generate(
         "benchctl_code": code_identity(),
         "target": target,
         "profile": str(profile.path),
-        "grid": list(profile.slm.shape),
-        "roi": list(profile.optics.roi),
-        "optical_model": str(profile.optics.model) if profile.optics.model else None,
+        "grid": list(slm.shape),
+        "roi": list(optics.roi),
+        "optical_model": str(optics.model) if optics.model else None,
         "calibration": calibration_used(profile, own_tables),  # tables and model, with checksums
         "seed": seed,
         "started_unix": round(started, 3),

@@ -60,7 +60,10 @@ class SceneResult:
 
 def checkpoint_status(method: str, profile: Profile) -> str:
     """Where the trained checkpoint that `method` runs for `profile` is, or why there is none it can use."""
-    path = find_checkpoint(get_method(method).network, profile)
+    network = get_method(method).network
+    if network is None:
+        return "needs no checkpoint"
+    path = find_checkpoint(network, profile)
     if path is None:
         return f"no trained checkpoint for profile {profile.name!r}"
     problem = checkpoint_problem(path, profile)
@@ -76,7 +79,7 @@ def usable_methods(profile: Profile) -> list[str]:
     for name in LEARNED_METHODS:
         path = find_checkpoint(name, profile)
         fits[name] = path is not None and checkpoint_problem(path, profile) is None
-    return [name for name in method_names() if get_method(name).network is None or fits[get_method(name).network]]
+    return [name for name in method_names() if (network := get_method(name).network) is None or fits[network]]
 
 
 def list_methods(shape: tuple[int, int], profile: Profile | None = None) -> list[str]:
@@ -153,7 +156,7 @@ def compute_scene(
     (BenchctlError) when there is none or when it was trained for another geometry; a classical method given
     a checkpoint is an error too. `setups`: the colours' optical setups (default: the profile's, `optical_setups`).
     """
-    grid, roi = profile.slm.shape, profile.optics.roi
+    grid, roi = profile.section("slm").shape, profile.section("optics").roi
     if tuple(target_amplitude.shape) != (3, *grid):
         raise BenchctlError(f"target is {tuple(target_amplitude.shape)}, the SLM grid needs (3, {grid[0]}, {grid[1]})")
     present = active_channels(target_amplitude)

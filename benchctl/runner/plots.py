@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import html
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import cv2
 import numpy as np
@@ -48,7 +48,7 @@ def _span(values: Sequence[float], floor: float | None = None) -> tuple[float, f
     return low, max(values) if max(values) > low else low + 1.0
 
 
-def line_plot(series: dict[str, tuple[list[float], list[float]]], xlabel: str, ylabel: str,
+def line_plot(series: Mapping[str, tuple[Sequence[float], Sequence[float]]], xlabel: str, ylabel: str,
               width: int = 520, height: int = 300) -> str:
     """An inline SVG plot of named (x, y) series, with axis ranges and labels (the y axis starts at 0 or below)."""
     xs = [x for x_values, _ in series.values() for x in x_values]

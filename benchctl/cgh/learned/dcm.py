@@ -112,6 +112,9 @@ class LowDefinitionNet(PhaseHologramNet):
     the SLM one by one on the low-definition grid (pitch p r), not merged and propagated at full definition;
     the encoder's sub-network reads those r^2 SLM sub-fields and its merger merges its r^2 outputs."""
 
+    generator: Divided
+    encoder: Divided
+
     def __init__(self, generator: Divided, encoder: Divided, setup: OpticalSetup) -> None:
         super().__init__(generator, encoder, setup)
         if generator.factor < 2 or encoder.factor != generator.factor:

@@ -145,6 +145,8 @@ PYRAMID_GROUPS = sublattice_groups(4, 2)
 class PyramidMerger(nn.Module):
     """x4 merge in two x2 stages: a shared LFMN per 2x2 sub-lattice group, then an independent LFMN."""
 
+    groups: torch.Tensor  # a buffer, registered in __init__
+
     def __init__(self, dims: tuple[int, int], blocks: int) -> None:
         super().__init__()
         self.register_buffer("groups", torch.tensor(PYRAMID_GROUPS).flatten(), persistent=False)

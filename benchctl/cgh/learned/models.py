@@ -50,7 +50,7 @@ class Variant:
     low_definition: bool = False
 
 
-_X2_DIMS = {"1080p": (32,), "4k": (24,), "8k": (24,)}
+_X2_DIMS: dict[str, tuple[int, ...]] = {"1080p": (32,), "4k": (24,), "8k": (24,)}
 VARIANTS: dict[str, Variant] = {
     "holonet": Variant("holonet"),
     "holonet-dcm2": Variant("holonet", 2, "lfmn", _X2_DIMS),

@@ -97,6 +97,9 @@ def load_vgg19(path: Path) -> VGG19Features:
 class PerceptualLoss(nn.Module):
     """Mean over `FEATURE_LAYERS` of the MSE between VGG19 features of two gray (B, 1, H, W) images."""
 
+    mean: torch.Tensor  # buffers, registered in __init__
+    std: torch.Tensor
+
     def __init__(self, features: VGG19Features) -> None:
         super().__init__()
         self.features = features

@@ -17,10 +17,8 @@ __all__ = ["RAW_FORMATS", "Camera", "RawFrame", "camera_for", "open_camera"]
 
 def camera_for(profile: Profile) -> Camera:
     """The profile's camera driver, not yet connected: enough to ask what it knows without the device."""
-    config = profile.require("camera").camera
-    assert config is not None
-    camera: Camera = driver_class("camera", config.driver).for_profile(profile)
-    return camera
+    driver: type[Camera] = driver_class("camera", profile.section("camera").driver)
+    return driver.for_profile(profile)
 
 
 def open_camera(profile: Profile) -> Camera:

@@ -267,9 +267,9 @@ def _user_id(camera: Any) -> str | None:
         return None
 
 
-def _glib_error() -> type[Exception]:
+def _glib_error() -> type[Any]:
     """GLib.Error, the exception Aravis calls raise (gi is loaded once `aravis()` ran)."""
     from gi.repository import GLib
 
-    error: type[Exception] = GLib.Error
+    error: type[Any] = GLib.Error  # untyped (PyGObject has no stubs): its instances carry .message
     return error

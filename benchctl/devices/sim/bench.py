@@ -258,7 +258,7 @@ def _sensor_electrons(profile: Profile, planes: np.ndarray, homography: np.ndarr
     the planes resampled (bilinear) and divided by the sensor pixels per target pixel squared (energy conserved).
     With `origin` (the grid's first pixel in active-area coordinates), each pixel keeps the colour of its CFA
     position: (rows, cols) float64; without, all three colours: (rows, cols, 3) float32."""
-    warped = cv2.warpAffine(planes, homography[:2], (shape[1], shape[0]), flags=cv2.INTER_LINEAR,
+    warped: np.ndarray = cv2.warpAffine(planes, homography[:2], (shape[1], shape[0]), flags=cv2.INTER_LINEAR,
                             borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     warped /= sensor_pixels_per_slm_pixel(profile) ** 2  # energy per target pixel spread over the image's area
     if origin is None:

@@ -17,6 +17,7 @@ import errno
 import threading
 import time
 from collections import deque
+from typing import TYPE_CHECKING, Any
 from urllib.parse import parse_qsl, urlsplit
 
 from serial.serialutil import PortNotOpenError, SerialBase, SerialException
@@ -25,6 +26,9 @@ from benchctl.devices.errors import DeviceBusy
 from benchctl.devices.sim.laser_emulators import LaserEmulator, make_emulator
 from benchctl.devices.lock import DeviceLock
 from benchctl.devices.sim.state import sim_lock
+
+if TYPE_CHECKING:
+    from _typeshed import ReadableBuffer
 
 
 def parse_url(url: str) -> tuple[str, dict[str, str]]:
@@ -42,7 +46,7 @@ def parse_url(url: str) -> tuple[str, dict[str, str]]:
 class Serial(SerialBase):
     """A serial port whose other end is a simulated laser unit (see the module docstring)."""
 
-    def __init__(self, *args: object, **kwargs: object) -> None:
+    def __init__(self, *args: Any, **kwargs: Any) -> None:  # SerialBase's own arguments
         self._device: LaserEmulator | None = None
         self._hold: DeviceLock | None = None
         self._arrived = bytearray()
@@ -53,9 +57,9 @@ class Serial(SerialBase):
     def open(self) -> None:
         if self.is_open:
             raise SerialException("Port is already open.")
-        if self._port is None:
+        if self.port is None:
             raise SerialException("Port must be configured before it can be used.")
-        name, params = parse_url(self._port)
+        name, params = parse_url(self.port)
         hold = sim_lock(name)
         try:
             hold.acquire()
@@ -108,7 +112,7 @@ class Serial(SerialBase):
         """Up to `size` bytes: waits for them up to the port's timeout (None: forever, 0: not at all)."""
         if not self.is_open:
             raise PortNotOpenError()
-        deadline = None if self._timeout is None else time.monotonic() + self._timeout
+        deadline = None if self.timeout is None else time.monotonic() + self.timeout
         data = bytearray()
         with self._changed:
             while True:
@@ -123,12 +127,12 @@ class Serial(SerialBase):
                 waits += [deadline - now] if deadline is not None else []
                 self._changed.wait(min(waits) if waits else None)
 
-    def write(self, data: bytes) -> int:
+    def write(self, data: ReadableBuffer) -> int:
         """Hand the bytes to the emulator; its replies arrive reply_delay_s later, after earlier ones."""
         if not self.is_open or self._device is None:
             raise PortNotOpenError()
-        data = bytes(data)
-        reply = self._device.receive(data)
+        sent = bytes(data)
+        reply = self._device.receive(sent)
         if reply:
             with self._changed:
                 arrives = time.monotonic() + self._device.reply_delay_s
@@ -136,7 +140,7 @@ class Serial(SerialBase):
                     arrives = max(arrives, self._in_flight[-1][0])
                 self._in_flight.append((arrives, reply))
                 self._changed.notify_all()
-        return len(data)
+        return len(sent)
 
     def reset_input_buffer(self) -> None:
         if not self.is_open:

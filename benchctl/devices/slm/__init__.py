@@ -18,10 +18,8 @@ __all__ = ["SLM", "load_lut", "lut_for", "open_slm", "save_lut", "slm_for"]
 
 def slm_for(profile: Profile) -> SLM:
     """The profile's SLM driver, not yet opened: enough to encode and decode frames without the panel."""
-    config = profile.require("slm").slm
-    assert config is not None
-    slm: SLM = driver_class("slm", config.driver).for_profile(profile)
-    return slm
+    driver: type[SLM] = driver_class("slm", profile.section("slm").driver)
+    return driver.for_profile(profile)
 
 
 def open_slm(profile: Profile) -> SLM:

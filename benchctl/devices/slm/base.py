@@ -10,8 +10,9 @@ from __future__ import annotations
 
 import math
 import sys
+import time
 from abc import abstractmethod
-from datetime import datetime, timezone
+from datetime import datetime, timedelta, timezone
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any, ClassVar
 
@@ -50,8 +51,8 @@ class SLM(Connection):
         self._current: np.ndarray | None = None
         self._frames_shown = 0
         self.shown_frame: int | None = None  # displayed_frame() right after this object's last frame went up
-        # When the last frame was presented (UTC, ISO 8601 to the microsecond): `_display` returned, so the frame
-        # is on the panel as far as the driver can tell; the settle time counts from here.
+        # When the last frame was presented (UTC, ISO 8601 to the microsecond): the time the platform reports
+        # (the display driver's vblank), else when `_display` returned; the settle time counts from here.
         self.presented_at: str | None = None
 
     @classmethod
@@ -73,8 +74,9 @@ class SLM(Connection):
         """Release the panel; what it shows stays (a display keeps its last frame)."""
 
     @abstractmethod
-    def _display(self, gray: np.ndarray, channel: str | None) -> None:
-        """Put `gray` ((H, W), gray_dtype, read-only) on the panel; `channel` is None for raw gray frames."""
+    def _display(self, gray: np.ndarray, channel: str | None) -> float | None:
+        """Put `gray` ((H, W), gray_dtype, read-only) on the panel; `channel` is None for raw gray frames. Returns
+        when the panel showed it, on time.monotonic()'s clock, where the platform says; None: on return."""
 
     def _device_lock(self) -> DeviceLock:
         return DeviceLock(f"slm:{self.driver}:{self.config.device}", self.label)
@@ -171,7 +173,7 @@ class SLM(Connection):
 
     def _flipped(self, frame: np.ndarray) -> np.ndarray:
         """`frame` mirrored as the optics require (flip_y: rows, flip_x: columns); a view."""
-        return np.flip(frame, [axis for axis, on in ((0, self.config.flip_y), (1, self.config.flip_x)) if on])
+        return np.flip(frame, tuple(axis for axis, on in ((0, self.config.flip_y), (1, self.config.flip_x)) if on))
 
     def encode(self, phase: np.ndarray | torch.Tensor, channel: str) -> np.ndarray:
         """The gray frame `show_phase` would display for `phase` ((H, W) radians), without displaying it."""
@@ -239,12 +241,13 @@ class SLM(Connection):
         if not self._open_now:
             raise DeviceError(f"{self.label} is not open (use `with open_slm(profile) as slm:`)")
         frame.flags.writeable = False
-        self._display(frame, channel)
-        self.presented_at = datetime.now(timezone.utc).isoformat(timespec="microseconds")
+        presented = self._display(frame, channel)
+        since = 0.0 if presented is None else max(0.0, time.monotonic() - presented)
+        self.presented_at = (datetime.now(timezone.utc) - timedelta(seconds=since)).isoformat(timespec="microseconds")
         self._current = frame
         self._frames_shown += 1
         self.shown_frame = self.displayed_frame()
-        self.sleep(self.settle_s)
+        self.sleep(max(0.0, self.settle_s - since))
         return frame
 
     def _checked_phase(self, phase: np.ndarray | torch.Tensor) -> np.ndarray:

@@ -3,22 +3,32 @@
 The output is chosen by what the profile names: the EDID's monitor name (`slm.edid_name`) and serial
 (`slm.edid_serial`), which survive re-plugging, or the connector (`slm.output`, e.g. HDMI-A-1). Its mode must be
 the profile's width x height (else the error names every output and mode there is). A borderless window
-(override-redirect: no window manager moves, decorates or scales it) covers exactly that output, and each gray
-frame is written into it with XPutImage as 32-bit pixels whose R, G and B bytes are the gray level: no scaling,
-filtering, dithering or colour management is on that path, and the output's CRTC gamma ramp must be the
-identity (checked at open). A frame counts as presented when the X server has executed the last of its
-requests (XSync returned); that moment is recorded and the settle time starts from it.
+(override-redirect: no window manager moves, decorates or scales it) covers exactly that output. Each gray frame
+is written with XPutImage, as 32-bit pixels whose R, G and B bytes are the gray level, into an off-screen pixmap,
+which the X11 Present extension puts on the window at the output's next vertical blank (vsync: no frame is seen
+half written); the X server then reports that vblank's time (`ust`) and frame count (`msc`), and that time is the
+frame's presentation time, from which the settle time counts (benchctl.devices.slm.present). No scaling,
+filtering, dithering or colour management is on this path, and the output's CRTC gamma ramp must be the identity
+(checked at open). A server without Present (rare: X.Org has had it since 1.15, Xvfb included) gets the frame
+straight into the window with no vsync, and the frame counts as presented when XSync returned; `slm info` and the
+run's devices.json say which (`presentation`).
+
+Under a compositing window manager the window is redirected: Present's time is when the frame reached the window,
+and the compositor puts it on the panel at one of its next repaints. The window asks to bypass compositing
+(_NET_WM_BYPASS_COMPOSITOR, honoured by KWin, Mutter and picom); without a compositor on the SLM's output the time
+is the panel's.
 
 Why python-xlib rather than pyglet, SDL2 or GLFW: those draw through OpenGL (a texture sampled onto the window),
 where exact gray levels depend on the driver's filtering and dithering settings, and none of them reports a
 monitor's EDID, so the output would still have to be found through RandR. XPutImage writes the bytes themselves,
-needs no GPU (Xvfb runs it unchanged) and the tests read the same pixels back with XGetImage. The price: core X11
-has no vsync, so a frame may tear while it is written; `settle_ms` must cover one refresh (16.7 ms at 60 Hz) on
-top of the liquid crystal's response. On Wayland, use the framebuffer driver or an X11 session.
+needs no GPU (Xvfb runs it unchanged) and the tests read the same pixels back with XGetImage; Present gives the
+vsync and the timestamp the GL toolkits would (GLX_OML_sync_control), without GL. On Wayland, use the framebuffer
+driver or an X11 session.
 """
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from typing import Any
 
@@ -31,6 +41,7 @@ from benchctl.devices.slm.desktop import DesktopOutput, connect, desktop_outputs
 from benchctl.profiles import SLMConfig
 
 _GAMMA_TOLERANCE = 256  # one 8-bit step in the 16-bit gamma ramp
+PRESENT_TIMEOUT_S = 2.0  # longest wait for a vblank (an output in power saving has none)
 
 
 class DisplaySLM(SLM):
@@ -44,6 +55,7 @@ class DisplaySLM(SLM):
         self._x: Any = None
         self._window: Any = None
         self._gc: Any = None
+        self._presenter: Any = None  # a present.Presenter, None where the X server has no Present extension
         self._rows_per_request = 1
 
     def _wanted(self) -> str:
@@ -103,18 +115,33 @@ class DisplaySLM(SLM):
                                       f"and turn off night-light / colour management for it")
 
     def _create_window(self, output: DesktopOutput) -> None:
-        from Xlib import X
+        from Xlib import X, Xatom
+
+        from benchctl.devices.slm.present import Presenter
 
         screen = self._x.screen(output.screen)
         self._window = screen.root.create_window(
             output.x, output.y, output.width, output.height, 0, screen.root_depth, X.InputOutput,
             X.CopyFromParent, override_redirect=True, background_pixel=screen.black_pixel, event_mask=0)
         self._window.set_wm_name("benchctl SLM")
+        self._window.change_property(self._x.intern_atom("_NET_WM_BYPASS_COMPOSITOR"), Xatom.CARDINAL, 32, [1])
         self._window.map()
         self._gc = self._window.create_gc()
         request_bytes = 4 * self._x.display.info.max_request_length - 64
         self._rows_per_request = max(1, request_bytes // (4 * output.width))
+        self._presenter = Presenter.on(self._x, self._window, output.crtc)
         self._x.sync()
+
+    @property
+    def presentation(self) -> str:
+        """How frames reach the panel and what their presentation time is (for `slm info` and run records)."""
+        if self._presenter is not None:
+            return "X11 Present: vsync'd, presented_at = the vblank's time (ust) the X server reports"
+        return "XPutImage into the window: no Present extension, no vsync; presented_at = when XSync returned"
+
+    def info(self) -> dict[str, Any]:
+        details = {"output": self.output.describe() if self.output else None}
+        return {**super().info(), **details, "presentation": self.presentation if self.is_open else None}
 
     def _close(self) -> None:
         if self._x is not None:
@@ -124,15 +151,42 @@ class DisplaySLM(SLM):
                 self._x.close()
             except Exception:  # noqa: BLE001 - the X server may be gone; nothing left to release on its side
                 pass
-        self._x = self._window = self._gc = None
+        self._x = self._window = self._gc = self._presenter = None
 
-    def _display(self, gray: np.ndarray, channel: str | None) -> None:
+    def _display(self, gray: np.ndarray, channel: str | None) -> float | None:
+        """Write `gray` into a pixmap and present it at the next vblank: the vblank's time (time.monotonic()'s
+        clock), or None without Present (the frame went straight into the window; XSync returned)."""
+        assert self.output is not None
+        if self._presenter is None:
+            self._put(self._window, gray)
+            self._x.sync()
+            return None
+        pixmap = self._window.create_pixmap(self.output.width, self.output.height, self._x.screen(
+            self.output.screen).root_depth)
+        try:
+            self._put(pixmap, gray)
+            requested = time.monotonic()
+            ust_us = self._presenter.present(pixmap, PRESENT_TIMEOUT_S)
+        except DeviceError as exc:
+            raise DeviceError(f"{self.label}: {exc}") from None
+        finally:
+            pixmap.free()
+        return presented_time(ust_us, requested, time.monotonic())
+
+    def _put(self, drawable: Any, gray: np.ndarray) -> None:
+        """`gray` into `drawable` as 32-bit pixels, in requests within the server's size limit."""
         from Xlib import X
 
-        assert self.output is not None
         pixels = np.repeat(gray[:, :, None], 4, axis=2)  # B, G, R, X bytes of 32-bit pixels (24-bit depth)
         pixels[:, :, 3] = 0
         for top in range(0, gray.shape[0], self._rows_per_request):
             rows = pixels[top:top + self._rows_per_request]
-            self._window.put_image(self._gc, 0, top, rows.shape[1], rows.shape[0], X.ZPixmap, 24, 0, rows.tobytes())
-        self._x.sync()
+            drawable.put_image(self._gc, 0, top, rows.shape[1], rows.shape[0], X.ZPixmap, 24, 0, rows.tobytes())
+
+
+def presented_time(ust_us: int, requested: float, received: float) -> float | None:
+    """The presentation time on time.monotonic()'s clock from a Present `ust` (microseconds on the X server's
+    CLOCK_MONOTONIC, which is this machine's when the server is local); None when it does not fall between the
+    request and the notification's arrival (a remote display, another clock): then the arrival counts."""
+    presented = ust_us * 1e-6
+    return presented if requested <= presented <= received else None

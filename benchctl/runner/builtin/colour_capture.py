@@ -14,7 +14,7 @@ above the channel's max_power_mw), so no colour is lost in read noise or clipped
 from __future__ import annotations
 
 import statistics
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from typing import Annotated, Any, Literal
 
 import msgspec
@@ -72,7 +72,9 @@ class ColourCaptureParameters(HologramParameters, kw_only=True):
 
     targets: Annotated[tuple[str, ...], Meta(min_length=1)] = ("chart:bars",)
     # one method, or several: each target is then captured with each, and the report draws their front
-    method: str | Annotated[tuple[str, ...], Meta(min_length=1)] = DEFAULT_METHOD
+    # Wider than HologramParameters.method (str), which a type checker refuses: the plan gives every step a
+    # one-method copy (_options), so no step meets a tuple.
+    method: str | Annotated[tuple[str, ...], Meta(min_length=1)] = DEFAULT_METHOD  # type: ignore[assignment]
     repeats: Annotated[int, Meta(ge=1, le=1000)] = 1
     registration: RegistrationMode = "auto"
     # "auto": measure the SLM's lookup table first for colours that have none; "skip": use what there is
@@ -139,7 +141,7 @@ def _capture_steps(context: Context, spec: str, label: str, lit: list[LaserChann
     """One target with one method (`options.method`): holograms per colour, probes, exposures per repeat,
     processing."""
     steps = [hologram_step(f"hologram/{label}/{c.name}", label, target, c, options) for c in lit]
-    powers = {c.name: power_w(context, c) for c in lit}
+    powers: dict[str, float | Callable[[Context], float]] = {c.name: power_w(context, c) for c in lit}
     if options.exposure == "auto":
         for channel in lit:
             key = f"probe/{label}/{channel.name}"
@@ -323,7 +325,7 @@ def method_front(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
     groups: dict[str, list[dict[str, Any]]] = {}
     for result in results:
         groups.setdefault(result["method"], []).append(result)
-    rows = []
+    rows: list[dict[str, Any]] = []
     for method, group in groups.items():
         rows.append({
             "method": method, "targets": len(group),

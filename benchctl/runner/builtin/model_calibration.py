@@ -11,6 +11,7 @@ model's and below MAX_RESIDUAL, and not above the residual of the stored model o
 from __future__ import annotations
 
 import time
+from functools import partial
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -95,7 +96,7 @@ def plan(context: Context) -> list[Step]:
                           _patterns(channel)))
         for k in range(count):
             steps.append(exposure_step(context, f"model/capture/{channel.name}/{k}", channel, power_w(context, channel),
-                                       lambda ctx, c=channel.name, n=k: _pattern_frame(ctx, c, n),
+                                       partial(_pattern_frame, channel=channel.name, k=k),
                                        f"expose calibration pattern {k + 1}/{count}"
                                        + (" (flat)" if k == params.patterns else "")))
         steps.append(Step(f"model/fit/{channel.name}", f"fit wavefront, beam, crosstalk and zero order "

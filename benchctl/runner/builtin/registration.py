@@ -34,6 +34,7 @@ from benchctl.runner.api import (
     BenchctlError,
     Context,
     HologramParameters,
+    Parameters,
     RegistrationMode,
     Report,
     Step,
@@ -79,7 +80,7 @@ def plan(context: Context) -> list[Step]:
     return steps + [Step("report", "registration report", _reporter(used))]
 
 
-def registration_first(context: Context, used: list[LaserChannel], params: HologramParameters,
+def registration_first(context: Context, used: list[LaserChannel], params: Parameters,
                        when: RegistrationMode) -> list[Step]:
     """The registration steps a procedure runs first for its colours without a stored registration, with the
     parameters it shares with registration (`when` is its own `registration` choice: "stored" refuses instead)."""

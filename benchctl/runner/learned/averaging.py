@@ -27,7 +27,7 @@ class WeightAverage:
             raise ValueError(f"the average's decay must lie in (0, 1), got {decay}")
         self.decay = decay
 
-        def average(averaged: torch.Tensor, current: torch.Tensor, count: torch.Tensor) -> torch.Tensor:
+        def average(averaged: torch.Tensor, current: torch.Tensor, count: torch.Tensor | int) -> torch.Tensor:
             if not averaged.is_floating_point():  # a counter (BatchNorm's batches seen): the model's own
                 return current
             kept = decay * (1 - decay ** count)

@@ -275,8 +275,8 @@ def load_targets(sources: Sequence[ImageSource], grid: tuple[int, int], roi: tup
 
 def epoch_flips(seed: int, epoch: int, positions: Sequence[int]) -> list[tuple[bool, bool]]:
     """Random (horizontal, vertical) flips, fixed by (seed, epoch, position in the epoch)."""
-    return [tuple(bool(v) for v in np.random.default_rng([seed, epoch, p]).random(2) < 0.5)  # type: ignore[misc]
-            for p in positions]
+    flips = (np.random.default_rng([seed, epoch, p]).random(2) < 0.5 for p in positions)
+    return [(bool(horizontal), bool(vertical)) for horizontal, vertical in flips]
 
 
 def epoch_order(n: int, seed: int, epoch: int, length: int) -> np.ndarray:
@@ -599,26 +599,28 @@ def with_model_calibration(profile: Profile, settings: TrainSettings) -> Profile
         return profile
     flag = f"--model-calibration {how}"
     if settings.size is not None:
-        raise BadValueError(f"{flag}: the model was fitted on the profile's {profile.slm.height}x{profile.slm.width} "
+        slm = profile.section("slm")
+        raise BadValueError(f"{flag}: the model was fitted on the profile's {slm.height}x{slm.width} "
                             "grid; train on that grid (leave out --size)")
+    optics = profile.section("optics")
     if how == "stored":
-        calibrated = Calibration.store(profile).with_model(replace(profile, optics=replace(profile.optics,
-                                                                                              model=None)))
-        if calibrated.optics.model is None:
+        calibrated = Calibration.store(profile).with_model(replace(profile, optics=replace(optics, model=None)))
+        if calibrated.section("optics").model is None:
             raise BenchctlError(f"{flag}: no fitted optical model is stored for profile {profile.name!r}; run "
                                 "procedures/model_calibration.toml first, or name an optical-model.json")
     else:
         path = Path(how).expanduser()
         if not path.is_file():
             raise BadValueError(f"{flag}: no such file")
-        calibrated = replace(profile, optics=replace(profile.optics, model=path.resolve()))
+        calibrated = replace(profile, optics=replace(optics, model=path.resolve()))
+    model = calibrated.section("optics").model
     for name in settings.colours or [channel.name for channel in profile.channels]:
         entry = calibrated.fitted_model(profile.channel(name).name)  # a bad file: one line naming key and value
         if entry is None:
-            raise BadValueError(f"{flag}: {calibrated.optics.model} has no fitted model for {name!r}")
+            raise BadValueError(f"{flag}: {model} has no fitted model for {name!r}")
         fitted_for, here = entry.get("geometry"), validity(profile, name)
         if fitted_for is not None and fitted_for != here:
-            raise BadValueError(f"{flag}: {calibrated.optics.model} was fitted for another geometry than profile "
+            raise BadValueError(f"{flag}: {model} was fitted for another geometry than profile "
                                 f"{profile.name!r} ({_geometry_change(fitted_for, here)})")
     return calibrated
 

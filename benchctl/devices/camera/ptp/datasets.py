@@ -66,6 +66,7 @@ def _pack_string(text: str) -> bytes:
 _D = TypeVar("_D", bound="_Dataset")
 
 
+@dataclass(frozen=True)
 class _Dataset:
     """A dataclass packed field by field in declaration order; KINDS gives each field's PTP kind
     (u8, u16, u32, str, or u16[] for an array)."""
@@ -74,7 +75,7 @@ class _Dataset:
 
     @classmethod
     def _layout(cls) -> list[tuple[str, str]]:
-        names, kinds = [f.name for f in fields(cls)], cls.KINDS.split()  # type: ignore[arg-type]
+        names, kinds = [f.name for f in fields(cls)], cls.KINDS.split()
         assert len(names) == len(kinds), f"{cls.__name__}: KINDS does not match the fields"
         return list(zip(names, kinds))
 
