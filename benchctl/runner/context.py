@@ -140,7 +140,7 @@ class Context:
         for calibration in (self.calibration, Calibration.store(self.calibration.profile)):
             save(calibration)
         if self.record is not None:
-            self.record.calibration_written(self.calibration.checksums())
+            self.record.calibration_written(self.calibration.checksums(), self.step.key if self.step else None)
         self.recalibrated()
 
     def store_calibration(self, verdict: Verdict, save: Callable[[Calibration], object],

@@ -128,17 +128,17 @@ class RunRecord:
                 return key, digest
         return None
 
-    def calibration_written(self, checksums: dict[str, str]) -> None:
+    def calibration_written(self, checksums: dict[str, str], step: str | None = None) -> None:
         """Record the SHA-256 of each file of the run's calibration copy as the run wrote it (in the start record when
-        no step has run yet, else in the step log): a resume refuses a copy that changed since
-        (`changed_calibration`)."""
+        no step has run yet, else in the step log, under `step`: the step that wrote it): a resume refuses a copy that
+        changed since (`changed_calibration`)."""
         self.calibration.update(checksums)
         if not self.attempts:
             info = self.info()
             info["calibration_sha256"] = dict(self.calibration)
             write_json(self.folder / RUN_FILE, info)
         else:
-            self._log({"event": "calibration", "checksums": checksums})
+            self._log({"event": "calibration", "step": step, "checksums": checksums})
 
     def changed_calibration(self, folder: Path) -> str | None:
         """Why the first file of the calibration copy in `folder` differs from what the run wrote (None: none)."""
@@ -291,7 +291,10 @@ def open_run(folder: Path) -> RunRecord:
     repair_log(folder / STEP_LOG)
     record.calibration.update(record.info().get("calibration_sha256", {}))
     for event in record.events():
-        key = event["step"]  # every event of the step log names its step
+        if event.get("event") == "calibration":  # written by a step, or (step None) between steps
+            record.calibration.update(event.get("checksums", {}))
+            continue
+        key = event["step"]  # every other event of the step log names its step
         if event.get("event") == "start":
             record.attempts[key] = max(record.attempts.get(key, 0), int(event.get("attempt", 1)))
         elif event.get("event") == "done":
@@ -299,8 +302,6 @@ def open_run(folder: Path) -> RunRecord:
             record.done[key] = event.get("result", {})
         elif event.get("event") == "invalid":
             record.done.pop(key, None)
-        elif event.get("event") == "calibration":
-            record.calibration.update(event.get("checksums", {}))
         if event.get("diverged") and event.get("redo"):
             record.divergences[event["redo"]] = record.divergences.get(event["redo"], 0) + 1
     record.invalidated = record.recheck_files()
