@@ -176,6 +176,16 @@ def make_bench_profile(tmp_path: Path) -> Callable[..., Profile]:
     return make
 
 
+def truly_registered(profile: Profile, *colours: str) -> Profile:
+    """`profile` with the simulated bench's true camera registration stored for `colours` (default: green)."""
+    from benchctl.runner.calibration import Calibration
+
+    store = Calibration.store(profile)
+    for colour in colours or ("green",):
+        store.save_registration(colour, {"homography": bench.camera_homography(profile).tolist(), "rms_px": 0.0})
+    return profile
+
+
 def one_error_line(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:
     """Run benchctl; it must exit 2 with exactly one error line (no traceback). Returns that line."""
     assert main(argv) == 2

@@ -203,6 +203,15 @@ def test_a_resumed_run_with_a_damaged_calibration_copy_says_how_to_repair_it(
     assert outcome.folder is not None and outcome.ran == ["nothing"]
     copied = outcome.folder / "calibration" / "optical-model.json"
     edit(copied, green("crosstalk_px", -1))
+    with pytest.raises(BenchctlError) as error:
+        run_procedure(None, resume=outcome.folder, say=lambda _: None)
+    assert str(error.value).startswith(f"{copied} changed since the run wrote it (SHA-256 ")
+    assert str(error.value).endswith("put that file back, or start a new run")
+    # A run folder written before its calibration copy had checksums: the copy is still validated on resume.
+    info_file = outcome.folder / "run.json"
+    info = json.loads(info_file.read_text())
+    del info["calibration_sha256"]
+    info_file.write_text(json.dumps(info))
     store = Calibration.store(load_profile(small_profile_path)).folder
     with pytest.raises(BenchctlError) as error:
         run_procedure(None, resume=outcome.folder, say=lambda _: None)

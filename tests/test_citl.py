@@ -12,13 +12,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import SMALL_BENCH
+from conftest import SMALL_BENCH, truly_registered
 
 from benchctl.cgh.citl import straight_through_loss
 from benchctl.cgh.sgd import roi_loss
 from benchctl.cli import main
 from benchctl.devices.errors import DeviceError
-from benchctl.devices.sim import bench
 from benchctl.devices.sim.state import load_state
 from benchctl.errors import BenchctlError
 from benchctl.optics import lsq_scale
@@ -55,10 +54,7 @@ registration = "stored"
 @pytest.fixture
 def profile(make_bench_profile: Callable[..., Profile]) -> Profile:
     """The aberrated small bench with its true camera registration stored."""
-    profile = make_bench_profile(SMALL_BENCH, ABERRATED)
-    Calibration.store(profile).save_registration("green", {"homography": bench.camera_homography(profile).tolist(),
-                                                           "rms_px": 0.0})
-    return profile
+    return truly_registered(make_bench_profile(SMALL_BENCH, ABERRATED))
 
 
 def run(tmp_path: Path, profile: Profile, out: str, iterations: int = 12, every: int = 10,
@@ -197,7 +193,7 @@ def test_a_damaged_kept_raw_is_reported_on_resume_and_its_iteration_stands(tmp_p
     assert outcome.ran == []
     notes = [line for line in said if "only a record, read by no later step: the step stands" in line]
     assert [note.split(":")[0] for note in notes] == ["step 'citl/green/probe'", "step 'citl/green/0002'"]
-    assert "raw/citl/green/0002/frame-000.dng changed since it was captured" in notes[1]
+    assert "raw/citl/green/0002/frame-000.dng changed since it was written" in notes[1]
     events = [json.loads(line) for line in (folder / "steps.jsonl").read_text().splitlines()]
     assert [(e["event"], e["step"]) for e in events if e["event"] in ("damaged", "invalid")] == [
         ("damaged", "citl/green/probe"), ("damaged", "citl/green/0002")]
@@ -251,7 +247,7 @@ def test_saved_optimiser_state_continues_exactly_as_an_uninterrupted_adam(tmp_pa
     path = tmp_path / "state.npz"
     _save_state(path, start, None)
     for _ in range(5):
-        resumed, adam = _load_state(path, 0.05)
+        resumed, adam, _ = _load_state(path, 0.05)
         loss(resumed).backward()
         adam.step()
         _save_state(path, resumed, adam)

@@ -169,7 +169,7 @@ def test_a_procedure_from_the_page(served: tuple[Console, str], browser: webdriv
     until(start.is_enabled)
     start.click()
     until(lambda: "run folder: " in lines.text)  # the run's own output, as it goes
-    until(lambda: "[4/4]" in lines.text, timeout_s=180)  # its steps, one after the other
+    until(lambda: "[4/4, about " in lines.text, timeout_s=180)  # its steps, one after the other
     until(lambda: "ended with exit code" in browser.find_element(By.ID, "events").text, timeout_s=180)
     assert console.procedures.returncode == 0, console.procedures.lines
     assert not browser.find_element(By.ID, "stop").is_enabled()  # nothing left to stop

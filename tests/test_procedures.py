@@ -201,9 +201,12 @@ def test_colour_capture_from_a_fresh_profile(tmp_path: Path, bench_profile_path:
     csv_lines = (folder / "metrics.csv").read_text().splitlines()
     assert csv_lines[0].startswith("target,label,colour,generation_s") and len(csv_lines) == 1 + 3 + 1
     report = (folder / "report.html").read_text()
-    for text in ("Colour capture", "merged capture", "data:image/png;base64,", "Generation time against error",
-                 "Calibration used", "measured 20"):
+    for text in ("Colour capture", "merged capture", "data:image/png;base64,", "Generation time: the time it took",
+                 "Calibration used", "measured 20", "capture: error against the target", "red captured (registered",
+                 "SLM lookup tables", "the dots seen through the fit", "stored only if it passes its acceptance test"):
         assert text in report
+    assert report.count("<svg") == 2  # the run's own tables: measured phase and zero-order signal
+    assert "Generation time against error" not in report  # its numbers are in the per-colour table
     assert "not calibrated" not in report
     assert all(not state.get("emission") for state in laser_channels().values())
 

@@ -136,7 +136,7 @@ def test_a_corrupt_captured_frame_is_captured_again_on_resume_once(tmp_path: Pat
     said: list[str] = []
     outcome = run_procedure(None, resume=folder, say=said.append)
     assert outcome.ran == ["expose"]
-    assert any("step 'expose': raw/expose/frame-001.dng changed since it was captured" in line for line in said)
+    assert any("step 'expose': raw/expose/frame-001.dng changed since it was written" in line for line in said)
     assert (folder / "raw" / "expose.attempt-1" / "frame-001.dng").read_bytes() == bytes(damaged)  # kept aside
     assert run_procedure(None, resume=folder, say=said.append).ran == []  # verified now: nothing to re-do
 

@@ -81,6 +81,15 @@ class FittedOptics:
                    float(data.get("crosstalk_px", 0.0)), float(data.get("zero_order", 0.0)))
 
 
+class FitDiverged(ValueError):
+    """The fit's loss or its model's field became non-finite (NaN or infinite): its learning rate is too large for these
+    captures. Says at which step; `losses` holds the (finite) curve before it."""
+
+    def __init__(self, step: int, total: int, losses: list[float], what: str) -> None:
+        super().__init__(f"the fit diverged at step {step}/{total} ({what})")
+        self.step, self.total, self.losses = step, total, losses
+
+
 @dataclass
 class FitResult:
     """A fit's outcome: the model, the relative RMS residual of the captures before and after, the loss curve, and
@@ -193,12 +202,10 @@ def fit_optics(propagator: Propagator, roi: tuple[int, int], phases: torch.Tenso
     blur the capture (left out, the crosstalk, which also softens the finest speckle, grows to imitate it). Adam on
     the mean relative residual; coarse to fine: the first stage compares the images blurred by `smoothing_px[0]`
     pixels (a smoother landscape for large aberrations), the last unblurred, its learning rate falling to zero
-    (cosine). `progress(done, total)` is called after every step.
+    (cosine). `progress(done, total)` is called after every step. A loss or a model field that becomes non-finite
+    stops the fit (FitDiverged), which the propagation would otherwise meet as a NaN field.
     """
-    if dark_background is not None and len(dark_background) != len(phases):
-        raise ValueError(f"dark_background has {len(dark_background)} entries for {len(phases)} patterns")
-    offset = torch.tensor([not dark for dark in dark_background] if dark_background is not None
-                          else [True] * len(phases))
+    offset = _offsets(dark_background, len(phases))
     shape = propagator.plan.shape
     rows, cols = centred_slices(shape, roi)
     model = _Model(shape, propagator.plan.pitch_m, terms, beam, crosstalk, zero_order, camera_blur)
@@ -214,7 +221,10 @@ def fit_optics(propagator: Propagator, roi: tuple[int, int], phases: torch.Tenso
             if stage == len(stages) - 1:  # the last stage settles: cosine to zero (constant Adam steps jitter)
                 optimiser.param_groups[0]["lr"] = learning_rate * 0.5 * (1 + math.cos(math.pi * step / steps))
             optimiser.zero_grad()
-            intensity = propagator(model.fields(phases)).abs().square()[..., rows, cols]
+            fields = model.fields(phases)
+            if not bool(fields.isfinite().all()):
+                raise FitDiverged(len(losses) + 1, total, losses, "its model's field became non-finite")
+            intensity = propagator(fields).abs().square()[..., rows, cols]
             loss = _residual(model.seen(intensity, sigma**2), target, offset).mean()
             if initial is None:
                 with torch.no_grad():
@@ -222,6 +232,8 @@ def fit_optics(propagator: Propagator, roi: tuple[int, int], phases: torch.Tenso
             loss.backward()
             optimiser.step()
             losses.append(float(loss.detach()))
+            if not math.isfinite(losses[-1]):
+                raise FitDiverged(len(losses), total, losses[:-1], f"its loss became {losses[-1]}")
             if progress is not None:
                 progress(len(losses), total)
     with torch.no_grad():
@@ -229,6 +241,28 @@ def fit_optics(propagator: Propagator, roi: tuple[int, int], phases: torch.Tenso
         residual = float(_residual(model.seen(intensity), captured, offset).mean())
     return FitResult(model.result(), residual, initial if initial is not None else residual, losses,
                      model.camera_blur_px())
+
+
+def model_residual(propagator: Propagator, roi: tuple[int, int], phases: torch.Tensor, captured: torch.Tensor,
+                   model: FittedOptics, *, camera_blur_px: float = 0.0,
+                   dark_background: Sequence[bool] | None = None) -> float:
+    """The relative RMS residual of `captured` under a given `model` (seen through the camera's blur), as
+    `fit_optics` reports its own fit's: how well a stored model explains new captures, so that a new fit is
+    compared with the model it would replace on the same images."""
+    offset = _offsets(dark_background, len(phases))
+    shape, pitch = propagator.plan.shape, propagator.plan.pitch_m
+    rows, cols = centred_slices(shape, roi)
+    with torch.no_grad():
+        intensity = propagator(model.modulated(phases) * model.slm_factor(shape, pitch)).abs().square()[..., rows, cols]
+        seen = gaussian_blur(intensity.double(), camera_blur_px**2)
+        return float(_residual(seen, captured.double(), offset).mean())
+
+
+def _offsets(dark_background: Sequence[bool] | None, count: int) -> torch.Tensor:
+    """Per pattern, whether its comparison takes a free offset (all but those marked dark_background)."""
+    if dark_background is not None and len(dark_background) != count:
+        raise ValueError(f"dark_background has {len(dark_background)} entries for {count} patterns")
+    return torch.tensor([not dark for dark in dark_background] if dark_background is not None else [True] * count)
 
 
 def calibration_patterns(propagator_to_slm: Propagator, roi: tuple[int, int], count: int, seed: int,

@@ -12,7 +12,8 @@ with every exposure the steps declare checked against the profile's limits). Eac
 of work and returns a JSON-ready result that later steps read with `context.result(key)`. The step builders
 and savers place every file in the run folder; a procedure names its files, never the folders they go in.
 
-- context: `Context` (profile, parameters, `Calibration`, optical setups, instruments), `Step`, `Expose`.
+- context: `Context` (profile, parameters, `Calibration`, optical setups, instruments), `Step`, `Expose`, and
+  `StepRedo` (a step sends the run back to an earlier step whose work is damaged or diverged).
 - parameters: `Parameters`, the shared groups `ExposureParameters` and `HologramParameters`, and the types
   `Frames`, `DarkFrames`, `RegistrationMode`, `ExposureMode`, `PeakGoal`.
 - planning: `channels`, `power_w`, `unknown_setpoints`, `unregistered`, `check_method`, `carried`,
@@ -21,16 +22,20 @@ and savers place every file in the run folder; a procedure names its files, neve
   `measure` (an exposure inside a step of one's own, decoded), `shown` and `displayed_frame` (what a hologram
   step kept).
 - captures: `load_exposure`, `registered`, `registered_saturation`, `signal_stats`.
-- files: `save_hologram`, `save_image`, `save_array`, `state_path`.
-- reports: `Report` with the HTML helpers `table`, `figure`, `line_plot`, `front_plot`.
+- files: `save_hologram`, `save_image`, `save_array` (each file's checksum joins the step's result), `load_image`,
+  `load_array` (checked against it before use), `state_path`.
+- calibration: `Verdict` (a new calibration's acceptance test), stored or kept by `Context.store_calibration`.
+- reports: `Report` with the HTML helpers `table`, `figure`, `row` (figures side by side), `line_plot`,
+  `front_plot`, and the pictures `error_map` and `dots_over`.
 """
 
 from benchctl.errors import BenchctlError
+from benchctl.runner.acceptance import AcceptMode, Verdict
 from benchctl.runner.auto_exposure import ExposureMode, PeakGoal, probe_step, probed_power, signal_stats
 from benchctl.runner.calibration import Calibration
-from benchctl.runner.context import Context, Expose, Parameters, Step
-from benchctl.runner.plots import front_plot, line_plot
-from benchctl.runner.report import Report, figure, table
+from benchctl.runner.context import Context, Expose, Parameters, Step, StepRedo
+from benchctl.runner.plots import ERROR_FULL_SCALE, dots_over, error_map, front_plot, line_plot
+from benchctl.runner.report import Report, figure, row, table
 from benchctl.runner.steps import (
     DarkFrames,
     ExposureParameters,
@@ -45,7 +50,9 @@ from benchctl.runner.steps import (
     displayed_frame,
     exposure_step,
     hologram_step,
+    load_array,
     load_exposure,
+    load_image,
     measure,
     power_w,
     prepared_target,
@@ -63,6 +70,8 @@ from benchctl.runner.steps import (
 from benchctl.targets import target_plane
 
 __all__ = [
+    "ERROR_FULL_SCALE",
+    "AcceptMode",
     "BenchctlError",
     "Calibration",
     "Context",
@@ -78,17 +87,22 @@ __all__ = [
     "RegistrationMode",
     "Report",
     "Step",
+    "StepRedo",
     "carried",
     "channels",
     "check_method",
     "compute_hologram",
     "displayed_frame",
+    "dots_over",
+    "error_map",
     "exposure_step",
     "figure",
     "front_plot",
     "hologram_step",
     "line_plot",
+    "load_array",
     "load_exposure",
+    "load_image",
     "measure",
     "power_w",
     "prepared_target",
@@ -96,6 +110,7 @@ __all__ = [
     "probed_power",
     "registered",
     "registered_saturation",
+    "row",
     "save_array",
     "save_hologram",
     "save_image",
@@ -107,4 +122,5 @@ __all__ = [
     "target_plane",
     "unknown_setpoints",
     "unregistered",
+    "Verdict",
 ]

@@ -6,6 +6,8 @@
     calibration/<profile name>/lut.json            when and for which geometry each table was measured
     calibration/<profile name>/optical-model.json  per colour: fitted wavefront error (Zernike waves) and beam,
                                                     residual, when, for which geometry (model calibration)
+    calibration/<profile name>/rejected/           calibrations that failed their acceptance test
+                                                    (runner.acceptance), `<run>-<file>`, kept for inspection only
 
 The root is $BENCHCTL_CALIBRATION_DIR, else ./calibration. A colour's stored calibration is used only while what
 `validity` records for it is unchanged (its optical geometry, the SLM's bit depth and flips, the camera); one older
@@ -25,13 +27,14 @@ import msgspec
 
 from benchctl.calibration_files import LutIndex, OpticalModelFile, RegistrationFile, checked_json
 from benchctl.errors import BenchctlError
-from benchctl.files import ensure_dir, write_json
+from benchctl.files import ensure_dir, file_sha256, write_json
 from benchctl.profiles import Profile
 
 CALIBRATION_ENV = "BENCHCTL_CALIBRATION_DIR"
 REGISTRATION_FILE = "registration.json"
 LUT_INDEX = "lut.json"
 MODEL_FILE = "optical-model.json"
+REJECTED = "rejected"
 STALE_DAYS = 30
 
 
@@ -128,7 +131,18 @@ class Calibration:
         data["colours"][colour] = {**entry, "geometry": self._for(colour), "created": _now()}
         return write_json(path, data)
 
+    def rejected_path(self, run: str, name: str) -> Path:
+        """Where a calibration run `run` measured but did not store (it failed its acceptance test) is kept for
+        inspection: rejected/<run>-<name>, which nothing reads and runs do not copy."""
+        return ensure_dir(self.folder / REJECTED) / f"{run}-{name}"
+
     # -- use ----------------------------------------------------------------------------------------------------------
+
+    def checksums(self) -> dict[str, str]:
+        """File name -> SHA-256 of every calibration file here (what a run's copy is checked against on resume)."""
+        if not self.folder.is_dir():
+            return {}
+        return {item.name: file_sha256(item) for item in sorted(self.folder.iterdir()) if item.is_file()}
 
     def copy_to(self, folder: Path) -> Calibration:
         """Copy every calibration file into `folder` (a run's own copy) and return the copy."""
@@ -181,8 +195,8 @@ class Calibration:
                           + f" waves; beam waist {model['waist_mm']:.2f} mm"
                           + f"; crosstalk {model.get('crosstalk_px', 0.0):.3f} px"
                           + f"; zero order {model.get('zero_order', 0.0):.3f}" if model else "none: ideal model")
-            rows.append({"colour": colour, "registration": reg_text, "lookup_table": lut_text,
-                         "optical_model": model_text})
+            rows.append({"colour": colour, "registration": reg_text, "lookup table": lut_text,
+                         "optical model": model_text})
         return rows, warnings
 
 

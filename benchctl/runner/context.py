@@ -23,9 +23,11 @@ from benchctl.errors import BenchctlError
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import Profile
 from benchctl.runner import layout
+from benchctl.runner.acceptance import Verdict, rejection_line
 from benchctl.runner.calibration import Calibration
 from benchctl.runner.instruments import Exposure, Instruments
-from benchctl.runner.record import RunRecord, set_aside
+from benchctl.files import file_sha256
+from benchctl.runner.record import RunRecord, file_problem, set_aside
 from benchctl.runner.setups import optical_setups, optimised_setup
 from benchctl.schema import Model
 from benchctl.terminal import ProgressLine
@@ -49,16 +51,19 @@ P = TypeVar("P", bound=Parameters)
 class Expose:
     """An exposure a step declares: show a frame, light `channel` alone at `power_w` (None: a power the step
     decides when it runs, never above the channel's max_power_mw), capture `frames` RAW frames and then
-    `dark_frames` with emission off."""
+    `dark_frames` with emission off; `keep`: the RAW files are kept in the run folder (its disk estimate counts
+    them)."""
 
     channel: str
     power_w: float | None
     frames: int
     dark_frames: int
+    keep: bool = True
 
     def describe(self) -> str:
         power = "a power chosen when the step runs" if self.power_w is None else format_power(self.power_w)
-        return f"{self.channel} alone at {power}, {self.frames} frame(s) + {self.dark_frames} dark"
+        return (f"{self.channel} alone at {power}, {self.frames} frame(s) + {self.dark_frames} dark"
+                + ("" if self.keep else ", RAW not kept"))
 
 
 @dataclass(frozen=True)
@@ -75,6 +80,17 @@ class Step:
     def devices(self) -> tuple[str, ...]:
         """The devices the step uses: all three when it exposes, none otherwise."""
         return ("laser", "slm", "camera") if self.exposes else ()
+
+
+class StepRedo(BenchctlError):
+    """A step found that an earlier step's work must be done again: a file it reads is damaged or missing, or the
+    state it continues from diverged. `redo` names that step (done again with every step that finished after it);
+    the run does it now, or with `stop` the run stops and a resume does it. `diverged`: the redone step may lower its
+    learning rate (`Context.divergences` counts how often this happened to it)."""
+
+    def __init__(self, message: str, redo: str, *, stop: bool = False, diverged: bool = False) -> None:
+        super().__init__(message)
+        self.redo, self.stop, self.diverged = redo, stop, diverged
 
 
 def check_exposures(steps: list[Step], profile: Profile) -> None:
@@ -108,6 +124,8 @@ class Context:
     say: Callable[[str], None] = print
     step: Step | None = None  # set by the engine while a step runs
     _setups: dict[str, OpticalSetup] = field(default_factory=dict, repr=False)
+    # files the running step wrote: run-relative path -> SHA-256, for later steps to read / as a record only
+    written: dict[str, dict[str, str]] = field(default_factory=lambda: {"checksums": {}, "archived": {}}, repr=False)
 
     def recalibrated(self) -> None:
         """Apply what a step of this run measured (lookup tables, optical model) to the profile and the optical
@@ -121,7 +139,37 @@ class Context:
         runs find it), and use it from now on."""
         for calibration in (self.calibration, Calibration.store(self.calibration.profile)):
             save(calibration)
+        if self.record is not None:
+            self.record.calibration_written(self.calibration.checksums(), self.step.key if self.step else None)
         self.recalibrated()
+
+    def store_calibration(self, verdict: Verdict, save: Callable[[Calibration], object],
+                          candidate: dict[str, Callable[[Path], object]]) -> dict[str, Any]:
+        """Store a new calibration with `save` (`save_calibration`) if `verdict` passed its acceptance test, or if the
+        procedure's `accept` is "always" and there is something to store; else keep it for inspection, each file of
+        `candidate` (name -> writer of that file) written beside the store and into this run's calibration copy
+        (`Calibration.rejected_path`), and the old one stays. Says which, in one line; returns the record a step keeps
+        (`Verdict.record`), which ends the run with an error once its steps are done when not stored."""
+        forced = getattr(self.params, "accept", "tested") == "always" and bool(candidate)
+        what = f"      {verdict.colour}: {verdict.kind}"
+        if verdict.passed or forced:
+            self.save_calibration(save)
+            if verdict.passed:
+                self.say(f"{what} stored: {verdict.residuals()}")
+            else:
+                self.say(f"{what} stored although it failed its acceptance test (accept = \"always\"): "
+                         f"{'; '.join(verdict.failures)}; {verdict.residuals()}")
+            return verdict.record(True, [])
+        run = self.record.name if self.record is not None else "dry-run"
+        kept = []
+        for calibration in (Calibration.store(self.calibration.profile), self.calibration):
+            for name, write in candidate.items():
+                path = calibration.rejected_path(run, name)
+                write(path)
+                kept.append(str(path))
+        record = verdict.record(False, kept)
+        self.say(f"      {rejection_line(record)}; {verdict.residuals()}")
+        return record
 
     def parameters(self, kind: type[P]) -> P:
         """The procedure's parameters as `kind`: its PARAMETERS or a group they derive from, which the shared
@@ -152,6 +200,11 @@ class Context:
         """The phase an SLM frame shows for `channel` (the inverse of `encode`, to its gray-level step)."""
         return self.slm.decode(gray, channel)
 
+    def divergences(self, key: str) -> int:
+        """How often a later step found that step `key`'s work diverged and sent the run back to it (StepRedo with
+        `diverged`): the step halves its learning rate that many times."""
+        return self.record.divergences.get(key, 0) if self.record is not None else 0
+
     def result(self, key: str) -> dict[str, Any]:
         """The result a finished step recorded (this run, or the run being resumed)."""
         if self.record is None:
@@ -164,6 +217,25 @@ class Context:
         if self.record is None:
             raise BenchctlError("no run folder during a dry run")
         return self.record.path(*Path(relative).parts)
+
+    def wrote(self, relative: str, *, read_later: bool = True) -> str:
+        """Note that the running step wrote the run folder's file `relative`: its SHA-256 joins the step's result
+        ("checksums" for a file later steps read, verified before they use it and when the run is resumed; "archived"
+        for a record no step reads). Returns `relative`."""
+        if self.step is not None:
+            self.written["checksums" if read_later else "archived"][relative] = file_sha256(self.path(relative))
+        return relative
+
+    def verified(self, relative: str) -> Path:
+        """The run folder's file `relative`, checked against the SHA-256 the step that wrote it recorded: a missing
+        or changed one sends the run back to that step (StepRedo), which writes it again."""
+        path = self.path(relative)
+        writer = self.record.writer_of(relative) if self.record is not None else None
+        if writer is not None:
+            problem = file_problem(path, writer[1])
+            if problem:
+                raise StepRedo(f"{relative}{problem}", writer[0])
+        return path
 
     def progress(self, label: str) -> ProgressLine:
         return ProgressLine(label)

@@ -14,7 +14,9 @@ import functools
 import hashlib
 import json
 import time
+from collections import Counter
 from collections.abc import Callable
+from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -27,12 +29,14 @@ from benchctl.files import file_sha256, write_json
 from benchctl.memory import check_memory
 from benchctl.profiles import Profile, load_profile, resolve_profile_path
 from benchctl.devices.power import format_power
+from benchctl.runner.acceptance import rejection_line
 from benchctl.runner.calibration import REGISTRATION_FILE, Calibration
-from benchctl.runner.context import Context, Step
+from benchctl.runner.context import Context, Step, StepRedo
+from benchctl.runner.estimates import RunEstimate, duration_text
 from benchctl.runner.instruments import Instruments
-from benchctl.runner.layout import CALIBRATION_COPY, DEVICES, PROFILE_COPY, REPORT
+from benchctl.runner.layout import CALIBRATION_COPY, DEVICES, PROFILE_COPY, REPORT, RUN_FILE
 from benchctl.runner.procedure import Procedure, load_procedure
-from benchctl.runner.record import RunRecord, create_run, open_run
+from benchctl.runner.record import RunRecord, create_run, open_run, run_folder_lock
 
 
 @dataclass
@@ -96,10 +100,24 @@ def _resumed(folder: Path, profile_arg: str | None) -> tuple[RunRecord, Procedur
 def run_procedure(path: Path | None, *, profile: str | None = None, out: Path = Path("runs"),
                   dry_run: bool = False, resume: Path | None = None,
                   say: Callable[[str], None] = print) -> RunOutcome:
-    """Run (or with `dry_run` only plan and print) a procedure file; `resume` finishes an earlier run instead."""
+    """Run (or with `dry_run` only plan and print) a procedure file; `resume` finishes an earlier run instead. The run
+    folder is locked (`run_folder_lock`) for as long as this writes it."""
+    with ExitStack() as held:
+        return _run(path, profile, out, dry_run, resume, say, held)
+
+
+def _run(path: Path | None, profile: str | None, out: Path, dry_run: bool, resume: Path | None,
+         say: Callable[[str], None], held: ExitStack) -> RunOutcome:
     if resume is not None:
+        if not (Path(resume) / RUN_FILE).is_file():
+            raise BenchctlError(f"{resume}: not a benchctl run folder (no {RUN_FILE})")
+        held.enter_context(run_folder_lock(Path(resume)))
         record, procedure, bench_profile = _resumed(Path(resume), profile)
         calibration = Calibration(record.folder / CALIBRATION_COPY, bench_profile)
+        changed = record.changed_calibration(calibration.folder)
+        if changed:
+            raise BenchctlError(f"{calibration.folder}/{changed}: a resumed run uses the calibration its finished "
+                                "steps were computed with; put that file back, or start a new run")
     else:
         if path is None:
             raise BenchctlError("give a procedure file (or --resume RUN_DIR)")
@@ -118,15 +136,25 @@ def run_procedure(path: Path | None, *, profile: str | None = None, out: Path = 
     checked += check_memory(effective, procedure.params, str(path or procedure.name))  # counts that scale memory
     with Instruments(effective, say) as instruments:
         context = Context(effective, procedure.params, calibration, instruments, record, say)
-        steps = procedure.plan(context)
+        try:
+            steps = procedure.plan(context)
+        except BenchctlError as exc:  # a value of the procedure's: name its file too
+            if not str(exc).startswith("parameters."):
+                raise
+            where = path if record is None else record.folder / record.info()["procedure_file"]
+            raise BenchctlError(f"{where}: {exc}") from None
+        estimate = RunEstimate(steps, effective)
+        todo = [step for step in steps if record is None or not record.is_done(step.key)]
         if dry_run:
-            for line in [*_describe(steps, procedure, bench_profile), *checked]:
+            for line in [*_describe(steps, procedure, bench_profile), *checked,
+                         *estimate.describe(steps, Path(out))]:
                 say(line)
             code = [name for name in procedure.files if name.endswith(".py")]
             say("dry run: nothing was touched" if not code else
                 f"dry run: benchctl opened no device and wrote nothing; the procedure's own code ({', '.join(code)}) "
                 "ran to plan these steps, with your rights")
             return RunOutcome(None, [], [step.key for step in steps], [])
+        estimate.check_disk(todo, record.folder if record is not None else Path(out))
         if record is None:
             record = create_run(Path(out), procedure.name, {
                 "procedure": procedure.kind, "procedure_file": next(iter(procedure.files)),
@@ -134,38 +162,42 @@ def run_procedure(path: Path | None, *, profile: str | None = None, out: Path = 
                 "parameters": msgspec.to_builtins(procedure.params), "plan": [step.key for step in steps],
                 "procedure_sha256": {name: hashlib.sha256(data).hexdigest() for name, data in procedure.files.items()},
             }, {**procedure.files, PROFILE_COPY: bench_profile.path.read_bytes()})
+            held.enter_context(run_folder_lock(record.folder))
             calibration = Calibration.store(bench_profile).copy_to(record.folder / CALIBRATION_COPY)
+            record.calibration_written(calibration.checksums())
             context.calibration, context.record = calibration, record
         say(f"run folder: {record.folder}")
         for reason in [*record.invalidated, *record.damaged]:
             say(reason)
-        return _execute(steps, context, record)
+        return _execute(steps, context, record, estimate)
 
 
-def _execute(steps: list[Step], context: Context, record: RunRecord) -> RunOutcome:
-    """Run the unfinished steps in order; log each; write the stop record however it ends."""
-    ran, skipped = [], []
+MAX_REDOS = 2  # times one run invocation goes back to the same step (StepRedo) before it stops
+
+
+def _execute(steps: list[Step], context: Context, record: RunRecord, estimate: RunEstimate) -> RunOutcome:
+    """Run the unfinished steps in order; log each; write the stop record however it ends. A step that sends the
+    run back to an earlier one (StepRedo) has that one and every step finished after it done again."""
+    earlier = [step.key for step in steps if record.is_done(step.key)]
+    ran: list[str] = []
+    redone: Counter[str] = Counter()
     current = None
     try:
-        for number, step in enumerate(steps, 1):
-            if record.is_done(step.key):
-                skipped.append(step.key)
-                continue
-            current = step.key
-            context.say(f"[{number}/{len(steps)}] {_line(step)}")
-            record.started(step.key)
-            start = time.perf_counter()
-            context.step = step
+        while True:
+            todo = [(number, step) for number, step in enumerate(steps, 1) if not record.is_done(step.key)]
+            estimate.start([step for _, step in todo])
             try:
-                result = step.action(context)
-            except BaseException as exc:
-                _best_effort(context, "log the failed step",
-                             functools.partial(record.failed, step.key, time.perf_counter() - start, exc))
-                raise
-            finally:
-                context.step = None
-            record.finished(step.key, time.perf_counter() - start, result)
-            ran.append(step.key)
+                for number, step in todo:
+                    current = step.key
+                    _run_step(f"[{number}/{len(steps)}, about {duration_text(estimate.left())} left]", step, context,
+                              record, estimate)
+                    ran.append(step.key)
+                break
+            except StepRedo as exc:
+                if exc.stop or redone[exc.redo] >= MAX_REDOS:
+                    raise
+                redone[exc.redo] += 1
+                context.say(f"      {exc}: step {exc.redo!r} is done again")
         current = None
     except BaseException as exc:
         status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
@@ -177,8 +209,12 @@ def _execute(steps: list[Step], context: Context, record: RunRecord) -> RunOutco
         if isinstance(exc, OSError):  # the disk or a device file failed: one line, not a traceback
             raise BenchctlError(f"step {current!r}: {exc}") from exc
         raise
+    skipped = [key for key in earlier if key not in ran]
+    ran = list(dict.fromkeys(ran))
     _save_devices(context, record)
-    record.finish("finished", ran=len(ran), skipped=len(skipped))
+    rejected = [rejection_line(result["calibration"]) for result in record.done.values()
+                if isinstance(result.get("calibration"), dict) and not result["calibration"]["stored"]]
+    record.finish("finished", ran=len(ran), skipped=len(skipped), **({"not_stored": rejected} if rejected else {}))
     headline = list(record.done.get(steps[-1].key, {}).get("headline", [])) if steps else []
     if skipped:
         context.say(f"resumed: {len(skipped)} finished step(s) kept, {len(ran)} run now")
@@ -186,7 +222,40 @@ def _execute(steps: list[Step], context: Context, record: RunRecord) -> RunOutco
         context.say(line)
     context.say(f"record: {record.folder}" + (f"  (report: {record.folder / REPORT})"
                                               if (record.folder / REPORT).is_file() else ""))
+    if rejected:
+        raise BenchctlError("; ".join(rejected) + f" (report: {record.folder / REPORT}; accept = \"always\" in the "
+                            "procedure's [parameters] stores a calibration that fails its acceptance test)")
     return RunOutcome(record.folder, ran, skipped, headline)
+
+
+def _run_step(where: str, step: Step, context: Context, record: RunRecord, estimate: RunEstimate) -> None:
+    """Run one step and log it: started, then finished with its result, or failed (a StepRedo also marks the step
+    it goes back to, and every step finished after that, to be done again). `where` leads its line: [n/N, time
+    left]."""
+    context.say(f"{where} {_line(step)}")
+    record.started(step.key)
+    start = time.perf_counter()
+    context.step = step
+    context.written = {"checksums": {}, "archived": {}}
+    try:
+        result = step.action(context)
+        for kind, files in context.written.items():  # the files the step wrote, with the ones it recorded itself
+            if files:
+                result = {**result, kind: {**result.get(kind, {}), **files}}
+    except StepRedo as exc:
+        _best_effort(context, "log the failed step", functools.partial(
+            record.failed, step.key, time.perf_counter() - start, exc, exc.redo, exc.diverged))
+        record.invalidate(exc.redo, str(exc))
+        raise
+    except BaseException as exc:
+        _best_effort(context, "log the failed step",
+                     functools.partial(record.failed, step.key, time.perf_counter() - start, exc))
+        raise
+    finally:
+        context.step = None
+    seconds = time.perf_counter() - start
+    record.finished(step.key, seconds, result)
+    estimate.ran(step, seconds)
 
 
 def _best_effort(context: Context, what: str, action: Callable[[], object]) -> None:

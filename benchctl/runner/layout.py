@@ -4,14 +4,17 @@
       run.json          start record (procedure, versions, command) and, once it ends, the stop record
       profile.toml      the hardware profile as used (bytes copied)
       procedure.toml    the procedure as used (plus the .py file of a Python procedure)
-      calibration/      the camera-SLM registration, lookup tables and fitted optical model the run used
+      calibration/      the camera-SLM registration, lookup tables and fitted optical model the run used (their
+                        SHA-256 in run.json and the step log: a resume refuses an edited copy); rejected/ holds what
+                        the run measured but did not store (runner.acceptance)
       devices.json      identity of every device the run opened
       steps.jsonl       one JSON line per event of the step log (`record.RunRecord`)
       holograms/        SLM frames exactly as displayed (8-bit PNG)
       raw/<step key>/   each exposure step's RAW frames (frame-000...) and dark frames (dark-000...), exactly as
                         the camera delivered them, never modified
       images/           decoded, registered and merged images (16-bit PNG) and arrays (.npy)
-      state/            an iterative procedure's resumable state (CITL: phase and optimiser)
+      state/            an iterative procedure's resumable state (CITL: phase and optimiser; each file's SHA-256
+                        in the result of the step that wrote it)
       metrics.json, metrics.csv, report.html
 
 Paths here are relative to the run folder, '/'-separated, as step results record them. Procedures never spell

@@ -1,4 +1,5 @@
-"""Inline SVG plots for run reports: named curves, and a speed-against-error front on a log time axis.
+"""Plots for run reports: inline SVG of named curves and of a speed-against-error front on a log time axis, and the
+raster pictures a report shows as images (an error map, a registration's dots over what the camera saw).
 
 SVG keeps report.html self-contained and readable without matplotlib (an optional extra).
 """
@@ -8,6 +9,12 @@ from __future__ import annotations
 import html
 import math
 from collections.abc import Callable, Mapping, Sequence
+
+import cv2
+import numpy as np
+import torch
+
+from benchctl.optics import linear_to_srgb
 
 COLOURS = ("#d62728", "#2ca02c", "#1f77b4", "#9467bd", "#ff7f0e", "#8c564b")
 LEFT, BOTTOM, PAD = 60, 40, 10
@@ -91,3 +98,34 @@ def front_plot(points: Sequence[tuple[str, float, float, bool]], xlabel: str, yl
                      f'<text x="{label_x:.1f}" y="{y - 6:.1f}" fill="{colour}"{anchor}>{html.escape(name)}</text>')
     parts.append("</svg>")
     return "".join(parts)
+
+
+ERROR_FULL_SCALE = 0.25
+"""An error map's colour scale ends at this sRGB error (of 1): brighter is worse."""
+
+
+def _heat(values: np.ndarray) -> np.ndarray:
+    """(h, w) values in [0, 1] through OpenCV's inferno colour map: (3, h, w) RGB in [0, 1]."""
+    gray = np.round(np.clip(values, 0, 1) * 255).astype(np.uint8)
+    return cv2.applyColorMap(gray, cv2.COLORMAP_INFERNO)[:, :, ::-1].transpose(2, 0, 1).astype(np.float32) / 255
+
+
+def error_map(linear: torch.Tensor, target_linear: torch.Tensor) -> np.ndarray:
+    """Where an image (3, h, w, linear) departs from its target: per pixel the RMS over colours of the sRGB difference,
+    as a heat map (3, h, w) RGB in [0, 1] whose scale ends at ERROR_FULL_SCALE."""
+    difference = linear_to_srgb(linear.clamp(0, 1)) - linear_to_srgb(target_linear.clamp(0, 1))
+    return _heat(difference.square().mean(0).sqrt().numpy() / ERROR_FULL_SCALE)
+
+
+def dots_over(plane: np.ndarray, dots: np.ndarray, radius_px: float) -> np.ndarray:
+    """A registered capture of a dot grid (h, w, linear) in gray, with a red ring of `radius_px` where each dot
+    (N, 2) as (x, y) was meant to land: (3, h, w) RGB in [0, 1]. A good registration puts every dot in its ring."""
+    gray = np.clip(plane / max(float(np.percentile(plane, 99.9)), 1e-12), 0, 1)
+    scale = 4 if max(plane.shape) < 800 else 1  # rings drawn finer than a small ROI's pixels
+    picture = cv2.resize(np.round(np.repeat(gray[:, :, None], 3, axis=2) * 255).astype(np.uint8),
+                         (plane.shape[1] * scale, plane.shape[0] * scale), interpolation=cv2.INTER_NEAREST)
+    radius = max(2, round(radius_px * scale))
+    for x, y in dots:
+        cv2.circle(picture, (round((x + 0.5) * scale - 0.5), round((y + 0.5) * scale - 0.5)), radius, (255, 40, 40),
+                   1, cv2.LINE_AA)
+    return picture.transpose(2, 0, 1).astype(np.float32) / 255

@@ -19,6 +19,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
+from benchctl.devices.lock import DeviceHeld, DeviceLock
 from benchctl.errors import BenchctlError
 from benchctl.files import atomic_write_bytes, ensure_dir, file_sha256, write_json
 from benchctl.provenance import code_identity
@@ -51,6 +52,8 @@ class RunRecord:
     attempts: dict[str, int] = field(default_factory=dict)  # step key -> times it was started
     invalidated: list[str] = field(default_factory=list)  # why finished steps must be re-done (open_run)
     damaged: list[str] = field(default_factory=list)  # records found changed, their steps standing (open_run)
+    divergences: dict[str, int] = field(default_factory=dict)  # step key -> times a later step found it diverged
+    calibration: dict[str, str] = field(default_factory=dict)  # the run's calibration copy: file name -> SHA-256
 
     @property
     def name(self) -> str:
@@ -91,29 +94,67 @@ class RunRecord:
         return self.attempts[key]
 
     def finished(self, key: str, seconds: float, result: dict[str, Any]) -> None:
+        self.done.pop(key, None)  # keeps `done` in the order steps last finished
         self.done[key] = result
         self._log({"event": "done", "step": key, "seconds": round(seconds, 4), "result": result})
 
-    def failed(self, key: str, seconds: float, error: BaseException) -> None:
+    def failed(self, key: str, seconds: float, error: BaseException, redo: str | None = None,
+               diverged: bool = False) -> None:
+        """Log that `key` failed; `redo`: the step the run goes back to (`invalidate`), `diverged` counted for it."""
         kind = "interrupted" if isinstance(error, KeyboardInterrupt) else "failed"
+        extra = {"redo": redo, "diverged": diverged} if redo is not None else {}
+        if redo is not None and diverged:
+            self.divergences[redo] = self.divergences.get(redo, 0) + 1
         self._log({"event": kind, "step": key, "seconds": round(seconds, 4),
-                   "error": f"{type(error).__name__}: {error}"})
+                   "error": f"{type(error).__name__}: {error}", **extra})
+
+    def invalidate(self, key: str, reason: str) -> list[str]:
+        """Log finished step `key`, and every step that finished after it (it may have used its work), "invalid", so
+        they are done again. Returns the keys (none if `key` has not finished)."""
+        steps = list(self.done)
+        later = steps[steps.index(key):] if key in self.done else []
+        for step in later:
+            del self.done[step]
+            self._log({"event": "invalid", "step": step, "reason": reason if step == key else
+                       f"step {step!r} finished after {key!r}, which is done again"})
+        return later
+
+    def writer_of(self, relative: str) -> tuple[str, str] | None:
+        """(step key, SHA-256) of the finished step that recorded the file `relative` for later steps to read (result
+        "checksums"); None if none did."""
+        for key in reversed(self.done):
+            digest = self.done[key].get("checksums", {}).get(relative)
+            if digest is not None:
+                return key, digest
+        return None
+
+    def calibration_written(self, checksums: dict[str, str], step: str | None = None) -> None:
+        """Record the SHA-256 of each file of the run's calibration copy as the run wrote it (in the start record when
+        no step has run yet, else in the step log, under `step`: the step that wrote it): a resume refuses a copy that
+        changed since (`changed_calibration`)."""
+        self.calibration.update(checksums)
+        if not self.attempts:
+            info = self.info()
+            info["calibration_sha256"] = dict(self.calibration)
+            write_json(self.folder / RUN_FILE, info)
+        else:
+            self._log({"event": "calibration", "step": step, "checksums": checksums})
+
+    def changed_calibration(self, folder: Path) -> str | None:
+        """Why the first file of the calibration copy in `folder` differs from what the run wrote (None: none)."""
+        return _damaged(folder, self.calibration, "the run wrote it")
 
     def recheck_files(self) -> list[str]:
         """Compare the files finished steps captured for later steps to read with the checksums they recorded
         (result "checksums": run-relative path -> SHA-256). The first step with a missing or changed file, and
         every step that finished after it (it may have used the file), is logged "invalid" and so re-done.
         Returns why."""
-        steps = list(self.done)
-        for index, key in enumerate(steps):
+        for key in list(self.done):
             problem = _damaged(self.folder, self.done[key].get("checksums", {}))
             if problem:
-                reasons = [f"step {key!r}: {problem}; it is done again"]
-                reasons += [f"step {later!r} finished after it; it is done again" for later in steps[index + 1:]]
-                for later, reason in zip(steps[index:], reasons):
-                    del self.done[later]
-                    self._log({"event": "invalid", "step": later, "reason": reason})
-                return reasons
+                reason = f"step {key!r}: {problem}; it is done again"
+                return [reason] + [f"step {later!r} finished after it; it is done again"
+                                   for later in self.invalidate(key, reason)[1:]]
         return []
 
     def recheck_records(self) -> list[str]:
@@ -142,15 +183,24 @@ class RunRecord:
             os.fsync(log.fileno())
 
 
-def _damaged(folder: Path, checksums: dict[str, str]) -> str | None:
+def _damaged(folder: Path, checksums: dict[str, str], when: str = "it was written") -> str | None:
     """Why the first of `checksums`' files (relative to `folder`) is missing or changed; None if all match."""
     for name, digest in checksums.items():
-        try:
-            actual = file_sha256(folder / name)
-        except OSError as exc:
-            return f"{name}: {exc.strerror or exc}"
-        if actual != digest:
-            return f"{name} changed since it was captured (SHA-256 {actual[:12]}..., recorded {digest[:12]}...)"
+        problem = file_problem(folder / name, digest, when)
+        if problem:
+            return f"{name}{problem}"
+    return None
+
+
+def file_problem(path: Path, digest: str, when: str = "it was written") -> str | None:
+    """What is wrong with `path` against its recorded SHA-256 (': No such file...', ' changed since ...'); None if it
+    matches."""
+    try:
+        actual = file_sha256(path)
+    except OSError as exc:
+        return f": {exc.strerror or exc}"
+    if actual != digest:
+        return f" changed since {when} (SHA-256 {actual[:12]}..., recorded {digest[:12]}...)"
     return None
 
 
@@ -239,8 +289,12 @@ def open_run(folder: Path) -> RunRecord:
         raise BenchctlError(f"{folder}: not a benchctl run folder (no {RUN_FILE})")
     record = RunRecord(folder)
     repair_log(folder / STEP_LOG)
+    record.calibration.update(record.info().get("calibration_sha256", {}))
     for event in record.events():
-        key = event["step"]  # every event of the step log names its step
+        if event.get("event") == "calibration":  # written by a step, or (step None) between steps
+            record.calibration.update(event.get("checksums", {}))
+            continue
+        key = event["step"]  # every other event of the step log names its step
         if event.get("event") == "start":
             record.attempts[key] = max(record.attempts.get(key, 0), int(event.get("attempt", 1)))
         elif event.get("event") == "done":
@@ -248,6 +302,8 @@ def open_run(folder: Path) -> RunRecord:
             record.done[key] = event.get("result", {})
         elif event.get("event") == "invalid":
             record.done.pop(key, None)
+        if event.get("diverged") and event.get("redo"):
+            record.divergences[event["redo"]] = record.divergences.get(event["redo"], 0) + 1
     record.invalidated = record.recheck_files()
     record.damaged = record.recheck_records()
     info = record.info()
@@ -255,6 +311,18 @@ def open_run(folder: Path) -> RunRecord:
     info.pop("stop", None)
     write_json(folder / RUN_FILE, info)
     return record
+
+
+def run_folder_lock(folder: Path) -> DeviceLock:
+    """The lock that gives a run folder one writer (a device lock, keyed by the folder's resolved path: released by
+    the kernel when the holder ends, however it ends); taken, or BenchctlError naming who holds it."""
+    lock = DeviceLock(f"run:{Path(folder).resolve()}", f"run folder {folder}")
+    try:
+        return lock.acquire()
+    except DeviceHeld as exc:
+        holder = exc.holder or "by another process"
+        raise BenchctlError(f"{folder}: this run is being written already, {holder}; a run folder has one writer: "
+                            "wait for it to end, or stop it") from None
 
 
 def set_aside(folder: Path, attempt: int) -> Path | None:

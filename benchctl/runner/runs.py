@@ -19,7 +19,7 @@ from typing import Any
 
 from benchctl.errors import BenchctlError
 from benchctl.memory import size_text
-from benchctl.runner.record import RUN_FILE, RunRecord
+from benchctl.runner.record import RUN_FILE, RunRecord, run_folder_lock
 
 METRICS_FILE = "metrics.json"  # written by each procedure's report (runner.report)
 SCORE_WORDS = ("psnr", "ssim", "residual", "rms")  # the figures `compare` puts side by side
@@ -34,7 +34,9 @@ class Run:
     procedure: str
     profile: str
     start: str
-    status: str  # finished, failed, interrupted, or UNFINISHED (running, or ended by kill -9 / power loss)
+    # finished (", calibration not stored" when one failed its acceptance test), failed, interrupted, or UNFINISHED
+    # (running, or ended by kill -9 / power loss)
+    status: str
     headline: list[str]
     bytes: int
 
@@ -62,8 +64,9 @@ def read_run(folder: Path) -> Run:
     headline = next((list(e["result"]["headline"]) for e in reversed(events) if e.get("event") == "done"
                      and isinstance(e.get("result"), dict) and e["result"].get("headline")), [])
     stop = info.get("stop") or {}
+    status = str(stop.get("status", UNFINISHED)) + (", calibration not stored" if stop.get("not_stored") else "")
     return Run(folder, str(info.get("procedure", "?")), str(info.get("profile", "?")), str(info.get("start", "?")),
-               str(stop.get("status", UNFINISHED)), headline, _size(folder))
+               status, headline, _size(folder))
 
 
 def _size(folder: Path) -> int:
@@ -141,8 +144,12 @@ def compare_lines(folders: list[Path]) -> list[str]:
 
 
 def remove_runs(folders: list[Path], yes: bool, force: bool) -> list[str]:
-    """Remove run folders (only listed without `yes`); one without a stop record only with `force`."""
+    """Remove run folders (only listed without `yes`); one without a stop record only with `force`, and never one a
+    process is writing (its folder's lock held)."""
     runs = [read_run(folder) for folder in folders]
+    for run in runs:
+        with run_folder_lock(run.folder):  # refused, naming the holder, while a run writes it
+            pass
     unfinished = [run for run in runs if run.status == UNFINISHED]
     if unfinished and not force:
         raise BenchctlError(f"{unfinished[0].folder}: the run has {UNFINISHED}: it may still be running (or ended by "

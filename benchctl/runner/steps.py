@@ -27,6 +27,7 @@ from benchctl.images import read_image, write_png
 from benchctl.optics import linear_to_srgb
 from benchctl.profiles import LaserChannel, NonNegative, NonNegativeInt, Profile
 from benchctl.runner import layout
+from benchctl.runner.acceptance import AcceptMode
 from benchctl.runner.context import Context, Expose, P, Parameters, Step
 from benchctl.runner.hologram_cache import Hologram, hologram
 from benchctl.runner.holograms import resolve_method
@@ -47,6 +48,9 @@ class ExposureParameters(Parameters, kw_only=True):
     frames: Frames = 2
     dark_frames: DarkFrames = 1
     settle_ms: NonNegative | None = None  # after a new SLM frame (default: the profile's slm.settle_ms)
+    # a calibration the procedure measures (registration, lookup tables, optical model) replaces the stored one only
+    # if it passes its acceptance test ("tested"), or always ("always": said, and in the report)
+    accept: AcceptMode = "tested"
 
     def applied_to(self, profile: Profile) -> Profile:
         """The profile with this procedure's SLM settle time, if it gives one."""
@@ -90,7 +94,10 @@ def channels(context: Context) -> list[LaserChannel]:
     """The laser channels a procedure uses: `colours` if given (each must exist), else all of the profile's."""
     profile = context.profile.require("laser")
     names = context.parameters(ExposureParameters).colours or [channel.name for channel in profile.channels]
-    return [profile.channel(name) for name in names]
+    try:
+        return [profile.channel(name) for name in names]
+    except BenchctlError as exc:
+        raise BenchctlError(f"parameters.colours: {exc}") from None
 
 
 def power_w(context: Context, channel: LaserChannel) -> float:
@@ -132,11 +139,17 @@ def target_label(spec: str, taken: set[str]) -> str:
     return label
 
 
-def prepared_target(profile: Profile, spec: str) -> torch.Tensor:
-    """(3, H, W) target amplitude on the SLM grid, prepared as the paper prepares targets."""
+def prepared_target(profile: Profile, spec: str, key: str | None = None) -> torch.Tensor:
+    """(3, H, W) target amplitude on the SLM grid, prepared as the paper prepares targets; an unknown or unreadable
+    target is an error naming the parameter `key` it came from (e.g. "parameters.targets")."""
     profile.require("slm", "optics")
     assert profile.slm is not None and profile.optics is not None
-    return prepare_target(load_target(spec, size=profile.optics.roi), profile.slm.shape, profile.optics.roi)
+    try:
+        return prepare_target(load_target(spec, size=profile.optics.roi), profile.slm.shape, profile.optics.roi)
+    except BenchctlError as exc:
+        if key is None:
+            raise
+        raise BenchctlError(f"{key}: {exc}") from None
 
 
 # -- holograms ------------------------------------------------------------------------------------------------------
@@ -171,7 +184,7 @@ def hologram_step(key: str, label: str, target: torch.Tensor, channel: LaserChan
 
 def displayed_frame(context: Context, hologram_key: str) -> np.ndarray:
     """The SLM frame a hologram step kept, exactly as it is to be displayed."""
-    return read_image(context.path(context.result(hologram_key)["file"]))
+    return load_image(context, context.result(hologram_key)["file"])
 
 
 def shown(hologram_key: str) -> Callable[[Context], np.ndarray]:
@@ -240,11 +253,12 @@ def exposure_step(context: Context, key: str, channel: LaserChannel, watts: floa
 def load_exposure(context: Context, key: str) -> tuple[RawImage, RawImage | None]:
     """The averaged RAW frames of an exposure step, dark-subtracted, and its averaged dark (None if none)."""
     result = context.result(key)
-    folder = context.path(result["folder"])
-    lit = average_frames(decode_raw(folder / name) for name in result["frames"])  # decoded one at a time
+    folder = result["folder"]
+    # decoded one at a time, each checked against its checksum first
+    lit = average_frames(decode_raw(context.verified(f"{folder}/{name}")) for name in result["frames"])
     if not result["darks"]:
         return lit, None
-    dark = average_frames(decode_raw(folder / name) for name in result["darks"])
+    dark = average_frames(decode_raw(context.verified(f"{folder}/{name}")) for name in result["darks"])
     return subtract_dark(lit, dark), dark
 
 
@@ -273,16 +287,17 @@ def registered_saturation(context: Context, image: RawImage, channel: LaserChann
 
 # -- files ----------------------------------------------------------------------------------------------------------
 
-def save_hologram(context: Context, gray: np.ndarray, *name: str) -> str:
-    """An SLM frame exactly as displayed (8-bit PNG) under the run's holograms; returns its run-relative path."""
+def save_hologram(context: Context, gray: np.ndarray, *name: str, read_later: bool = True) -> str:
+    """An SLM frame exactly as displayed (8-bit PNG) under the run's holograms; returns its run-relative path. Its
+    checksum joins the step's result (`Context.wrote`; `read_later=False`: a record no later step reads)."""
     relative = layout.hologram_file(*name)
     write_png(context.path(relative), gray)
-    return relative
+    return context.wrote(relative, read_later=read_later)
 
 
 def save_image(context: Context, linear: np.ndarray | torch.Tensor, *name: str, srgb: bool = False) -> str:
     """A linear image in [0, 1] ((h, w) or (3, h, w)) as a 16-bit PNG under the run's images, optionally
-    sRGB-encoded for viewing; returns its run-relative path."""
+    sRGB-encoded for viewing; returns its run-relative path (checksum in the step's result, `Context.wrote`)."""
     image = torch.as_tensor(np.asarray(linear, dtype=np.float32)).clamp(0, 1)
     if srgb:
         image = linear_to_srgb(image)
@@ -290,14 +305,25 @@ def save_image(context: Context, linear: np.ndarray | torch.Tensor, *name: str, 
         image = image.permute(1, 2, 0)
     relative = layout.image_file(*name)
     write_png(context.path(relative), (image.numpy() * 65535).round().astype(np.uint16))
-    return relative
+    return context.wrote(relative)
 
 
 def save_array(context: Context, array: np.ndarray | torch.Tensor, *name: str) -> str:
-    """An array (.npy) under the run's images; returns its run-relative path."""
+    """An array (.npy) under the run's images; returns its run-relative path (checksum in the step's result)."""
     relative = layout.image_file(*name)
     np.save(context.path(relative), np.asarray(array))
-    return relative
+    return context.wrote(relative)
+
+
+def load_image(context: Context, relative: str) -> np.ndarray:
+    """An image a finished step saved (as a step result names it), checked against its checksum first: a damaged
+    one sends the run back to the step that saved it (`Context.verified`)."""
+    return read_image(context.verified(relative))
+
+
+def load_array(context: Context, relative: str) -> np.ndarray:
+    """An array a finished step saved (`save_array`), checked as `load_image` checks images."""
+    return np.load(context.verified(relative), allow_pickle=False)
 
 
 def state_path(context: Context, *name: str) -> Path:

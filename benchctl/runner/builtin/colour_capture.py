@@ -24,10 +24,11 @@ from msgspec import Meta
 
 from benchctl.capture.colour_planes import PEAK_PERCENTILE, merge_capture
 from benchctl.cgh import DEFAULT_METHOD, get_method
-from benchctl.optics import colour_scores, crop_roi
+from benchctl.optics import colour_scores, crop_roi, lsq_scale
 from benchctl.optics.metrics import pareto_front
 from benchctl.profiles import LaserChannel
 from benchctl.runner.api import (
+    ERROR_FULL_SCALE,
     BenchctlError,
     Context,
     ExposureMode,
@@ -38,10 +39,12 @@ from benchctl.runner.api import (
     Step,
     channels,
     check_method,
+    error_map,
     exposure_step,
     figure,
     front_plot,
     hologram_step,
+    load_array,
     load_exposure,
     power_w,
     prepared_target,
@@ -49,6 +52,7 @@ from benchctl.runner.api import (
     probed_power,
     registered,
     registered_saturation,
+    row,
     save_image,
     shown,
     table,
@@ -100,10 +104,11 @@ def plan(context: Context) -> list[Step]:
         steps += lut_calibration.lut_steps(context, uncalibrated,
                                            lut_calibration.PARAMETERS(gray_step=AUTO_LUT_GRAY_STEP))
     steps += registration.registration_first(context, used, options[methods[0]], params.registration)
-    labels: set[str] = set()
+    calibrated_here = [step.key for step in steps if step.key.endswith("/fit") or "/fit/" in step.key]
+    labels: set[str] = {registration.LABEL}  # registration's holograms are named after it
     targets = []
     for spec in params.targets:
-        base, target = target_label(spec, labels), prepared_target(context.profile, spec)
+        base, target = target_label(spec, labels), prepared_target(context.profile, spec, "parameters.targets")
         present = active_channels(target)
         lit = [c for c in used if present[target_plane(c)]]
         if not lit:
@@ -112,7 +117,8 @@ def plan(context: Context) -> list[Step]:
             label = base if len(methods) == 1 else target_label(f"{base}-{method.replace('+', '-')}", labels)
             targets.append((spec, label, lit))
             steps += _capture_steps(context, spec, label, lit, target, options[method])
-    steps.append(Step("report", "metrics.json, metrics.csv and report.html", _reporter(targets, used)))
+    steps.append(Step("report", "metrics.json, metrics.csv and report.html",
+                      _reporter(targets, used, calibrated_here)))
     return steps
 
 
@@ -166,15 +172,20 @@ def _processor(spec: str, label: str, repeat: str, lit: list[LaserChannel], targ
             image, _ = load_exposure(context, f"capture/{label}{repeat}/{channel.name}")
             planes[index] = registered(context, image, channel)
             saturation[index] = registered_saturation(context, image, channel)
-            sim = np.load(context.path(context.result(f"hologram/{label}/{channel.name}")["simulated"]))
+            sim = load_array(context, context.result(f"hologram/{label}/{channel.name}")["simulated"])
             simulated[index] = torch.from_numpy(sim).square().clamp(0, 1)
         capture = merge_capture(planes, target_roi, saturation=saturation)
         folder = label + repeat
+        target_linear = target_roi.square()
+        scaled = lsq_scale(simulated, target_linear) * simulated  # as the simulated scores compare it
         files = {
-            "target": save_image(context, target_roi.square(), folder, "target.png", srgb=True),
+            "target": save_image(context, target_linear, folder, "target.png", srgb=True),
             "capture": save_image(context, capture.merged.linear, folder, "capture.png", srgb=True),
             "capture_linear": save_image(context, capture.merged.linear, folder, "capture-linear.png"),
             "simulated": save_image(context, simulated, folder, "simulated.png", srgb=True),
+            "error_capture": save_image(context, error_map(capture.merged.linear, target_linear), folder,
+                                        "error-capture.png"),
+            "error_simulated": save_image(context, error_map(scaled, target_linear), folder, "error-simulated.png"),
         }
         names = {target_plane(c): c.name for c in lit}
         for index, plane in planes.items():
@@ -193,6 +204,9 @@ def _processor(spec: str, label: str, repeat: str, lit: list[LaserChannel], targ
                 "power_w": context.result(f"capture/{label}{repeat}/{channel.name}")["setpoint_w"],
                 "peak": round(float(np.percentile(planes[index], PEAK_PERCENTILE)), 4),
             }
+            if context.parameters(ColourCaptureParameters).exposure == "auto":
+                choice = context.result(f"probe/{label}/{channel.name}")["auto_exposure"]
+                per_colour[channel.name].update(goal=choice["goal"], limited_by_max=choice["limited_by_max"])
         return {
             "target": spec, "method": method, "label": label + repeat, "files": files,
             "colours": per_colour, "warnings": list(capture.warnings),
@@ -203,12 +217,13 @@ def _processor(spec: str, label: str, repeat: str, lit: list[LaserChannel], targ
     return action
 
 
-def _reporter(targets: list[tuple[str, str, list[LaserChannel]]], used: list[LaserChannel]):
+def _reporter(targets: list[tuple[str, str, list[LaserChannel]]], used: list[LaserChannel], calibrated_here: list[str]):
     def action(context: Context) -> dict[str, Any]:
         results = [context.result(f"process/{label}{repeat}")
                    for _, label, _ in targets
                    for repeat in _repeats(context.parameters(ColourCaptureParameters).repeats)]
-        return colour_capture_report(context, results, [c.name for c in used])
+        fits = {key: context.result(key) for key in calibrated_here}
+        return colour_capture_report(context, results, [c.name for c in used], fits)
 
     return action
 
@@ -217,9 +232,28 @@ def _flat(prefix: str, scores: dict[str, Any]) -> dict[str, Any]:
     return {f"{prefix}{key}": value for key, value in scores.items()}
 
 
-def colour_capture_report(context: Context, results: list[dict[str, Any]], colours: list[str]) -> dict[str, Any]:
-    """Per target: target / simulation / capture side by side, per-colour and merged scores, generation time
-    against error; metrics.json and metrics.csv (one row per target and colour, plus the merged row)."""
+SHORT_OF_GOAL = 0.8  # a colour whose capture peaks below this fraction of its exposure goal is said in the report
+
+
+def exposure_warnings(label: str, colours: dict[str, dict[str, Any]]) -> list[str]:
+    """Colours whose capture peaked well short of their automatic-exposure goal (the laser at its limit, or the
+    probe misled), said with the numbers: the report's "No warnings." must be true."""
+    lines = []
+    for name, colour in colours.items():
+        goal = colour.get("goal")
+        if goal and colour["peak"] < SHORT_OF_GOAL * goal:
+            why = (f" (the laser at its max_power_mw, {colour['power_w'] * 1e3:.3g} mW)" if colour["limited_by_max"]
+                   else "")
+            lines.append(f"{label}: {name} peaked at {colour['peak']:.0%} of full scale, short of its {goal:.0%} "
+                         f"exposure goal{why}: a noisier capture than planned")
+    return lines
+
+
+def colour_capture_report(context: Context, results: list[dict[str, Any]], colours: list[str],
+                          fits: dict[str, dict[str, Any]] | None = None) -> dict[str, Any]:
+    """Per target: target, simulation and capture side by side, each colour's capture, error maps, per-colour and
+    merged scores; the lookup tables and registration this run measured first (`fits`, by step key); across methods
+    the speed against error; metrics.json and metrics.csv (one row per target and colour, plus the merged row)."""
     report = Report(f"Colour capture: {', '.join(r['label'] for r in results)}")
     rows = []
     for result in results:
@@ -233,9 +267,15 @@ def colour_capture_report(context: Context, results: list[dict[str, Any]], colou
         rows.append({"target": result["target"], "label": label, "colour": "merged",
                      **_flat("simulated_", result["merged"]["simulated"]),
                      **_flat("capture_", result["merged"]["capture"])})
-        report.warn(*[f"{label}: {w}" for w in result["warnings"]])
-        pictures = "".join(figure(context, result["files"][key], caption) for key, caption in (
-            ("target", "target (sRGB)"), ("simulated", "simulated reconstruction"), ("capture", "merged capture")))
+        report.warn(*[f"{label}: {w}" for w in result["warnings"]], *exposure_warnings(label, result["colours"]))
+        files = result["files"]
+        pictures = [figure(context, files[key], caption) for key, caption in (
+            ("target", "target (sRGB)"), ("simulated", "simulated reconstruction"), ("capture", "merged capture"))]
+        planes = [figure(context, files[f"plane_{name}"], f"{name} captured (registered, its own scale)")
+                  for name in result["colours"]]
+        errors = [figure(context, files[key], caption) for key, caption in (
+            ("error_simulated", "simulation: error against the target"),
+            ("error_capture", "capture: error against the target")) if key in files]
         score_rows = [{"colour": name, "generation s": c["generation_s"],
                        "simulated PSNR dB (amplitude)": c["simulated"]["psnr_amplitude_db"],
                        "capture PSNR dB (amplitude)": c["capture"]["psnr_amplitude_db"],
@@ -246,17 +286,15 @@ def colour_capture_report(context: Context, results: list[dict[str, Any]], colou
         merged = result["merged"]
         merged_rows = [{"image": kind, "PSNR dB linear": s["psnr_linear_db"], "PSNR dB sRGB": s["psnr_srgb_db"],
                         "SSIM sRGB": s["ssim_srgb"]} for kind, s in merged.items()]
-        report.section(f"Target {result['target']} ({label})", pictures)
-        report.section("Per colour (ROI, least-squares scaled)", table(score_rows), level=3)
+        note = (f"<p>Error maps: per pixel the RMS over colours of the sRGB difference from the target, black 0, "
+                f"yellow {ERROR_FULL_SCALE:g} or more.</p>" if errors else "")
+        report.section(f"Target {result['target']} ({label})", row(*pictures), row(*planes, columns=3),
+                       row(*errors, columns=3), note)
+        report.section("Per colour (ROI, least-squares scaled)", table(score_rows),
+                       "<p>Generation time: the time it took to compute the hologram (for a cached hologram, when it "
+                       "was computed). Peak: the capture's brightest 0.1 % as a fraction of full scale.</p>", level=3)
         report.section("Merged colour image", table(merged_rows), level=3)
-    speed = [{"label": r["label"], "colour": r["colour"], "generation s": r["generation_s"],
-              "simulated PSNR dB": r.get("simulated_psnr_amplitude_db"),
-              "capture PSNR dB": r.get("capture_psnr_amplitude_db")} for r in rows if r["colour"] != "merged"]
     method = context.parameters(HologramParameters).method
-    methods = method if isinstance(method, str) else ", ".join(method)
-    report.section(f"Generation time against error ({methods})", table(speed),
-                   "<p>Generation time is the time it took to compute the hologram (for a cached hologram, when it "
-                   "was computed). PSNR in amplitude on the ROI after least-squares scaling.</p>")
     front = method_front(results)
     if len(front) > 1:
         points = [(r["method"], r["seconds per frame"], r["capture PSNR dB sRGB"], r["on front"]) for r in front]
@@ -265,6 +303,13 @@ def colour_capture_report(context: Context, results: list[dict[str, Any]], colou
                        table(front), "<p>Per method, means over the targets: the time to compute one frame of every "
                        "colour in the target, and the merged capture's PSNR. Filled markers are on the Pareto front: "
                        "no other method is both at least as fast and at least as good.</p>")
+    fits = fits or {}
+    luts = {key.split("/")[1]: fit for key, fit in fits.items() if key.startswith("lut/")}
+    registrations = {key.split("/")[-1]: fit for key, fit in fits.items() if key.startswith("registration/")}
+    if luts:
+        lut_calibration.lut_sections(report, luts)
+    if registrations:
+        registration.registration_sections(report, context, registrations)
     headline = [f"{r['label']}: merged capture PSNR {r['merged']['capture']['psnr_srgb_db']:.2f} dB sRGB, SSIM "
                 f"{r['merged']['capture']['ssim_srgb']:.3f} (simulated {r['merged']['simulated']['psnr_srgb_db']:.2f} "
                 f"dB, {r['merged']['simulated']['ssim_srgb']:.3f}); generation "

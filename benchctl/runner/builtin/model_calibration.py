@@ -3,25 +3,28 @@ phase (which shows the beam itself), capture each, register it onto the target p
 fit the propagation model's wavefront error (Zernike terms at the SLM), beam (Gaussian waist and offset), SLM
 crosstalk and zero order by gradient descent through the differentiable propagation (optics.fitted). The fit is
 stored per profile (calibration/<profile>/optical-model.json), where generation, SGD and the simulated scores of
-later runs find it (OpticalSetup.field_model).
+later runs find it (OpticalSetup.field_model), if it passes its acceptance test (runner.acceptance): light reached
+the camera, no capture clipped, the fit converged and brought the residual to at most MIN_IMPROVEMENT of the ideal
+model's and below MAX_RESIDUAL, and not above the residual of the stored model on the same captures.
 """
 
 from __future__ import annotations
 
 import time
 from functools import partial
+from pathlib import Path
 from typing import Annotated, Any
 
 import numpy as np
 import torch
 from msgspec import Meta
 
-from benchctl.images import read_image
+from benchctl.capture.colour_planes import PEAK_PERCENTILE
+from benchctl.files import write_json
 from benchctl.optics.aberration import ZERNIKE_TERMS
-from benchctl.optics.fitted import calibration_patterns, fit_optics
-from benchctl.profiles import LaserChannel, NonNegativeInt, Positive
+from benchctl.optics.fitted import FitDiverged, FittedOptics, calibration_patterns, fit_optics, model_residual
+from benchctl.profiles import LaserChannel, NonNegativeInt
 from benchctl.runner.api import (
-    BenchctlError,
     Calibration,
     Context,
     ExposureParameters,
@@ -32,16 +35,23 @@ from benchctl.runner.api import (
     exposure_step,
     line_plot,
     load_exposure,
+    load_image,
     power_w,
     registered,
     registered_saturation,
     save_hologram,
     table,
     unknown_setpoints,
+    Verdict,
 )
 from benchctl.runner.builtin import registration
 
-MAX_SATURATED = 1e-3  # fraction of ROI pixels clipped in a capture above which the fit is refused
+MAX_SATURATED = 1e-3  # fraction of ROI pixels clipped in a capture above which the fit is not stored
+# Acceptance (runner.acceptance). Light reached the camera: every registered capture's brightest 0.1 % reaches this
+# fraction of full scale (a capture without light reads its noise, about 0.05 % on the simulated camera).
+MIN_SIGNAL = 0.003
+MIN_IMPROVEMENT = 0.9  # the fit brings the residual to at most this fraction of the ideal model's
+MAX_RESIDUAL = 0.5  # and below this (fits of working benches: 0.03-0.4, docs/model_calibration.md)
 DESCRIPTION = ("random-point and flat phase patterns per colour, captured, registered; wavefront, beam, crosstalk and "
                "zero order fitted and stored")
 
@@ -53,7 +63,9 @@ class ModelCalibrationParameters(ExposureParameters, kw_only=True):
     patterns: Annotated[int, Meta(ge=1)] = 4
     spacing_px: Annotated[int, Meta(ge=2)] = 6  # one focused point per spacing^2 ROI pixels
     fit_steps: Annotated[int, Meta(ge=2)] = 120  # Adam steps of the fit (half blurred, half sharp)
-    learning_rate: Positive = 0.03
+    # Adam moves each parameter by about this per step (in waves, pupil radii, units of crosstalk and zero order):
+    # above 1 one step crosses every realistic value; a fit that diverges below it is not stored
+    learning_rate: Annotated[float, Meta(gt=0, le=1)] = 0.03
     beam: bool = True  # fit the beam's waist and offset too
     # also show a constant phase: its capture is the beam itself, fitted by gain alone, which pins the waist that
     # the point patterns leave loose (and with it the zero order and crosstalk: docs/model_calibration.md)
@@ -114,7 +126,7 @@ def _patterns(channel: LaserChannel):
 
 
 def _pattern_frame(context: Context, channel: str, k: int) -> np.ndarray:
-    return read_image(context.path(context.result(f"model/patterns/{channel}")["files"][k]))
+    return load_image(context, context.result(f"model/patterns/{channel}")["files"][k])
 
 
 def _fitter(channel: LaserChannel):
@@ -123,36 +135,66 @@ def _fitter(channel: LaserChannel):
         registration_entry = context.calibration.registrations()[channel.name]
         shown, captured, saturated = [], [], 0.0
         for k, file in enumerate(context.result(f"model/patterns/{channel.name}")["files"]):
-            shown.append(torch.from_numpy(context.slm.driven(read_image(context.path(file)), channel.name)))
+            shown.append(torch.from_numpy(context.slm.driven(load_image(context, file), channel.name)))
             image, _ = load_exposure(context, f"model/capture/{channel.name}/{k}")
             captured.append(torch.from_numpy(registered(context, image, channel)))
             saturated = max(saturated, registered_saturation(context, image, channel))
-        if saturated > MAX_SATURATED:
-            raise BenchctlError(f"model calibration {channel.name}: {saturated:.2%} of the ROI is saturated in a "
-                                "capture (the fit needs linear images): lower the setpoint or the exposure")
         start = time.perf_counter()
         params = context.parameters(ModelCalibrationParameters)
         flat = bool(context.result(f"model/patterns/{channel.name}").get("flat"))
-        fit = fit_optics(setup.target_propagator(), setup.roi, torch.stack(shown), torch.stack(captured),
-                         beam=params.beam, crosstalk=params.crosstalk, zero_order=params.zero_order,
-                         camera_blur=params.camera_blur,
-                         dark_background=[False] * (len(shown) - flat) + [True] * flat, iterations=params.fit_steps,
-                         learning_rate=params.learning_rate, progress=context.progress(f"      fit {channel.name}"))
+        dark = [False] * (len(shown) - flat) + [True] * flat
+        phases, images = torch.stack(shown), torch.stack(captured)
+        try:
+            fit = fit_optics(setup.target_propagator(), setup.roi, phases, images, beam=params.beam,
+                             crosstalk=params.crosstalk, zero_order=params.zero_order,
+                             camera_blur=params.camera_blur, dark_background=dark, iterations=params.fit_steps,
+                             learning_rate=params.learning_rate, progress=context.progress(f"      fit {channel.name}"))
+        except FitDiverged as exc:
+            fit, diverged = None, exc
         seconds = time.perf_counter() - start
+        old = context.calibration.models().get(channel.name)
+        old_residual = None if old is None else model_residual(
+            setup.target_propagator(), setup.roi, phases, images, FittedOptics.from_dict(old),
+            camera_blur_px=float(old.get("camera_blur_px", 0.0)), dark_background=dark)
+        signal = min(float(np.percentile(image.numpy(), PEAK_PERCENTILE)) for image in captured)
+        verdict = Verdict("optical model", channel.name, "residual", None if fit is None else round(fit.residual, 5),
+                          None if old_residual is None else round(old_residual, 5),
+                          details={"signal": round(signal, 6), "saturated_fraction": round(saturated, 6),
+                                   "stored_fit_residual": None if old is None else old.get("residual")})
+        verdict.check(signal >= MIN_SIGNAL, f"no light reached the camera: the brightest 0.1 % of a capture at "
+                                            f"{signal:.2%} of full scale, below {MIN_SIGNAL:.1%}")
+        verdict.check(saturated <= MAX_SATURATED, f"{saturated:.2%} of the ROI saturated in a capture (the fit needs "
+                                                  "linear images): lower the setpoint or the exposure")
+        if fit is None:
+            verdict.check(False, f"{diverged} with learning_rate {params.learning_rate:g}: lower it")
+            record = context.store_calibration(verdict, lambda calibration: None, {})
+            return {"diverged": str(diverged), "losses": [round(v, 6) for v in diverged.losses],
+                    "seconds": round(seconds, 2), "calibration": record}
+        verdict.check(fit.residual <= MIN_IMPROVEMENT * fit.initial_residual,
+                      f"the fit did not improve on the ideal model: residual {fit.initial_residual:.3f} -> "
+                      f"{fit.residual:.3f}, needs at most {MIN_IMPROVEMENT:g} x the start")
+        verdict.check(fit.residual <= MAX_RESIDUAL, f"residual {fit.residual:.3f} above the bound {MAX_RESIDUAL:g}")
+        verdict.no_worse()
         entry = {**fit.model.to_dict(), "residual": round(fit.residual, 5),
                  "initial_residual": round(fit.initial_residual, 5), "patterns": len(shown) - flat, "flat": flat,
                  "camera_blur_px": fit.camera_blur_px}
-        context.save_calibration(lambda calibration: calibration.save_model(channel.name, entry))
         waves = ", ".join(f"{name} {value:+.3f}" for name, value in fit.model.zernike_waves)
         context.say(f"      {channel.name}: {waves} waves; waist {fit.model.waist_m * 1e3:.2f} mm; crosstalk "
                     f"{fit.model.crosstalk_px:.3f} px; zero order {fit.model.zero_order:.3f}; "
                     f"residual {fit.initial_residual:.3f} -> {fit.residual:.3f} "
                     f"({seconds:.1f} s)")
+
+        def candidate(path: Path) -> None:
+            write_json(path, {"profile": context.profile.name, "colour": channel.name, "model": entry,
+                              "acceptance": verdict.record(False, [])})
+
+        record = context.store_calibration(verdict, lambda calibration: calibration.save_model(channel.name, entry),
+                                           {f"optical-model-{channel.name}.json": candidate})
         through_model = bool(registration_entry.get("through_model"))
         if not through_model:
             context.say(f"      {_registration_note(channel.name)}")
         return {**entry, "seconds": round(seconds, 2), "losses": [round(v, 6) for v in fit.losses],
-                "registration_through_model": through_model}
+                "registration_through_model": through_model, "calibration": record}
 
     return action
 
@@ -165,7 +207,12 @@ def _registration_note(colour: str) -> str:
 
 def _panel(used: list[LaserChannel]):
     def action(context: Context) -> dict[str, Any]:
-        fitted = {c.name: context.result(f"model/fit/{c.name}")["crosstalk_px"] for c in used}
+        results = {c.name: context.result(f"model/fit/{c.name}") for c in used}
+        fitted = {name: result["crosstalk_px"] for name, result in results.items() if result["calibration"]["stored"]}
+        if len(fitted) < 2:
+            context.say(f"      one crosstalk for the panel needs two stored fits; {len(fitted)} stored: each keeps "
+                        "its own")
+            return {"skipped": f"{len(fitted)} fit(s) stored", "fitted_px": fitted}
         shared = round(float(np.median(list(fitted.values()))), 5)
         models = context.calibration.models()
 
@@ -185,11 +232,12 @@ def _panel(used: list[LaserChannel]):
 def _reporter(used: list[LaserChannel], panel: bool):
     def action(context: Context) -> dict[str, Any]:
         fits = {c.name: context.result(f"model/fit/{c.name}") for c in used}
-        if panel:
-            shared = context.result("model/panel")["crosstalk_px"]
+        shared = context.result("model/panel").get("crosstalk_px") if panel else None
+        if shared is not None:
             fits = {name: {**fit, "crosstalk_px": shared, "crosstalk_fitted_px": fit["crosstalk_px"]}
-                    for name, fit in fits.items()}
-        notes = [_registration_note(name) for name, fit in fits.items() if not fit.get("registration_through_model")]
+                    if fit["calibration"]["stored"] else fit for name, fit in fits.items()}
+        notes = [_registration_note(name) for name, fit in fits.items()
+                 if "zernike_waves" in fit and not fit.get("registration_through_model")]
         return model_calibration_report(context, fits, list(ZERNIKE_TERMS), notes)
 
     return action
@@ -209,8 +257,8 @@ MODEL_NOTE = ("<p>Wavefront error at the SLM: ANSI/OSA Zernike terms, "
 
 def model_calibration_report(context: Context, fits: dict[str, dict[str, Any]], terms: list[str],
                              warnings: list[str]) -> dict[str, Any]:
-    """Per colour: fitted Zernike coefficients (waves), beam, crosstalk, zero order, residual before and after; the
-    fit's loss curves."""
+    """Per colour: fitted Zernike coefficients (waves), beam, crosstalk, zero order, residual before and after; whether
+    each model was stored (its residual beside the stored model's on the same captures); the fit's loss curves."""
     rows = [{"colour": name, **{f"{t} (waves)": f["zernike_waves"].get(t) for t in terms},
              "waist mm": round(f["waist_mm"], 4), "offset mm": [round(v, 4) for v in f["offset_mm"]],
              "crosstalk px": f.get("crosstalk_px", 0.0),
@@ -220,14 +268,18 @@ def model_calibration_report(context: Context, fits: dict[str, dict[str, Any]], 
              "residual before": f["initial_residual"], "residual after": f["residual"],
              "patterns": f"{f['patterns']}{' + flat' if f.get('flat') else ''}",
              "fit s": f["seconds"],
-             "registered through a model": "yes" if f.get("registration_through_model") else "no"}
-            for name, f in fits.items()]
-    by_quantity = [{"": key, **{row["colour"]: row[key] for row in rows}} for key in rows[0] if key != "colour"]
+             "registered through a model": "yes" if f.get("registration_through_model") else "no",
+             "stored": "yes" if f["calibration"]["stored"] else "no"}
+            for name, f in fits.items() if "zernike_waves" in f]
     curves = {name: (list(range(1, len(f["losses"]) + 1)), f["losses"]) for name, f in fits.items()}
     report = Report("Model calibration")
     report.warn(*warnings)
-    report.section("Fitted model", table(by_quantity), MODEL_NOTE)
+    report.calibrations([f["calibration"] for f in fits.values()])
+    if rows:
+        by_quantity = [{"": key, **{row["colour"]: row.get(key) for row in rows}} for key in rows[0] if key != "colour"]
+        report.section("Fitted model", table(by_quantity), MODEL_NOTE)
     report.section("Fit", line_plot(curves, "Adam step", "relative residual (first half blurred)"))
-    return report.write(context, {"procedure": "model-calibration", "colours": fits}, rows, list(fits),
-                        [f"{r['colour']}: residual {r['residual before']:.3f} -> {r['residual after']:.3f}"
-                         for r in rows])
+    headline = [f"{name}: " + (f"residual {f['initial_residual']:.3f} -> {f['residual']:.3f}" if "residual" in f
+                               else f"the fit diverged ({f['diverged']})")
+                + ("" if f["calibration"]["stored"] else "; NOT stored") for name, f in fits.items()]
+    return report.write(context, {"procedure": "model-calibration", "colours": fits}, rows, list(fits), headline)

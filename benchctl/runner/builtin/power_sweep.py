@@ -56,7 +56,7 @@ PEAK_GOAL = 0.8  # fraction of full scale the recommended exposure puts the peak
 def plan(context: Context) -> list[Step]:
     unknown_setpoints(context)
     params = context.parameters(PowerSweepParameters)
-    target = prepared_target(context.profile, params.target)
+    target = prepared_target(context.profile, params.target, "parameters.target")
     steps: list[Step] = []
     used = channels(context)
     check_method(context, used)

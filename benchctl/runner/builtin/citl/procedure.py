@@ -6,10 +6,18 @@ fitted optical model from calibration/<profile>/ when there is one, as SGD uses 
 
 Each iteration is one resumable step. It reads the phase and the optimiser state the previous one saved
 (state/<colour>/<k>.npz, float32 as optimised) and saves the next, so a resumed run continues bit for bit; the
-state two iterations back is deleted. Disk: the RAW frames (and the displayed SLM frame) are kept for the first
-and last iterations and every `keep_raw_every`-th; every iteration keeps its registered plane as a 16-bit PNG on
-the ROI (images/citl/<colour>/<k>.png). Iteration k records the loss and captured PSNR of phase k (the one it
-displayed) and the seconds spent per stage; the last (k = iterations) only captures the final phase.
+state two iterations back is deleted. Each state file's SHA-256 is in the result of the step that wrote it and is
+checked before use: a damaged one (missing, truncated, edited, of another shape, pickled) sends the run back to the
+step that wrote it, which recomputes it from its own state (or, that one gone too, from further back).
+
+Divergence stops the run: a phase that is no longer finite after a step, or a captured loss above DIVERGENCE times
+iteration 0's. A resume then goes back one iteration and continues from the last good phase at half the learning
+rate (each state file carries the rate's scale).
+
+Disk: the RAW frames (and the displayed SLM frame) are kept for the first and last iterations and every
+`keep_raw_every`-th; every iteration keeps its registered plane as a 16-bit PNG on the ROI
+(images/citl/<colour>/<k>.png). Iteration k records the loss and captured PSNR of phase k (the one it displayed) and
+the seconds spent per stage; the last (k = iterations) only captures the final phase.
 
 The learning rate falls from `learning_rate` to 0 over the iterations (cosine; `schedule = "constant"` keeps it):
 late gradients are mostly camera noise, and constant steps then walk the phase away from its best.
@@ -32,9 +40,11 @@ for an SGD start) is captured the same way, so the report compares both at one b
 
 from __future__ import annotations
 
+import hashlib
 import io
 import math
 import time
+import zipfile
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -44,9 +54,8 @@ from msgspec import Meta
 
 from benchctl.cgh.citl import straight_through_loss
 from benchctl.files import atomic_write_bytes
-from benchctl.images import read_image
 from benchctl.optics import crop_roi, lsq_scale, psnr
-from benchctl.profiles import LaserChannel, Positive
+from benchctl.profiles import LaserChannel
 from benchctl.runner.api import (
     BenchctlError,
     Context,
@@ -59,8 +68,10 @@ from benchctl.runner.api import (
     PeakGoal,
     RegistrationMode,
     Step,
+    StepRedo,
     channels,
     compute_hologram,
+    load_image,
     measure,
     power_w,
     prepared_target,
@@ -88,7 +99,8 @@ class CitlParameters(ExposureParameters, kw_only=True):
     frames: Frames = 1  # RAW frames averaged per iteration
     dark_frames: DarkFrames = 0  # per iteration (the decoder removes the black level)
     iterations: Annotated[int, Meta(ge=1, le=10_000)] = 50  # Adam steps on the captured error
-    learning_rate: Positive = 0.05
+    # Adam moves each phase value by about this (radians) per step: above 1 a step scrambles the hologram
+    learning_rate: Annotated[float, Meta(gt=0, le=1)] = 0.05
     # "cosine": the learning rate falls from learning_rate to 0 over the iterations (late steps, whose gradient is
     # mostly camera noise, stay small); "constant"
     schedule: Literal["cosine", "constant"] = "cosine"
@@ -104,6 +116,8 @@ class CitlParameters(ExposureParameters, kw_only=True):
 
 
 PARAMETERS = CitlParameters
+DIVERGENCE = 4.0  # a captured loss above this many times iteration 0's: the phase diverged
+MIN_SCALE = 1 / 64  # the learning rate is halved on divergence at most down to this fraction
 
 TIMING_KEYS = ("display_s", "exposure_s", "transfer_s", "decode_s", "register_s", "gradient_s", "laser_s",
                "save_s", "render_s", "total_s")
@@ -118,7 +132,7 @@ def plan(context: Context) -> list[Step]:
     params = context.parameters(CitlParameters)
     gradient_device(params.device)
     unknown_setpoints(context)
-    target = prepared_target(context.profile, params.target)
+    target = prepared_target(context.profile, params.target, "parameters.target")
     present = active_channels(target)
     used = [c for c in channels(context) if present[target_plane(c)]]
     if not used:
@@ -138,7 +152,8 @@ def plan(context: Context) -> list[Step]:
             what = "capture the final phase" if k == count else "capture, register, step the phase"
             steps.append(Step(f"citl/{name}/{k:04d}", f"CITL {name} iteration {k}/{count}: {what}",
                               _iteration(target, channel, k),
-                              (Expose(name, power, params.frames, params.dark_frames),)))
+                              (Expose(name, power, params.frames, params.dark_frames,
+                                      keeps_raw(k, count, params.keep_raw_every)),)))
         if params.baseline:
             steps.append(Step(f"citl/{name}/baseline", f"model-only SGD {name} at {_budget(params)} iterations, "
                               "captured", _baseline(target, channel),
@@ -191,31 +206,76 @@ def _state_file(context: Context, channel: LaserChannel, k: int) -> Path:
     return state_path(context, channel.name, f"{k:04d}.npz")
 
 
-def _save_state(path: Path, phase: torch.Tensor, optimiser: torch.optim.Adam | None) -> None:
-    """The phase and Adam's moments and step count, exactly (float32), written atomically."""
-    arrays: dict[str, np.ndarray] = {"phase": phase.detach().cpu().numpy(), "step": np.zeros((), np.float32)}
+class StateDamaged(ValueError):
+    """A state file that cannot be used as saved: missing, changed since saved, unreadable or inconsistent."""
+
+
+def _save_state(path: Path, phase: torch.Tensor, optimiser: torch.optim.Adam | None, lr_scale: float = 1.0) -> str:
+    """The phase, Adam's moments and step count, exactly (float32), and the learning rate's scale, written atomically;
+    returns the file's SHA-256, which the step's result keeps."""
+    arrays: dict[str, np.ndarray] = {"phase": phase.detach().cpu().numpy(), "step": np.zeros((), np.float32),
+                                     "lr_scale": np.array(lr_scale, np.float64)}
     state = optimiser.state.get(optimiser.param_groups[0]["params"][0]) if optimiser else None
     if state:
         arrays.update({key: state[key].cpu().numpy() for key in ("step", "exp_avg", "exp_avg_sq")})
     buffer = io.BytesIO()
     np.savez(buffer, **arrays)  # type: ignore[arg-type]  # numpy's stub: a key could be its bool allow_pickle
     atomic_write_bytes(path, buffer.getvalue())
+    return hashlib.sha256(buffer.getvalue()).hexdigest()
 
 
-def _load_state(path: Path, learning_rate: float,
-                device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.optim.Adam]:
-    """The phase (a leaf to optimise, on `device`) and its Adam optimiser as `_save_state` left them."""
-    if not path.is_file():
-        raise BenchctlError(f"{path}: the CITL state this iteration starts from is missing (a run keeps only the "
-                            "last two): start a new run")
-    with np.load(path, allow_pickle=False) as data:
-        phase = torch.from_numpy(data["phase"].copy()).to(device).requires_grad_()
-        optimiser = torch.optim.Adam([phase], lr=learning_rate)
-        if float(data["step"]) > 0:  # Adam keeps its step count on the CPU, its moments beside the parameter
-            optimiser.state[phase] = {"step": torch.from_numpy(data["step"].copy()),
-                                      "exp_avg": torch.from_numpy(data["exp_avg"].copy()).to(device),
-                                      "exp_avg_sq": torch.from_numpy(data["exp_avg_sq"].copy()).to(device)}
-    return phase, optimiser
+def _read_state(path: Path, sha256: str | None) -> dict[str, np.ndarray]:
+    """The arrays of a state file, checked against the SHA-256 recorded when it was saved (if given), read without
+    pickles, their shapes consistent; StateDamaged says what is wrong."""
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise StateDamaged(f"{path.name}: {exc.strerror or exc}") from None
+    if sha256 is not None and hashlib.sha256(data).hexdigest() != sha256:
+        raise StateDamaged(f"{path.name} changed since it was saved (SHA-256 {hashlib.sha256(data).hexdigest()[:12]}"
+                           f"..., saved {sha256[:12]}...)")
+    try:
+        with np.load(io.BytesIO(data), allow_pickle=False) as archive:
+            arrays = {name: archive[name] for name in archive.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+        raise StateDamaged(f"{path.name} cannot be read as a saved state: {exc}") from None
+    phase = arrays.get("phase")
+    moments = [arrays.get(name) for name in ("exp_avg", "exp_avg_sq")] if float(arrays.get("step", 0)) > 0 else []
+    if (phase is None or phase.ndim != 2 or phase.dtype != np.float32
+            or any(m is None or m.shape != phase.shape for m in moments) or not np.isfinite(phase).all()):
+        raise StateDamaged(f"{path.name} does not hold a finite float32 phase (with Adam's moments of its shape)")
+    return arrays
+
+
+def _load_state(path: Path, learning_rate: float, device: torch.device | str = "cpu",
+                sha256: str | None = None) -> tuple[torch.Tensor, torch.optim.Adam, float]:
+    """The phase (a leaf to optimise, on `device`), its Adam optimiser and the learning rate's scale as `_save_state`
+    left them (StateDamaged if the file is not as saved)."""
+    data = _read_state(path, sha256)
+    phase = torch.from_numpy(data["phase"].copy()).to(device).requires_grad_()
+    optimiser = torch.optim.Adam([phase], lr=learning_rate)
+    if float(data["step"]) > 0:  # Adam keeps its step count on the CPU, its moments beside the parameter
+        optimiser.state[phase] = {"step": torch.from_numpy(data["step"].copy()),
+                                  "exp_avg": torch.from_numpy(data["exp_avg"].copy()).to(device),
+                                  "exp_avg_sq": torch.from_numpy(data["exp_avg_sq"].copy()).to(device)}
+    return phase, optimiser, float(data.get("lr_scale", 1.0))
+
+
+def _writer(channel: LaserChannel, k: int) -> str:
+    """The step that saves iteration k's state: the start for k = 0, else iteration k - 1."""
+    return f"citl/{channel.name}/start" if k == 0 else f"citl/{channel.name}/{k - 1:04d}"
+
+
+def _diverged(channel: LaserChannel, k: int, what: str, rate: float, scale: float, redo: str) -> BenchctlError:
+    """The error that stops a diverged run; a resume goes back to `redo` at half the learning rate's `scale`."""
+    halved = f" x {scale:g} after earlier divergences" if scale != 1 else ""
+    where = f"CITL {channel.name} diverged at iteration {k}: {what} (learning_rate {rate:g}{halved})"
+    if scale / 2 < MIN_SCALE:
+        return BenchctlError(f"{where}, already halved down to {MIN_SCALE:g}: start a new run with a lower "
+                             "learning_rate")
+    back = "this iteration's start" if redo.endswith(f"{k:04d}") else f"iteration {k - 1}'s phase"
+    return StepRedo(f"{where}: the run stops; a resume continues from {back} at half that rate, or start a new run "
+                    "with a lower learning_rate", redo, stop=True, diverged=True)
 
 
 # -- one capture, decoded and registered --------------------------------------------------------------------------
@@ -274,8 +334,8 @@ def _starter(target: torch.Tensor, channel: LaserChannel):
                                   HologramParameters(method=params.start, iterations=iterations))
         file = save_hologram(context, result.gray, "citl", channel.name, "start.png")
         phase = torch.from_numpy(context.decode(result.gray, channel.name))
-        _save_state(_state_file(context, channel, 0), phase, None)
-        return {"file": file, "method": params.start, "iterations": iterations,
+        digest = _save_state(_state_file(context, channel, 0), phase, None)
+        return {"file": file, "method": params.start, "iterations": iterations, "state_sha256": digest,
                 "seconds": round(result.seconds, 4), "simulated": {k: round(v, 4) for k, v in result.scores.items()}}
 
     return action
@@ -286,16 +346,28 @@ def _iteration(target: torch.Tensor, channel: LaserChannel, k: int):
         params, clock = context.parameters(CitlParameters), time.perf_counter
         begin = clock()
         count, device = params.iterations, gradient_device(params.device)
-        phase, optimiser = _load_state(_state_file(context, channel, k), params.learning_rate, device)
+        key, writer = f"citl/{channel.name}/{k:04d}", _writer(channel, k)
+        try:
+            phase, optimiser, scale = _load_state(_state_file(context, channel, k), params.learning_rate, device,
+                                                  context.result(writer).get("state_sha256"))
+        except StateDamaged as exc:
+            raise StepRedo(f"CITL {channel.name} iteration {k}: its state {exc}", writer) from None
+        scale *= 0.5 ** context.divergences(key)
         gray = context.encode(phase.detach(), channel.name)
         keep = keeps_raw(k, count, params.keep_raw_every)
         plane, record, timing = _capture(context, channel, gray, keep)
         target_roi = _target_roi(context, target, channel)
         start = clock()
         captured, loss, score = _amplitude_error(plane, target_roi)
+        if k > 0:
+            first = context.result(f"citl/{channel.name}/0000")["loss"]
+            if not math.isfinite(loss) or loss > DIVERGENCE * first:
+                raise _diverged(channel, k, f"captured loss {loss:.3g}, {loss / first:.1f} x iteration 0's "
+                                f"{first:.3g}", params.learning_rate, scale, writer)
+        rate = learning_rate(params, k) * scale if k < count else 0.0
         if k < count:
             with torch.enable_grad():
-                optimiser.param_groups[0]["lr"] = learning_rate(params, k)
+                optimiser.param_groups[0]["lr"] = rate
                 optimiser.zero_grad(set_to_none=True)
                 setup = context.setup(channel.name, as_displayed=True)
                 straight_through_loss(phase, captured.to(device), target_roi.to(device), setup).backward()
@@ -303,20 +375,23 @@ def _iteration(target: torch.Tensor, channel: LaserChannel, k: int):
                 with torch.no_grad():
                     phase.copy_(setup.within_reach(phase))
             _synchronised(device)
+            if not bool(torch.isfinite(phase).all()):
+                raise _diverged(channel, k, "the phase is no longer finite after its step",
+                                params.learning_rate, scale, key)
         timing["gradient_s"] = clock() - start
         start = clock()
         record.update(_save_plane(context, channel, f"{k:04d}", plane))
         if keep:
-            record["hologram"] = save_hologram(context, gray, "citl", channel.name, f"{k:04d}.png")
+            record["hologram"] = save_hologram(context, gray, "citl", channel.name, f"{k:04d}.png", read_later=False)
         if k < count:
-            _save_state(_state_file(context, channel, k + 1), phase, optimiser)
+            record["state_sha256"] = _save_state(_state_file(context, channel, k + 1), phase, optimiser, scale)
         if k > 0:
             _state_file(context, channel, k - 1).unlink(missing_ok=True)  # iteration k - 1 finished: not needed
         timing["save_s"] = clock() - start
         timing["total_s"] = clock() - begin
         context.say(f"      {channel.name} {k}/{count}: captured PSNR {score:.2f} dB amplitude, loss {loss:.3e}")
         return {"iteration": k, "loss": loss, "psnr_amplitude_db": round(score, 4), **record, "device": str(device),
-                "timing": {name: round(timing[name], 6) for name in TIMING_KEYS}}
+                "learning_rate": rate, "timing": {name: round(timing[name], 6) for name in TIMING_KEYS}}
 
     return action
 
@@ -346,7 +421,7 @@ def _reporter(target: torch.Tensor, used: list[LaserChannel]):
         baseline = {c.name: context.result(f"citl/{c.name}/baseline") for c in used} if params.baseline else {}
 
         def planes(results: dict[str, dict[str, Any]]) -> dict[int, np.ndarray]:
-            return {target_plane(c): read_image(context.path(results[c.name]["file"])) / 65535.0
+            return {target_plane(c): load_image(context, results[c.name]["file"]) / 65535.0
                     * results[c.name]["full_scale"] for c in used}
 
         def merged(results: dict[str, dict[str, Any]], image: str | None = None) -> dict[str, Any]:

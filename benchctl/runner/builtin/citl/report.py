@@ -10,7 +10,7 @@ import torch
 
 from benchctl.capture.colour_planes import captured_amplitude, merge_capture, merge_colours
 from benchctl.optics import colour_scores
-from benchctl.runner.api import Context, Report, figure, line_plot, save_image, table
+from benchctl.runner.api import Context, Report, figure, line_plot, row, save_image, table
 
 TIMING_NOTE = ("<p>display_s includes the SLM's settle time; exposure_s runs from shutter release to image ready "
                "without the simulator's rendering (render_s, 0 on a real camera); transfer_s is the image download "
@@ -43,22 +43,23 @@ def citl_report(context: Context, summary: dict[str, Any]) -> dict[str, Any]:
     series["merged (sRGB)"] = (steps, [m["scores"]["psnr_srgb_db"] for m in merged])
     if baseline:
         series["model-only SGD, merged (sRGB)"] = ([0, count], [baseline["merged"]["scores"]["psnr_srgb_db"]] * 2)
-    pictures = figure(context, summary["target_image"], "target (sRGB)")
-    pictures += figure(context, merged[0]["image"], "first capture (iteration 0, the start hologram)")
-    pictures += figure(context, merged[-1]["image"], f"last capture (iteration {count})")
+    pictures = [figure(context, summary["target_image"], "target (sRGB)"),
+                figure(context, merged[0]["image"], "first capture (iteration 0, the start hologram)"),
+                figure(context, merged[-1]["image"], f"last capture (iteration {count})")]
     if baseline:
-        pictures += figure(context, baseline["merged"]["image"], f"model-only SGD, {baseline['iterations']} iterations")
+        pictures.append(figure(context, baseline["merged"]["image"],
+                               f"model-only SGD, {baseline['iterations']} iterations"))
     colour_rows = []
     for name, rows in iterations.items():
-        row = {"colour": name, "start": summary["start"][name]["method"],
-               "start simulated PSNR dB": summary["start"][name]["simulated"].get("psnr_amplitude_db"),
-               "first PSNR dB": rows[0]["psnr_amplitude_db"], "last PSNR dB": rows[-1]["psnr_amplitude_db"],
-               "best PSNR dB": max(r["psnr_amplitude_db"] for r in rows)}
+        line = {"colour": name, "start": summary["start"][name]["method"],
+                "start simulated PSNR dB": summary["start"][name]["simulated"].get("psnr_amplitude_db"),
+                "first PSNR dB": rows[0]["psnr_amplitude_db"], "last PSNR dB": rows[-1]["psnr_amplitude_db"],
+                "best PSNR dB": max(r["psnr_amplitude_db"] for r in rows)}
         if baseline:
             base = baseline["colours"][name]["psnr_amplitude_db"]
-            row.update({"model-only SGD PSNR dB": base,
-                        "CITL - SGD dB": round(rows[-1]["psnr_amplitude_db"] - base, 4)})
-        colour_rows.append(row)
+            line.update({"model-only SGD PSNR dB": base,
+                         "CITL - SGD dB": round(rows[-1]["psnr_amplitude_db"] - base, 4)})
+        colour_rows.append(line)
     merged_rows = [{"image": "first (iteration 0)", **merged[0]["scores"]},
                    {"image": f"last (iteration {count})", **merged[-1]["scores"]}]
     if baseline:
@@ -96,7 +97,7 @@ def citl_report(context: Context, summary: dict[str, Any]) -> dict[str, Any]:
     report.section("Captured PSNR against iteration", line_plot(series, "iteration", "captured PSNR (dB)"),
                    "<p>Per colour: amplitude PSNR of the registered capture on the ROI, least-squares scaled; merged: "
                    "the colour image merged and balanced as colour capture does. Iteration k captures the phase after "
-                   "k Adam steps on the captured error.</p>", pictures)
+                   "k Adam steps on the captured error.</p>", row(*pictures))
     report.section("Per colour", table(colour_rows))
     report.section("Merged colour image", table(merged_rows))
     report.section("Seconds per iteration (mean)", table(timing_rows), TIMING_NOTE)
