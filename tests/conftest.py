@@ -18,7 +18,7 @@ import pytest
 
 from benchctl.capture.raw import RawImage, decode_raw
 from benchctl.cli import main
-from benchctl.devices.sim import bench
+from benchctl.devices.sim import physics
 from benchctl.dng import CFA_LAYOUTS, dng_bytes
 from benchctl.profiles import Profile, load_profile
 
@@ -182,7 +182,7 @@ def truly_registered(profile: Profile, *colours: str) -> Profile:
 
     store = Calibration.store(profile)
     for colour in colours or ("green",):
-        store.save_registration(colour, {"homography": bench.camera_homography(profile).tolist(), "rms_px": 0.0})
+        store.save_registration(colour, {"homography": physics.camera_homography(profile).tolist(), "rms_px": 0.0})
     return profile
 
 
@@ -198,7 +198,7 @@ def sim_exposure(profile: Profile, gray: np.ndarray | None, powers_w: dict[str, 
     """One simulated exposure (10 ms, ISO 100) of `gray` (None: the SLM shows nothing) lit by `powers_w`, written as
     a DNG and decoded. Each frame number has its own noise."""
     sensor = profile.sim.sensor
-    mosaic = bench.render_mosaic(profile, gray, powers_w, exposure_s=0.01, iso=100, frame=frame)
+    mosaic = physics.render_mosaic(profile, gray, powers_w, exposure_s=0.01, iso=100, frame=frame)
     return decode_raw(dng_bytes(mosaic, cfa=sensor.cfa, black_level=sensor.black_level,
                                 white_level=sensor.white_level, active_area=sensor.active_area))
 
@@ -216,7 +216,7 @@ def mono_exposure(profile: Profile, gray: np.ndarray | None, powers_w: dict[str,
     for layout, cells in CFA_LAYOUTS.items():
         with_layout = msgspec.structs.replace(profile, sim=msgspec.structs.replace(
             profile.sim, sensor=msgspec.structs.replace(sensor, cfa=layout)))
-        mosaic = bench.render_mosaic(with_layout, gray, powers_w, exposure_s=0.01, iso=100, frame=frame)
+        mosaic = physics.render_mosaic(with_layout, gray, powers_w, exposure_s=0.01, iso=100, frame=frame)
         take = (np.reshape(cells, (2, 2))[site[0], site[1]] == colour) & ~filled
         mono[take], filled[take] = mosaic[take], True
     return decode_raw(dng_bytes(mono, cfa=None, black_level=sensor.black_level, white_level=sensor.white_level,

@@ -23,7 +23,7 @@ from benchctl.capture.colour_planes import (
 )
 from benchctl.capture.raw import RawImage, subtract_dark
 from benchctl.capture.registration import apply_homography
-from benchctl.devices.sim import bench
+from benchctl.devices.sim import physics
 from benchctl.errors import BenchctlError
 from benchctl.optics import colour_scores, crop_roi
 from benchctl.profiles import Profile
@@ -170,7 +170,7 @@ def test_a_captured_colour_chart_scores_like_the_simulated_reconstruction(profil
     shape, roi = profile.slm.shape, profile.optics.roi
     target = prepare_target(load_target("chart:bars", roi), shape, roi)
     scene = compute_scene(target, profile, "dpac")
-    homography = bench.camera_homography(profile)
+    homography = physics.camera_homography(profile)
     planes, saturation = {}, {}
     for colour, channel in enumerate(profile.channels):
         linear = msgspec.structs.replace(profile.sim.slm, two_pi_nm=channel.wavelength_nm, gamma=1.0, zero_order=0.0)

@@ -21,7 +21,7 @@ from benchctl.devices.camera.ptp.eos import EVF_OUTPUT_PC, EosProperty, pack_vie
 from benchctl.devices.camera.ptp_camera import EosTiming, open_ptp_camera
 from benchctl.devices.errors import DeviceTimeout
 from benchctl.devices.laser import open_laser
-from benchctl.devices.sim import bench, eos_usb
+from benchctl.devices.sim import physics, eos_usb
 from benchctl.devices.sim.eos_usb import SimEosTransport
 from benchctl.devices.sim.state import CAMERA_STATE, load_state
 from benchctl.devices.sim.slm import read_displayed
@@ -61,13 +61,13 @@ def test_binned_live_view_has_the_full_captures_signal(bench_profile_path: Path,
     profile = load_profile(bench_profile_path)
     show(profile, SCENES[scene](profile.slm.shape))
     lit_bench(profile, power=POWERS[scene])
-    captures = [decode_raw(bench.render_capture(profile).data) for _ in range(2)]
-    view = bench.LiveView(profile)
+    captures = [decode_raw(physics.render_capture(profile).data) for _ in range(2)]
+    view = physics.LiveView(profile)
     frames = [view.dng(100) for _ in range(2)]
     rows, cols = view.active_shape
     metadata = frames[0][1]
     assert metadata["window"] == [0, 0, rows, cols] and metadata["bin"] == pytest.approx(cols / 100, rel=0.02)
-    assert metadata["bin"] / bench.sensor_pixels_per_slm_pixel(profile) > 2  # 2 x 2 target pixels per frame pixel
+    assert metadata["bin"] / physics.sensor_pixels_per_slm_pixel(profile) > 2  # 2 x 2 target pixels per frame pixel
     frame = [decode_raw(data) for data, _ in frames]
     assert frame[0].mosaic.shape == (round(rows / metadata["bin"]) & ~1, 100)
     assert frame[0].layout == captures[0].layout
@@ -93,11 +93,11 @@ def test_the_live_views_light_is_the_captures(make_bench_profile, sim: dict, iri
     profile = make_bench_profile(sim=sim, optics={"iris_fraction": iris})
     gray = np.random.default_rng(2).integers(0, 256, profile.slm.shape).astype(np.uint8)
     for channel in profile.channels:
-        capture = bench._target_irradiance(profile, channel, gray)
-        live = bench._live_irradiance(profile, channel, gray)
+        capture = physics._target_irradiance(profile, channel, gray)
+        live = physics._live_irradiance(profile, channel, gray)
         assert live.dtype == torch.float32 and live.shape == capture.shape
         assert torch.allclose(live.double(), capture, rtol=0, atol=2e-6 * float(capture.max()))
-    propagator = bench._pruned_propagator(OpticalSetup.of(profile.geometry("green")))
+    propagator = physics._pruned_propagator(OpticalSetup.of(profile.geometry("green")))
     ph, pw = propagator.padded_shape
     band = (propagator.low_y + propagator.high_y) * (propagator.low_x + propagator.high_x)
     assert band < 0.3 * ph * pw if iris else band > 0.6 * ph * pw  # what the iris lets through, and skips
@@ -110,12 +110,12 @@ def test_a_bin_with_one_saturated_pixel_is_marked(bench_profile_path: Path) -> N
     show(profile, SCENES["speckle"](profile.slm.shape))
     lit_bench(profile, power="20mW")
     sensor = profile.sim.sensor
-    full = (sensor.white_level - sensor.black_level) / bench.dn_per_electron(sensor, sensor.iso)
-    gray, powers = read_displayed()[0], bench.emitting_channels(profile)
-    brightest = bench._mean_electrons(profile, gray, powers, sensor.exposure_s)[1].max()
+    full = (sensor.white_level - sensor.black_level) / physics.dn_per_electron(sensor, sensor.iso)
+    gray, powers = read_displayed()[0], physics.emitting_channels(profile)
+    brightest = physics._mean_electrons(profile, gray, powers, sensor.exposure_s)[1].max()
     exposure_s = 1.5 * sensor.exposure_s * full / brightest  # the brightest sensor pixels at 1.5 x the white level
-    (top, bottom, left, right), mean = bench._mean_electrons(profile, gray, powers, exposure_s)
-    data, metadata = bench.LiveView(profile).dng(100, exposure_s=exposure_s)
+    (top, bottom, left, right), mean = physics._mean_electrons(profile, gray, powers, exposure_s)
+    data, metadata = physics.LiveView(profile).dng(100, exposure_s=exposure_s)
     frame = decode_raw(data)
 
     def bins_with(hot: np.ndarray) -> np.ndarray:
@@ -140,19 +140,19 @@ def test_a_bin_with_one_saturated_pixel_is_marked(bench_profile_path: Path) -> N
 def test_a_bins_noise_has_the_shot_and_read_noise_of_its_electrons() -> None:
     rng = np.random.default_rng(3)
     for expected, read_variance in ((3.0, 0.0), (40.0, 64.0), (2000.0, 64.0), (2000.0, 0.0)):
-        counts = bench._binned_electrons(rng, np.full(200_000, expected, np.float32), read_variance)
+        counts = physics._binned_electrons(rng, np.full(200_000, expected, np.float32), read_variance)
         assert counts.dtype == np.float32
         assert counts.mean() == pytest.approx(expected, rel=0.01)
         assert counts.var() == pytest.approx(expected + read_variance, rel=0.02)
-    few = bench._binned_electrons(rng, np.full(1000, 3.0, np.float32), 0.0)
+    few = physics._binned_electrons(rng, np.full(1000, 3.0, np.float32), 0.0)
     assert np.array_equal(few, np.round(few)) and few.min() >= 0  # Poisson's whole electrons where they are few
 
 
 def test_a_native_window_is_the_sensor_at_one_to_one(bench_profile_path: Path) -> None:
     profile = load_profile(bench_profile_path)
     lit_bench(profile)
-    capture = decode_raw(bench.render_capture(profile).data)
-    data, metadata = bench.LiveView(profile).dng(64, (101, 151, 64, 64))  # corner moved onto a CFA cell
+    capture = decode_raw(physics.render_capture(profile).data)
+    data, metadata = physics.LiveView(profile).dng(64, (101, 151, 64, 64))  # corner moved onto a CFA cell
     assert metadata["window"] == [100, 150, 64, 64] and metadata["bin"] == 1.0
     zoom = decode_raw(data)
     region = capture.mosaic[100:164, 150:214]
@@ -166,9 +166,9 @@ def test_light_is_computed_once_per_slm_frame_and_laser_state(bench_profile_path
     profile = load_profile(bench_profile_path)
     lit_bench(profile)
     calls = []
-    original = bench._electron_planes
-    monkeypatch.setattr(bench, "_electron_planes", lambda *a: calls.append(a[2]) or original(*a))
-    view = bench.LiveView(profile)
+    original = physics._electron_planes
+    monkeypatch.setattr(physics, "_electron_planes", lambda *a: calls.append(a[2]) or original(*a))
+    view = physics.LiveView(profile)
     first = [view.render(64)[0] for _ in range(3)]
     assert len(calls) == 1 and not np.array_equal(first[0], first[1])  # new noise, same light
     lit_bench(profile, "green", "4mW")
@@ -193,7 +193,7 @@ def test_the_simulated_camera_previews_without_taking_a_capture_number(bench_pro
         frame = camera.preview(width=100)
         zoom = camera.preview(32, (40, 60, 32, 32))
         captured = camera.capture()[0]
-    assert frame.format == "dng" and frame.full_shape == bench.LiveView(profile).active_shape
+    assert frame.format == "dng" and frame.full_shape == physics.LiveView(profile).active_shape
     assert frame.metadata["lasers_on_w"] == {"green": pytest.approx(0.002)}
     assert decode_raw(frame.data).mosaic.shape[1] == 100
     assert zoom.window == (40, 60, 32, 32) and decode_raw(zoom.data).mosaic.shape == (32, 32)
@@ -277,6 +277,6 @@ def test_the_simulated_eos_body_shows_the_bench_in_its_live_view(make_bench_prof
     lit_bench(profile)
     with open_camera(profile) as camera:
         lit = cv2.imdecode(np.frombuffer(camera.preview().data, np.uint8), cv2.IMREAD_COLOR)
-    assert lit.shape == dark.shape and lit.shape[1] == min(960, bench.LiveView(profile).active_shape[1])
+    assert lit.shape == dark.shape and lit.shape[1] == min(960, physics.LiveView(profile).active_shape[1])
     green = lit[:, :, 1].astype(float)  # OpenCV's BGR: green is in the middle either way
     assert green.max() > 50 > dark.max() + 30 and green.mean() > 3 * lit[:, :, 2].mean()

@@ -1,6 +1,6 @@
 """SLM lookup-table calibration: the grating frames, the inversion of I = a + b cos d against analytic curves
 (exact where the extrema are sampled), its refusals, the monotone table, and the whole measurement on the
-simulated bench against the simulator's true response (`bench.true_lut`) for red, green and blue."""
+simulated bench against the simulator's true response (`physics.true_lut`) for red, green and blue."""
 
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ from benchctl.capture.lut_calibration import (
     zero_order_signal,
 )
 from benchctl.capture.raw import RawImage
-from benchctl.devices.sim import bench
+from benchctl.devices.sim import physics
 from benchctl.profiles import Profile
 
 # The conftest's SMALL_BENCH: a 64 x 96 SLM (8 um) imaged at 1.5 sensor pixels per SLM pixel, turned 3 degrees, behind
@@ -168,9 +168,9 @@ def test_the_table_is_monotonic_and_follows_the_measured_points() -> None:
 def test_calibration_recovers_the_simulators_true_response(profile: Profile, channel: str, colour: int,
                                                            depth: float) -> None:
     grays = calibration_grays()
-    homography = bench.camera_homography(profile)
+    homography = physics.camera_homography(profile)
     signals = np.array(measured_signals(profile, channel, colour, grays, homography, POWERS_W[channel]))
-    true_table = bench.true_lut(profile.channel(channel).wavelength_m, 8, profile.sim.slm).phases
+    true_table = physics.true_lut(profile.channel(channel).wavelength_m, 8, profile.sim.slm).phases
     assert true_table[-1] == pytest.approx(2 * math.pi * depth * (255 / 256) ** 1.05, rel=0.01)
 
     # The derivation's claim: the zero order follows (1 + f^2)/2 + (1 - f^2)/2 cos d exactly, leakage included.
@@ -189,7 +189,7 @@ def test_calibration_without_a_registration_reads_the_sensors_centre(profile: Pr
     grays = calibration_grays(8, 16)
     signals = measured_signals(profile, "blue", 2, grays, None, 1.5e-3)
     lut = calibrate_lut(grays, signals, bit_depth=8)
-    true_table = bench.true_lut(450e-9, 8, profile.sim.slm).phases
+    true_table = physics.true_lut(450e-9, 8, profile.sim.slm).phases
     error = lut.phases - true_table
     assert np.sqrt(np.mean(error**2)) < RMS_TOLERANCE_RAD and np.abs(error).max() < MAX_TOLERANCE_RAD
 
@@ -198,9 +198,9 @@ def test_a_saturated_grating_is_refused(profile: Profile) -> None:
     image = sim_exposure(profile, grating_frame(profile.slm.shape, 0), {"green": 20e-3}, frame=1)
     with pytest.raises(CalibrationError, match=r"<bytes>: 100\.0% of the measured region is saturated; lower the "
                                                r"exposure"):
-        zero_order_signal(image, 1, bench.camera_homography(profile), profile.slm.shape)
+        zero_order_signal(image, 1, physics.camera_homography(profile), profile.slm.shape)
     with pytest.raises(CalibrationError, match=r"a homography needs the SLM grid's shape"):
-        zero_order_signal(image, 1, bench.camera_homography(profile))
+        zero_order_signal(image, 1, physics.camera_homography(profile))
 
 
 def test_the_signal_is_the_mean_of_the_colours_pixels_in_the_central_region() -> None:

@@ -21,7 +21,7 @@ from benchctl.cgh import get_method
 from benchctl.runner.learned.data import procedural_image
 from benchctl.runner.learned.checkpoint import learned_method
 from benchctl.cli import main
-from benchctl.devices.sim import bench
+from benchctl.devices.sim import physics
 from benchctl.devices.sim.state import load_state
 from benchctl.images import read_image
 from benchctl.optics import lsq_scale, psnr
@@ -56,7 +56,8 @@ def rendered(profile: Profile, phases: torch.Tensor) -> torch.Tensor:
     setup = optical_setup(profile, "green")
     rows, cols = setup.roi_slices
     grays = phase_to_gray(phases.detach().numpy(), PhaseLUT.linear(8))
-    captured = torch.stack([bench._target_irradiance(profile, profile.channel("green"), g)[rows, cols] for g in grays])
+    green = profile.channel("green")
+    captured = torch.stack([physics._target_irradiance(profile, green, g)[rows, cols] for g in grays])
     return captured, torch.from_numpy(gray_to_phase(grays, PhaseLUT.linear(8)))
 
 
@@ -164,7 +165,7 @@ def test_the_procedure_fits_stores_and_hands_the_model_to_generation(tmp_path: P
     """Display, capture (RAW, dark-subtracted), register with the stored registration and fit: the same recovery
     through the camera's noise and resampling; the model is stored per profile and copied into the run, and the
     profile a later run uses carries it to OpticalSetup."""
-    Calibration.store(profile).save_registration("green", {"homography": bench.camera_homography(profile).tolist(),
+    Calibration.store(profile).save_registration("green", {"homography": physics.camera_homography(profile).tolist(),
                                                            "rms_px": 0.0})
     procedure = tmp_path / "model.toml"
     procedure.write_text(PROCEDURE % "0.4mW")
@@ -214,7 +215,7 @@ def test_through_the_camera_its_blur_is_fitted_and_the_panel_found(tmp_path: Pat
     sim = ABERRATED["sim"]
     profile = make_bench_profile(SMALL_BENCH, {"sim": {
         **sim, "slm": {**sim["slm"], "zero_order": 0.02, "crosstalk_px": 0.05}, "imaging": {"stray_light": 0.005}}})
-    Calibration.store(profile).save_registration("green", {"homography": bench.camera_homography(profile).tolist(),
+    Calibration.store(profile).save_registration("green", {"homography": physics.camera_homography(profile).tolist(),
                                                            "rms_px": 0.0})
     fits = {}
     for camera_blur in (True, False):
@@ -409,7 +410,7 @@ def test_two_colours_share_one_panel_crosstalk(tmp_path: Path, make_bench_profil
         "aberration": {"green": HIDDEN, "blue": HIDDEN}}})
     store = Calibration.store(profile)
     for colour in ("green", "blue"):
-        store.save_registration(colour, {"homography": bench.camera_homography(profile).tolist(), "rms_px": 0.0})
+        store.save_registration(colour, {"homography": physics.camera_homography(profile).tolist(), "rms_px": 0.0})
     fits, said = {}, []
     for panel in (False, True):
         procedure = tmp_path / f"model-{panel}.toml"

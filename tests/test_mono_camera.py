@@ -21,7 +21,7 @@ from test_registration import CORNER_TOLERANCE, GEOMETRY, corner_error, dot_grid
 from benchctl.capture.raw import decode_raw
 from benchctl.capture.registration import Registration, dots_in_capture, fit_registration
 from benchctl.cli import main
-from benchctl.devices.sim import bench
+from benchctl.devices.sim import physics
 from benchctl.images import read_image
 from benchctl.profiles import Profile, load_profile
 from benchctl.runner.calibration import Calibration
@@ -37,7 +37,7 @@ def test_registration_finds_the_dots_in_a_mono_capture(make_bench_profile: Calla
     assert image.monochrome and image.saturation_fraction == 0
     fit = fit_registration(points, dots_in_capture(image, colour))
     assert fit.inliers >= 0.98 * fit.points and fit.scale == pytest.approx(2.0, rel=0.005)
-    assert corner_error(profile, fit.homography, bench.camera_homography(profile)) < CORNER_TOLERANCE * 2.0
+    assert corner_error(profile, fit.homography, physics.camera_homography(profile)) < CORNER_TOLERANCE * 2.0
 
 
 # -- end to end with Aravis's fake camera ------------------------------------------------------------------------

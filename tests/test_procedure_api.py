@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from benchctl.devices.sim import bench
+from benchctl.devices.sim import physics
 from benchctl.devices.sim.state import load_state
 from benchctl.errors import BenchctlError
 from benchctl.profiles import load_profile
@@ -93,7 +93,7 @@ def test_the_readme_example_runs(tmp_path: Path, make_bench_profile) -> None:
     (tmp_path / "flat.py").write_text(code)
     profile = make_bench_profile()
     for colour in ("red", "green", "blue"):
-        Calibration.store(profile).save_registration(colour, {"homography": bench.camera_homography(profile).tolist(),
+        Calibration.store(profile).save_registration(colour, {"homography": physics.camera_homography(profile).tolist(),
                                                               "rms_px": 0.0})
     outcome = run_procedure(tmp_path / "flat.py", profile=str(profile.path), out=tmp_path / "runs",
                             say=lambda _: None)

@@ -1,6 +1,6 @@
 """Camera-SLM registration: the dot-grid pattern, dot detection under every symmetry of the grid, the RANSAC fit
 and its refusals, the coordinate helpers, and the whole chain on the simulated bench against the simulator's
-true homography (`bench.camera_homography`)."""
+true homography (`physics.camera_homography`)."""
 
 from __future__ import annotations
 
@@ -30,7 +30,7 @@ from benchctl.capture.registration import (
     warp_to_roi,
 )
 from benchctl.cgh import get_method
-from benchctl.devices.sim import bench
+from benchctl.devices.sim import physics
 from benchctl.devices.slm import save_lut, slm_for
 from benchctl.errors import BenchctlError
 from benchctl.optics.aberration import pupil_radius_m
@@ -320,7 +320,7 @@ def test_registration_recovers_the_simulators_homography(profile: Profile, chann
     found = dots_in_capture(image, colour)
     assert np.isfinite(found).all()
     fit = fit_registration(points, found)
-    truth = bench.camera_homography(profile)
+    truth = physics.camera_homography(profile)
     assert fit.inliers >= 0.98 * fit.points and not fit.mirrored
     assert fit.scale == pytest.approx(2.0, rel=0.005)
     assert corner_error(profile, fit.homography, truth) < CORNER_TOLERANCE * 2.0
@@ -331,14 +331,14 @@ def test_a_calibrated_slm_registers_to_a_tenth_of_a_pixel(profile: Profile, make
                                                           tmp_path: Path, channel: str, colour: int) -> None:
     """With the profile's lookup tables equal to the panel's true response the dots are imaged undistorted:
     corners within 0.1 target-plane pixel (measured 0.03 / 0.06 / 0.04 for red / green / blue)."""
-    tables = {c.name: str(save_lut(tmp_path / f"{c.name}.csv", bench.true_lut(c.wavelength_m, 8, profile.sim.slm)))
+    tables = {c.name: str(save_lut(tmp_path / f"{c.name}.csv", physics.true_lut(c.wavelength_m, 8, profile.sim.slm)))
               for c in profile.channels}
     calibrated = make_bench_profile(GEOMETRY, slm={"lut": tables})
     image, points = dot_grid_capture(calibrated, channel, power_w=POWERS_W[channel] / 2)
     assert image.saturation_fraction == 0
     fit = fit_registration(points, dots_in_capture(image, colour))
     assert fit.rms_target_px < 0.2
-    assert corner_error(profile, fit.homography, bench.camera_homography(profile)) < 0.1 * 2.0
+    assert corner_error(profile, fit.homography, physics.camera_homography(profile)) < 0.1 * 2.0
 
 
 @pytest.mark.parametrize("method, magnification, rotation_deg, flips", [
@@ -352,7 +352,7 @@ def test_registration_recovers_mirrored_turned_and_magnified_geometry(
     profile = make_bench_profile(GEOMETRY, slm={"flip_x": flips[0], "flip_y": flips[1]}, sim={
         "imaging": {"magnification": magnification, "rotation_deg": rotation_deg}, "sensor": {"shape": [400, 600]}})
     scale = magnification * 2.0
-    truth = bench.camera_homography(profile)
+    truth = physics.camera_homography(profile)
     for flip, matrix in zip(flips, (FLIP_X, FLIP_Y)):
         truth = truth @ matrix if flip else truth  # the SLM displays the hologram mirrored
     image, points = dot_grid_capture(profile, "green", method)
@@ -399,5 +399,5 @@ def test_an_aberrated_bench_registers_through_its_fitted_model(make_bench_profil
         gray = slm_for(profile).encode(get_method("dpac")(amplitude, through), "green")
         fit = fit_registration(points, dots_in_capture(sim_exposure(profile, gray, {"green": POWERS_W["green"]}), 1))
         assert fit.inliers == fit.points, name
-        errors[name] = corner_error(profile, fit.homography, bench.camera_homography(profile)) / 2.0
+        errors[name] = corner_error(profile, fit.homography, physics.camera_homography(profile)) / 2.0
     assert errors["ideal"] > 5.0 and errors["fitted"] < 0.25 * CORNER_TOLERANCE, errors

@@ -45,9 +45,9 @@ def _events(folder: Path) -> list[dict]:
 
 def test_a_frame_that_saw_another_slm_frame_fails_the_step_and_resume_redoes_it(
         tmp_path: Path, bench_profile_path: Path, expose_procedure: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from benchctl.devices.sim import bench as sim_bench  # the simulated camera renders through this module
+    from benchctl.devices.sim import physics  # the simulated camera renders through this module
 
-    render = sim_bench.render_capture
+    render = physics.render_capture
     calls = []
 
     def render_then_change_the_slm(*args, **kwargs):
@@ -59,7 +59,7 @@ def test_a_frame_that_saw_another_slm_frame_fails_the_step_and_resume_redoes_it(
             save_state("slm", {**state, "frame": state["frame"] + 1, "file": f"slm-{state['frame'] + 1}.png"})
         return render(*args, **kwargs)
 
-    monkeypatch.setattr(sim_bench, "render_capture", render_then_change_the_slm)
+    monkeypatch.setattr(physics, "render_capture", render_then_change_the_slm)
     with pytest.raises(DeviceError, match=r"frame-001.dng: captured while the SLM showed frame 2, not frame 1 that "
                                           r"this step displayed"):
         run_procedure(expose_procedure, profile=str(bench_profile_path), out=tmp_path / "runs", say=lambda _: None)
@@ -67,7 +67,7 @@ def test_a_frame_that_saw_another_slm_frame_fails_the_step_and_resume_redoes_it(
     assert [e["event"] for e in _events(folder)] == ["start", "failed"]
     assert not any(s.get("emission") for s in load_state("rgb-laser")["channels"].values())
 
-    monkeypatch.setattr(sim_bench, "render_capture", render)
+    monkeypatch.setattr(physics, "render_capture", render)
     outcome = run_procedure(None, resume=folder, say=lambda _: None)
     assert outcome.ran == ["expose"]
     done = _events(folder)[-1]

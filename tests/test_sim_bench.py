@@ -24,7 +24,7 @@ from benchctl.cgh import get_method
 from benchctl.devices.camera import camera_for
 from benchctl.devices.sim.camera import SimCamera
 from benchctl.devices.laser import open_laser
-from benchctl.devices.sim import bench
+from benchctl.devices.sim import physics
 from benchctl.devices.sim.state import reset_states
 from benchctl.devices.slm import open_slm, slm_for
 from benchctl.errors import BenchctlError
@@ -96,7 +96,7 @@ def colour_mask(image: RawImage, colour: int) -> np.ndarray:
 
 def central_region(profile: Profile, shape: tuple[int, int]) -> np.ndarray:
     """Sensor pixels whose target-plane point lies in the central half of the SLM grid (both axes)."""
-    inverse = np.linalg.inv(bench.camera_homography(profile))
+    inverse = np.linalg.inv(physics.camera_homography(profile))
     rows, cols = np.indices(shape)
     x, y, _ = inverse @ np.stack([cols.ravel(), rows.ravel(), np.ones(rows.size)])
     h, w = profile.slm.shape
@@ -174,7 +174,7 @@ def test_light_lands_only_on_the_image_of_the_slm_grid(profile: Profile) -> None
     profile = changed(profile, "optics", distance_mm=1.0)
     image = capture(profile, np.zeros((64, 96), np.uint8), {"green": 0.3})
     assert not image.saturated.any()
-    inverse = np.linalg.inv(bench.camera_homography(profile))
+    inverse = np.linalg.inv(physics.camera_homography(profile))
     rows, cols = np.indices(image.mosaic.shape)
     x, y, _ = inverse @ np.stack([cols.ravel(), rows.ravel(), np.ones(rows.size)])
     outside = ((x < -3) | (x > 98) | (y < -3) | (y > 66)).reshape(rows.shape)
@@ -196,7 +196,7 @@ def test_saturation_clips_at_the_white_level(profile: Profile) -> None:
 
 
 def test_homography_maps_points_as_configured(profile: Profile) -> None:
-    homography = bench.camera_homography(profile)
+    homography = physics.camera_homography(profile)
     for x, y in [(47.5, 31.5), (0, 0), (95, 0), (20, 50)]:
         mapped = homography @ [x, y, 1]
         assert mapped[:2] / mapped[2] == pytest.approx(to_sensor(profile, x, y), abs=1e-9)
@@ -273,14 +273,14 @@ def test_emitting_channels_are_read_from_each_units_state(profile: Profile, dial
         laser.set_power("green", 1e-3)
         laser.set_power("blue", 3e-3)
         laser.set_emission("blue", True)
-        assert bench.emitting_channels(profile) == {"blue": pytest.approx(3e-3)}
-    assert bench.emitting_channels(profile) == {}  # closing turned emission off
+        assert physics.emitting_channels(profile) == {"blue": pytest.approx(3e-3)}
+    assert physics.emitting_channels(profile) == {}  # closing turned emission off
 
 
 def test_a_real_laser_port_is_refused(profile: Profile) -> None:
     laser = msgspec.structs.replace(profile.laser, port="/dev/ttyUSB0")
     with pytest.raises(BenchctlError, match=r"'red' is on /dev/ttyUSB0, not a sim:// port"):
-        bench.emitting_channels(msgspec.structs.replace(profile, laser=laser))
+        physics.emitting_channels(msgspec.structs.replace(profile, laser=laser))
 
 
 def test_frames_repeat_for_a_seed_and_differ_from_frame_to_frame(profile: Profile) -> None:
@@ -315,7 +315,7 @@ def test_captures_are_dngs_rawpy_reads_with_the_settings(profile: Profile, tmp_p
 
 
 def test_the_body_settings_apply_where_the_camera_section_gives_none(profile: Profile) -> None:
-    frame = bench.render_capture(profile)
+    frame = physics.render_capture(profile)
     assert (frame.metadata["exposure_s"], frame.metadata["iso"]) == (0.01, 100)
 
 
@@ -323,8 +323,8 @@ def test_the_body_settings_apply_where_the_camera_section_gives_none(profile: Pr
 
 
 def test_true_response_is_linear_only_where_configured(profile: Profile) -> None:
-    assert np.allclose(bench.true_lut(520e-9, 8, profile.sim.slm).phases, PhaseLUT.linear(8).phases, rtol=1e-12)
-    default = bench.true_lut(520e-9, 8, SimConfig().slm).phases
+    assert np.allclose(physics.true_lut(520e-9, 8, profile.sim.slm).phases, PhaseLUT.linear(8).phases, rtol=1e-12)
+    default = physics.true_lut(520e-9, 8, SimConfig().slm).phases
     assert float(default[128]) == pytest.approx(2 * math.pi * 600 / 520 * 0.5**1.05)
 
 
@@ -348,7 +348,7 @@ def test_a_dpac_hologram_is_seen_as_benchctl_predicts(profile: Profile) -> None:
         with SimCamera(msgspec.structs.replace(profile.camera, exposure_s=0.004), profile) as camera:
             image = decode_raw(camera.capture()[0].data)
     green = image.planes()[1]  # cell (i, j) is centred on visible pixel (2 i + 0.5, 2 j + 0.5)
-    to_plane = np.array([[0.5, 0, -0.25], [0, 0.5, -0.25], [0, 0, 1]]) @ bench.camera_homography(profile)
+    to_plane = np.array([[0.5, 0, -0.25], [0, 0.5, -0.25], [0, 0, 1]]) @ physics.camera_homography(profile)
     registered = cv2.warpAffine(green, to_plane[:2], (96, 64), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
     roi = setup.roi_slices
 
@@ -395,7 +395,7 @@ def test_sim_section_errors_name_the_key(tmp_path: Path, block: str, message: st
 
 def irradiance(profile: Profile, gray: np.ndarray, channel: str = "green") -> np.ndarray:
     """The simulator's target-plane irradiance (fraction of the beam's power per pixel) of `gray`, noiseless."""
-    return bench._target_irradiance(profile, profile.channel(channel), gray).numpy()
+    return physics._target_irradiance(profile, profile.channel(channel), gray).numpy()
 
 
 def moments(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -462,7 +462,7 @@ def test_a_gaussian_beam_is_captured_with_its_waist_and_offset(profile: Profile)
     profile = changed(changed(profile, "optics", distance_mm=1.0), "beam", waist_mm=0.1, offset_mm=(0.05, -0.08))
     image = capture(profile, np.zeros((64, 96), np.uint8), {"green": 0.3})
     assert not image.saturated.any()
-    inverse = np.linalg.inv(bench.camera_homography(profile))
+    inverse = np.linalg.inv(physics.camera_homography(profile))
     rows, cols = np.indices(image.mosaic.shape)
     x, y, _ = inverse @ np.stack([cols.ravel(), rows.ravel(), np.ones(rows.size)])
     inside = (abs(x - 47.5) < 44) & (abs(y - 31.5) < 28)
@@ -574,9 +574,9 @@ def test_simulated_devices_report_their_ground_truth_and_real_ones_none(profile:
     slm, camera = slm_for(profile), camera_for(profile)
     green = profile.channel("green").wavelength_m
     np.testing.assert_array_equal(slm.ground_truth_lut(green),
-                                  bench.true_lut(green, slm.bit_depth, profile.sim.slm).phases)
+                                  physics.true_lut(green, slm.bit_depth, profile.sim.slm).phases)
     assert slm.ground_truth_lut(green)[-1] != slm.ground_truth_lut(profile.channel("red").wavelength_m)[-1]
-    np.testing.assert_array_equal(camera.ground_truth_homography(), bench.camera_homography(profile))
+    np.testing.assert_array_equal(camera.ground_truth_homography(), physics.camera_homography(profile))
     real = load_profile("paper_bench")  # a framebuffer SLM
     assert slm_for(real).ground_truth_lut(green) is None
     for driver in ("ptp", "gphoto2"):

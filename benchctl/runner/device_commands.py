@@ -34,7 +34,7 @@ if TYPE_CHECKING:
 
 _DURATION = re.compile(r"^\s*(\d+(?:\.\d*)?|\.\d+)\s*(ms|s|min|m|h)?\s*$")
 _SECONDS = {"ms": 1e-3, "s": 1.0, None: 1.0, "min": 60.0, "m": 60.0, "h": 3600.0}
-CAMERA = "sim-camera"  # the simulated camera's name in the simulated bench's state (devices.sim.bench)
+CAMERA = "sim-camera"  # the simulated camera's name in the simulated bench's state (devices.sim.physics)
 HOLDER_EXIT_S = 15.0  # how long `laser off` waits for a command holding the laser to switch it off and exit
 
 

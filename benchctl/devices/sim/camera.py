@@ -1,5 +1,5 @@
 """The "sim" camera driver: a Canon-like body on the simulated bench, recording what the simulated SLM and
-lasers produce (benchctl.devices.sim.bench) as a DNG; and the simulated EOS body that the `ptp` driver talks to
+lasers produce (benchctl.devices.sim.physics) as a DNG; and the simulated EOS body that the `ptp` driver talks to
 when the profile says camera.transport = "sim", delivering the same frames over PTP."""
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from benchctl.files import ensure_dir
 from benchctl.profiles import CameraConfig, Profile
 
 if TYPE_CHECKING:
-    from benchctl.devices.sim.bench import LiveView
+    from benchctl.devices.sim.physics import LiveView
 
 
 def unplug_frame(fault: str) -> int:
@@ -74,13 +74,13 @@ class SimCamera(Camera):
 
     def ground_truth_homography(self) -> np.ndarray:
         """The simulated bench's own imaging geometry ([sim.imaging], [sim.sensor])."""
-        from benchctl.devices.sim.bench import camera_homography
+        from benchctl.devices.sim.physics import camera_homography
 
         return camera_homography(self.profile)
 
     def _capture_one(self) -> RawFrame:
         """Render the frame, then wait the exposure and the body's readout time as a real camera would."""
-        from benchctl.devices.sim.bench import render_capture  # torch physics: only a capture needs it
+        from benchctl.devices.sim.physics import render_capture  # torch physics: only a capture needs it
 
         self._check_cable()
         start = time.perf_counter()
@@ -92,7 +92,7 @@ class SimCamera(Camera):
     def _preview(self, width: int, window: Window | None) -> PreviewFrame:
         """A binned readout of `window` from the simulator's live view (`LiveView`): the light is computed once per
         SLM frame and laser state, so a steady scene costs only resampling and noise per frame."""
-        from benchctl.devices.sim.bench import LiveView
+        from benchctl.devices.sim.physics import LiveView
 
         self._check_cable()
         if self._live_view is None:
@@ -107,7 +107,7 @@ def eos_transport(profile: Profile) -> SimEosTransport:
     renders, and its live view the simulator's preview as JPEG, with the exposure and ISO of the profile's
     [camera] section."""
     from benchctl.devices.camera.base import PREVIEW_WIDTH
-    from benchctl.devices.sim.bench import LiveView, render_capture  # torch physics: only a capture needs it
+    from benchctl.devices.sim.physics import LiveView, render_capture  # torch physics: only a capture needs it
 
     config = profile.require("camera").camera
     assert config is not None
