@@ -12,7 +12,7 @@ import pytest
 from benchctl.benchmarks import reproduce_job
 from benchctl.benchmarks.reproduce import DEFAULT_METHODS, new_plan, reproduce_command
 from benchctl.benchmarks.reproduce_job import Evaluation, doubling_gain, flat_doublings, run_job
-from benchctl.benchmarks.reproduce_report import PAPER
+from benchctl.benchmarks.reproduce_report import PAPER, comparisons
 from benchctl.cli import main
 from benchctl.errors import BadValueError, BenchctlError
 from benchctl.profiles import load_profile
@@ -130,6 +130,21 @@ def test_an_interrupted_reproduction_job_continues_exactly(tmp_path: Path, small
     assert [e | {"cpu_seconds": 0, "wall_seconds": 0} for e in resumed["curve"]] == \
         [e | {"cpu_seconds": 0, "wall_seconds": 0} for e in expected["curve"]]
     assert resumed["reason"] == expected["reason"] == "step cap" and resumed["steps"] == 6
+
+
+def test_a_claim_is_read_where_training_ended_and_where_validation_was_best() -> None:
+    """A batch-1 run can end on a dip: the comparison gives both readings, paired by seed."""
+    def run(seed: int, *evaluations: tuple[float, float]) -> dict:
+        return {"seed": seed, "curve": [{"val_psnr": v, "psnr": p} for v, p in evaluations]}
+
+    groups = {("holonet-dcm2", True): [run(1, (20.0, 30.0), (10.0, 25.0)), run(2, (12.0, 27.0), (13.0, 28.0))],
+              ("holonet", True): [run(1, (5.0, 28.0), (6.0, 29.0)), run(2, (7.0, 26.0), (6.0, 30.0))]}
+    (claim,) = comparisons(groups)
+    assert claim["claim"] == "x2 about equal to HoloNet" and claim["pairs"] == 2
+    assert claim["here_db"] == pytest.approx((25 + 28) / 2 - (29 + 30) / 2)  # end: -3
+    assert claim["best_val_db"] == pytest.approx((30 + 28) / 2 - (29 + 26) / 2)  # best validation: +1.5
+    assert claim["paired_sd_db"] == pytest.approx(2 ** 0.5)  # per-seed differences at the end: -4 and -2
+    assert claim["paper_db"] == pytest.approx(PAPER["holonet-dcm2"][0] - PAPER["holonet"][0])
 
 
 def test_reproduction_settings_are_checked_before_anything_trains(tmp_path: Path, small_profile_path: Path) -> None:
