@@ -12,7 +12,7 @@ import pytest
 from benchctl.benchmarks import reproduce_job
 from benchctl.benchmarks.reproduce import DEFAULT_METHODS, new_plan, reproduce_command
 from benchctl.benchmarks.reproduce_job import Evaluation, doubling_gain, flat_doublings, run_job
-from benchctl.benchmarks.reproduce_report import PAPER, comparisons
+from benchctl.benchmarks.reproduce_report import PAPER, comparisons, seed_curve
 from benchctl.cli import main
 from benchctl.errors import BadValueError, BenchctlError
 from benchctl.profiles import load_profile
@@ -145,6 +145,16 @@ def test_a_claim_is_read_where_training_ended_and_where_validation_was_best() ->
     assert claim["best_val_db"] == pytest.approx((30 + 28) / 2 - (29 + 26) / 2)  # best validation: +1.5
     assert claim["paired_sd_db"] == pytest.approx(2 ** 0.5)  # per-seed differences at the end: -4 and -2
     assert claim["paper_db"] == pytest.approx(PAPER["holonet-dcm2"][0] - PAPER["holonet"][0])
+
+
+def test_a_seed_that_stopped_early_leaves_the_curve_to_the_others() -> None:
+    stalled = {"curve": [{"step": 16, "psnr": 14.0}, {"step": 21, "psnr": 14.5}]}
+    trained = [{"curve": [{"step": s, "psnr": p} for s, p in zip((16, 21, 32, 45), (15.0, 16.0, 20.0, 24.0))]},
+               {"curve": [{"step": s, "psnr": p} for s, p in zip((16, 21, 32, 45), (17.0, 18.0, 22.0, 26.0))]}]
+    x, values, stopped = seed_curve([stalled, *trained], "step")
+    assert x == [16, 21, 32, 45] and stopped == 1
+    assert values == [[14.0, 15.0, 17.0], [14.5, 16.0, 18.0], [20.0, 22.0], [24.0, 26.0]]
+    assert seed_curve(trained, "step")[2] == 0
 
 
 def test_reproduction_settings_are_checked_before_anything_trains(tmp_path: Path, small_profile_path: Path) -> None:

@@ -277,6 +277,16 @@ def _curves(plan: dict[str, Any], run_dir: Path) -> list[dict[str, Any]]:
     return rows
 
 
+def seed_curve(runs: Sequence[dict[str, Any]], key: str) -> tuple[list[float], list[list[float]], int]:
+    """One method's curve over its seeds: at each evaluation the mean of `key` (step or CPU seconds) and the held-out
+    PSNRs of the seeds that reached it, so a seed that stopped early (a stall, the stopping rule) leaves the curve
+    to the others instead of cutting it short; and how many seeds stopped before the longest."""
+    length = max(len(d["curve"]) for d in runs)
+    going = [[d for d in runs if len(d["curve"]) > i] for i in range(length)]
+    x = [statistics.mean(d["curve"][i][key] for d in present) for i, present in enumerate(going)]
+    return x, [[d["curve"][i]["psnr"] for d in present] for i, present in enumerate(going)], len(runs) - len(going[-1])
+
+
 def _plot(groups: dict[tuple[str, bool], list[dict[str, Any]]], key: str, label: str, path: Path,
           dpac: float) -> Path | None:
     """Held-out PSNR against step or CPU seconds (log axis): the mean over seeds, the seeds' range shaded."""
@@ -289,12 +299,11 @@ def _plot(groups: dict[tuple[str, bool], list[dict[str, Any]]], key: str, label:
         return None
     fig, ax = plt.subplots(figsize=(9, 5.5))
     for (method, iris), runs in groups.items():
-        length = min(len(d["curve"]) for d in runs)
-        x = [statistics.mean(d["curve"][i][key] for d in runs) for i in range(length)]
-        values = [[d["curve"][i]["psnr"] for d in runs] for i in range(length)]
+        x, values, stopped = seed_curve(runs, key)
         style = "--" if VARIANTS[method].family == "ccnn" else ":" if not iris else "-"
         line, = ax.plot(x, [statistics.mean(v) for v in values], style, marker="o", markersize=2.5,
-                        label=f"{_label(method, iris)} ({len(runs)})")
+                        label=f"{_label(method, iris)} ({len(runs)}"
+                        + (f", {stopped} stopped early)" if stopped else ")"))
         if len(runs) > 1:
             ax.fill_between(x, [min(v) for v in values], [max(v) for v in values], color=line.get_color(), alpha=0.15)
     ax.axhline(dpac, color="black", linewidth=0.8, linestyle="-.", label="DPAC")
