@@ -17,6 +17,7 @@ from benchctl.cli import main
 from benchctl.errors import BadValueError, BenchctlError
 from benchctl.profiles import load_profile
 from benchctl.runner.learned.checkpoint import read_checkpoint
+from benchctl.runner.learned.health import StepStats
 from benchctl.runner.learned.data import image_sources
 from benchctl.targets import photo_specs
 
@@ -155,6 +156,19 @@ def test_a_seed_that_stopped_early_leaves_the_curve_to_the_others() -> None:
     assert x == [16, 21, 32, 45] and stopped == 1
     assert values == [[14.0, 15.0, 17.0], [14.5, 16.0, 18.0], [20.0, 22.0], [24.0, 26.0]]
     assert seed_curve(trained, "step")[2] == 0
+
+
+def test_a_job_that_stops_learning_ends_there_and_says_why(tmp_path: Path, small_profile_path: Path,
+                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    new_plan(tmp_path, load_profile(str(small_profile_path)), size=(32, 48), methods=["ccnn"], seeds=[1],
+             data="procedural:2", max_steps=64, min_steps=32, first_evaluation=4, iris_test=False)
+    monkeypatch.setattr(reproduce_job, "training_step", lambda *args, **kwargs: StepStats(0.1, 10.0, 0.0, 1.0))
+    lines: list[str] = []
+    done = run_job(tmp_path, "ccnn-s1", out=lines.append)
+    assert done["reason"] == "stopped learning" and done["steps"] == 10  # ten steps at the clamp with no gradient
+    assert lines[-2].startswith("ccnn-s1: stopped learning at step 10: for 10 steps the gradient was 0")
+    assert [e["step"] for e in done["curve"]] == [4, 6, 8, 10]  # evaluated where it stopped
+    assert json.loads((tmp_path / "jobs" / "ccnn-s1" / "done.json").read_text())["reason"] == "stopped learning"
 
 
 def test_reproduction_settings_are_checked_before_anything_trains(tmp_path: Path, small_profile_path: Path) -> None:

@@ -214,7 +214,7 @@ def run_job(run_dir: Path, name: str, out: Any = print) -> dict[str, Any]:
         step += 1
         verdict = health.update(stats)
         if verdict is not None:
-            reason = f"{verdict.split(':')[0]}"
+            reason = verdict.split(" at step")[0]  # "stopped learning" / "diverged": `steps` says where
             out(f"{name}: {verdict}")
         if evaluations and step == evaluations[0] or reason is not None:
             evaluations = evaluations[1:] if evaluations and step == evaluations[0] else evaluations
