@@ -231,9 +231,8 @@ def _read_state(path: Path, sha256: str | None) -> dict[str, np.ndarray]:
         data = path.read_bytes()
     except OSError as exc:
         raise StateDamaged(f"{path.name}: {exc.strerror or exc}") from None
-    if sha256 is not None and hashlib.sha256(data).hexdigest() != sha256:
-        raise StateDamaged(f"{path.name} changed since it was saved (SHA-256 {hashlib.sha256(data).hexdigest()[:12]}"
-                           f"..., saved {sha256[:12]}...)")
+    if sha256 is not None and (actual := hashlib.sha256(data).hexdigest()) != sha256:
+        raise StateDamaged(f"{path.name} changed since it was saved (SHA-256 {actual[:12]}..., saved {sha256[:12]}...)")
     try:
         with np.load(io.BytesIO(data), allow_pickle=False) as archive:
             arrays = {name: archive[name] for name in archive.files}
