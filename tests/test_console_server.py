@@ -196,13 +196,15 @@ def test_dead_man_also_catches_a_silent_page(client: TestClient) -> None:
         assert wait_for(lambda: laser_channel(1)["emission"] is False, 5.0)  # open socket, no heartbeat
 
 
-def test_stopping_the_console_leaves_emission_off(bench_profile_path: Path, tmp_path: Path) -> None:
+def test_stopping_the_console_leaves_emission_off_at_the_profiles_setpoint(bench_profile_path: Path,
+                                                                           tmp_path: Path) -> None:
     console = make_console(load_profile(bench_profile_path), tmp_path)
     console.set_power("green", "1mW")
     console.set_emission("green", True)
-    assert laser_channel(2)["emission"] is True
+    assert laser_channel(2)["emission"] is True and laser_channel(2)["setpoint_w"] == pytest.approx(1e-3)
     console.close()
     assert laser_channel(2)["emission"] is False
+    assert laser_channel(2)["setpoint_w"] == pytest.approx(2e-3)  # the profile's: the next `laser on` is no surprise
 
 
 def test_slm_patterns_round_trip_to_the_displayed_frame(client: TestClient, bench_profile_path: Path) -> None:

@@ -34,7 +34,7 @@ class LaserControl:
     def __init__(self, profile: Profile, say: Callable[[str], None], deadman_s: float = DEADMAN_S) -> None:
         self.profile = profile
         self.config = profile.section("laser")
-        self.held: Held[Laser] = Held("laser", lambda: open_laser(self.config), Laser.close)
+        self.held: Held[Laser] = Held("laser", lambda: open_laser(self.config), self._shut)
         self.say = say
         self.deadman_s = deadman_s
         self.emitting: set[str] = set()  # channels this console switched on and not off since
@@ -64,6 +64,15 @@ class LaserControl:
             raise
         finally:
             self.emitting.clear()
+
+    def _shut(self, laser: Laser) -> None:
+        """Let go of the laser as a run does: emission off, every setpoint back to the profile's (said), closed."""
+        try:
+            laser.all_off()
+            for line in laser.restore_setpoints("the console"):
+                self.say(f"laser: {line}")
+        finally:
+            laser.close()
 
     # -- commands ----------------------------------------------------------------------------------------------
 

@@ -8,7 +8,6 @@ every channel off. Laser safety (off at connect, off on any exit, limits, read-b
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable
 from contextlib import ExitStack
@@ -21,9 +20,7 @@ import numpy as np
 from benchctl.devices.camera import Camera, RawFrame, open_camera
 from benchctl.devices.errors import DeviceError
 from benchctl.devices.laser import Laser, open_laser
-from benchctl.devices.power import format_power
 from benchctl.devices.slm import SLM, open_slm
-from benchctl.errors import BenchctlError
 from benchctl.profiles import Profile
 
 DEVICES = ("laser", "slm", "camera")
@@ -54,27 +51,13 @@ class Instruments:
             if laser is not None:
                 try:
                     laser.all_off()
-                    self._restore_setpoints(laser)
+                    for line in laser.restore_setpoints("the run"):  # the run's own error, if any, stays raised
+                        self.say(f"laser: {line}")
                 finally:
                     laser.close()
         finally:
             self._open.clear()
             self._stack.close()
-
-    def _restore_setpoints(self, laser: Laser) -> None:
-        """Each channel's setpoint back to the profile's where the run left another, said; a channel that cannot be
-        set back is said too (the run's own error, if any, stays the one raised)."""
-        for channel in self.profile.channels:
-            target = channel.setpoint_mw * 1e-3
-            try:
-                held = laser.setpoint_w(channel.name)
-                if not math.isclose(held, target, rel_tol=1e-3, abs_tol=1e-9):
-                    laser.set_power(channel.name, target)
-                    self.say(f"laser: {channel.name} setpoint back to the profile's {format_power(target)} (the run "
-                             f"left {format_power(held)})")
-            except BenchctlError as exc:
-                self.say(f"laser: {channel.name}: could not set the setpoint back to the profile's "
-                         f"{format_power(target)}: {exc}")
 
     def _device(self, name: str, opener: Callable[[], Any], identify: Callable[[Any], Any]) -> Any:
         """The device called `name`, opened (and its identity noted) on first use."""

@@ -273,6 +273,24 @@ class Laser(ABC):
         self._require_open()
         try_each(self._switch_off, self.config.channels)
 
+    def restore_setpoints(self, who: str) -> list[str]:
+        """Each channel's setpoint back to the profile's where it holds another (`who` chose it: a run's automatic
+        exposure, the console; the next `laser on` must not surprise). Every channel is tried; returns one line per
+        channel set back or that could not be."""
+        lines = []
+        for channel in self.config.channels:
+            target = channel.setpoint_mw * 1e-3
+            try:
+                held = self.setpoint_w(channel.name)
+                if not math.isclose(held, target, rel_tol=1e-3, abs_tol=1e-9):
+                    self.set_power(channel.name, target)
+                    lines.append(f"{channel.name} setpoint back to the profile's {format_power(target)} ({who} left "
+                                 f"{format_power(held)})")
+            except BenchctlError as exc:
+                lines.append(f"{channel.name}: could not set the setpoint back to the profile's "
+                             f"{format_power(target)}: {exc}")
+        return lines
+
     # -- shared helpers for drivers ----------------------------------------------------------------------------
 
     def _link(self, channel: LaserChannel) -> SerialLink:
