@@ -68,6 +68,22 @@ def test_a_misspelt_method_in_a_procedure_gets_a_suggestion(tmp_path: Path, benc
     assert "unknown hologram method 'dpca' (did you mean 'dpac'?)" in line
 
 
+@pytest.mark.parametrize("argv, message", [
+    (["console", "--port", "99999"], "argument --port: must lie between 0 and 65535, got 99999"),
+    (["console", "--deadman", "inf"], "argument --deadman: must be a finite number of seconds above 0, got 'inf'"),
+    (["console", "--deadman", "0"], "argument --deadman: must be a finite number of seconds above 0, got '0'"),
+    (["bench", "console", "--seconds", "-1"],
+     "argument --seconds: must be a finite number of seconds above 0, got '-1'"),
+])
+def test_console_times_and_ports_out_of_range_are_usage_errors(argv: list[str], message: str,
+                                                                capsys: pytest.CaptureFixture[str]) -> None:
+    """An endless dead-man would never switch the laser off; these were tracebacks or accepted before."""
+    with pytest.raises(SystemExit) as done:
+        main(argv)
+    assert done.value.code == 2
+    assert capsys.readouterr().err.splitlines()[-1].endswith(f"error: {message}")
+
+
 def help_text(capsys: pytest.CaptureFixture[str], *argv: str) -> str:
     with pytest.raises(SystemExit) as done:
         main([*argv, "--help"])

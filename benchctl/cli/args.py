@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import re
 from collections.abc import Callable
 from typing import Any
@@ -46,22 +47,35 @@ def name_list(text: str) -> list[str]:
     return [v.strip() for v in text.split(",") if v.strip()]
 
 
-def whole_number(minimum: int) -> Callable[[str], int]:
-    """The argument type of a whole number >= `minimum`."""
+def whole_number(minimum: int, maximum: int | None = None) -> Callable[[str], int]:
+    """The argument type of a whole number >= `minimum` (and <= `maximum`)."""
     def parse(text: str) -> int:
         try:
             value = int(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-        if value < minimum:
-            raise argparse.ArgumentTypeError(f"must be >= {minimum}, got {value}")
+        if value < minimum or (maximum is not None and value > maximum):
+            bound = f"lie between {minimum} and {maximum}" if maximum is not None else f"be >= {minimum}"
+            raise argparse.ArgumentTypeError(f"must {bound}, got {value}")
         return value
 
     return parse
 
 
+def seconds(text: str) -> float:
+    """The argument type of a time in seconds: a finite number above 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of seconds, got {text!r}") from None
+    if not 0 < value < math.inf:
+        raise argparse.ArgumentTypeError(f"must be a finite number of seconds above 0, got {text!r}")
+    return value
+
+
 count = whole_number(0)
 positive_int = whole_number(1)
+port = whole_number(0, 65535)
 
 
 class Parser(argparse.ArgumentParser):

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from benchctl.cli.args import add_profile, grid_size, int_list, name_list, positive_int
+from benchctl.cli.args import add_profile, grid_size, int_list, name_list, positive_int, seconds
 
 
 def _cmd_bench_speed(args: argparse.Namespace) -> int:
@@ -229,7 +229,7 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
 
     console = bench.add_parser("console", help="the live console from outside: preview fps, change-to-frame latency, "
                                                "status latency during an SGD hologram (a console server is started)")
-    console.add_argument("--seconds", type=float, default=10.0, help="how long frames are counted (default 10)")
+    console.add_argument("--seconds", type=seconds, default=10.0, help="how long frames are counted (default 10)")
     console.add_argument("--repeats", type=positive_int, default=5, help="changes timed per kind (default 5)")
     console.add_argument("--out", "-o", type=Path, metavar="DIR", help="also write console.json there")
     add_profile(console)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from benchctl.cli.args import add_profile
+from benchctl.cli.args import add_profile, port, seconds
 from benchctl.errors import BenchctlError
 
 DEFAULT_PORT = 8765
@@ -19,8 +19,6 @@ def _cmd_console(args: argparse.Namespace) -> int:
             from None
     from benchctl.profiles import load_profile
 
-    if args.deadman <= 0:
-        raise BenchctlError(f"--deadman must be > 0 seconds, got {args.deadman:g}")
     procedures = args.procedures if args.procedures is not None else Path("procedures")
     serve(load_profile(args.profile), port=args.port, bind=args.bind, out=args.out,
           procedures=procedures if procedures.is_dir() else None, deadman_s=args.deadman)
@@ -39,7 +37,7 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
         epilog="security: only this computer can connect unless --bind says otherwise; every request needs the "
                "token; requests from other sites (CSRF, DNS rebinding) are refused by their Host and Origin.")
     add_profile(console)
-    console.add_argument("--port", type=int, default=DEFAULT_PORT, metavar="N",
+    console.add_argument("--port", type=port, default=DEFAULT_PORT, metavar="N",
                          help=f"TCP port (default {DEFAULT_PORT}; 0 picks a free one)")
     console.add_argument("--bind", default="127.0.0.1", metavar="ADDRESS",
                          help="address to listen on (default 127.0.0.1, this computer only); another address lets "
@@ -48,6 +46,6 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                          help="where captures and procedure runs are written (default: runs/)")
     console.add_argument("--procedures", type=Path, metavar="DIR",
                          help="folder of procedure files the page offers (default: procedures/ if it exists)")
-    console.add_argument("--deadman", type=float, default=3.0, metavar="SECONDS",
+    console.add_argument("--deadman", type=seconds, default=3.0, metavar="SECONDS",
                          help="emission off when no page has been heard from for this long (default 3)")
     console.set_defaults(func=_cmd_console)
