@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from benchctl.cli import main
-from benchctl.runner.learned.health import StepStats, TrainingHealth, clamped_fraction
+from benchctl.training.health import StepStats, TrainingHealth, clamped_fraction
 
 
 def _feed(health: TrainingHealth, stats: list[StepStats]) -> str | None:
