@@ -4,8 +4,8 @@ and its errors keep the file / key path / value / "did you mean" form."""
 from __future__ import annotations
 
 import importlib
-import json
 import importlib.util
+import json
 import sys
 import typing
 from pathlib import Path

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 import uvicorn
+from console_bench import TOKEN, access, laser_channel, make_console
 from selenium import webdriver
 from selenium.webdriver.chrome.service import Service
 from selenium.webdriver.common.by import By
@@ -22,7 +23,6 @@ from benchctl.console.core import Console
 from benchctl.console.server import listen
 from benchctl.devices.sim.slm import read_displayed
 from benchctl.profiles import load_profile
-from console_bench import TOKEN, access, laser_channel, make_console
 
 CHROMIUM = "/usr/bin/chromium"
 CHROMEDRIVER = "/usr/bin/chromedriver"

@@ -14,17 +14,17 @@ import torch
 
 from benchctl.capture.raw import decode_raw
 from benchctl.console import preview
-from benchctl.devices.camera.base import PreviewFrame
 from benchctl.devices.camera import open_camera
+from benchctl.devices.camera.base import PreviewFrame
 from benchctl.devices.camera.ptp.container import MalformedContainer, OperationCode, ResponseCode
 from benchctl.devices.camera.ptp.eos import EVF_OUTPUT_PC, EosProperty, pack_viewfinder, viewfinder_jpeg
 from benchctl.devices.camera.ptp_camera import EosTiming, open_ptp_camera
 from benchctl.devices.errors import DeviceTimeout
 from benchctl.devices.laser import open_laser
-from benchctl.devices.sim import physics, eos_usb
+from benchctl.devices.sim import eos_usb, physics
 from benchctl.devices.sim.eos_usb import SimEosTransport
-from benchctl.devices.sim.state import CAMERA_STATE, load_state
 from benchctl.devices.sim.slm import read_displayed
+from benchctl.devices.sim.state import CAMERA_STATE, load_state
 from benchctl.devices.slm import open_slm
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import CameraConfig, Profile, load_profile

@@ -38,6 +38,7 @@ from console_bench import (
 from starlette.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 
+from benchctl.calibration.calibrated import Calibrated
 from benchctl.capture.raw import decode_raw
 from benchctl.console.app import create_app
 from benchctl.console.core import Console
@@ -247,7 +248,7 @@ def test_holograms_are_the_ones_a_run_displays(client: TestClient, bench_profile
                                           "iterations": 3, "channel": "green"}).json()
     assert shown["kind"] == "hologram" and shown["hologram"]["cached"] is False
     target = prepare_target(load_target("chart:bars", profile.optics.roi), profile.slm.shape, profile.optics.roi)
-    run = hologram(profile, target, "green", "sgd", iterations=3, seed=0, checkpoint=None)
+    run = hologram(Calibrated(profile), target, "green", "sgd", iterations=3, seed=0, checkpoint=None)
     assert run.cached and np.array_equal(read_displayed()[0], run.gray)  # the run's cache holds what was shown
     dots = client.post("/api/slm", json={"kind": "dots", "channel": "blue"}).json()
     assert dots["frame"] == read_displayed()[1]["frame"] and read_displayed()[0].std() > 10

@@ -19,8 +19,8 @@ from test_mono_camera import finished_run, store_registration
 from benchctl.capture.raw import decode_raw
 from benchctl.cli import main
 from benchctl.devices.errors import DeviceError
-from benchctl.devices.slm import save_lut, slm_for
 from benchctl.devices.slm import display as display_module
+from benchctl.devices.slm import save_lut, slm_for
 from benchctl.devices.slm.display import DisplaySLM, presented_time
 from benchctl.devices.slm.edid import parse_edid
 from benchctl.optics.phase_encoding import PhaseLUT

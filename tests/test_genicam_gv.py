@@ -14,7 +14,6 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-
 from conftest import SMALL_PROFILE
 
 SCENARIOS = Path(__file__).with_name("gigevision.py")

@@ -10,8 +10,9 @@ import torch
 
 import benchctl
 from benchctl import provenance
-from benchctl.profiles import load_profile
+from benchctl.calibration.calibrated import Calibrated
 from benchctl.holograms import cache as hologram_cache
+from benchctl.profiles import load_profile
 from benchctl.targets import load_target, prepare_target
 
 
@@ -57,7 +58,8 @@ def test_hologram_cache_misses_after_a_code_edit(small_profile_path: Path, tmp_p
     target = prepare_target(load_target("chart:siemens", (48, 80)), (64, 96), (48, 80))
 
     def green() -> hologram_cache.Hologram:
-        return hologram_cache.hologram(profile, target, "green", "dpac", iterations=None, seed=0, checkpoint=None)
+        return hologram_cache.hologram(Calibrated(profile), target, "green", "dpac", iterations=None, seed=0,
+                                       checkpoint=None)
 
     assert not green().cached and green().cached
     monkeypatch.setattr(hologram_cache, "source_hash", lambda: "0123456789abcdef")  # as after editing a method
@@ -92,6 +94,6 @@ def test_refined_learned_methods_key_the_cache_by_their_networks_checkpoint(
     monkeypatch.setattr(hologram_cache, "_key", key)
     target = prepare_target(load_target("chart:siemens", (48, 80)), (64, 96), (48, 80))
     with pytest.raises(RuntimeError, match="stop"):
-        hologram_cache.hologram(load_profile(small_profile_path), target, "green", "ccnn-dcm4+sgd", iterations=5,
-                                seed=0, checkpoint=None)
+        hologram_cache.hologram(Calibrated(load_profile(small_profile_path)), target, "green", "ccnn-dcm4+sgd",
+                                iterations=5, seed=0, checkpoint=None)
     assert seen == [{"method": "ccnn-dcm4+sgd", "iterations": 5, "seed": 0, "checkpoint": str(shipped)}]

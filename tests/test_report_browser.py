@@ -8,9 +8,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+import test_console_browser
 from selenium import webdriver
 from selenium.webdriver.common.by import By
-import test_console_browser
 
 from benchctl.runner.engine import run_procedure
 

@@ -17,7 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import SMALL_BENCH, truly_registered
-from test_citl import ABERRATED, PROCEDURE as CITL
+from test_citl import ABERRATED
+from test_citl import PROCEDURE as CITL
 from test_procedures import CAPTURE as CAPTURE_TEST
 
 from benchctl.cli import main

@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from benchctl.cli import main
 from benchctl.devices.errors import DeviceError
 from benchctl.devices.sim.state import device_file, load_state, save_state
 from benchctl.images import write_png
-from benchctl.cli import main
 from benchctl.runner.engine import run_procedure
 
 # One exposure step: a fixed gray frame, green alone, three RAW frames and one dark.

@@ -12,8 +12,16 @@ import torch
 from benchctl.errors import BenchctlError
 from benchctl.images import write_png
 from benchctl.optics.colour import srgb_to_linear
-from benchctl.targets import (BLACK_INTENSITY, PHOTO_PREFIX, active_channels, list_targets, load_target, photo_path,
-                              photo_specs, prepare_target)
+from benchctl.targets import (
+    BLACK_INTENSITY,
+    PHOTO_PREFIX,
+    active_channels,
+    list_targets,
+    load_target,
+    photo_path,
+    photo_specs,
+    prepare_target,
+)
 
 SIZE = (96, 160)
 

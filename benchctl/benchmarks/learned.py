@@ -32,6 +32,7 @@ from typing import Any
 
 import torch
 
+from benchctl.calibration.calibrated import Calibrated
 from benchctl.calibration.geometry import grid_profile
 from benchctl.calibration.setups import optical_setup
 from benchctl.cgh import OpticalSetup
@@ -250,7 +251,7 @@ def _scores(bench: Profile, method: str, checkpoint: Path, targets: Sequence[str
     grid, roi = bench.section("slm").shape, bench.section("optics").roi
     psnrs, ssims = [], []
     for target in targets:
-        scene = compute_scene(prepare_target(load_target(target, size=roi), grid, roi), bench, method,
+        scene = compute_scene(prepare_target(load_target(target, size=roi), grid, roi), Calibrated(bench), method,
                               checkpoint=checkpoint)
         for colour in scene.colours:
             if not colour.skipped:

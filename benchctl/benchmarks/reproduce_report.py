@@ -20,6 +20,7 @@ from typing import Any
 
 from benchctl.benchmarks.learned import BASELINES, with_baselines
 from benchctl.benchmarks.reproduce_job import VALIDATION_COUNT, VALIDATION_FIRST, bench_for, read_done, read_progress
+from benchctl.calibration.calibrated import Calibrated
 from benchctl.cgh.learned.models import VARIANTS
 from benchctl.files import atomic_write_bytes, write_csv, write_json
 from benchctl.holograms.scene import compute_scene
@@ -222,7 +223,7 @@ def dpac_reference(run_dir: Path, plan: dict[str, Any]) -> tuple[float, float]:
     grid, roi = bench.section("slm").shape, bench.section("optics").roi
     psnrs, ssims = [], []
     for spec in photo_specs("eval"):
-        scene = compute_scene(prepare_target(load_target(spec, size=roi), grid, roi), bench, "dpac",
+        scene = compute_scene(prepare_target(load_target(spec, size=roi), grid, roi), Calibrated(bench), "dpac",
                               colours=[plan["colour"]])
         psnrs += [c.scores["psnr_amplitude_db"] for c in scene.colours if not c.skipped]
         ssims += [c.scores["ssim_amplitude"] for c in scene.colours if not c.skipped]

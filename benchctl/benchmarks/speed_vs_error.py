@@ -18,6 +18,7 @@ from typing import Any, Callable
 
 import torch
 
+from benchctl.calibration.calibrated import Calibrated
 from benchctl.calibration.geometry import grid_profile
 from benchctl.calibration.setups import optical_setup
 from benchctl.cgh import get_method, method_names
@@ -146,8 +147,9 @@ def run_speed_vs_error(
     slm, optics = profile.section("slm"), profile.section("optics")
     grid, roi = slm.shape, optics.roi
     unit = _propagation_seconds(profile, colours[0] if colours else profile.channels[0].name)
+    bench = Calibrated(profile)  # the profile as configured: nothing measured applies to a scaled grid
     # Warm-up: every colour's transfer functions are built here once, outside the timed frames.
-    compute_scene(next(iter(amplitudes.values())), profile, "dpac", colours=colours)
+    compute_scene(next(iter(amplitudes.values())), bench, "dpac", colours=colours)
     out(f"grid {grid[0]}x{grid[1]}, ROI {roi[0]}x{roi[1]}, distance {optics.distance_mm:g} mm, "
         f"pitch {slm.pitch_um:g} um, targets: {', '.join(amplitudes)}")
     out(f"one propagation ({colours[0] if colours else profile.channels[0].name}, measured in this run): "
@@ -160,7 +162,7 @@ def run_speed_vs_error(
         for iterations in budgets_for(method, budgets):
             for target, amplitude in amplitudes.items():
                 last: dict[str, int] = {}
-                scene = compute_scene(amplitude, profile, method, iterations=iterations, colours=colours, seed=seed,
+                scene = compute_scene(amplitude, bench, method, iterations=iterations, colours=colours, seed=seed,
                                       progress=_recording(progress, last))
                 done = [c for c in scene.colours if not c.skipped]
                 row: dict[str, Any] = {  # a CSV row: numbers, and "" where a method has no budget

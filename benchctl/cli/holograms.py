@@ -35,14 +35,14 @@ def _cmd_generate(args: argparse.Namespace) -> int:
 
 
 def _cmd_models(args: argparse.Namespace) -> int:
-    from benchctl.calibration.store import Calibration
+    from benchctl.calibration.calibrated import Calibrated
     from benchctl.holograms.scene import list_methods
     from benchctl.profiles import load_profile
 
     profile = load_profile(args.profile)
     shape = args.size or profile.section("slm").shape
     if profile.optics is not None:  # the lookup tables and optical model a checkpoint would meet here
-        profile = Calibration.store(profile).applied(profile)
+        profile = Calibrated.stored(profile).profile
     print(f"hologram methods at {shape[0]}x{shape[1]} (checkpoints for profile {profile.name!r}):")
     return print_lines(list_methods(shape, profile))
 

@@ -8,7 +8,8 @@ import argparse
 def _cmd_profile_check(args: argparse.Namespace) -> int:
     from benchctl.calibration.files import check_calibration
     from benchctl.calibration.geometry import describe_plans
-    from benchctl.calibration.store import REGISTRATION_FILE, Calibration
+    from benchctl.calibration.calibrated import Calibrated
+    from benchctl.calibration.store import REGISTRATION_FILE
     from benchctl.profiles import load_profile
 
     profile = load_profile(args.path)
@@ -16,8 +17,9 @@ def _cmd_profile_check(args: argparse.Namespace) -> int:
     print(describe_plans(profile))
     registration = None
     if profile.slm is not None and profile.optics is not None:  # what calibration/<profile>/ holds for its geometry
-        store = Calibration.store(profile)
-        profile, registration = store.applied(profile), store.folder / REGISTRATION_FILE
+        bench = Calibrated.stored(profile)
+        assert bench.calibration is not None
+        profile, registration = bench.profile, bench.calibration.folder / REGISTRATION_FILE
     for line in check_calibration(profile, registration):
         print(line)
     print(f"{profile.path}: OK")

@@ -37,10 +37,10 @@ class Console:
 
     def __init__(self, profile: Profile, out: Path, *, deadman_s: float = DEADMAN_S,
                  procedures_dir: Path | None = None) -> None:
-        from benchctl.calibration.store import Calibration
+        from benchctl.calibration.calibrated import Calibrated
 
         if profile.slm is not None and profile.optics is not None:
-            profile = Calibration.store(profile).applied(profile)  # measured tables and fitted model, as a run
+            profile = Calibrated.stored(profile).profile  # measured tables and fitted model, as a run
         self.profile = profile
         self.out = Path(out)
         self.events: deque[str] = deque(maxlen=EVENTS_KEPT)

@@ -21,7 +21,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from benchctl.calibration.setups import optical_setup
+from benchctl.calibration.calibrated import Calibrated
 from benchctl.cgh import get_method
 from benchctl.files import atomic_write_bytes, ensure_dir
 from benchctl.holograms.checkpoints import find_checkpoint
@@ -69,13 +69,13 @@ def _key(profile: Profile, setup: OpticalSetup, channel: str, plane: torch.Tenso
     return digest.hexdigest()[:32]
 
 
-def hologram(profile: Profile, target: torch.Tensor, channel: str, method: str, *, iterations: int | None,
-             seed: int, checkpoint: str | None, progress: Callable[[str], Callable[[int, int], None]] | None = None,
-             setup: OpticalSetup | None = None) -> Hologram:
+def hologram(bench: Calibrated, target: torch.Tensor, channel: str, method: str, *, iterations: int | None,
+             seed: int, checkpoint: str | None,
+             progress: Callable[[str], Callable[[int, int], None]] | None = None) -> Hologram:
     """The hologram of `channel` for `target` (3, H, W amplitude on the SLM grid), computed for `setup` (default:
     the channel's setup on `profile`): from the cache when this exact computation was done before, else computed
     (compute_scene, one colour) and cached."""
-    setup = setup or optical_setup(profile, channel)
+    profile, setup = bench.profile, bench.setup(channel)
     network = get_method(method).network  # "ccnn-dcm4+sgd" runs ccnn-dcm4's checkpoint
     if checkpoint is None and network is not None:
         found = find_checkpoint(network, profile)  # what compute_scene will use: its bytes belong in the key
@@ -88,8 +88,8 @@ def hologram(profile: Profile, target: torch.Tensor, channel: str, method: str, 
             return Hologram(data["gray"], data["reconstruction"], json.loads(str(data["scores"])),
                             float(data["seconds"]), cached=True)
     extra = {"checkpoint": Path(checkpoint)} if checkpoint else {}
-    scene = compute_scene(target, profile, method, iterations=iterations, colours=[channel], seed=seed,
-                          progress=progress, setups={channel: setup}, **extra)
+    scene = compute_scene(target, bench, method, iterations=iterations, colours=[channel], seed=seed,
+                          progress=progress, **extra)
     result = scene.colours[0]
     assert not result.skipped and result.gray is not None and result.reconstruction is not None
     entry = Hologram(result.gray, result.reconstruction.numpy(), result.scores, result.seconds, cached=False)

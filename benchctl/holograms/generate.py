@@ -10,8 +10,8 @@ import numpy as np
 import torch
 
 import benchctl
+from benchctl.calibration.calibrated import Calibrated
 from benchctl.calibration.files import calibration_used
-from benchctl.calibration.store import Calibration
 from benchctl.cgh import DEFAULT_METHOD
 from benchctl.files import ensure_dir, write_json
 from benchctl.holograms.scene import SceneResult, compute_scene
@@ -65,11 +65,12 @@ def run_generate(
     started = time.time()
     profile.require("slm", "optics", "laser")  # the laser's channels are the colours generated
     own_tables = profile.section("slm").lut
-    profile = Calibration.store(profile).applied(profile)
+    bench = Calibrated.stored(profile)
+    profile = bench.profile
     slm, optics = profile.section("slm"), profile.section("optics")
     srgb = load_target(target, size=optics.roi)
     amplitude = prepare_target(srgb, slm.shape, optics.roi)
-    scene = compute_scene(amplitude, profile, method, iterations=iterations, colours=colours, seed=seed,
+    scene = compute_scene(amplitude, bench, method, iterations=iterations, colours=colours, seed=seed,
                           progress=progress, checkpoint=checkpoint)
     out_dir = ensure_dir(Path(out_dir))  # only once there is something to write
     files = []

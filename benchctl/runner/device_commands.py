@@ -177,11 +177,11 @@ def _open_camera(profile: Profile) -> Camera:
 def _open_slm(profile: Profile) -> SLM:
     """The profile's SLM with the lookup tables measured for it (calibration/<profile>/, where the profile names
     none), imported here so that laser and camera commands do not load the SLM drivers."""
-    from benchctl.calibration.store import Calibration
+    from benchctl.calibration.calibrated import Calibrated
     from benchctl.devices.slm import open_slm
 
     if profile.slm is not None and profile.optics is not None:  # a calibration is stored for an SLM and optics
-        profile = Calibration.store(profile).applied(profile)
+        profile = Calibrated.stored(profile).profile
     return open_slm(profile.require("slm"))
 
 

@@ -24,6 +24,7 @@ from typing import Any
 import msgspec
 
 from benchctl.calibration.acceptance import rejection_line
+from benchctl.calibration.calibrated import Calibrated
 from benchctl.calibration.files import check_calibration
 from benchctl.calibration.store import REGISTRATION_FILE, Calibration
 from benchctl.devices.power import format_power
@@ -126,7 +127,8 @@ def _run(path: Path | None, profile: str | None, out: Path, dry_run: bool, resum
         calibration = Calibration.store(bench_profile)
         record = None
     try:  # every calibration file the run will use, checked before a device opens
-        effective = procedure.params.applied_to(calibration.applied(bench_profile))
+        bench = Calibrated(procedure.params.applied_to(bench_profile), calibration)
+        effective = bench.profile
         checked = check_calibration(effective, calibration.folder / REGISTRATION_FILE)
     except BenchctlError as exc:
         if record is None:
@@ -135,7 +137,7 @@ def _run(path: Path | None, profile: str | None, out: Path, dry_run: bool, resum
                             f"from {Calibration.store(bench_profile).folder} over it)") from None
     checked += check_memory(effective, procedure.params, str(path or procedure.name))  # counts that scale memory
     with Instruments(effective, say) as instruments:
-        context = Context(effective, procedure.params, calibration, instruments, record, say)
+        context = Context(bench, procedure.params, instruments, record, say)
         try:
             steps = procedure.plan(context)
         except BenchctlError as exc:  # a value of the procedure's: name its file too
@@ -165,7 +167,7 @@ def _run(path: Path | None, profile: str | None, out: Path, dry_run: bool, resum
             held.enter_context(run_folder_lock(record.folder))
             calibration = Calibration.store(bench_profile).copy_to(record.folder / CALIBRATION_COPY)
             record.calibration_written(calibration.checksums())
-            context.calibration, context.record = calibration, record
+            context.bench, context.record = Calibrated(bench.configured, calibration), record
         say(f"run folder: {record.folder}")
         for reason in [*record.invalidated, *record.damaged]:
             say(reason)

@@ -158,9 +158,8 @@ def compute_hologram(context: Context, target: torch.Tensor, channel: LaserChann
                      options: HologramParameters) -> Hologram:
     """`channel`'s hologram of `target` (3, H, W amplitude on the SLM grid) as `options` say: its frame as
     displayed, simulated reconstruction and scores; from the hologram cache when it was computed before."""
-    return hologram(context.profile, target, channel.name, options.method, iterations=options.iterations,
-                    seed=options.seed, checkpoint=options.checkpoint, progress=context.progress,
-                    setup=context.setup(channel.name))
+    return hologram(context.bench, target, channel.name, options.method, iterations=options.iterations,
+                    seed=options.seed, checkpoint=options.checkpoint, progress=context.progress)
 
 
 def hologram_step(key: str, label: str, target: torch.Tensor, channel: LaserChannel,
