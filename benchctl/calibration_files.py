@@ -104,6 +104,29 @@ class LutIndexEntry(Entry, kw_only=True):
 LutIndex = dict[str, LutIndexEntry]  # lut.json: colour -> its table
 
 
+class FocusColour(Entry, kw_only=True):
+    """One colour of focus.json (benchctl.capture.focus.FocusMap.to_dict, and which focus device it was made with)."""
+
+    focus: str  # the [focus] driver and port it holds for
+    coefficients: Annotated[list[float], Meta(min_length=2, max_length=3)]  # depth mm = c0 + c1 s + c2 s^2
+    approach: Annotated[int, Meta(ge=-1, le=1)]
+    backlash_steps: float
+    overshoot_steps: NonNegativeInt
+    repeatability_steps: NonNegative | None = None
+    range_steps: tuple[float, float]
+    residual_mm: NonNegative
+    points: list[dict[str, float]] = []
+    run: str | None = None
+
+
+class FocusFile(Model, kw_only=True):
+    """focus.json: the focus calibration per laser colour."""
+
+    profile: str | None = None
+    unit: str = "step"
+    colours: dict[str, FocusColour]
+
+
 def checked_json(path: Path, model: Any) -> dict[str, Any] | None:
     """The JSON object in the file at `path` as parsed, after checking it against `model` (one of the models
     above; None if there is no file). A BenchctlError names the file, the key and what is wrong."""
