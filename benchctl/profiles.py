@@ -287,7 +287,7 @@ class SimFocusConfig(Model, kw_only=True):
     mm_per_step: float = 4.7625e-5  # focus-plane shift per step the mechanism truly makes (signed)
     range_steps: PositiveInt = 84000  # travel between the end stops, in steps
     start_steps: NonNegative = 42000  # where the mechanism is at power-on (state never saved yet)
-    backlash_steps: NonNegative = 0.0  # lost motion on each reversal of direction
+    backlash_steps: NonNegative = 630.0  # lost motion on each reversal of direction
     step_spread: Fraction = 0.0  # relative standard deviation of each step's true size
     seed: NonNegativeInt = 0  # the step-size spread's random stream
 

@@ -308,6 +308,11 @@ def devices_found() -> list[str]:
         *_section("framebuffers", [f"{f.device}  {f.name or '?'}  {f.width}x{f.height}  {f.bits_per_pixel} bpp"
                                    for f in found.framebuffers], None),
         *_section("desktop outputs (X11)", [output.describe() for output in found.outputs], found.outputs_error),
+        *_section("focus (a [focus] driver for each)",
+                  [f"{p.device}  {p.description}  (driver zaber)" for p in found.serial_ports
+                   if "zaber" in f"{p.description} {p.hwid}".lower()]
+                  + [f"the lens of {c.product or 'the camera'} {c.usb_id}  (driver eos, with camera driver ptp)"
+                     for c in found.cameras if c.usb_id.startswith("04a9:")], None),
     ]
 
 
