@@ -48,9 +48,10 @@ def sharpness(image: np.ndarray) -> float:
 
 
 def fit_peak(steps: Sequence[float], values: Sequence[float]) -> float:
-    """Where a through-focus sweep peaks: the vertex of a parabola through log(sharpness) at the best point and its
-    neighbours (exact for a Gaussian peak), kept between those neighbours. BenchctlError when the best point is at an
-    end of the sweep (the peak may lie outside it)."""
+    """Where a through-focus sweep peaks: the vertex of the parabola fitted (least squares) to log(sharpness) over the
+    points above the middle of the sweep's range around its best point (exact for a Gaussian peak; all of a fine
+    sweep's points near focus), kept within them. BenchctlError when the best point is at an end of the sweep (the
+    peak may lie outside it)."""
     x, y = np.asarray(steps, np.float64), np.asarray(values, np.float64)
     order = np.argsort(x)
     x, y = x[order], y[order]
@@ -58,11 +59,17 @@ def fit_peak(steps: Sequence[float], values: Sequence[float]) -> float:
     if best == 0 or best == len(x) - 1 or len(x) < 3:
         raise BenchctlError(f"the sharpest frame of the sweep is at its end ({x[best]:g} steps): the focus lies "
                             f"outside the swept range {x[0]:g} .. {x[-1]:g}; sweep wider")
-    near = slice(best - 1, best + 2)
-    logs = np.log(np.maximum(y[near], 1e-300))
-    a, b, _ = np.polyfit(x[near] - x[best], logs, 2)
+    high = y >= (y.min() + y.max()) / 2
+    low, top = best, best
+    while low > 0 and high[low - 1]:
+        low -= 1
+    while top < len(x) - 1 and high[top + 1]:
+        top += 1
+    low, top = min(low, best - 1), max(top, best + 1)
+    near = slice(low, top + 1)
+    a, b, _ = np.polyfit(x[near] - x[best], np.log(np.maximum(y[near], 1e-300)), 2)
     vertex = x[best] - b / (2 * a) if a < 0 else x[best]
-    return float(np.clip(vertex, x[best - 1], x[best + 1]))
+    return float(np.clip(vertex, x[low], x[top]))
 
 
 @dataclass(frozen=True)
@@ -106,11 +113,12 @@ class FocusMap:
     @classmethod
     def fit(cls, points: Sequence[tuple[float, float]], *, approach: int, backlash_steps: float,
             repeatability_steps: float | None, range_steps: tuple[float, float]) -> FocusMap:
-        """The map through (steps, depth mm) peaks: a straight line for two, a parabola for three or more."""
-        if len(points) < 2:
-            raise BenchctlError("a focus calibration needs peaks at two depths at least")
+        """The map through (steps, depth mm) peaks: a straight line through three, a parabola through four or more
+        (so that the residual always has a degree of freedom to show a misfit)."""
+        if len(points) < 3:
+            raise BenchctlError("a focus calibration needs peaks at three depths at least")
         s, z = (np.array(v, np.float64) for v in zip(*points))
-        degree = 1 if len(points) == 2 else 2
+        degree = 1 if len(points) == 3 else 2
         coefficients = np.polyfit(s, z, degree)[::-1]
         residual = float(np.sqrt(np.mean(np.square(np.polyval(coefficients[::-1], s) - z))))
         return cls(tuple(float(c) for c in coefficients), approach, backlash_steps, repeatability_steps,

@@ -6,6 +6,8 @@ Every step writes its files into the run folder and returns a small JSON-ready r
 
 from __future__ import annotations
 
+import dataclasses
+
 import functools
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -155,12 +157,15 @@ def prepared_target(profile: Profile, spec: str, key: str | None = None) -> torc
 # -- holograms ------------------------------------------------------------------------------------------------------
 
 def compute_hologram(context: Context, target: torch.Tensor, channel: LaserChannel,
-                     options: HologramParameters) -> Hologram:
+                     options: HologramParameters, *, distance_m: float | None = None) -> Hologram:
     """`channel`'s hologram of `target` (3, H, W amplitude on the SLM grid) as `options` say: its frame as
-    displayed, simulated reconstruction and scores; from the hologram cache when it was computed before."""
+    displayed, simulated reconstruction and scores; from the hologram cache when it was computed before.
+    `distance_m`: reconstructed at that depth instead of the profile's distance (the focus calibration's)."""
+    setup = context.setup(channel.name)
+    if distance_m is not None:
+        setup = dataclasses.replace(setup, distance_m=distance_m)
     return hologram(context.profile, target, channel.name, options.method, iterations=options.iterations,
-                    seed=options.seed, checkpoint=options.checkpoint, progress=context.progress,
-                    setup=context.setup(channel.name))
+                    seed=options.seed, checkpoint=options.checkpoint, progress=context.progress, setup=setup)
 
 
 def hologram_step(key: str, label: str, target: torch.Tensor, channel: LaserChannel,

@@ -72,12 +72,22 @@ class Focus(Connection):
         """The device's own position counter now, where it has one."""
         return None
 
+    def ground_truth(self) -> dict[str, float] | None:
+        """Where the mechanism truly is and its hidden backlash, in this driver's steps, as far as the device knows: a
+        simulated mechanism knows what calibration should find; a real one does not (None)."""
+        return None
+
     # -- public -------------------------------------------------------------------------------------------------
 
     @property
     def position(self) -> int | None:
         """Where benchctl believes the focus is, in steps from home (None: not homed since connecting)."""
         return self._position
+
+    @property
+    def travel(self) -> int | None:
+        """The last position from home the mechanism reaches, where the device says (None: not known)."""
+        return None
 
     @property
     def direction(self) -> int:
@@ -129,12 +139,13 @@ class Focus(Connection):
         if self.position is None:
             self.home()
         assert self._position is not None
-        steps = position - self._position
-        requested = steps
-        if steps * approach < 0 or (steps == 0 and self._direction != approach):
-            self.move(steps - approach * overshoot)
-            steps = approach * overshoot
-        last = self.move(steps)
+        requested = position - self._position
+        if requested * approach < 0 or (requested == 0 and self._direction != approach):
+            past = position - approach * overshoot  # never beyond the home end stop or the travel's end
+            past = max(past, 0) if self.travel is None else min(max(past, 0), self.travel)
+            self.move(past - self._position)
+        assert self._position is not None
+        last = self.move(position - self._position)
         return FocusMove(requested, last.position, last.reported)
 
     def _settle(self) -> None:

@@ -64,6 +64,17 @@ class EosFocus(Focus):
             self.camera.drive_lens(steps > 0, self.config.drive_size)
         return None
 
+    def ground_truth(self) -> dict[str, float] | None:
+        """The simulated body's lens, in drives of the profile's size."""
+        if self.camera.config.transport != "sim":
+            return None
+        from benchctl.devices.sim.eos_usb import DRIVE_STEPS
+        from benchctl.devices.sim.focus_mechanics import Mechanism
+
+        mechanism, per_drive = Mechanism(), DRIVE_STEPS[self.config.drive_size]
+        return {"true_steps": mechanism.true_steps / per_drive,
+                "backlash_steps": mechanism.config.backlash_steps / per_drive}
+
     def _home(self) -> None:
         for _ in range(self.config.home_drives):
             self.camera.drive_lens(False, HOME_SIZE)

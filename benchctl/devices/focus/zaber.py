@@ -76,6 +76,10 @@ class ZaberFocus(Focus):
             bind(profile.sim.focus)
         return cls(config)
 
+    @property
+    def travel(self) -> int | None:
+        return self.limit_max
+
     def _device_lock(self) -> DeviceLock:
         return DeviceLock(f"focus:{self.config.port}", f"focus stage ({self.config.port})")
 
@@ -154,3 +158,12 @@ class ZaberFocus(Focus):
 
     def _reported(self) -> int | None:
         return int(self._ask("get pos").data)
+
+    def ground_truth(self) -> dict[str, float] | None:
+        """The simulated stage's carriage (one mechanism step per microstep)."""
+        if not (self.config.port or "").startswith("sim://"):
+            return None
+        from benchctl.devices.sim.focus_mechanics import Mechanism
+
+        mechanism = Mechanism()
+        return {"true_steps": mechanism.true_steps, "backlash_steps": mechanism.config.backlash_steps}

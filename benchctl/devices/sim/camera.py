@@ -119,8 +119,9 @@ def eos_transport(profile: Profile) -> SimEosTransport:
     view = LiveView(profile)
     lens = None
     if profile.focus is not None and profile.focus.driver == "eos":
-        from benchctl.devices.sim.focus_mechanics import Mechanism
+        from benchctl.devices.sim.focus_mechanics import Mechanism, bind
 
+        bind(profile.sim.focus)
         lens = Mechanism(profile.sim.focus, profile.optics.distance_mm if profile.optics else None)
     return SimEosTransport(image_source, live_view=lambda: view.jpeg(PREVIEW_WIDTH, exposure_s=config.exposure_s,
                                                                      iso=config.iso), lens=lens)
