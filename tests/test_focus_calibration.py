@@ -100,8 +100,8 @@ def results(run: Path) -> dict[str, dict]:
 
 
 @pytest.mark.slow
-def test_calibration_recovers_the_mechanics_and_focus_go_lands_on_the_depth(tmp_path: Path, focus_bench: Profile,
-                                                                             capsys: pytest.CaptureFixture[str]) -> None:
+def test_calibration_recovers_the_mechanics_and_focus_go_lands_on_the_depth(
+        tmp_path: Path, focus_bench: Profile, capsys: pytest.CaptureFixture[str]) -> None:
     code, run = run_calibration(tmp_path, focus_bench)
     assert code == 0
     steps = results(run)
@@ -136,8 +136,8 @@ def test_a_map_that_fails_its_acceptance_test_is_kept_aside_and_the_run_fails(tm
     fit = results(run)["focus/green/fit"]
     assert not fit["calibration"]["stored"] and "above the bound" in fit["calibration"]["failures"][0]
     assert Calibration.store(focus_bench).focus_maps() == {}
-    assert any(path.name.endswith("focus-green.json") for path in fit["calibration"]["kept"] and
-               map(Path, fit["calibration"]["kept"]))
+    assert any(Path(kept).name.endswith("focus-green.json") and Path(kept).is_file()
+               for kept in fit["calibration"]["kept"])
     with pytest.raises(BenchctlError, match="no focus calibration"):
         focus_go(focus_bench, "20mm", None)
 
