@@ -74,7 +74,7 @@ def test_refusals_and_stalls_are_one_line_errors(reply: bytes, message: str | No
     pairs = [*OPEN, (b"/1 1 get pos\r\n", b"@01 1 OK IDLE -- 0\r\n"), (b"/1 1 move rel 100\r\n", reply)]
     if message is None:  # accepted, then the carriage stalls
         pairs.append((b"/1 1\r\n", b"@01 1 OK IDLE FS 0\r\n"))
-        message = "warning FS: the carriage stalled.*home it"
+        message = "warning FS: the carriage stalled.*free it, then `benchctl focus home`"
     focus, port = scripted(pairs)
     with port, focus, pytest.raises(DeviceError, match=message) as caught:
         focus.move(100)

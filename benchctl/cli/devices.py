@@ -127,7 +127,12 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     fhome = focus.add_parser("home", help="drive to the home end stop: position 0 from then on")
     fmove = focus.add_parser("move", help="move by STEPS (signed) from where it is")
     fmove.add_argument("steps", type=int, metavar="STEPS", help="steps to move, e.g. 200 or -50")
-    fgo = focus.add_parser("go", help="focus at a depth from the SLM: 70.2mm or 14.3D (diopters: 1 / metres)")
+    fgo = focus.add_parser("go", help="focus at a depth from the SLM: 70.2mm or 14.3D (diopters: 1 / metres)",
+                           description="Focus at a depth from the SLM, in millimetres (70.2mm) or diopters (14.3D = "
+                                       "1 / 0.0702 m), through the colour's focus calibration: the position is "
+                                       "approached from the side it was calibrated from, going past it by twice the "
+                                       "measured backlash first when it has to come back. Homes first when the "
+                                       "position is not known.")
     fgo.add_argument("depth", nargs="+", metavar="DEPTH", help="e.g. 70.2mm, 70.2 mm, 14.3D")
     fgo.add_argument("--channel", "-c", help="laser colour whose calibration to use (default: green, or the only one)")
     for parser in (fstatus, fhome, fmove, fgo):
@@ -143,10 +148,11 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     sim.add_parser("status", help="where the state is kept and what each simulated device holds")
     sim.add_parser("reset", help="forget all simulated device state (like a power cycle)")
     fault = sim.add_parser("fault", help="make a simulated device misbehave from its next connection on")
-    fault.add_argument("device", help="simulated device name, e.g. rgb-laser (from sim://rgb-laser), or sim-camera")
+    fault.add_argument("device", help="simulated device name, e.g. rgb-laser (from sim://rgb-laser), focus-stage, or "
+                                      "sim-camera")
     fault.add_argument("faults", nargs="*", help="lasers: no_reply, garbled, echo, slow, interlock_open, device_fault, "
-                                                 "clamp, drop_after=N; sim-camera: unplug_at=N (cable pulled before "
-                                                 "frame N)")
+                                                 "clamp, drop_after=N; focus stage: no_reply, garbled, slow, stall, "
+                                                 "drop_after=N; sim-camera: unplug_at=N (cable pulled before frame N)")
     fault.add_argument("--clear", action="store_true", help="remove every fault")
     add_profile(fault)  # whose sim:// lasers are known devices
     for parser in sim.choices.values():

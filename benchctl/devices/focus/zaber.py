@@ -141,7 +141,8 @@ class ZaberFocus(Focus):
             wait(POLL_S)
         if reply.warning in FAULT_WARNINGS:
             raise DeviceError(f"focus stage ({self.config.port}): {what} ended with warning {reply.warning}: "
-                              f"{FAULT_WARNINGS[reply.warning]}; its position is no longer known (home it)")
+                              f"{FAULT_WARNINGS[reply.warning]}; its position is no longer known: free it, then "
+                              f"`benchctl focus home`")
         return reply
 
     def _drive(self, steps: int) -> int | None:
