@@ -153,3 +153,15 @@ def test_focus_go_uses_the_stored_map_from_its_side(focus_bench: Profile) -> Non
     with pytest.raises(BenchctlError, match="'red' is not focus-calibrated"):
         focus_go(focus_bench, "20mm", "red")
     assert math.isclose(1 / parse_depth("50D"), 50)
+
+
+def test_the_dry_run_counts_every_sweep_capture(tmp_path: Path, focus_bench: Profile,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    procedure = tmp_path / "focus.toml"
+    procedure.write_text(SWEEP)
+    assert main(["run", str(procedure), "--profile", str(focus_bench.path), "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    captures = 11 * 3 + 3 * 2 * 7 + 20  # coarse x depths, up and down per depth, round trips
+    assert f"({captures} frame(s) at about" in out and "11 x green alone at 2 mW" not in out
+    assert "33 x green alone at 2 mW, 1 frame(s) + 0 dark, RAW not kept" in out
+    assert "disk: about 0 kB in runs (0 RAW frame(s)" in out

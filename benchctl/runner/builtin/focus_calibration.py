@@ -17,6 +17,7 @@ not above the stored map's on the same peaks.
 
 from __future__ import annotations
 
+import functools
 from typing import Annotated, Any
 
 import numpy as np
@@ -86,19 +87,25 @@ def plan(context: Context) -> list[Step]:
     steps: list[Step] = []
     for channel in used:
         watts = power_w(context, channel)
-        expose = (Expose(channel.name, watts, params.frames, params.dark_frames, keep=False),)
         name = channel.name
-        steps.append(Step(f"focus/{name}/holograms", f"dot holograms at {len(params.depths_mm)} depths ({name})",
+        expose = functools.partial(_exposures, name, watts, params)
+        depths = len(params.depths_mm)
+        steps.append(Step(f"focus/{name}/holograms", f"dot holograms at {depths} depths ({name})",
                           _holograms(channel)))
         steps.append(Step(f"focus/{name}/coarse", f"coarse sweep {low}..{high} ({name})",
-                          _coarse(channel, watts), expose))
-        for k in range(len(params.depths_mm)):
+                          _coarse(channel, watts), expose(params.coarse_points * depths)))
+        for k in range(depths):
             steps.append(Step(f"focus/{name}/fine/{k}", f"fine sweep up and down, depth {k + 1} ({name})",
-                              _fine(channel, watts, k), expose))
+                              _fine(channel, watts, k), expose(2 * params.fine_points)))
         steps.append(Step(f"focus/{name}/repeat", f"{params.round_trips} round trips ({name})",
-                          _round_trips(channel, watts), expose))
+                          _round_trips(channel, watts), expose(params.round_trips)))
         steps.append(Step(f"focus/{name}/fit", f"steps <-> depth, backlash, repeatability ({name})", _fitter(channel)))
     return steps + [Step("report", "focus calibration report", _reporter(used))]
+
+
+def _exposures(colour: str, watts: float, params: FocusCalibrationParameters, times: int) -> tuple[Expose, ...]:
+    """A sweep's exposures: `times` captures of `colour`, not kept (only their sharpness is)."""
+    return (Expose(colour, watts, params.frames, params.dark_frames, keep=False, times=times),)
 
 
 def _depths_m(context: Context) -> list[float]:
@@ -318,10 +325,11 @@ def _reporter(used: list[LaserChannel]):
                 fine = context.result(f"focus/{name}/fine/{k}")
                 for label in ("up", "down"):
                     curves[f"{depth:g} mm {label}"] = ([float(p) for p in fine["positions"]], fine[label])
-            trips = list(range(1, len(repeat.get("read_steps", [])) + 1))
-            returns = {"read back from sharpness": ([float(t) for t in trips], repeat.get("read_steps", []))}
+            read = repeat.get("read_steps", [])
+            trips = [float(t) for t in range(1, len(read) + 1)]
+            returns = {"read back from sharpness": (trips, [r - float(np.mean(read)) for r in read])}
             if "true_offsets_steps" in repeat:
-                returns["simulator's true position"] = ([float(t) for t in trips], repeat["true_offsets_steps"])
+                returns["simulator's true position"] = (trips, repeat["true_offsets_steps"])
             report.section(f"{name}", row(
                 line_plot(curves, f"focus position ({fit['unit']}s from home)", "sharpness"),
                 line_plot(returns, "round trip", f"position - mean ({fit['unit']}s)")), level=3)
