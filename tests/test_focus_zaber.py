@@ -15,6 +15,7 @@ from benchctl.devices.lock import DeviceHeld
 from benchctl.devices.serial_link import SerialLink
 from benchctl.devices.sim.focus_mechanics import FOCUS_STATE, Mechanism, bind
 from benchctl.devices.sim.state import load_state, save_state
+from benchctl.devices.sim.zaber_stage import ZaberStage
 from benchctl.errors import BenchctlError
 from benchctl.profiles import FocusConfig, ProfileFile, SimFocusConfig, _checked, load_profile
 from benchctl.schema import decode
@@ -165,3 +166,18 @@ def test_profile_checks_for_focus() -> None:
         _checked(Path("p.toml"), decode({"focus": {"driver": "eos"}}, ProfileFile, Path("p.toml")))
     with pytest.raises(BenchctlError, match="focus.driver"):
         decode({"focus": {"driver": "arduino"}}, ProfileFile, Path("p.toml"))
+
+
+def test_the_emulator_answers_exact_bytes() -> None:
+    bind(SimFocusConfig(backlash_steps=0.0, start_steps=100.0))
+    stage = ZaberStage("focus-stage", {"speed": "1e9"})
+    assert stage.receive(b"/1 1\r\n") == b"@01 1 OK IDLE WR 0\r\n"  # power-on: no reference
+    assert stage.receive(b"/1 1 home\n") == b"@01 1 OK IDLE -- 0\r\n"  # LF alone ends a command too
+    assert stage.receive(b"/1 1 move abs 2500\r\n/1 1 get pos\r\n") == (b"@01 1 OK IDLE -- 0\r\n"
+                                                                          b"@01 1 OK IDLE -- 2500\r\n")
+    assert stage.receive(b"/1 1 move rel 999999\r\n") == b"@01 1 RJ IDLE -- BADDATA\r\n"
+    assert stage.receive(b"/1 1 jump\r\n") == b"@01 1 RJ IDLE -- BADCOMMAND\r\n"
+    assert stage.receive(b"/1 0 get system.serial\r\n") == b"@01 0 OK IDLE -- 4242\r\n"
+    assert stage.receive(b"/2 1 get pos\r\n") == b""  # another device's message: nobody else on the chain
+    assert stage.receive(b"/1 1 get p") == b"" and stage.receive(b"os\r\n") == b"@01 1 OK IDLE -- 2500\r\n"
+    assert Mechanism().true_steps == 2500.0
