@@ -25,6 +25,7 @@ import time
 from collections.abc import Mapping
 from typing import Any
 
+from benchctl.devices.sim import laser_emulators
 from benchctl.devices.sim.focus_mechanics import Mechanism
 from benchctl.devices.sim.state import load_state, save_state
 from benchctl.profiles import SimFocusConfig
@@ -38,22 +39,8 @@ _OPTIONS = ("fault", "reply_delay_s", "speed")
 
 
 def parse_faults(items: list[str]) -> tuple[frozenset[str], int | None]:
-    """Fault names as a set, plus N of drop_after=N; ValueError names a bad one."""
-    names: set[str] = set()
-    drop_after = None
-    for item in (raw.strip() for raw in items):
-        if not item:
-            continue
-        if item.startswith("drop_after="):
-            try:
-                drop_after = int(item.split("=", 1)[1])
-            except ValueError:
-                raise ValueError(f"fault {item!r}: N in drop_after=N must be an integer") from None
-        elif item in FAULTS:
-            names.add(item)
-        else:
-            raise ValueError(f"unknown fault {item!r} (known: {', '.join(FAULTS)})")
-    return frozenset(names), drop_after
+    """The stage's fault names as a set, plus N of drop_after=N; ValueError names a bad one."""
+    return laser_emulators.parse_faults(items, FAULTS)
 
 
 def _number(text: str, name: str) -> float:
