@@ -179,10 +179,11 @@ def _check_beam(path: Path, channel: str, entry: dict[str, Any], slm: SLMConfig)
                    "waists): no light would reach it")
 
 
-def check_calibration(profile: Profile, registration: Path | None = None) -> list[str]:
+def check_calibration(profile: Profile, registration: Path | None = None, focus: Path | None = None) -> list[str]:
     """Check every calibration file a run on `profile` will use: the profile as calibration applies it (its
-    `optics.model` and `slm.lut` files, stored ones included) and `registration` (a registration.json, if given).
-    The first bad file is a BenchctlError naming it, the key and the value; otherwise one line per file checked."""
+    `optics.model` and `slm.lut` files, stored ones included), `registration` (a registration.json) and `focus` (a
+    focus.json, where the profile has a [focus] device), if given. The first bad file is a BenchctlError naming it,
+    the key and the value; otherwise one line per file checked."""
     from benchctl.devices.slm.lut import load_lut  # numpy only
 
     lines = []
@@ -198,6 +199,10 @@ def check_calibration(profile: Profile, registration: Path | None = None) -> lis
         data = checked_json(registration, RegistrationFile)
         if data is not None:
             lines.append(f"registration {registration}: {', '.join(data['colours']) or 'no colours'}")
+    if focus is not None and profile.focus is not None:
+        data = checked_json(focus, FocusFile)
+        if data is not None:
+            lines.append(f"focus {focus}: {', '.join(data['colours']) or 'no colours'}")
     return [f"calibration: {line}: OK" for line in lines]
 
 

@@ -8,6 +8,8 @@ from conftest import one_error_line
 from benchctl.cli import main
 from benchctl.devices import discovery
 from benchctl.devices.sim.state import load_state
+from benchctl.profiles import load_profile
+from benchctl.runner.calibration import FOCUS_FILE, Calibration
 from benchctl.runner.device_commands import devices_found
 
 
@@ -56,3 +58,15 @@ def test_devices_lists_focus_devices(monkeypatch: pytest.MonkeyPatch) -> None:
     focus = lines[lines.index("focus (a [focus] driver for each):") + 1:]
     assert focus == ["  /dev/ttyUSB3  Zaber X-LSM stage  (driver zaber)",
                      "  the lens of Canon EOS M10 04a9:32a0  (driver eos, with camera driver ptp)"]
+
+
+def test_profile_check_and_run_check_the_focus_calibration_file(capsys: pytest.CaptureFixture[str]) -> None:
+    folder = Calibration.store(load_profile("simulated")).folder
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / FOCUS_FILE).write_text('{"colours": {"green": {"focus": "zaber x", "coefficients": [70.0], '
+                                     '"approach": 1, "backlash_steps": 0, "overshoot_steps": 1, '
+                                     '"range_steps": [0, 1], "residual_mm": 0}}}')
+    line = one_error_line(capsys, ["profile", "check"])
+    assert "focus.json: colours.green.coefficients" in line
+    assert "focus.json: colours.green.coefficients" in one_error_line(
+        capsys, ["run", "procedures/focus_calibration.toml", "--dry-run"])

@@ -9,16 +9,17 @@ def _cmd_profile_check(args: argparse.Namespace) -> int:
     from benchctl.calibration_files import check_calibration
     from benchctl.runner.geometry import describe_plans
     from benchctl.profiles import load_profile
-    from benchctl.runner.calibration import REGISTRATION_FILE, Calibration
+    from benchctl.runner.calibration import FOCUS_FILE, REGISTRATION_FILE, Calibration
 
     profile = load_profile(args.path)
     print(profile.describe())
     print(describe_plans(profile))
     registration = None
+    focus = Calibration.store(profile).folder / FOCUS_FILE
     if profile.slm is not None and profile.optics is not None:  # what calibration/<profile>/ holds for its geometry
         store = Calibration.store(profile)
         profile, registration = store.applied(profile), store.folder / REGISTRATION_FILE
-    for line in check_calibration(profile, registration):
+    for line in check_calibration(profile, registration, focus):
         print(line)
     print(f"{profile.path}: OK")
     return 0

@@ -30,7 +30,7 @@ from benchctl.memory import check_memory
 from benchctl.profiles import Profile, load_profile, resolve_profile_path
 from benchctl.devices.power import format_power
 from benchctl.runner.acceptance import rejection_line
-from benchctl.runner.calibration import REGISTRATION_FILE, Calibration
+from benchctl.runner.calibration import FOCUS_FILE, REGISTRATION_FILE, Calibration
 from benchctl.runner.context import Context, Step, StepRedo
 from benchctl.runner.estimates import RunEstimate, duration_text
 from benchctl.runner.instruments import Instruments
@@ -127,7 +127,7 @@ def _run(path: Path | None, profile: str | None, out: Path, dry_run: bool, resum
         record = None
     try:  # every calibration file the run will use, checked before a device opens
         effective = procedure.params.applied_to(calibration.applied(bench_profile))
-        checked = check_calibration(effective, calibration.folder / REGISTRATION_FILE)
+        checked = check_calibration(effective, calibration.folder / REGISTRATION_FILE, calibration.folder / FOCUS_FILE)
     except BenchctlError as exc:
         if record is None:
             raise
