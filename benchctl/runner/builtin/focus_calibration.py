@@ -320,19 +320,26 @@ def _reporter(used: list[LaserChannel]):
                             + f", repeatability {found['repeatability_steps']:.3g} {fit['unit']}(s)"
                             + ("" if fit["calibration"]["stored"] else "; NOT stored"))
             holograms = context.result(f"focus/{name}/holograms")
-            curves: dict[str, tuple[list[float], list[float]]] = {}
-            for k, depth in enumerate(holograms["depths_mm"]):
-                fine = context.result(f"focus/{name}/fine/{k}")
-                for label in ("up", "down"):
-                    curves[f"{depth:g} mm {label}"] = ([float(p) for p in fine["positions"]], fine[label])
+            coarse = context.result(f"focus/{name}/coarse")
+            sweeps = {f"{depth:g} mm": ([float(p) for p in coarse["positions"]], values)
+                      for depth, values in zip(holograms["depths_mm"], coarse["sharpness"])}
+            depths = np.asarray(holograms["depths_mm"])
+            middle = int(np.argmin(np.abs(depths - float(np.median(depths)))))
+            fine = context.result(f"focus/{name}/fine/{middle}")
+            lowest = min(fine["up"] + fine["down"])
+            sides = {f"{holograms['depths_mm'][middle]:g} mm, approached {label}": (
+                [float(p) for p in fine["positions"]], [v - lowest for v in fine[key]])
+                for key, label in (("up", "from below"), ("down", "from above"))}
             read = repeat.get("read_steps", [])
             trips = [float(t) for t in range(1, len(read) + 1)]
             returns = {"read back from sharpness": (trips, [r - float(np.mean(read)) for r in read])}
             if "true_offsets_steps" in repeat:
                 returns["simulator's true position"] = (trips, repeat["true_offsets_steps"])
+            unit = f"{fit['unit']}s"
             report.section(f"{name}", row(
-                line_plot(curves, f"focus position ({fit['unit']}s from home)", "sharpness"),
-                line_plot(returns, "round trip", f"position - mean ({fit['unit']}s)")), level=3)
+                line_plot(sweeps, f"focus position ({unit} from home)", "sharpness (coarse sweep)"),
+                line_plot(sides, f"focus position ({unit} from home)", "sharpness above the fine sweep's lowest"),
+                line_plot(returns, "round trip", f"position - mean ({unit})")), level=3)
         report.section("Focus calibration", table(rows),
                        "<p>Steps are the focus driver's own; the map relates positions approached from below to "
                        "depth from the SLM. Backlash: the up-sweep's peak minus the down-sweep's. Repeatability: the "
