@@ -181,3 +181,13 @@ def test_the_emulator_answers_exact_bytes() -> None:
     assert stage.receive(b"/2 1 get pos\r\n") == b""  # another device's message: nobody else on the chain
     assert stage.receive(b"/1 1 get p") == b"" and stage.receive(b"os\r\n") == b"@01 1 OK IDLE -- 2500\r\n"
     assert Mechanism().true_steps == 2500.0
+
+
+def test_an_approach_past_home_or_the_travels_end_stops_there() -> None:
+    bind(SimFocusConfig(backlash_steps=10.0, range_steps=1000, start_steps=500.0))
+    with ZaberFocus(sim_config()) as focus:
+        focus.home()  # approached from above
+        assert focus.move_to(0, approach=1, overshoot=50).position == 0  # cannot go below home to come up: stays
+        focus.move_to(990, approach=1, overshoot=50)
+        assert focus.move_to(990, approach=-1, overshoot=50).position == 990  # up to the end (1000), then down
+        assert Mechanism().true_steps == 990.0 and focus.direction == -1
