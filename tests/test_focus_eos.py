@@ -4,6 +4,7 @@ with its hidden backlash, step-size spread and end stops (answered OK even when 
 from __future__ import annotations
 
 import struct
+from collections.abc import Callable
 
 import msgspec
 import pytest
@@ -18,7 +19,8 @@ from benchctl.devices.lock import DeviceHeld
 from benchctl.devices.sim.eos_usb import DRIVE_STEPS, SimEosTransport
 from benchctl.devices.sim.focus_mechanics import Mechanism
 from benchctl.errors import BadValueError
-from benchctl.profiles import CameraConfig, FocusConfig, SimFocusConfig, load_profile
+from benchctl.profiles import CameraConfig, FocusConfig, Profile, SimFocusConfig, load_profile
+from benchctl.runner.instruments import Instruments
 
 FAST = EosTiming(settle_s=0.0, release_events_s=0.05, poll_interval_s=0.001, busy_retry_s=0.05)
 LENS = SimFocusConfig(plane_mm=70.0, mm_per_step=0.01, range_steps=400, start_steps=200, backlash_steps=6.0)
@@ -110,3 +112,18 @@ def test_the_simulated_eos_profile_drives_the_benchs_lens_and_holds_the_camera()
         with pytest.raises(DeviceHeld, match="camera"):  # the lens is driven through the camera it holds
             PtpCamera.for_profile(profile).open()
     assert Mechanism(profile.sim.focus).true_steps > 0
+
+
+def test_a_run_drives_the_lens_through_its_own_camera(make_bench_profile: Callable[..., Profile]) -> None:
+    profile = make_bench_profile(camera={"driver": "ptp", "transport": "sim"},
+                                 focus={"driver": "eos", "settle_ms": 0, "home_drives": 10},
+                                 sim={"focus": {"mm_per_step": 0.005, "range_steps": 400, "start_steps": 200,
+                                                "backlash_steps": 0.0}})
+    with Instruments(profile, say=lambda line: None) as instruments:
+        focus = instruments.focus
+        assert isinstance(focus, EosFocus) and focus.camera is instruments.camera
+        focus.home()
+        focus.move(7)
+        assert Mechanism().true_steps == 7.0 and focus.ground_truth() == {"true_steps": 7.0, "backlash_steps": 0.0}
+        assert instruments.identities["focus"]["driver"] == "eos"
+    assert not focus.is_open and not focus.camera.is_open
