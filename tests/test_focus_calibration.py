@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from collections.abc import Callable
 from pathlib import Path
 
@@ -165,3 +166,16 @@ def test_the_dry_run_counts_every_sweep_capture(tmp_path: Path, focus_bench: Pro
     assert f"({captures} frame(s) at about" in out and "11 x green alone at 2 mW" not in out
     assert "33 x green alone at 2 mW, 1 frame(s) + 0 dark, RAW not kept" in out
     assert "disk: about 0 kB in runs (0 RAW frame(s)" in out
+
+
+@pytest.mark.parametrize("extra, message", [
+    ("depths_mm = [-30.0, 0.0, 1.0]\n", "parameters.depths_mm: -30 mm puts a depth behind the SLM"),
+    ("depths_mm = [0.0, 1.0]\n", "depths_mm"),
+    ("sweep_steps = [500, 100]\n", "parameters.sweep_steps: \\[500, 100\\] must be two positions"),
+])
+def test_bad_sweeps_are_refused_when_planning(tmp_path: Path, focus_bench: Profile, extra: str, message: str,
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    procedure = tmp_path / "focus.toml"
+    procedure.write_text(SWEEP.replace("sweep_steps = [0, 4000]\n", "") + extra)
+    assert main(["run", str(procedure), "--profile", str(focus_bench.path), "--dry-run"]) == 2
+    assert re.search(message, capsys.readouterr().err)

@@ -83,6 +83,7 @@ def plan(context: Context) -> list[Step]:
     if not 0 <= low < high:
         raise BenchctlError(f"parameters.sweep_steps: {list(params.sweep_steps)} must be two positions from home, "
                             f"the first below the second")
+    _depths_m(context)  # every depth in front of the SLM, said before anything runs
     used = channels(context)
     steps: list[Step] = []
     for channel in used:
@@ -168,7 +169,9 @@ def _fine(channel: LaserChannel, watts: float, k: int):
         focus, frame = context.instruments.focus, _frames(context, channel)[k]
         centre = context.result(f"focus/{channel.name}/coarse")["peaks"][k]
         span = params.fine_span_steps
-        positions = [round(p) for p in np.linspace(centre - span, centre + span, params.fine_points)]
+        low, high = params.sweep_steps  # the window stays inside the range the coarse sweep showed reachable
+        positions = [round(p) for p in np.linspace(max(centre - span, low), min(centre + span, high),
+                                                   params.fine_points)]
         result: dict[str, Any] = {"positions": positions}
         for direction, label, order in ((1, "up", positions), (-1, "down", positions[::-1])):
             values = []
