@@ -11,7 +11,7 @@ from __future__ import annotations
 import importlib
 from typing import Literal
 
-Kind = Literal["laser", "slm", "camera"]
+Kind = Literal["laser", "slm", "camera", "focus"]
 
 DRIVERS: dict[str, dict[str, str]] = {
     "laser": {
@@ -29,6 +29,10 @@ DRIVERS: dict[str, dict[str, str]] = {
         "ptp": "benchctl.devices.camera.ptp_camera:PtpCamera",
         "gphoto2": "benchctl.devices.camera.gphoto2:Gphoto2Camera",
         "genicam": "benchctl.devices.camera.genicam:GenicamCamera",
+    },
+    "focus": {
+        "zaber": "benchctl.devices.focus.zaber:ZaberFocus",
+        "eos": "benchctl.devices.focus.eos:EosFocus",
     },
 }
 

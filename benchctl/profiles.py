@@ -36,7 +36,7 @@ PROFILE_ENV = "BENCHCTL_PROFILE"
 PROFILE_DIR = "hardware_profiles"
 DEFAULT_PROFILE = "simulated"
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
-SECTIONS = ("optics", "slm", "laser", "camera")
+SECTIONS = ("optics", "slm", "laser", "camera", "focus")
 
 Positive = Annotated[float, Meta(gt=0)]
 NonNegative = Annotated[float, Meta(ge=0)]
@@ -49,12 +49,14 @@ if TYPE_CHECKING:  # choices listed at run time, in the modules named below: pla
     LaserDriver = str
     SLMDriver = str
     CameraDriver = str
+    FocusDriver = str
 else:
     CFALayout = Literal[tuple(CFA_LAYOUTS)]  # the layouts benchctl.dng writes
     # The drivers of each kind (benchctl.drivers lists them once).
     LaserDriver = Literal[driver_names("laser")]
     SLMDriver = Literal[driver_names("slm")]
     CameraDriver = Literal[driver_names("camera")]
+    FocusDriver = Literal[driver_names("focus")]
 # The Zernike terms of optics.aberration.ZERNIKE_TERMS (not imported: it imports torch; a test keeps them equal).
 ZernikeTerm = Literal["tilt_vertical", "tilt_horizontal", "astigmatism_oblique", "defocus", "astigmatism_vertical",
                       "coma_vertical", "coma_horizontal", "spherical"]
@@ -191,6 +193,24 @@ class CameraConfig(Model, kw_only=True):
     frame_retries: NonNegativeInt = 2  # incomplete frames (lost packets) re-triggered before the capture fails
 
 
+class FocusConfig(Model, kw_only=True):
+    """The camera's focus ([focus]; docs/focus.md): which driver moves it and how it is reached. A step is the
+    driver's own unit (a stage's microstep, a lens's smallest DriveLens step); the focus calibration relates steps to
+    depth."""
+
+    driver: FocusDriver = "zaber"
+    port: str | None = None  # zaber: serial port (pyserial URL or device path)
+    baudrate: PositiveInt = 115200
+    timeout_s: Positive = 1.0
+    device: Annotated[int, Meta(ge=1, le=99)] = 1  # zaber: device number in the daisy chain
+    axis: Annotated[int, Meta(ge=1, le=9)] = 1  # zaber: axis of that device
+    microstep_um: Positive = 0.047625  # zaber: stage travel per microstep (the stage's datasheet)
+    drive_size: Literal[1, 2, 3] = 1  # eos: DriveLens step size (Near/Far 1, 2 or 3) that one step drives
+    home_drives: PositiveInt = 60  # eos: DriveLens Near 3 commands that surely reach the near end stop
+    settle_ms: NonNegative = 100.0  # wait after a move before a frame is trusted
+    move_timeout_s: Positive = 30.0  # longest wait for one move or homing to end
+
+
 # The simulated bench's physics ([sim]; docs/simulated_bench.md). Every key is optional; the [sim] block of
 # hardware_profiles/simulated.toml lists the defaults.
 
@@ -259,6 +279,20 @@ class SimSensorConfig(Model, kw_only=True):
         return self.margin[0], self.margin[1], self.shape[0], self.shape[1]
 
 
+class SimFocusConfig(Model, kw_only=True):
+    """The simulated focus mechanism (a Zaber stage on sim://, or the simulated EOS body's lens): its hidden mechanics
+    and where it focuses the camera, which focus calibration has to recover (docs/focus.md)."""
+
+    # Depth (from the SLM) of the camera's focus plane with the mechanism at start_steps; None: optics.distance_mm.
+    plane_mm: Positive | None = None
+    mm_per_step: float = 4.7625e-5  # focus-plane shift per step the mechanism truly makes (signed)
+    range_steps: PositiveInt = 84000  # travel between the end stops, in steps
+    start_steps: NonNegative = 42000  # where the mechanism is at power-on (state never saved yet)
+    backlash_steps: NonNegative = 630.0  # lost motion on each reversal of direction
+    step_spread: Fraction = 0.0  # relative standard deviation of each step's true size
+    seed: NonNegativeInt = 0  # the step-size spread's random stream
+
+
 class SimConfig(Model, kw_only=True):
     """The simulated bench's physics ([sim]; docs/simulated_bench.md). Every profile has one: the defaults
     when the section is absent, so any profile can be rendered by the simulated camera."""
@@ -270,6 +304,7 @@ class SimConfig(Model, kw_only=True):
     # Laser channel -> Zernike term -> waves of wavefront error at the SLM (none: a perfect wavefront).
     aberration: dict[str, dict[ZernikeTerm, float]] = msgspec.field(default_factory=dict)
     sensor: SimSensorConfig = msgspec.field(default_factory=SimSensorConfig)
+    focus: SimFocusConfig = msgspec.field(default_factory=SimFocusConfig)
 
 
 class ProfileFile(Model, kw_only=True):
@@ -281,6 +316,7 @@ class ProfileFile(Model, kw_only=True):
     slm: SLMConfig | None = None
     laser: LaserConfig | None = None
     camera: CameraConfig | None = None
+    focus: FocusConfig | None = None
     sim: SimConfig = msgspec.field(default_factory=SimConfig)
 
 
@@ -310,6 +346,8 @@ class Profile(ProfileFile, kw_only=True):
     def section(self, name: Literal["laser"]) -> LaserConfig: ...
     @overload
     def section(self, name: Literal["camera"]) -> CameraConfig: ...
+    @overload
+    def section(self, name: Literal["focus"]) -> FocusConfig: ...
 
     def section(self, name: str) -> Model:
         """Device section `name` of this profile, or the BenchctlError of `require` if the profile lacks it."""
@@ -376,6 +414,9 @@ class Profile(ProfileFile, kw_only=True):
                 sensor = f"ISO {cam.iso or body}"
             lines.append(f"  Camera        {cam.driver} {cam.model}".rstrip() + f": exposure {exposure}, {sensor}, "
                          f"{cam.frames} frame(s) per capture")
+        if self.focus:
+            where = f" on {self.focus.port}" if self.focus.port else " (the camera's lens)"
+            lines.append(f"  Focus         {self.focus.driver}{where}, settle {self.focus.settle_ms:g} ms")
         return "\n".join(lines)
 
 
@@ -446,6 +487,7 @@ def _checked(path: Path, file: ProfileFile) -> Profile:
             path, "optics.roi",
             f"{list(optics.roi)} is larger than the SLM grid {slm.height} x {slm.width} (slm.height x slm.width)",
         )
+    _check_focus(path, file)
     laser = _checked_laser(path, file.laser) if file.laser else None
     names = {ch.name for ch in laser.channels} if laser else set()
     known = ", ".join(sorted(names)) or "none"
@@ -457,6 +499,21 @@ def _checked(path: Path, file: ProfileFile) -> Profile:
     _check_sensor(path, file.sim.sensor)
     fields = {key: getattr(file, key) for key in file.__struct_fields__}
     return Profile(**{**fields, "name": name, "laser": laser, "path": path})
+
+
+def _check_focus(path: Path, file: ProfileFile) -> None:
+    """A focus driver has what reaches it: the zaber stage a port, the EOS lens a ptp camera to drive it through."""
+    focus = file.focus
+    if focus is None:
+        return
+    if focus.driver == "zaber" and not focus.port:
+        raise fail(path, "focus.port", "the zaber driver needs a serial port, e.g. port = \"/dev/ttyUSB1\"")
+    if focus.driver == "eos" and (file.camera is None or file.camera.driver != "ptp"):
+        raise fail(path, "focus.driver", "the eos driver drives the lens through the camera: it needs "
+                                         "[camera] driver = \"ptp\"")
+    sim = file.sim.focus
+    if sim.start_steps > sim.range_steps:
+        raise fail(path, "sim.focus.start_steps", f"{sim.start_steps:g} is beyond the range of {sim.range_steps} steps")
 
 
 def _check_sensor(path: Path, sensor: SimSensorConfig) -> None:

@@ -8,13 +8,14 @@ import typing
 import pytest
 
 from benchctl.devices.camera import Camera
+from benchctl.devices.focus import Focus
 from benchctl.devices.laser import Laser
 from benchctl.devices.slm import SLM
 from benchctl.drivers import DRIVERS, driver_class, driver_names
-from benchctl.profiles import CameraConfig, LaserConfig, SLMConfig
+from benchctl.profiles import CameraConfig, FocusConfig, LaserConfig, SLMConfig
 
-BASES = {"laser": Laser, "slm": SLM, "camera": Camera}
-CONFIGS = {"laser": LaserConfig, "slm": SLMConfig, "camera": CameraConfig}
+BASES = {"laser": Laser, "slm": SLM, "camera": Camera, "focus": Focus}
+CONFIGS = {"laser": LaserConfig, "slm": SLMConfig, "camera": CameraConfig, "focus": FocusConfig}
 
 
 @pytest.mark.parametrize("kind", sorted(DRIVERS))

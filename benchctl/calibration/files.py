@@ -104,6 +104,29 @@ class LutIndexEntry(Entry, kw_only=True):
 LutIndex = dict[str, LutIndexEntry]  # lut.json: colour -> its table
 
 
+class FocusColour(Entry, kw_only=True):
+    """One colour of focus.json (benchctl.capture.focus.FocusMap.to_dict, and which focus device it was made with)."""
+
+    focus: str  # the [focus] driver and port it holds for
+    coefficients: Annotated[list[float], Meta(min_length=2, max_length=3)]  # depth mm = c0 + c1 s + c2 s^2
+    approach: Annotated[int, Meta(ge=-1, le=1)]
+    backlash_steps: float
+    overshoot_steps: NonNegativeInt
+    repeatability_steps: NonNegative | None = None
+    range_steps: tuple[float, float]
+    residual_mm: NonNegative
+    points: list[dict[str, float]] = []
+    run: str | None = None
+
+
+class FocusFile(Model, kw_only=True):
+    """focus.json: the focus calibration per laser colour."""
+
+    profile: str | None = None
+    unit: str = "step"
+    colours: dict[str, FocusColour]
+
+
 def checked_json(path: Path, model: Any) -> dict[str, Any] | None:
     """The JSON object in the file at `path` as parsed, after checking it against `model` (one of the models
     above; None if there is no file). A BenchctlError names the file, the key and what is wrong."""
@@ -156,10 +179,11 @@ def _check_beam(path: Path, channel: str, entry: dict[str, Any], slm: SLMConfig)
                    "waists): no light would reach it")
 
 
-def check_calibration(profile: Profile, registration: Path | None = None) -> list[str]:
+def check_calibration(profile: Profile, registration: Path | None = None, focus: Path | None = None) -> list[str]:
     """Check every calibration file a run on `profile` will use: the profile as calibration applies it (its
-    `optics.model` and `slm.lut` files, stored ones included) and `registration` (a registration.json, if given).
-    The first bad file is a BenchctlError naming it, the key and the value; otherwise one line per file checked."""
+    `optics.model` and `slm.lut` files, stored ones included), `registration` (a registration.json) and `focus` (a
+    focus.json, where the profile has a [focus] device), if given. The first bad file is a BenchctlError naming it,
+    the key and the value; otherwise one line per file checked."""
     from benchctl.devices.slm.lut import load_lut  # numpy only
 
     lines = []
@@ -175,6 +199,10 @@ def check_calibration(profile: Profile, registration: Path | None = None) -> lis
         data = checked_json(registration, RegistrationFile)
         if data is not None:
             lines.append(f"registration {registration}: {', '.join(data['colours']) or 'no colours'}")
+    if focus is not None and profile.focus is not None:
+        data = checked_json(focus, FocusFile)
+        if data is not None:
+            lines.append(f"focus {focus}: {', '.join(data['colours']) or 'no colours'}")
     return [f"calibration: {line}: OK" for line in lines]
 
 

@@ -17,9 +17,9 @@ def _cmd_bench_speed(args: argparse.Namespace) -> int:
         resized_profile,
         run_speed_vs_error,
     )
-    from benchctl.terminal import ProgressLine
     from benchctl.errors import BadValueError
     from benchctl.profiles import load_profile
+    from benchctl.terminal import ProgressLine
 
     profile = load_profile(args.profile).require("slm", "optics", "laser")
     if args.full and args.size:

@@ -17,7 +17,6 @@ from benchctl.capture.registration import cfa_planes
 from benchctl.devices.power import format_power
 from benchctl.profiles import LaserChannel
 from benchctl.runner.context import Context, Expose, Step
-
 from benchctl.runner.steps import measure, power_w, registered, unregistered
 from benchctl.targets import target_plane
 

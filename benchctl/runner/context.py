@@ -51,18 +51,19 @@ class Expose:
     """An exposure a step declares: show a frame, light `channel` alone at `power_w` (None: a power the step
     decides when it runs, never above the channel's max_power_mw), capture `frames` RAW frames and then
     `dark_frames` with emission off; `keep`: the RAW files are kept in the run folder (its disk estimate counts
-    them)."""
+    them); `times`: how many such exposures the step makes (its time estimate counts each)."""
 
     channel: str
     power_w: float | None
     frames: int
     dark_frames: int
     keep: bool = True
+    times: int = 1  # how many such exposures the step makes (a sweep makes one per position)
 
     def describe(self) -> str:
         power = "a power chosen when the step runs" if self.power_w is None else format_power(self.power_w)
-        return (f"{self.channel} alone at {power}, {self.frames} frame(s) + {self.dark_frames} dark"
-                + ("" if self.keep else ", RAW not kept"))
+        return (f"{f'{self.times} x ' if self.times > 1 else ''}{self.channel} alone at {power}, {self.frames} "
+                f"frame(s) + {self.dark_frames} dark" + ("" if self.keep else ", RAW not kept"))
 
 
 @dataclass(frozen=True)

@@ -108,20 +108,27 @@ def _emitted(setpoint_w: float, measured_w: float | None, profile_w: float) -> s
 
 def sim_fault(device: str, faults: list[str], clear: bool, profile: Profile) -> list[str]:
     """Set (or clear) the faults a simulated device shows from its next connection on. The device is the
-    simulated camera, a sim:// laser of `profile` or one with saved state; unknown faults are refused."""
+    simulated camera, a sim:// laser or focus stage of `profile` or one with saved state; unknown faults are
+    refused."""
     ports = [urlsplit(profile.laser.port_of(ch)) for ch in profile.laser.channels] if profile.laser else []
     lasers = {port.netloc for port in ports if port.scheme == "sim"}
     lasers |= {name for name, saved in list_states().items() if "channels" in saved}  # connected before
-    if device != CAMERA and device not in lasers:
-        raise BenchctlError(f"no simulated device {device!r} (known: {', '.join(sorted(lasers | {CAMERA}))})")
+    focus_port = urlsplit(profile.focus.port or "") if profile.focus else None
+    stages = {focus_port.netloc} if focus_port is not None and focus_port.scheme == "sim" else set()
+    stages |= {name for name, saved in list_states().items() if saved.get("dialect") == "zaber"}
+    if device != CAMERA and device not in lasers | stages:
+        known = ", ".join(sorted(lasers | stages | {CAMERA}))
+        raise BenchctlError(f"no simulated device {device!r} (known: {known})")
     if device == CAMERA:
         from benchctl.devices.sim.camera import unplug_frame
 
         for fault in faults:
             unplug_frame(fault)
     else:
+        from benchctl.devices.sim.zaber_stage import parse_faults as stage_faults
+
         try:
-            parse_faults(faults)
+            (stage_faults if device in stages else parse_faults)(faults)
         except ValueError as exc:
             raise BenchctlError(f"{device}: {exc}") from None
     state = load_state(device)
@@ -308,6 +315,11 @@ def devices_found() -> list[str]:
         *_section("framebuffers", [f"{f.device}  {f.name or '?'}  {f.width}x{f.height}  {f.bits_per_pixel} bpp"
                                    for f in found.framebuffers], None),
         *_section("desktop outputs (X11)", [output.describe() for output in found.outputs], found.outputs_error),
+        *_section("focus (a [focus] driver for each)",
+                  [f"{p.device}  {p.description}  (driver zaber)" for p in found.serial_ports
+                   if "zaber" in f"{p.description} {p.hwid}".lower()]
+                  + [f"the lens of {c.product or 'the camera'} {c.usb_id}  (driver eos, with camera driver ptp)"
+                     for c in found.cameras if c.usb_id.startswith("04a9:")], None),
     ]
 
 

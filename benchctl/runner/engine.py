@@ -26,7 +26,7 @@ import msgspec
 from benchctl.calibration.acceptance import rejection_line
 from benchctl.calibration.calibrated import Calibrated
 from benchctl.calibration.files import check_calibration
-from benchctl.calibration.store import REGISTRATION_FILE, Calibration
+from benchctl.calibration.store import FOCUS_FILE, REGISTRATION_FILE, Calibration
 from benchctl.devices.power import format_power
 from benchctl.errors import BenchctlError
 from benchctl.files import file_sha256, write_json
@@ -129,7 +129,7 @@ def _run(path: Path | None, profile: str | None, out: Path, dry_run: bool, resum
     try:  # every calibration file the run will use, checked before a device opens
         bench = Calibrated(procedure.params.applied_to(bench_profile), calibration)
         effective = bench.profile
-        checked = check_calibration(effective, calibration.folder / REGISTRATION_FILE)
+        checked = check_calibration(effective, calibration.folder / REGISTRATION_FILE, calibration.folder / FOCUS_FILE)
     except BenchctlError as exc:
         if record is None:
             raise

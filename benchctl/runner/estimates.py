@@ -66,7 +66,8 @@ class RunEstimate:
         self.profile = profile
         self.frame_s = frame_seconds(profile)
         settle = (profile.slm.settle_ms if profile.slm else 0.0) / 1e3
-        self.planned = {step.key: sum((e.frames + e.dark_frames) * self.frame_s + settle for e in step.exposes)
+        self.planned = {step.key: sum(((e.frames + e.dark_frames) * self.frame_s + settle) * e.times
+                                      for e in step.exposes)
                         if step.exposes else STEP_SECONDS for step in steps}
         self.measured: dict[tuple[str, bool], list[float]] = {}
         self._count: Counter[tuple[str, bool]] = Counter()  # steps left, per kind
@@ -101,8 +102,8 @@ class RunEstimate:
 
     def frames(self, steps: Sequence[Step]) -> tuple[int, int]:
         """(frames exposed, RAW frames kept on disk) by `steps`."""
-        exposed = sum(e.frames + e.dark_frames for step in steps for e in step.exposes)
-        kept = sum(e.frames + e.dark_frames for step in steps for e in step.exposes if e.keep)
+        exposed = sum((e.frames + e.dark_frames) * e.times for step in steps for e in step.exposes)
+        kept = sum((e.frames + e.dark_frames) * e.times for step in steps for e in step.exposes if e.keep)
         return exposed, kept
 
     def disk_bytes(self, steps: Sequence[Step]) -> float:

@@ -42,6 +42,7 @@ BUILTINS = {
     "power-sweep": "benchctl.runner.builtin.power_sweep",
     "model-calibration": "benchctl.runner.builtin.model_calibration",
     "citl": "benchctl.runner.builtin.citl.procedure",
+    "focus-calibration": "benchctl.runner.builtin.focus_calibration",
 }
 
 MAX_STEPS = 100_000  # a plan longer than this is a mistake (repeats = 1000000), not an experiment

@@ -155,10 +155,12 @@ def prepared_target(profile: Profile, spec: str, key: str | None = None) -> torc
 # -- holograms ------------------------------------------------------------------------------------------------------
 
 def compute_hologram(context: Context, target: torch.Tensor, channel: LaserChannel,
-                     options: HologramParameters) -> Hologram:
+                     options: HologramParameters, *, distance_m: float | None = None) -> Hologram:
     """`channel`'s hologram of `target` (3, H, W amplitude on the SLM grid) as `options` say: its frame as
-    displayed, simulated reconstruction and scores; from the hologram cache when it was computed before."""
-    return hologram(context.bench, target, channel.name, options.method, iterations=options.iterations,
+    displayed, simulated reconstruction and scores; from the hologram cache when it was computed before.
+    `distance_m`: reconstructed at that depth instead of the profile's distance (the focus calibration's)."""
+    bench = context.bench if distance_m is None else context.bench.at_distance(distance_m)
+    return hologram(bench, target, channel.name, options.method, iterations=options.iterations,
                     seed=options.seed, checkpoint=options.checkpoint, progress=context.progress)
 
 

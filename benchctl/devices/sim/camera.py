@@ -11,9 +11,9 @@ import numpy as np
 
 from benchctl.devices.camera.base import Camera, PreviewFrame, RawFrame, Window
 from benchctl.devices.errors import DeviceError
-from benchctl.devices.sim.eos_usb import SimEosTransport
 from benchctl.devices.lock import DeviceLock
 from benchctl.devices.safety import wait
+from benchctl.devices.sim.eos_usb import SimEosTransport
 from benchctl.devices.sim.state import CAMERA_STATE, load_state, sim_lock, state_dir
 from benchctl.files import ensure_dir
 from benchctl.profiles import CameraConfig, Profile
@@ -105,7 +105,7 @@ class SimCamera(Camera):
 def eos_transport(profile: Profile) -> SimEosTransport:
     """A simulated EOS body on `profile`'s simulated bench: each shutter release delivers the DNG the bench
     renders, and its live view the simulator's preview as JPEG, with the exposure and ISO of the profile's
-    [camera] section."""
+    [camera] section; with [focus] driver "eos" its lens is the bench's focus mechanism ([sim.focus])."""
     from benchctl.devices.camera.base import PREVIEW_WIDTH
     from benchctl.devices.sim.physics import LiveView, render_capture  # torch physics: only a capture needs it
 
@@ -117,5 +117,11 @@ def eos_transport(profile: Profile) -> SimEosTransport:
         return frame.data, frame.file_name
 
     view = LiveView(profile)
+    lens = None
+    if profile.focus is not None and profile.focus.driver == "eos":
+        from benchctl.devices.sim.focus_mechanics import Mechanism, bind
+
+        bind(profile.sim.focus)
+        lens = Mechanism(profile.sim.focus, profile.optics.distance_mm if profile.optics else None)
     return SimEosTransport(image_source, live_view=lambda: view.jpeg(PREVIEW_WIDTH, exposure_s=config.exposure_s,
-                                                                     iso=config.iso))
+                                                                     iso=config.iso), lens=lens)

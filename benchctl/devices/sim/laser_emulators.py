@@ -38,8 +38,9 @@ DEFAULT_MAX_MW = 40.0
 _OPTIONS = ("fault", "reply_delay_s", "max_mw", "channels")
 
 
-def parse_faults(items: list[str]) -> tuple[frozenset[str], int | None]:
-    """Fault names (see the module docstring) as a set, plus N of drop_after=N; ValueError names a bad one."""
+def parse_faults(items: list[str], known: tuple[str, ...] = FAULTS) -> tuple[frozenset[str], int | None]:
+    """Fault names (see the module docstring; `known`: another simulator's) as a set, plus N of drop_after=N;
+    ValueError names a bad one."""
     names: set[str] = set()
     drop_after = None
     for item in (raw.strip() for raw in items):
@@ -50,10 +51,10 @@ def parse_faults(items: list[str]) -> tuple[frozenset[str], int | None]:
                 drop_after = int(item.split("=", 1)[1])
             except ValueError:
                 raise ValueError(f"fault {item!r}: N in drop_after=N must be an integer") from None
-        elif item in FAULTS:
+        elif item in known:
             names.add(item)
         else:
-            raise ValueError(f"unknown fault {item!r} (known: {', '.join(FAULTS)})")
+            raise ValueError(f"unknown fault {item!r} (known: {', '.join(known)})")
     return frozenset(names), drop_after
 
 

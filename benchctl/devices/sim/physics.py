@@ -4,7 +4,8 @@ Per capture, for every laser channel that emits (and only those): the gray frame
 becomes a phase through the simulator's own response ([sim.slm], deliberately not the profile's lookup table),
 lit by the laser's power (uniform, or a Gaussian beam), with a little unmodulated light from the pixel gaps;
 it is propagated to the target plane by the same Propagator the holograms are computed with, at the profile's
-geometry (`OpticalSetup.of(profile.geometry(...)).target_propagator()`, Fourier iris included), and becomes
+geometry (`OpticalSetup.of(profile.geometry(...)).target_propagator()`, Fourier iris included) - or, where a simulated
+focus mechanism moved the camera's focus plane, to that plane (`camera_geometry`) - and becomes
 photons (P t lambda / (h c) times the optical efficiency). The three colour planes of electrons (each channel's
 photons times its [R, G, B] quantum efficiency) are carried onto the sensor by the camera homography
 (magnification, rotation, offset; energy conserving) into only the box of sensor pixels the grid's image
@@ -15,6 +16,7 @@ black level plus read noise only. docs/simulated_bench.md describes the model an
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 import time
@@ -28,14 +30,16 @@ import numpy as np
 import torch
 from serial.serialutil import SerialException
 
-from benchctl.dng import CFA_LAYOUTS, dng_bytes
 from benchctl.devices.camera.base import RawFrame, Window
 from benchctl.devices.errors import DeviceError
+from benchctl.devices.sim.focus_mechanics import Mechanism
 from benchctl.devices.sim.protocol_sim import parse_url
-from benchctl.devices.sim.state import CAMERA_STATE, load_state, save_state
 from benchctl.devices.sim.slm import read_displayed, true_lut
+from benchctl.devices.sim.state import CAMERA_STATE, load_state, save_state
+from benchctl.dng import CFA_LAYOUTS, dng_bytes
 from benchctl.optics import Propagator, PrunedPropagator, gray_to_phase, linear_to_srgb
 from benchctl.optics.aberration import crosstalk_blur, gaussian_beam_power, tilt_phase, wavefront_phase
+from benchctl.optics.geometry import Geometry
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import LaserChannel, Profile, SimSensorConfig, SimSLMConfig
 
@@ -123,6 +127,35 @@ def emitting_channels(profile: Profile) -> dict[str, float]:
     return powers
 
 
+def camera_focus_m(profile: Profile) -> float | None:
+    """The depth (from the SLM) the simulated camera focuses at, where the profile's [focus] is a simulated mechanism
+    (a Zaber stage on a sim:// port, or the simulated EOS body's lens): the mechanism's true plane
+    (benchctl.devices.sim.focus_mechanics). None without one: the camera sees the target plane."""
+    focus, camera = profile.focus, profile.camera
+    if focus is None:
+        return None
+    simulated = ((focus.driver == "zaber" and (focus.port or "").startswith("sim://"))
+                 or (focus.driver == "eos" and camera is not None and camera.transport == "sim"))
+    if not simulated:
+        return None
+    distance = profile.optics.distance_mm if profile.optics else None
+    return Mechanism(profile.sim.focus, distance).plane_m
+
+
+def camera_geometry(profile: Profile, channel: str) -> Geometry:
+    """`channel`'s geometry as the camera sees it: propagated to the plane the camera focuses at (the target plane
+    unless a simulated focus moved it). The camera images that plane coherently through the same band limit and iris,
+    so out-of-focus light blurs exactly as propagation says and the depth of field is the bench's own aperture's."""
+    geometry = profile.geometry(channel)
+    plane = camera_focus_m(profile)
+    if plane is None or plane == geometry.distance_m:
+        return geometry
+    if plane <= 0:
+        raise DeviceError(f"simulated camera: its focus plane is {plane * 1e3:g} mm from the SLM, not in front of it "
+                          f"(check [sim.focus])")
+    return dataclasses.replace(geometry, distance_m=plane)
+
+
 @functools.lru_cache(maxsize=3)
 def _propagator(setup: OpticalSetup) -> Propagator:
     """The target propagator of the first setup equal to `setup`, so its transfer function is computed once."""
@@ -178,7 +211,7 @@ def _target_irradiance(profile: Profile, channel: LaserChannel, gray: np.ndarray
     field (`_panel_field`) propagated to the target plane, stray light added."""
     field = _panel_field(profile, channel, gray)
     with torch.inference_mode():
-        out = _propagator(OpticalSetup.of(profile.geometry(channel.name)))(field)
+        out = _propagator(OpticalSetup.of(camera_geometry(profile, channel.name)))(field)
     return _with_stray_light(profile, out.abs().square().to(torch.float64))
 
 
@@ -213,7 +246,7 @@ def _live_irradiance(profile: Profile, channel: LaserChannel, gray: np.ndarray) 
         field = torch.from_numpy(_modulation(channel.wavelength_m, slm.bit_depth, response)[gray])
         field *= _beam_field(*_beam(profile, channel))
     with torch.inference_mode():
-        out = _pruned_propagator(OpticalSetup.of(profile.geometry(channel.name)))(field)
+        out = _pruned_propagator(OpticalSetup.of(camera_geometry(profile, channel.name)))(field)
     return _with_stray_light(profile, out.real.square() + out.imag.square())
 
 
@@ -390,11 +423,11 @@ class LiveView:
 
         powers = emitting_channels(self.profile)
         shown = load_state(STATE_NAME).get("frame")
-        key = (shown, tuple(sorted(powers.items())), exposure_s)
+        key = (shown, tuple(sorted(powers.items())), exposure_s, camera_focus_m(self.profile))
         start = time.perf_counter()
         if key != self._key or self._planes is None:
             gray, state = read_displayed() if shown is not None else (None, {})
-            key = (state.get("frame"), key[1], exposure_s)  # the frame read, should a newer one have come
+            key = (state.get("frame"), *key[1:])  # the frame read, should a newer one have come
             self._planes = _electron_planes(self.profile, gray, powers, exposure_s, _live_irradiance)
             self._reduced, self._saturated = {}, {}
             self._key = key

@@ -12,8 +12,8 @@ import math
 import sys
 import time
 from abc import abstractmethod
-from datetime import datetime, timedelta, timezone
 from collections.abc import Callable, Sequence
+from datetime import datetime, timedelta, timezone
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
