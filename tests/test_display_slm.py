@@ -32,7 +32,8 @@ from benchctl.profiles import load_profile
 
 EDIDS = Path(__file__).with_name("data") / "edid"
 SLM_SCREEN = (192, 128)  # screen 1: the SLM; screen 0 is the desktop monitor
-pytestmark = pytest.mark.skipif(shutil.which("Xvfb") is None, reason="needs Debian's xvfb (.ci/run installs it)")
+pytestmark = [pytest.mark.third_party,
+              pytest.mark.skipif(shutil.which("Xvfb") is None, reason="needs Debian's xvfb (.ci/run installs it)")]
 
 
 Screen = tuple[int, int, int, str]  # width, height, depth, EDID file

@@ -26,6 +26,8 @@ from benchctl.profiles import CameraConfig, load_profile
 
 WIDE = (0, 0, 256, 24)  # every ramp index (x + y + frame id) mod 255 appears in one frame (LibRaw: >= 22 rows)
 
+pytestmark = pytest.mark.third_party
+
 
 def config(**changes: object) -> CameraConfig:
     base = CameraConfig(driver="genicam", serial="1", region=(0, 0, 64, 48), image_timeout_s=5.0)

@@ -26,6 +26,8 @@ from benchctl.profiles import CameraConfig
 JPEG = bytes.fromhex("ffd8ffe000104a46494600010100000100010000ffd9")  # a minimal JPEG: what capture copies
 DNG = dng_bytes(np.arange(24 * 32, dtype=np.uint16).reshape(24, 32), white_level=1023)
 
+pytestmark = pytest.mark.third_party
+
 
 @pytest.fixture
 def virtual_camera(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
