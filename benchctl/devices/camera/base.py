@@ -82,6 +82,14 @@ class PreviewFrame:
     metadata: dict[str, Any] = field(default_factory=dict)
 
 
+def real_frame(profile: Profile, rows: int, cols: int, readout_s: float, pixels_per_s: float, what: str) -> FrameSize:
+    """A camera's frame of rows x cols pixels, captured in the profile's exposure (else its [sim.sensor]'s) plus
+    `readout_s` plus its transfer at `pixels_per_s`, saved as a 16-bit DNG (a bound for a camera's own RAW)."""
+    exposure = (profile.camera.exposure_s if profile.camera else None) or profile.sim.sensor.exposure_s
+    return FrameSize(rows, cols, DNG_BYTES_PER_PX * rows * cols, exposure + readout_s + rows * cols / pixels_per_s,
+                     what)
+
+
 class Camera(Connection):
     """A camera built from the profile's [camera] section; a context manager (open on enter, close on exit)."""
 
@@ -104,16 +112,13 @@ class Camera(Connection):
     @classmethod
     def frame_size(cls, profile: Profile) -> FrameSize:
         """One RAW frame of this driver's camera as `profile` describes it, without the camera. Default, for a body
-        whose sensor the profile does not give in its [camera] section: the sensor [sim.sensor] describes (an EOS
-        M10's unless set), 16 bits a pixel, its exposure plus READOUT_S plus the file over USB 2; drivers whose
-        profile section says more override it."""
-        sensor = profile.sim.sensor
-        rows, cols = sensor.shape
-        file_bytes = DNG_BYTES_PER_PX * rows * cols
-        exposure = (profile.camera.exposure_s if profile.camera else None) or sensor.exposure_s
-        return FrameSize(rows, cols, file_bytes, exposure + READOUT_S + file_bytes / TRANSFER_BYTES_PER_S,
-                         f"a {cols} x {rows} sensor ([sim.sensor] shape), {exposure:g} s exposure, {READOUT_S:g} s "
-                         f"readout and USB 2")
+        whose sensor the profile's [camera] section does not give: the sensor [sim.sensor] describes (an EOS M10's
+        unless set), 16 bits a pixel, the profile's exposure plus READOUT_S plus the file over USB 2; drivers whose
+        section says more override it."""
+        rows, cols = profile.sim.sensor.shape
+        return real_frame(profile, rows, cols, READOUT_S, TRANSFER_BYTES_PER_S / DNG_BYTES_PER_PX,
+                          f"camera {cls.driver}'s {rows * cols / 1e6:.3g} Mpx (its sensor as [sim.sensor] shape "
+                          f"says)")
 
     def _device_lock(self) -> DeviceLock:
         return DeviceLock(f"camera:{self.driver}:{self.config.usb_id}", f"camera ({self.driver} {self.config.usb_id})")
