@@ -118,7 +118,7 @@ def test_toml_syntax_error_names_the_line(small_profile_path: Path) -> None:
          "laser.channels[1].wavelenght_nm: unknown key (did you mean 'wavelength_nm'?"),
         ("pitch_um = 8.0\n", "", "slm.pitch_um: missing required key"),
         ('driver = "template"', 'driver = "coherent"',
-         "laser.driver: unknown value 'coherent' (choose from template, cobolt, obis)"),
+         "laser.driver: unknown value 'coherent' (choose from template, cobolt, obis, sapphire, deepstar)"),
         ("[slm]", "[slm]\nflip_x = 1", "slm.flip_x: expected true or false, got 1 (int)"),
         ("[slm]", "[slm]\ngrating_period_px = [8]", "slm.grating_period_px: expected two numbers [rows, cols]"),
         ("[slm]", '[slm]\ndriver = "framebuffer"', "slm.device: the framebuffer driver needs a device"),

@@ -64,6 +64,7 @@ class Laser(ABC):
     ok_reply: str = "OK"
     error_prefix: str | None = None
     echo: bool = False
+    one_head_per_port: bool = False  # single-wavelength heads: every channel needs a port of its own
 
     def __init__(self, config: LaserConfig, *, leave_on: bool = False, observe: bool = False,
                  port_factory: PortFactory | None = None) -> None:
@@ -79,6 +80,11 @@ class Laser(ABC):
         self._ports: dict[str, list[LaserChannel]] = {}
         for channel in config.channels:
             self._ports.setdefault(config.port_of(channel), []).append(channel)
+        for port, sharing in self._ports.items():
+            if self.one_head_per_port and len(sharing) > 1:
+                raise BenchctlError(f"{config.driver} laser: channels {', '.join(ch.name for ch in sharing)} share "
+                                    f"port {port}, but a {config.driver} head has one wavelength: give each channel "
+                                    "its own port")
         self._links: dict[str, SerialLink] = {}
         self._holds: dict[str, DeviceLock] = {}
         self._limits_w: dict[str, float] = {}
@@ -205,7 +211,8 @@ class Laser(ABC):
             )
         self._write_power(ch, watts)
         held = self._read_setpoint(ch)
-        tolerance = max(SETPOINT_RELATIVE_TOLERANCE * watts, SETPOINT_FULL_SCALE_TOLERANCE * limit_w)
+        tolerance = max(SETPOINT_RELATIVE_TOLERANCE * watts, SETPOINT_FULL_SCALE_TOLERANCE * limit_w,
+                        self._setpoint_step_w(ch) / 2 * (1 + 1e-9))
         if abs(held - watts) > tolerance:
             raise DeviceError(
                 f"{self._where(ch)}: asked for {format_power(watts)}, the device holds {format_power(held)} "
@@ -337,6 +344,11 @@ class Laser(ABC):
     def _read_limit_w(self, channel: LaserChannel) -> float | None:
         """The head's own maximum power (W), or None where the dialect cannot tell. Default: None."""
         return None
+
+    def _setpoint_step_w(self, channel: LaserChannel) -> float:
+        """The coarsest step the device sets power in (W): a read-back within half a step of the request is the
+        request. Default 0: the tolerances above cover the rounding of dialects that take watts or milliwatts."""
+        return 0.0
 
     @abstractmethod
     def _identify(self, channel: LaserChannel) -> str:
