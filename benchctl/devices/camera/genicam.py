@@ -23,6 +23,7 @@ from benchctl.devices.errors import DeviceError, DeviceTimeout
 from benchctl.devices.lock import DeviceLock
 from benchctl.dng import dng_bytes
 from benchctl.errors import BadValueError
+from benchctl.limits import check_pixels
 from benchctl.profiles import CameraConfig, Profile
 
 BUFFERS = 4  # pushed to the stream: a frame can arrive while the previous one is converted
@@ -118,6 +119,7 @@ class GenicamCamera(Camera):
         camera, config = self._camera, self.config
         if config.region is not None:
             x, y, width, height = config.region
+            self._check_region(x, y, width, height)
             camera.set_region(x, y, width, height)
             got = camera.get_region()
             if (got.x, got.y, got.width, got.height) != (x, y, width, height):
@@ -151,6 +153,20 @@ class GenicamCamera(Camera):
                           "trigger": "Software"}
         if camera.is_black_level_available():
             self._settings["black_level"] = camera.get_black_level()
+
+    def _check_region(self, x: int, y: int, width: int, height: int) -> None:
+        """Refuse a region outside the sensor (WidthMax x HeightMax, else the sensor's size) or above benchctl's pixel
+        limit before it is written: a camera may take one and then fail in native code (Aravis's fake camera took
+        100000 x 100000 and the process died in the buffer pop), or fill the disk with one frame."""
+        camera = self._camera
+        sensor = camera.get_sensor_size()
+        columns, rows = (camera.get_integer(name) if camera.is_feature_available(name) else fallback
+                         for name, fallback in (("WidthMax", sensor.width), ("HeightMax", sensor.height)))
+        where = f"{self._label()}: camera.region {[x, y, width, height]}"
+        if x + width > columns or y + height > rows:
+            raise BadValueError(f"{where} reaches column {x + width} and row {y + height}, beyond the camera's "
+                                f"{columns} x {rows} (WidthMax x HeightMax): give a region inside it")
+        check_pixels(where, height, width)
 
     def _set(self, name: str, value: float, bounds: Any, write: Callable[[float], None],
              read: Callable[[], float]) -> None:
