@@ -8,13 +8,17 @@ rules live in one place and cannot be skipped by a dialect:
 - every setting is read back; a device that silently clamps or ignores a setting is an error;
 - emission is enabled only after the interlock and fault status were checked;
 - leaving a `with` block, normally or by any exception (KeyboardInterrupt and lost replies included), turns
-  emission off on every channel, trying each one even when an earlier one fails.
+  emission off on every channel, trying each one even when an earlier one fails;
+- before emission first goes on, a watchdog process is started that switches it off through the same driver if
+  this process dies without closing the laser (SIGKILL, a native crash: benchctl.devices.watchdog).
 """
 
 from __future__ import annotations
 
 import contextlib
 import math
+
+import msgspec
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -25,6 +29,7 @@ from benchctl.devices.errors import DeviceError, EmissionNotOff, SafetyError
 from benchctl.devices.lock import DeviceLock
 from benchctl.devices.power import format_power, parse_power
 from benchctl.devices.serial_link import SerialLink, SerialPort
+from benchctl.devices.watchdog import Watchdog
 from benchctl.errors import BadValueError, BenchctlError
 from benchctl.profiles import LaserChannel, LaserConfig
 
@@ -90,6 +95,7 @@ class Laser(ABC):
         self._limits_w: dict[str, float] = {}
         self._emission_commanded: dict[str, bool] = {}
         self.found_emitting: dict[str, float] = {}  # channel -> setpoint (W) of channels emitting at connect
+        self._watchdog: Watchdog | None = None  # started before emission first goes on (real ports only)
 
     # -- connection ------------------------------------------------------------------------------------------
 
@@ -154,10 +160,26 @@ class Laser(ABC):
     def _close_links(self) -> None:
         links, self._links = self._links, {}
         holds, self._holds = self._holds, {}
+        watchdog, self._watchdog = self._watchdog, None
         try:
             try_each(SerialLink.close, links.values())
         finally:
-            try_each(DeviceLock.release, holds.values())
+            try:
+                try_each(DeviceLock.release, holds.values())
+            finally:
+                if watchdog is not None:  # an orderly close, which said what it knows of emission
+                    watchdog.disarm()
+
+    def _arm_watchdog(self) -> None:
+        """Start the watchdog unless one runs; ports made by a port_factory (tests' scripted ports) are not reachable
+        from another process, so they have none. DeviceError when it cannot start (emission then stays off)."""
+        if self._watchdog is not None or self._port_factory is not None:
+            return
+        try:
+            self._watchdog = Watchdog(msgspec.json.encode(self.config))
+        except OSError as exc:
+            raise DeviceError(f"{self.config.driver} laser: cannot start the watchdog that switches emission off if "
+                              f"this process dies ({exc}): emission not enabled") from None
 
     def _make_safe(self, channel: LaserChannel) -> None:
         try:
@@ -247,6 +269,7 @@ class Laser(ABC):
             raise SafetyError(f"{self._where(ch)}: interlock open: emission not enabled")
         if faults:
             raise SafetyError(f"{self._where(ch)}: fault active ({'; '.join(faults)}): emission not enabled")
+        self._arm_watchdog()
         try:
             self._write_emission(ch, True)
             self._emission_commanded[ch.name] = True
