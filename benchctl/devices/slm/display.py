@@ -7,9 +7,9 @@ the profile's width x height (else the error names every output and mode there i
 is written with XPutImage, in the pixel format of the screen's visual (every channel carries the gray level in its
 top bits: depth 24 and 30 both show 8-bit gray exactly, depth 30 also 10-bit; a depth that cannot, such as 16, is
 refused at open: benchctl.devices.slm.x_pixels), into an off-screen pixmap, which the X11 Present extension puts on
-the window at the output's next vertical blank (vsync: no frame is seen
-half written); the X server then reports that vblank's time (`ust`) and frame count (`msc`), and that time is the
-frame's presentation time, from which the settle time counts (benchctl.devices.slm.present). No scaling,
+the window at the output's next vertical blank (vsync: no frame is seen half written); the X server then reports
+that vblank's time (`ust`) and frame count (`msc`), and that time is the frame's presentation time, from which the
+settle time counts (benchctl.devices.slm.present). No scaling,
 filtering, dithering or colour management is on this path, and the output's CRTC gamma ramp must be the identity
 (checked at open). A server without Present (rare: X.Org has had it since 1.15, Xvfb included) gets the frame
 straight into the window with no vsync, and the frame counts as presented when XSync returned; `slm info` and the
