@@ -49,18 +49,22 @@ def serve(number: int, screens: tuple[Screen, ...]) -> subprocess.Popen[bytes]:
               for argument in ("-screen", str(screen), f"{width}x{height}x{depth}")]
     server = subprocess.Popen(["Xvfb", f":{number}", *layout, "-nolisten", "tcp", "-noreset"],
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    for _ in range(100):
-        if Path(f"/tmp/.X11-unix/X{number}").exists():
-            break
-        time.sleep(0.05)
-    time.sleep(0.2)
-    connection = display.Display(f":{number}")
-    for screen, (_, _, _, blob) in enumerate(screens):
-        resources = connection.screen(screen).root.xrandr_get_screen_resources()
-        set_edid(connection, resources.outputs[0], (EDIDS / blob).read_bytes())
-        set_gamma(connection, resources.crtcs[0], 1.0)
-    connection.sync()
-    connection.close()
+    try:
+        for _ in range(100):
+            if Path(f"/tmp/.X11-unix/X{number}").exists():
+                break
+            time.sleep(0.05)
+        time.sleep(0.2)
+        connection = display.Display(f":{number}")
+        for screen, (_, _, _, blob) in enumerate(screens):
+            resources = connection.screen(screen).root.xrandr_get_screen_resources()
+            set_edid(connection, resources.outputs[0], (EDIDS / blob).read_bytes())
+            set_gamma(connection, resources.crtcs[0], 1.0)
+        connection.sync()
+        connection.close()
+    except BaseException:
+        stop(server)  # never left running when its set-up fails
+        raise
     return server
 
 
