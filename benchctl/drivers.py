@@ -18,6 +18,8 @@ DRIVERS: dict[str, dict[str, str]] = {
         "template": "benchctl.devices.laser.template:TemplateLaser",
         "cobolt": "benchctl.devices.laser.cobolt:CoboltLaser",
         "obis": "benchctl.devices.laser.obis:ObisLaser",
+        "sapphire": "benchctl.devices.laser.sapphire:SapphireLaser",
+        "deepstar": "benchctl.devices.laser.deepstar:DeepstarLaser",
     },
     "slm": {
         "sim": "benchctl.devices.sim.slm:SimSLM",

@@ -17,6 +17,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from benchctl.devices.camera import frame_size
 from benchctl.errors import BadValueError
 from benchctl.optics.plan import plan_propagation
 from benchctl.profiles import Profile
@@ -78,9 +79,10 @@ class Estimate:
 
 
 def exposure_estimate(profile: Profile, frames: int, dark_frames: int) -> Estimate:
-    """An exposure step: `frames` lit and `dark_frames` dark RAW frames of the camera's sensor (its [sim.sensor]
-    size: the simulated twin's, by default an EOS M10's 5280 x 3528)."""
-    rows, cols = profile.sim.sensor.shape
+    """An exposure step: `frames` lit and `dark_frames` dark RAW frames of the camera's size (its driver's
+    `frame_size`: a GenICam camera's region, the simulated camera's [sim.sensor], by default an EOS M10's)."""
+    frame = frame_size(profile)
+    rows, cols = frame.rows, frame.cols
     raw = RAW_BYTES_PER_PX * rows * cols
     return Estimate(f"an exposure of RAW frames of {cols} x {rows} px ({size_text(raw)} held per frame)",
                     EXPOSURE_BYTES_PER_PX * rows * cols, {"frames": raw, "dark_frames": raw},

@@ -475,6 +475,8 @@ def _checked(path: Path, file: ProfileFile) -> Profile:
     slm, optics = file.slm, file.optics
     if file.camera and file.camera.driver == "genicam" and file.camera.iso is not None:
         raise fail(path, "camera.iso", "a GenICam camera has gain, not ISO: set camera.gain instead")
+    if file.camera and file.camera.region is not None:
+        check_pixels(f"{path}: camera.region height x width", file.camera.region[3], file.camera.region[2])
     if slm:
         check_pixels(f"{path}: slm.height x slm.width", slm.height, slm.width)
         if slm.driver == "framebuffer" and not slm.device:
@@ -517,8 +519,9 @@ def _check_focus(path: Path, file: ProfileFile) -> None:
 
 
 def _check_sensor(path: Path, sensor: SimSensorConfig) -> None:
-    """Masked margins inside the frame and even (the Bayer pattern starts on the exposed area as on the frame),
-    black below white."""
+    """Within the pixel limit (the simulator renders every pixel), masked margins inside the frame and even (the
+    Bayer pattern starts on the exposed area as on the frame), black below white."""
+    check_pixels(f"{path}: sim.sensor.shape", *sensor.shape)
     for axis, name in enumerate(("rows", "cols")):
         margin, size = sensor.margin[axis], sensor.shape[axis]
         if margin % 2 or margin + 2 > size:

@@ -18,6 +18,8 @@ import msgspec
 import numpy as np
 import pytest
 
+from device_skips import pytest_configure, pytest_runtest_makereport  # noqa: F401 - the plugin's hooks, for pytest
+
 from benchctl.capture.raw import RawImage, decode_raw
 from benchctl.cli import main
 from benchctl.devices.sim import physics

@@ -235,7 +235,7 @@ def test_ptp_container_length_is_capped_before_reading() -> None:
     bulk_in = FakeEndpoint(transfers=[header + b"\0" * 500] + [b"\0" * 512] * 10)
     with pytest.raises(DeviceError, match=f"PTP container of 4,294,967,280 bytes, above the limit of "
                                           f"{MAX_CONTAINER_BYTES:,}"):
-        UsbTransport(FakeEndpoint(), bulk_in).receive()
+        UsbTransport(FakeEndpoint(), bulk_in, usb_vendor=0x04A9).receive()
     assert len(bulk_in.reads) == 1  # nothing read beyond the header's transfer
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import math
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import benchctl
@@ -101,8 +101,8 @@ def add_profile(parser: argparse.ArgumentParser) -> None:
                         help="hardware profile: TOML path or name in hardware_profiles/ (default: simulated)")
 
 
-def print_lines(lines: list[str]) -> int:
-    """Print `lines` one per line; exit code 0 (what a listing command returns)."""
+def print_lines(lines: Iterable[str]) -> int:
+    """Print `lines` one per line, each as it comes (a command may yield them as it works); exit code 0."""
     for line in lines:
-        print(line)
+        print(line, flush=True)
     return 0

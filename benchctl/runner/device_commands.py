@@ -12,6 +12,7 @@ import math
 import os
 import re
 import signal
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
 from urllib.parse import urlsplit
@@ -270,32 +271,45 @@ def camera_info(profile: Profile) -> list[str]:
                     f"frames per capture: {config.frames}", f"property writes: {writes}"]
 
 
-def camera_capture(profile: Profile, output: Path, frames: int | None) -> list[str]:
-    """Capture RAW frames: one frame to `output`, several to `output`'s stem numbered -000, -001, ...
-    Each file is saved under its numbered name the moment it arrives and never modified; an existing file is
-    never replaced (refused before the shutter when it exists already)."""
+def camera_capture(profile: Profile, output: Path, frames: int | None) -> Iterator[str]:
+    """Capture RAW frames: one frame to `output`, several to `output`'s stem numbered -000, -001, ..., one line per
+    frame as it arrives. Each file is saved under its numbered name the moment it arrives, never modified, and
+    dropped from memory (one frame is held however many are taken); an existing file is never replaced, and the
+    disk must have room for every frame (both refused before the first shutter)."""
     output = Path(output)
     numbered = sorted(output.parent.glob(f"{glob.escape(output.stem)}-[0-9][0-9][0-9].*"))
     taken = [output] if output.exists() else numbered or sorted(output.parent.glob(f"{glob.escape(output.name)}.*"))
     if taken:
         raise BenchctlError(f"{taken[0]} exists; captured files never replace one (choose another --output)")
+    count = frames or profile.section("camera").frames
+    _check_capture_disk(profile, output.parent, count)
     with _open_camera(profile) as camera:
-        captured = camera.capture(output.parent, frames=frames, stem=output.stem)
-    targets: list[Path] = []
-    for frame in captured:
-        assert frame.path is not None  # capture saves every frame to the folder it is given
-        targets.append(frame.path)
-    if len(captured) == 1:
-        single = output if output.suffix else output.with_suffix(captured[0].suffix)
-        try:
-            os.link(targets[0], single)  # never replaces, unlike a rename
-        except FileExistsError:
-            raise BenchctlError(f"{single} appeared during the capture and is kept; the frame is "
-                                f"{targets[0]}") from None
-        targets[0].unlink()
-        targets = [single]
-    return [f"captured {target} ({frame.format}, {len(frame.data)} bytes, camera name {frame.file_name})"
-            for target, frame in zip(targets, captured)]
+        for frame in camera.captures(output.parent, frames=count, stem=output.stem):
+            assert frame.path is not None  # captures saves every frame to the folder it is given
+            target = frame.path
+            if count == 1:
+                target = output if output.suffix else output.with_suffix(frame.suffix)
+                try:
+                    os.link(frame.path, target)  # never replaces, unlike a rename
+                except FileExistsError:
+                    raise BenchctlError(f"{target} appeared during the capture and is kept; the frame is "
+                                        f"{frame.path}") from None
+                frame.path.unlink()
+            yield f"captured {target} ({frame.format}, {len(frame.data)} bytes, camera name {frame.file_name})"
+
+
+def _check_capture_disk(profile: Profile, folder: Path, count: int) -> None:
+    """BenchctlError (one line, with the largest count that fits) when `count` frames of the profile's camera, as its
+    driver expects them, would not fit on the disk that holds `folder`."""
+    from benchctl.devices.camera import frame_size
+    from benchctl.memory import size_text
+    from benchctl.runner.estimates import free_bytes
+
+    each, free = frame_size(profile).file_bytes, free_bytes(folder)
+    if count * each > free:
+        raise BenchctlError(f"{folder}: {size_text(free)} free, and {count} frame(s) of about {size_text(each)} need "
+                            f"{size_text(count * each)}: at most --frames {free // each} fits here; free some space or "
+                            f"capture elsewhere (-o)")
 
 
 def devices_found() -> list[str]:

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import PurePath
 
-from benchctl.devices.camera.base import Camera, PreviewFrame, RawFrame, Window
+from benchctl.devices.camera.base import Camera, FrameSize, PreviewFrame, RawFrame, Window
 from benchctl.devices.camera.hints import BUSY_HINT, NO_FOCUS_HINT, RAW_HINT
 from benchctl.devices.camera.ptp.container import RAW_OBJECT_FORMATS, OperationCode, code_name
 from benchctl.devices.camera.ptp.datasets import DeviceInfo
@@ -103,6 +103,15 @@ class PtpCamera(Camera):
         from benchctl.devices.sim.camera import eos_transport
 
         return cls(config, eos_transport(profile))
+
+    @classmethod
+    def frame_size(cls, profile: Profile) -> FrameSize:
+        """The body's sensor as [sim.sensor] gives it (an EOS M10's by default); the simulated body renders it."""
+        if profile.section("camera").transport != "sim":
+            return super().frame_size(profile)
+        from benchctl.devices.sim.camera import simulated_frame
+
+        return simulated_frame(profile, "the simulated EOS body")
 
     # -- connection --------------------------------------------------------------------------------------------
 
