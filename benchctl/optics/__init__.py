@@ -23,6 +23,7 @@ _HOME = {
     "gray_to_phase": "phase_encoding",
     "phase_to_gray": "phase_encoding",
     "Geometry": "geometry",
+    "MultiPlanePropagator": "multiplane",
     "PropagationPlan": "plan",
     "plan_propagation": "plan",
     "Propagator": "propagation",
