@@ -1,6 +1,11 @@
 """benchctl: holographic-display experiments on an optical bench, real or simulated."""
 
+from pathlib import Path
 from typing import Any
+
+SOURCE_ROOT = Path(__file__).resolve().parent.parent
+"""The folder that holds the package: in a source checkout the repository, whose hardware_profiles/ and
+checkpoints/ are found after the working folder's."""
 
 
 def __getattr__(name: str) -> Any:

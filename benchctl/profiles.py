@@ -14,11 +14,12 @@ import os
 import re
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any, Literal, overload
+from typing import TYPE_CHECKING, Annotated, Literal, overload
 
 import msgspec
 from msgspec import Meta
 
+from benchctl import SOURCE_ROOT
 from benchctl.dng import CFA_LAYOUTS
 from benchctl.drivers import driver_names
 from benchctl.errors import BenchctlError
@@ -334,13 +335,6 @@ class Profile(ProfileFile, kw_only=True):
         known = ", ".join(ch.name for ch in self.channels)
         raise BenchctlError(f"{self.path}: no laser channel {name!r}; known channels: {known}")
 
-    def fitted_model(self, channel: str) -> dict[str, Any] | None:
-        """`channel`'s entry of the fitted optical model file `optics.model` names, checked
-        (benchctl.calibration_files); None when there is no model or no entry for the channel."""
-        from benchctl.calibration_files import fitted_model_entry
-
-        return fitted_model_entry(self, channel)
-
     def geometry(self, channel: str) -> Geometry:
         """The optical geometry of laser channel `channel` in SI units: the one conversion from the profile's
         units, for everything that computes, calibrates or caches for this bench."""
@@ -414,7 +408,7 @@ def resolve_profile_path(path_or_name: str | Path | None = None) -> Path:
     if isinstance(path_or_name, Path) or text.endswith(".toml") or "/" in text or os.sep in text:
         return Path(path_or_name)
     file_name = f"{text}.toml"
-    candidates = [Path(PROFILE_DIR) / file_name, Path(__file__).resolve().parents[1] / PROFILE_DIR / file_name]
+    candidates = [Path(PROFILE_DIR) / file_name, SOURCE_ROOT / PROFILE_DIR / file_name]
     for candidate in candidates:
         if candidate.is_file():
             return candidate

@@ -178,7 +178,7 @@ def make_bench_profile(tmp_path: Path) -> Callable[..., Profile]:
 
 def truly_registered(profile: Profile, *colours: str) -> Profile:
     """`profile` with the simulated bench's true camera registration stored for `colours` (default: green)."""
-    from benchctl.runner.calibration import Calibration
+    from benchctl.calibration.store import Calibration
 
     store = Calibration.store(profile)
     for colour in colours or ("green",):

@@ -94,8 +94,8 @@ def test_a_non_finite_float_target_is_refused_and_metrics_are_strict_json(tmp_pa
 
 
 def test_training_images_one_pixel_high_or_wide_load_flipped(tmp_path: Path) -> None:
-    from benchctl.runner.learned.data import ImageSource
-    from benchctl.runner.learned.training import load_targets
+    from benchctl.training.data import ImageSource
+    from benchctl.training.training import load_targets
 
     cv2.imwrite(str(tmp_path / "row.png"), np.full((1, 50, 3), 128, np.uint8))
     cv2.imwrite(str(tmp_path / "column.png"), np.full((40, 1, 3), 200, np.uint8))

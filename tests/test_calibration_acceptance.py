@@ -15,12 +15,12 @@ import torch
 from conftest import SMALL_BENCH, truly_registered
 from test_model_calibration import ABERRATED, HIDDEN, PROCEDURE, rendered
 
+from benchctl.calibration.setups import optical_setup
+from benchctl.calibration.store import Calibration
 from benchctl.cli import main
 from benchctl.optics.fitted import FitDiverged, FittedOptics, calibration_patterns, fit_optics, model_residual
 from benchctl.profiles import Profile
 from benchctl.runner.builtin import model_calibration
-from benchctl.runner.calibration import Calibration
-from benchctl.runner.setups import optical_setup
 
 pytestmark = pytest.mark.slow  # procedure runs: seconds each
 

@@ -12,13 +12,13 @@ from typing import Any
 import pytest
 from conftest import one_error_line
 
-from benchctl.calibration_files import OpticalModelFile, checked_json
+from benchctl.calibration.files import OpticalModelFile, checked_json
+from benchctl.calibration.setups import optical_setup
+from benchctl.calibration.store import Calibration
 from benchctl.cli import main
 from benchctl.errors import BenchctlError
 from benchctl.optics.fitted import FittedOptics
-from benchctl.runner.setups import optical_setup
 from benchctl.profiles import load_profile
-from benchctl.runner.calibration import Calibration
 from benchctl.runner.engine import run_procedure
 
 FIT = {"zernike_waves": {"defocus": 0.2, "spherical": -0.05}, "waist_mm": 0.5, "offset_mm": [0.01, -0.02],

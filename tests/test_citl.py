@@ -14,6 +14,10 @@ import pytest
 import torch
 from conftest import SMALL_BENCH, truly_registered
 
+from benchctl.calibration.setups import optical_setup
+from benchctl.calibration.store import Calibration
+from benchctl.capture.colour_planes import registered_plane
+from benchctl.capture.raw import decode_raw
 from benchctl.cgh.citl import straight_through_loss
 from benchctl.cgh.sgd import roi_loss
 from benchctl.cli import main
@@ -22,12 +26,8 @@ from benchctl.devices.sim.state import load_state
 from benchctl.errors import BenchctlError
 from benchctl.optics import lsq_scale
 from benchctl.profiles import Profile
-from benchctl.capture.colour_planes import registered_plane
-from benchctl.capture.raw import decode_raw
 from benchctl.runner.builtin.citl.procedure import TIMING_KEYS, _load_state, _save_state, gradient_device, keeps_raw
-from benchctl.runner.calibration import Calibration
 from benchctl.runner.engine import run_procedure
-from benchctl.runner.setups import optical_setup
 
 # The small bench with hidden optics the model does not know: a wavefront error and an offset beam on green (the
 # panel's true response is its linear lookup table, so the optics alone differ from the model).

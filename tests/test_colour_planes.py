@@ -25,9 +25,9 @@ from benchctl.capture.raw import RawImage, subtract_dark
 from benchctl.capture.registration import apply_homography
 from benchctl.devices.sim import physics
 from benchctl.errors import BenchctlError
+from benchctl.holograms.scene import compute_scene
 from benchctl.optics import colour_scores, crop_roi
 from benchctl.profiles import Profile
-from benchctl.runner.holograms import compute_scene
 from benchctl.targets import load_target, prepare_target
 
 RGGB = np.array([[0, 1], [1, 2]], dtype=np.uint8)

@@ -14,8 +14,8 @@ import pytest
 
 from benchctl.console.holograms import WORKER_NICE, HologramWorker, Request
 from benchctl.errors import BenchctlError
+from benchctl.holograms.cache import hologram
 from benchctl.profiles import load_profile
-from benchctl.runner.hologram_cache import hologram
 from benchctl.targets import load_target, prepare_target
 
 

@@ -23,6 +23,18 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from console_bench import (
+    ORIGIN,
+    PORT,
+    TOKEN,
+    WS,
+    access,
+    expected_phase_frame,
+    laser_channel,
+    make_console,
+    next_frame,
+    unpack_frame,
+)
 from starlette.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 
@@ -36,8 +48,6 @@ from benchctl.devices.serial_link import SerialLink
 from benchctl.devices.sim.slm import read_displayed
 from benchctl.optics.aberration import wavefront_phase
 from benchctl.profiles import load_profile
-from console_bench import (ORIGIN, PORT, TOKEN, WS, access, expected_phase_frame, laser_channel, make_console,
-                           next_frame, unpack_frame)
 
 
 @pytest.fixture
@@ -229,7 +239,7 @@ def test_slm_patterns_round_trip_to_the_displayed_frame(client: TestClient, benc
 
 
 def test_holograms_are_the_ones_a_run_displays(client: TestClient, bench_profile_path: Path) -> None:
-    from benchctl.runner.hologram_cache import hologram
+    from benchctl.holograms.cache import hologram
     from benchctl.targets import load_target, prepare_target
 
     profile = load_profile(bench_profile_path)

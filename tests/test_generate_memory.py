@@ -18,7 +18,7 @@ import json, sys
 from pathlib import Path
 from benchctl.benchmarks.speed_vs_error import resized_profile
 from benchctl.profiles import load_profile
-from benchctl.runner.generate import run_generate
+from benchctl.holograms.generate import run_generate
 rows, cols, method, out = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3], sys.argv[4]
 profile = resized_profile(load_profile("simulated"), (rows, cols))
 run_generate("chart:bars", profile, Path(out), method=method, iterations=5 if method == "sgd" else None)

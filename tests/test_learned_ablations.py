@@ -15,11 +15,11 @@ from benchctl.benchmarks.reproduce_job import Evaluation, doubling_gain, flat_do
 from benchctl.benchmarks.reproduce_report import PAPER, comparisons, seed_curve
 from benchctl.cli import main
 from benchctl.errors import BadValueError, BenchctlError
+from benchctl.holograms.checkpoints import read_checkpoint
 from benchctl.profiles import load_profile
-from benchctl.runner.learned.checkpoint import read_checkpoint
-from benchctl.runner.learned.health import StepStats
-from benchctl.runner.learned.data import image_sources
 from benchctl.targets import photo_specs
+from benchctl.training.data import image_sources
+from benchctl.training.health import StepStats
 
 ABLATIONS = ("holonet-ps2", "holonet-ps4", "holonet-lowdef2", "holonet-dcm2-nolfm", "holonet-dcm2-noeccm",
              "holonet-dcm2-nogrn")

@@ -11,11 +11,11 @@ import torch
 import torch.multiprocessing as mp
 from conftest import SMALL_PROFILE
 
+from benchctl.calibration.setups import optical_setup
 from benchctl.cgh.learned import build_model
+from benchctl.holograms.checkpoints import read_checkpoint
 from benchctl.profiles import load_profile
-from benchctl.runner.learned.checkpoint import read_checkpoint
-from benchctl.runner.learned.training import TrainSettings, train
-from benchctl.runner.setups import optical_setup
+from benchctl.training.training import TrainSettings, train
 
 pytestmark = pytest.mark.slow  # DDP spawns: seconds to a minute each
 

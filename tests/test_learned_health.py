@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from benchctl.cli import main
-from benchctl.runner.learned.health import StepStats, TrainingHealth, clamped_fraction
+from benchctl.training.health import StepStats, TrainingHealth, clamped_fraction
 
 
 def _feed(health: TrainingHealth, stats: list[StepStats]) -> str | None:
@@ -51,14 +51,15 @@ def test_the_clamped_fraction_counts_phases_at_plus_minus_pi() -> None:
 
 
 @pytest.mark.slow
-def test_the_pyramid_at_the_public_codes_lr_stops_learning_and_training_says_so(
+def test_the_pyramid_at_ten_times_the_papers_lr_stops_learning_and_training_says_so(
         capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
-    """At lr 1e-3 the pyramid's stacked LFMNs drive the whole output to the clamp within about 20 steps (136 x 240,
-    seed 42); at the paper's 5e-4 it trains. `benchctl train` stops at the stall, in one line, writing nothing."""
+    """At lr 5e-3 the pyramid's stacked LFMNs drive the whole output to the clamp within about 12 steps (136 x 240,
+    seed 42); at the paper's 5e-4 it trains. `benchctl train` stops at the stall, in one line, writing nothing.
+    (At the public code's 1e-3 it stalled on one CPU and not on another, whose vector units round differently.)"""
     torch.set_num_threads(1)
     args = ["train", "--method", "holonet-pyramid", "--data", "procedural:32+photos:train", "--size", "136x240",
             "--colours", "red", "--val-fraction", "0", "--max-steps", "30", "--epochs", "1"]
-    code = main(args + ["--lr", "1e-3", "--out", str(tmp_path / "fast")])
+    code = main(args + ["--lr", "5e-3", "--out", str(tmp_path / "fast")])
     err = capsys.readouterr().err
     assert code == 2 and "stopped learning at step" in err and "lower the learning rate" in err
     last = err.strip().splitlines()[-1]  # the lines before it are the progress line's

@@ -12,32 +12,32 @@ import numpy as np
 import pytest
 import torch
 
+from benchctl.calibration.geometry import grid_profile
+from benchctl.calibration.setups import optical_setup
+from benchctl.calibration.store import validity
 from benchctl.cgh import OpticalSetup
 from benchctl.cgh.learned import build_model
 from benchctl.cgh.learned.vgg import PerceptualLoss, load_vgg19
 from benchctl.cli import main
 from benchctl.errors import BadValueError, BenchctlError
+from benchctl.holograms.checkpoints import Checkpoint, read_checkpoint
+from benchctl.holograms.scene import resolve_method
 from benchctl.optics.fitted import FittedOptics
 from benchctl.profiles import Profile, load_profile
-from benchctl.runner.calibration import validity
-from benchctl.runner.holograms import resolve_method
-from benchctl.runner.learned.averaging import WeightAverage
-from benchctl.runner.learned.checkpoint import Checkpoint, read_checkpoint
-from benchctl.runner.learned.data import ImageSource, image_sources, procedural_image, split_sources
-from benchctl.runner.geometry import grid_profile
-from benchctl.runner.learned.training import (
+from benchctl.targets import prepare_target
+from benchctl.training.averaging import WeightAverage
+from benchctl.training.data import ImageSource, image_sources, procedural_image, split_sources
+from benchctl.training.training import (
     ReconstructionLoss,
     TrainSettings,
     load_targets,
     peak_normalised,
+    run_train,
     scaled_reconstruction,
     train,
-    run_train,
     training_step,
     with_model_calibration,
 )
-from benchctl.targets import prepare_target
-from benchctl.runner.setups import optical_setup
 
 pytestmark = pytest.mark.slow  # training runs: seconds to a minute each
 

@@ -13,17 +13,17 @@ import pytest
 import torch
 from conftest import SMALL_PROFILE
 
+from benchctl.calibration.setups import optical_setup
 from benchctl.cgh import OpticalSetup
 from benchctl.cgh.learned import model_info
 from benchctl.cli import main
 from benchctl.devices.slm import slm_for
 from benchctl.errors import BenchctlError
+from benchctl.holograms.checkpoints import find_checkpoint, learned_method
+from benchctl.holograms.scene import compute_scene
 from benchctl.profiles import load_profile
-from benchctl.runner.holograms import compute_scene
-from benchctl.runner.learned.checkpoint import find_checkpoint, learned_method
-from benchctl.runner.learned.training import TrainSettings, train
 from benchctl.targets import load_target, prepare_target
-from benchctl.runner.setups import optical_setup
+from benchctl.training.training import TrainSettings, train
 
 pytestmark = pytest.mark.slow  # training runs: seconds to a minute each
 

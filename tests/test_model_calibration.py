@@ -17,12 +17,16 @@ import pytest
 import torch
 from conftest import SMALL_BENCH
 
+from benchctl.calibration.setups import optical_setup, optical_setups, optimised_setup
+from benchctl.calibration.store import Calibration
 from benchctl.cgh import get_method
-from benchctl.runner.learned.data import procedural_image
-from benchctl.runner.learned.checkpoint import learned_method
 from benchctl.cli import main
 from benchctl.devices.sim import physics
 from benchctl.devices.sim.state import load_state
+from benchctl.devices.slm import slm_for
+from benchctl.holograms.cache import _key
+from benchctl.holograms.checkpoints import learned_method
+from benchctl.holograms.generate import run_generate
 from benchctl.images import read_image
 from benchctl.optics import lsq_scale, psnr
 from benchctl.optics.aberration import pupil_radius_m
@@ -30,12 +34,8 @@ from benchctl.optics.fitted import FittedOptics, _residual, calibration_patterns
 from benchctl.optics.phase_encoding import PhaseLUT, gray_to_phase, phase_to_gray
 from benchctl.optics.propagation import Propagator
 from benchctl.profiles import Profile
-from benchctl.runner.calibration import Calibration
 from benchctl.runner.engine import run_procedure
-from benchctl.runner.generate import run_generate
-from benchctl.runner.hologram_cache import _key
-from benchctl.runner.setups import optical_setup, optical_setups, optimised_setup
-from benchctl.devices.slm import slm_for
+from benchctl.training.data import procedural_image
 
 HIDDEN = {"astigmatism_oblique": 0.12, "defocus": 0.3, "astigmatism_vertical": -0.15, "coma_vertical": 0.08,
           "coma_horizontal": -0.1, "spherical": 0.06}

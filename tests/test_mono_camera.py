@@ -18,13 +18,13 @@ from conftest import SMALL_BENCH, bench_profile_text, mono_exposure
 from gigevision import mono8_ramp
 from test_registration import CORNER_TOLERANCE, GEOMETRY, corner_error, dot_grid_capture
 
+from benchctl.calibration.store import Calibration
 from benchctl.capture.raw import decode_raw
 from benchctl.capture.registration import Registration, dots_in_capture, fit_registration
 from benchctl.cli import main
 from benchctl.devices.sim import physics
 from benchctl.images import read_image
 from benchctl.profiles import Profile, load_profile
-from benchctl.runner.calibration import Calibration
 
 
 @pytest.mark.parametrize("channel, colour", [("red", 0), ("blue", 2)])

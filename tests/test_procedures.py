@@ -22,9 +22,9 @@ from benchctl.errors import BenchctlError
 from benchctl.images import read_image
 from benchctl.profiles import load_profile
 from benchctl.runner.engine import run_procedure
-from benchctl.runner.learned.training import TrainSettings, train
 from benchctl.runner.plots import front_plot
 from benchctl.runner.record import create_run, open_run
+from benchctl.training.training import TrainSettings, train
 
 pytestmark = pytest.mark.slow  # whole procedure runs / training: seconds to a minute each
 

@@ -12,12 +12,12 @@ import pytest
 import torch
 
 import benchctl.optics.propagation as propagation
+from benchctl.calibration.geometry import describe_plans
+from benchctl.calibration.setups import optical_setup
 from benchctl.optics import Propagator, PrunedPropagator, plan_propagation, propagate
 from benchctl.optics.plan import wrapped_tail_power
-from benchctl.runner.geometry import describe_plans
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import load_profile
-from benchctl.runner.setups import optical_setup
 
 
 def _rel(a: torch.Tensor, b: torch.Tensor) -> float:

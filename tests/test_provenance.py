@@ -11,7 +11,7 @@ import torch
 import benchctl
 from benchctl import provenance
 from benchctl.profiles import load_profile
-from benchctl.runner import hologram_cache
+from benchctl.holograms import cache as hologram_cache
 from benchctl.targets import load_target, prepare_target
 
 
@@ -68,7 +68,7 @@ def test_hologram_cache_misses_after_a_code_edit(small_profile_path: Path, tmp_p
 
 
 def test_run_records_and_generate_metrics_carry_the_code_identity(small_profile_path: Path, tmp_path: Path) -> None:
-    from benchctl.runner.generate import run_generate
+    from benchctl.holograms.generate import run_generate
     from benchctl.runner.record import package_versions
 
     assert package_versions()["benchctl_code"] == provenance.code_identity()

@@ -16,6 +16,7 @@ import pytest
 import torch
 from conftest import sim_exposure
 
+from benchctl.calibration.setups import optical_setup
 from benchctl.capture.raw import RawImage
 from benchctl.capture.registration import (
     MAX_RMS_TARGET_PX,
@@ -37,7 +38,6 @@ from benchctl.optics.aberration import pupil_radius_m
 from benchctl.optics.fitted import FittedOptics
 from benchctl.optics.metrics import centred_slices
 from benchctl.profiles import Profile
-from benchctl.runner.setups import optical_setup
 
 # BENCH_PROFILE's 128 x 192 SLM with the ROI widened to 96 x 168 (the default 12 x 21 grid at 8 px spacing), imaged
 # at 8 um / 4 um x 1.0 = 2 sensor pixels per SLM pixel, turned 3 degrees, onto its 300 x 440 sensor. The [sim.slm]

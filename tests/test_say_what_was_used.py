@@ -10,13 +10,13 @@ from pathlib import Path
 
 import pytest
 
+from benchctl.calibration.setups import optical_setup
+from benchctl.calibration.store import Calibration
 from benchctl.cgh.learned import build_model
-from benchctl.checkpoint_notes import checkpoint_notes
 from benchctl.cli import main
-from benchctl.runner.setups import optical_setup
+from benchctl.holograms.checkpoint_notes import checkpoint_notes
+from benchctl.holograms.checkpoints import Checkpoint
 from benchctl.profiles import load_profile
-from benchctl.runner.calibration import Calibration
-from benchctl.runner.learned.checkpoint import Checkpoint
 
 FIT = {"zernike_waves": {"defocus": 0.1}, "waist_mm": 0.0, "offset_mm": [0.0, 0.0], "crosstalk_px": 0.0,
        "zero_order": 0.0, "residual": 0.2}

@@ -19,21 +19,21 @@ import torch
 from conftest import SMALL_BENCH, bench_profile_text
 
 import benchctl.runner.builtin
+from benchctl.calibration.setups import optical_setup
 from benchctl.capture.raw import RawImage, decode_raw
 from benchctl.cgh import get_method
 from benchctl.devices.camera import camera_for
-from benchctl.devices.sim.camera import SimCamera
 from benchctl.devices.laser import open_laser
 from benchctl.devices.sim import physics
+from benchctl.devices.sim.camera import SimCamera
 from benchctl.devices.sim.state import reset_states
 from benchctl.devices.slm import open_slm, slm_for
 from benchctl.errors import BenchctlError
+from benchctl.holograms.scene import compute_scene
 from benchctl.optics import PhaseLUT, propagation
 from benchctl.optics.aberration import ZERNIKE_TERMS, defocus_focal_length_m, gaussian_blur, zernike_basis
 from benchctl.optics.fitted import FittedOptics
 from benchctl.profiles import LaserConfig, Profile, SimConfig, ZernikeTerm, load_profile
-from benchctl.runner.holograms import compute_scene
-from benchctl.runner.setups import optical_setup
 
 H_PLANCK, C_LIGHT = 6.62607015e-34, 299792458.0
 

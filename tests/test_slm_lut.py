@@ -10,16 +10,16 @@ import numpy as np
 import pytest
 import torch
 
+from benchctl.calibration.setups import optical_setup
 from benchctl.cgh import SGD
 from benchctl.devices.sim.slm import SimSLM
 from benchctl.devices.slm import load_lut, lut_for, save_lut, slm_for
 from benchctl.errors import BenchctlError
+from benchctl.holograms.scene import compute_scene
 from benchctl.optics.metrics import amplitude_scores, crop_roi, lsq_scale
 from benchctl.optics.phase_encoding import PhaseLUT
 from benchctl.profiles import SLMConfig, load_profile
-from benchctl.runner.holograms import compute_scene
 from benchctl.targets import load_target, prepare_target
-from benchctl.runner.setups import optical_setup
 
 PI = math.pi
 # A measured-looking 8-bit response: not linear, ~1.9 pi deep, with a flat step (equal neighbours allowed).
@@ -208,11 +208,11 @@ def test_table_spanning_more_than_two_pi_encodes_monotonically(tmp_path: Path) -
 def test_generate_and_slm_show_encode_through_the_measured_table(tmp_path: Path, small_profile_path: Path) -> None:
     """A table measured by lut_calibration (calibration/<profile>/) is used by `generate` and `slm show` as by a
     run: the same frames as with the table named in the profile, not the linear one's."""
+    from benchctl.calibration.store import Calibration
     from benchctl.cli import main
     from benchctl.devices.sim.slm import read_displayed
+    from benchctl.holograms.generate import run_generate
     from benchctl.images import read_image
-    from benchctl.runner.calibration import Calibration
-    from benchctl.runner.generate import run_generate
 
     table = PhaseLUT.linear(8, two_pi_gray=256 / 0.88)
     named = tmp_path / "named.toml"
@@ -229,7 +229,7 @@ def test_generate_and_slm_show_encode_through_the_measured_table(tmp_path: Path,
     expected = frames(named, "named")
     store = Calibration.store(load_profile(small_profile_path))
     save_lut(store.lut_path("red"), table)
-    store.record_lut("red", {"grays": 33})  # what lut calibration records (lut.json is checked: calibration_files)
+    store.record_lut("red", {"grays": 33})  # what lut calibration records (lut.json is checked: calibration.files)
     measured = frames(small_profile_path, "measured")
     for seen, wanted, before in zip(measured, expected, linear):
         assert np.array_equal(seen, wanted) and not np.array_equal(seen, before)

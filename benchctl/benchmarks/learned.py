@@ -32,17 +32,17 @@ from typing import Any
 
 import torch
 
+from benchctl.calibration.geometry import grid_profile
+from benchctl.calibration.setups import optical_setup
 from benchctl.cgh import OpticalSetup
 from benchctl.cgh.learned import LEARNED_METHODS, build_model, count_parameters, model_info
 from benchctl.cgh.learned.models import VARIANTS
 from benchctl.errors import BadValueError, BenchctlError
 from benchctl.files import ensure_dir, write_csv
-from benchctl.profiles import Profile
-from benchctl.runner.holograms import compute_scene, resolve_method, usable_methods
-from benchctl.runner.learned.checkpoint import find_checkpoint, read_checkpoint
+from benchctl.holograms.checkpoints import find_checkpoint, read_checkpoint
+from benchctl.holograms.scene import compute_scene, resolve_method, usable_methods
 from benchctl.optics.geometry import Geometry
-from benchctl.runner.geometry import grid_profile
-from benchctl.runner.setups import optical_setup
+from benchctl.profiles import Profile
 from benchctl.targets import load_target, prepare_target, target_plane
 
 DEFAULT_TARGETS = ("chart:siemens", "chart:bars", "chart:text")
@@ -107,7 +107,7 @@ def training_step_memory(method: str, geometry: dict[str, Any], device: str) -> 
 
     Meant to run in a fresh subprocess (see `measure_training_step`), one per model.
     """
-    from benchctl.runner.learned.training import ReconstructionLoss, peak_normalised, training_step
+    from benchctl.training.training import ReconstructionLoss, peak_normalised, training_step
 
     dev = torch.device(device)
     setup = OpticalSetup.of(Geometry.from_dict(geometry))

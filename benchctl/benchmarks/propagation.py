@@ -21,12 +21,12 @@ from typing import Any, Callable, Sequence
 
 import torch
 
+from benchctl.calibration.geometry import grid_profile
 from benchctl.optics.geometry import Geometry
 from benchctl.optics.metrics import centred_slices
 from benchctl.optics.multiplane import MultiPlanePropagator
 from benchctl.optics.propagation import Padding, Propagator
 from benchctl.profiles import Profile
-from benchctl.runner.geometry import grid_profile
 
 PAPER_SIZES = ((1088, 1920), (2160, 3840))
 ROI_MODE = "auto+roi"

@@ -32,7 +32,7 @@ import torch
 from benchctl.benchmarks.learned import measure_training_step
 from benchctl.benchmarks.reproduce_job import bench_for, job_dir, read_done
 from benchctl.benchmarks.reproduce_report import write_report
-from benchctl.runner.setups import optical_setup
+from benchctl.calibration.setups import optical_setup
 from benchctl.cgh.learned import LEARNED_METHODS
 from benchctl.errors import BadValueError, BenchctlError
 from benchctl.files import ensure_dir, write_json

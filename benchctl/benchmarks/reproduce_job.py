@@ -35,15 +35,16 @@ import torch
 
 from benchctl.benchmarks.learned import inference_seconds
 from benchctl.benchmarks.speed_vs_error import resized_profile
+from benchctl.calibration.setups import optical_setup
 from benchctl.cgh.learned import build_model
 from benchctl.devices.slm import slm_for
 from benchctl.files import atomic_write_bytes, ensure_dir, write_json
 from benchctl.optics import amplitude_scores, crop_roi, lsq_scale
 from benchctl.profiles import Profile, load_profile
-from benchctl.runner.setups import optical_setup
-from benchctl.runner.learned.data import ImageSource, image_sources
-from benchctl.runner.learned.health import TrainingHealth
-from benchctl.runner.learned.training import (
+from benchctl.targets import load_target, photo_specs, prepare_target, target_plane
+from benchctl.training.data import ImageSource, image_sources
+from benchctl.training.health import TrainingHealth
+from benchctl.training.training import (
     ReconstructionLoss,
     epoch_flips,
     epoch_order,
@@ -51,7 +52,6 @@ from benchctl.runner.learned.training import (
     peak_normalised,
     training_step,
 )
-from benchctl.targets import load_target, photo_specs, prepare_target, target_plane
 
 VALIDATION_FIRST = 100_000  # procedural images from here on are nobody's training data (procedural:N starts at 0)
 VALIDATION_COUNT = 8

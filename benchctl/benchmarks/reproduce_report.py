@@ -22,7 +22,7 @@ from benchctl.benchmarks.learned import BASELINES, with_baselines
 from benchctl.benchmarks.reproduce_job import VALIDATION_COUNT, VALIDATION_FIRST, bench_for, read_done, read_progress
 from benchctl.cgh.learned.models import VARIANTS
 from benchctl.files import atomic_write_bytes, write_csv, write_json
-from benchctl.runner.holograms import compute_scene
+from benchctl.holograms.scene import compute_scene
 from benchctl.targets import load_target, photo_specs, prepare_target
 
 PAPER: dict[str, tuple[float, float, str]] = {

@@ -18,14 +18,14 @@ from typing import Any, Callable
 
 import torch
 
+from benchctl.calibration.geometry import grid_profile
+from benchctl.calibration.setups import optical_setup
 from benchctl.cgh import get_method, method_names
 from benchctl.errors import BenchctlError
 from benchctl.files import atomic_write_bytes, ensure_dir, write_csv
+from benchctl.holograms.scene import checkpoint_status, compute_scene, usable_methods
 from benchctl.optics.metrics import pareto_front
 from benchctl.profiles import Profile
-from benchctl.runner.holograms import checkpoint_status, compute_scene, usable_methods
-from benchctl.runner.geometry import grid_profile
-from benchctl.runner.setups import optical_setup
 from benchctl.targets import load_target, photo_specs, prepare_target
 
 CHART_TARGETS = ("chart:siemens", "chart:bars", "chart:text")

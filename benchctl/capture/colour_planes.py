@@ -7,7 +7,7 @@ plane homography (`registration.plane_homography`), so the two greens, half a pi
 where they belong and are then averaged.
 
 Captured and simulated colours are merged the same way (`merge_colours`, which the simulated reconstruction of
-`runner.holograms.compute_scene` uses too): each colour's amplitude (captured: sqrt of the linear signal) scaled
+`holograms.scene.compute_scene` uses too): each colour's amplitude (captured: sqrt of the linear signal) scaled
 by least squares against that colour's target amplitude (the colour balance the paper sets with laser powers,
 here measured: each plane's gain is recorded), the merged linear image being the scaled amplitudes squared,
 clipped to 0..1 (colours not present stay 0); then `amplitude_scores` per colour and `colour_scores` merged.

@@ -9,10 +9,10 @@ from benchctl.cli.args import EPILOG, add_profile, count, grid_size, name_list, 
 
 
 def _cmd_generate(args: argparse.Namespace) -> int:
-    from benchctl.calibration_files import calibration_lines
+    from benchctl.calibration.files import calibration_lines
     from benchctl.cgh import DEFAULT_METHOD
+    from benchctl.holograms.generate import run_generate
     from benchctl.profiles import load_profile
-    from benchctl.runner.generate import run_generate
     from benchctl.terminal import ProgressLine
 
     profile = load_profile(args.profile)
@@ -35,9 +35,9 @@ def _cmd_generate(args: argparse.Namespace) -> int:
 
 
 def _cmd_models(args: argparse.Namespace) -> int:
+    from benchctl.calibration.store import Calibration
+    from benchctl.holograms.scene import list_methods
     from benchctl.profiles import load_profile
-    from benchctl.runner.calibration import Calibration
-    from benchctl.runner.holograms import list_methods
 
     profile = load_profile(args.profile)
     shape = args.size or profile.section("slm").shape

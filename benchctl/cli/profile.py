@@ -6,10 +6,10 @@ import argparse
 
 
 def _cmd_profile_check(args: argparse.Namespace) -> int:
-    from benchctl.calibration_files import check_calibration
-    from benchctl.runner.geometry import describe_plans
+    from benchctl.calibration.files import check_calibration
+    from benchctl.calibration.geometry import describe_plans
+    from benchctl.calibration.store import REGISTRATION_FILE, Calibration
     from benchctl.profiles import load_profile
-    from benchctl.runner.calibration import REGISTRATION_FILE, Calibration
 
     profile = load_profile(args.path)
     print(profile.describe())

@@ -10,7 +10,7 @@ from benchctl.cli.args import EPILOG, add_profile, grid_size, name_list, positiv
 
 def _cmd_train(args: argparse.Namespace) -> int:
     from benchctl.profiles import load_profile
-    from benchctl.runner.learned.training import TrainSettings, run_train
+    from benchctl.training.training import TrainSettings, run_train
 
     settings = TrainSettings(method=args.method, data=args.data, size=args.size,
                              colours=tuple(args.colours) if args.colours else None, epochs=args.epochs, lr=args.lr,

@@ -289,7 +289,7 @@ def _static(name: str) -> Response:
 def _info(console: Console) -> dict[str, Any]:
     """What the page's forms offer: channels and their limits, patterns, targets, methods, checkpoints,
     procedures."""
-    from benchctl.runner.holograms import usable_methods
+    from benchctl.holograms.scene import usable_methods
     from benchctl.targets import list_targets
 
     profile = console.profile

@@ -37,7 +37,7 @@ class Console:
 
     def __init__(self, profile: Profile, out: Path, *, deadman_s: float = DEADMAN_S,
                  procedures_dir: Path | None = None) -> None:
-        from benchctl.runner.calibration import Calibration
+        from benchctl.calibration.store import Calibration
 
         if profile.slm is not None and profile.optics is not None:
             profile = Calibration.store(profile).applied(profile)  # measured tables and fitted model, as a run
@@ -253,8 +253,8 @@ class Console:
         fractions of the frame, for the page to draw; nothing while the frame's size on the sensor is unknown."""
         if full_shape is None or self.profile.slm is None or self.profile.optics is None:
             return {}
+        from benchctl.calibration.store import Calibration
         from benchctl.capture.registration import apply_homography
-        from benchctl.runner.calibration import Calibration
 
         (h, w), (rh, rw) = self.profile.slm.shape, self.profile.optics.roi
         top, left = (h - rh) / 2 - 0.5, (w - rw) / 2 - 0.5

@@ -4,7 +4,7 @@ Patterns: blank (gray 0), a flat phase, a blazed grating (period, angle), the re
 hologram of a target (a bundled chart or photo, or an uploaded image) by a method for one colour. Zernike terms in
 waves (defocus, astigmatism, coma, spherical) are added to any phase pattern: the quick way to correct a bench by
 hand. Every phase goes through `SLM.show_phase` (the colour's lookup table, phase offset, carrier, flips); the
-holograms are the ones a run displays (`runner.hologram_cache.hologram`: the same method, calibration, fitted model
+holograms are the ones a run displays (`holograms.cache.hologram`: the same method, calibration, fitted model
 and cache), computed in the console's hologram worker process. The request is a typed model, so a bad value is
 refused with its name before anything is computed.
 """
@@ -99,8 +99,7 @@ class SlmControl:
     def _hologram(self, pattern: Pattern, progress: Any) -> np.ndarray:
         """The hologram a run would display for this target, method and colour (computed in the hologram worker),
         decoded back to its phase."""
-        from benchctl.targets import target_plane
-        from benchctl.targets import active_channels, load_target, prepare_target
+        from benchctl.targets import active_channels, load_target, prepare_target, target_plane
 
         channel = self._channel(pattern)
         slm, optics = self.profile.section("slm"), self.profile.section("optics")

@@ -19,11 +19,17 @@ from typing import Any
 
 import torch
 
-from benchctl.optics.aberration import (ZERNIKE_TERMS, Pitch, crosstalk_blur, gaussian_beam_power, gaussian_blur,
-                                        pupil_radius_m, zernike_basis)
+from benchctl.optics.aberration import (
+    ZERNIKE_TERMS,
+    Pitch,
+    crosstalk_blur,
+    gaussian_beam_power,
+    gaussian_blur,
+    pupil_radius_m,
+    zernike_basis,
+)
 from benchctl.optics.metrics import centred_slices
 from benchctl.optics.propagation import Propagator
-
 
 # Below this blur (sigma, pixels) no spatial frequency of the driven phase changes by more than 0.05 %.
 NEGLIGIBLE_CROSSTALK_PX = 0.01
@@ -73,7 +79,7 @@ class FittedOptics:
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> FittedOptics:
         """The model of `to_dict`'s form: an entry of an optical-model.json, checked by the caller (the file's
-        typed model is benchctl.calibration_files.FittedColour)."""
+        typed model is benchctl.calibration.files.FittedColour)."""
         waves = data.get("zernike_waves", {})
         offset = data.get("offset_mm", (0.0, 0.0))
         return cls(tuple((name, float(waves[name])) for name in ZERNIKE_TERMS if name in waves),

@@ -29,10 +29,10 @@ and savers place every file in the run folder; a procedure names its files, neve
   `front_plot`, and the pictures `error_map` and `dots_over`.
 """
 
+from benchctl.calibration.acceptance import AcceptMode, Verdict
+from benchctl.calibration.store import Calibration
 from benchctl.errors import BenchctlError
-from benchctl.runner.acceptance import AcceptMode, Verdict
 from benchctl.runner.auto_exposure import ExposureMode, PeakGoal, probe_step, probed_power, signal_stats
-from benchctl.runner.calibration import Calibration
 from benchctl.runner.context import Context, Expose, Parameters, Step, StepRedo
 from benchctl.runner.plots import ERROR_FULL_SCALE, dots_over, error_map, front_plot, line_plot
 from benchctl.runner.report import Report, figure, row, table

@@ -17,18 +17,18 @@ from typing import Any, TypeVar
 import numpy as np
 import torch
 
+from benchctl.calibration.acceptance import Verdict, rejection_line
+from benchctl.calibration.setups import optical_setups, optimised_setup
+from benchctl.calibration.store import Calibration
 from benchctl.devices.power import format_power
 from benchctl.devices.slm import SLM, slm_for
 from benchctl.errors import BenchctlError
+from benchctl.files import file_sha256
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import Profile
 from benchctl.runner import layout
-from benchctl.runner.acceptance import Verdict, rejection_line
-from benchctl.runner.calibration import Calibration
 from benchctl.runner.instruments import Exposure, Instruments
-from benchctl.files import file_sha256
 from benchctl.runner.record import RunRecord, file_problem, set_aside
-from benchctl.runner.setups import optical_setups, optimised_setup
 from benchctl.schema import Model
 from benchctl.terminal import ProgressLine
 

@@ -13,8 +13,8 @@ import os
 import re
 import signal
 from pathlib import Path
-from urllib.parse import urlsplit
 from typing import TYPE_CHECKING, Any, Callable
+from urllib.parse import urlsplit
 
 import numpy as np
 
@@ -177,8 +177,8 @@ def _open_camera(profile: Profile) -> Camera:
 def _open_slm(profile: Profile) -> SLM:
     """The profile's SLM with the lookup tables measured for it (calibration/<profile>/, where the profile names
     none), imported here so that laser and camera commands do not load the SLM drivers."""
+    from benchctl.calibration.store import Calibration
     from benchctl.devices.slm import open_slm
-    from benchctl.runner.calibration import Calibration
 
     if profile.slm is not None and profile.optics is not None:  # a calibration is stored for an SLM and optics
         profile = Calibration.store(profile).applied(profile)

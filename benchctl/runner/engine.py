@@ -23,14 +23,14 @@ from typing import Any
 
 import msgspec
 
-from benchctl.calibration_files import check_calibration
+from benchctl.calibration.acceptance import rejection_line
+from benchctl.calibration.files import check_calibration
+from benchctl.calibration.store import REGISTRATION_FILE, Calibration
+from benchctl.devices.power import format_power
 from benchctl.errors import BenchctlError
 from benchctl.files import file_sha256, write_json
 from benchctl.memory import check_memory
 from benchctl.profiles import Profile, load_profile, resolve_profile_path
-from benchctl.devices.power import format_power
-from benchctl.runner.acceptance import rejection_line
-from benchctl.runner.calibration import REGISTRATION_FILE, Calibration
 from benchctl.runner.context import Context, Step, StepRedo
 from benchctl.runner.estimates import RunEstimate, duration_text
 from benchctl.runner.instruments import Instruments

@@ -6,7 +6,7 @@
       procedure.toml    the procedure as used (plus the .py file of a Python procedure)
       calibration/      the camera-SLM registration, lookup tables and fitted optical model the run used (their
                         SHA-256 in run.json and the step log: a resume refuses an edited copy); rejected/ holds what
-                        the run measured but did not store (runner.acceptance)
+                        the run measured but did not store (calibration.acceptance)
       devices.json      identity of every device the run opened
       steps.jsonl       one JSON line per event of the step log (`record.RunRecord`)
       holograms/        SLM frames exactly as displayed (8-bit PNG)

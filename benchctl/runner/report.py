@@ -14,10 +14,10 @@ from typing import Any
 import cv2
 import numpy as np
 
+from benchctl.calibration.acceptance import rejection_line
 from benchctl.files import atomic_write_bytes, write_csv, write_json
 from benchctl.images import read_image
 from benchctl.runner import layout
-from benchctl.runner.acceptance import rejection_line
 from benchctl.runner.context import Context
 
 PREVIEW_WIDTH = 480

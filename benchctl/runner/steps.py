@@ -17,20 +17,20 @@ import numpy as np
 import torch
 from msgspec import Meta
 
+from benchctl.calibration.acceptance import AcceptMode
 from benchctl.capture.colour_planes import registered_plane, roi_saturation
 from benchctl.capture.raw import RawImage, average_frames, decode_raw, subtract_dark
 from benchctl.cgh import DEFAULT_METHOD, Method
 from benchctl.devices.power import format_power, parse_power
 from benchctl.errors import BenchctlError
 from benchctl.files import file_sha256
+from benchctl.holograms.cache import Hologram, hologram
+from benchctl.holograms.scene import resolve_method
 from benchctl.images import read_image, write_png
 from benchctl.optics import linear_to_srgb
 from benchctl.profiles import LaserChannel, NonNegative, NonNegativeInt, Profile
 from benchctl.runner import layout
-from benchctl.runner.acceptance import AcceptMode
 from benchctl.runner.context import Context, Expose, P, Parameters, Step
-from benchctl.runner.hologram_cache import Hologram, hologram
-from benchctl.runner.holograms import resolve_method
 from benchctl.runner.instruments import Exposure
 from benchctl.targets import CHART_PREFIX, PHOTO_PREFIX, load_target, prepare_target, target_plane
 

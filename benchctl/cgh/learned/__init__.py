@@ -4,7 +4,8 @@
 SLM phase in [-pi, pi]; the networks propagate with the setup's propagator, always at full definition.
 `model_info(name, shape)` describes a method and counts its parameters without an optical setup. Importing
 this package registers every learned method (and `<name>+sgd`) in the method registry; the perceptual loss is
-in `vgg`. Training, training data and checkpoint files are workflows on disk: `benchctl.runner.learned`.
+in `vgg`. Training and its data are workflows on disk (`benchctl.training`), checkpoint files too
+(`benchctl.holograms.checkpoints`).
 """
 
 from benchctl.cgh.learned.ccnn import ComplexUNet, ccnn

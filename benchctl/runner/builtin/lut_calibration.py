@@ -4,7 +4,7 @@ A binary grating of period 2 px (gray 0 / gray g) sends its first orders to the 
 band, where the Fourier iris stops them; the zero order that reaches the camera has intensity a + b cos(dphi(g)).
 Measured on a subset of gray levels, inverted and unwrapped (benchctl.capture.lut_calibration), interpolated
 to every level, the table is written as calibration/<profile>/lut-<colour>.csv, which later runs use for every
-channel whose table the profile does not name, if it passes its acceptance test (runner.acceptance): the gray-0
+channel whose table the profile does not name, if it passes its acceptance test (calibration.acceptance): the gray-0
 grating's signal shows light, a table could be read from the curve, and the curve a + b cos(phase(g)) of the new
 table follows the measured signals within MAX_MISFIT of their span and no worse than the table in use did. On the
 simulated bench it is compared with the simulator's truth.
@@ -37,6 +37,7 @@ from benchctl.runner.api import (
     Frames,
     Report,
     Step,
+    Verdict,
     channels,
     exposure_step,
     line_plot,
@@ -46,7 +47,6 @@ from benchctl.runner.api import (
     table,
     target_plane,
     unknown_setpoints,
-    Verdict,
 )
 
 MIN_SIGNAL = 0.003  # the gray-0 grating's zero order (the brightest) reaches this fraction of full scale: light

@@ -3,7 +3,7 @@ phase (which shows the beam itself), capture each, register it onto the target p
 fit the propagation model's wavefront error (Zernike terms at the SLM), beam (Gaussian waist and offset), SLM
 crosstalk and zero order by gradient descent through the differentiable propagation (optics.fitted). The fit is
 stored per profile (calibration/<profile>/optical-model.json), where generation, SGD and the simulated scores of
-later runs find it (OpticalSetup.field_model), if it passes its acceptance test (runner.acceptance): light reached
+later runs find it (OpticalSetup.field_model), if it passes its acceptance test (calibration.acceptance): light reached
 the camera, no capture clipped, the fit converged and brought the residual to at most MIN_IMPROVEMENT of the ideal
 model's and below MAX_RESIDUAL, and not above the residual of the stored model on the same captures.
 """
@@ -31,6 +31,7 @@ from benchctl.runner.api import (
     RegistrationMode,
     Report,
     Step,
+    Verdict,
     channels,
     exposure_step,
     line_plot,
@@ -42,12 +43,11 @@ from benchctl.runner.api import (
     save_hologram,
     table,
     unknown_setpoints,
-    Verdict,
 )
 from benchctl.runner.builtin import registration
 
 MAX_SATURATED = 1e-3  # fraction of ROI pixels clipped in a capture above which the fit is not stored
-# Acceptance (runner.acceptance). Light reached the camera: every registered capture's brightest 0.1 % reaches this
+# Acceptance (calibration.acceptance). Light reached the camera: every registered capture's brightest 0.1 % reaches this
 # fraction of full scale (a capture without light reads its noise, about 0.05 % on the simulated camera).
 MIN_SIGNAL = 0.003
 MIN_IMPROVEMENT = 0.9  # the fit brings the residual to at most this fraction of the ideal model's

@@ -6,7 +6,7 @@ paper's training set at 1080p) or your own pictures. `--data procedural:N` draws
 from a power law, so edges appear at every scale as in natural images) over a smooth colour gradient or a
 black background, some shapes striped, some lines of text. They are drawn deterministically from the image
 index alone, at whatever size is asked, so `procedural:N` means the same N pictures everywhere and needs no
-files; `python -m benchctl.runner.learned.data OUTDIR --count N` writes them as PNGs to look at or to reuse.
+files; `python -m benchctl.training.data OUTDIR --count N` writes them as PNGs to look at or to reuse.
 `--data photos:train` takes the 8 training photographs bundled in scikit-image (`benchctl.targets.photo_specs`;
 `photos:eval` names the 4 held-out ones, meant for evaluation only). Specs join with "+", e.g.
 `procedural:64+photos:train`.
@@ -199,8 +199,8 @@ def write_procedural(out_dir: Path, count: int, size: tuple[int, int]) -> list[P
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """`python -m benchctl.runner.learned.data OUTDIR --count N --size HxW`: write the procedural images as PNGs."""
-    parser = argparse.ArgumentParser(prog="python -m benchctl.runner.learned.data",
+    """`python -m benchctl.training.data OUTDIR --count N --size HxW`: write the procedural images as PNGs."""
+    parser = argparse.ArgumentParser(prog="python -m benchctl.training.data",
                                      description="Write benchctl's procedural training images as PNG files.")
     parser.add_argument("out_dir", type=Path)
     parser.add_argument("--count", type=int, default=16)

@@ -13,24 +13,25 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from benchctl.calibration.setups import optical_setups, optimised_setup
 from benchctl.capture.colour_planes import merge_colours
-from benchctl.checkpoint_notes import checkpoint_notes
 from benchctl.cgh import Method, get_method, method_names
 from benchctl.cgh.learned import LEARNED_METHODS, model_info
 from benchctl.devices.slm import slm_for
 from benchctl.errors import BadValueError, BenchctlError
-from benchctl.optics import amplitude_scores, colour_scores, crop_roi
-from benchctl.optics.setup import OpticalSetup
-from benchctl.profiles import LaserChannel, Profile
-from benchctl.runner.learned.checkpoint import (
+from benchctl.holograms.checkpoint_notes import checkpoint_notes
+from benchctl.holograms.checkpoints import (
     cached_checkpoint,
     checkpoint_problem,
     find_checkpoint,
     learned_method,
     profile_geometries,
 )
-from benchctl.runner.setups import optical_setups, optimised_setup
+from benchctl.optics import amplitude_scores, colour_scores, crop_roi
+from benchctl.optics.setup import OpticalSetup
+from benchctl.profiles import LaserChannel, Profile
 from benchctl.targets import active_channels, target_plane
+
 
 @dataclass
 class ColourResult:

@@ -27,6 +27,8 @@ from typing import Any
 import torch
 
 import benchctl
+from benchctl import SOURCE_ROOT
+from benchctl.calibration.geometry import geometry_differences
 from benchctl.cgh import Method, get_method
 from benchctl.cgh.learned.models import LEARNED_METHODS, build_model
 from benchctl.errors import BadValueError, BenchctlError
@@ -34,7 +36,6 @@ from benchctl.files import atomic_write_bytes, write_json
 from benchctl.optics.geometry import Geometry
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import Profile
-from benchctl.runner.geometry import geometry_differences
 
 FORMAT = "benchctl.learned-checkpoint"
 FORMAT_VERSION = 1
@@ -240,10 +241,6 @@ def cached_model(path: Path | str, colour: str, device: torch.device | str = "cp
     return _model(*_file_key(Path(path)), colour, str(torch.device(device)))
 
 
-def _repository_root() -> Path:
-    return Path(__file__).resolve().parents[3]
-
-
 def find_checkpoint(method: str, profile: Profile) -> Path | None:
     """The shipped (or user-placed) checkpoint of `method` for `profile`: checkpoints/<profile name>/<method>.pt
     in the working folder, else in the repository next to the package; None if there is none.
@@ -253,7 +250,7 @@ def find_checkpoint(method: str, profile: Profile) -> Path | None:
     if method not in LEARNED_METHODS:
         raise BadValueError(f"{method!r} is not a learned method (learned: {', '.join(LEARNED_METHODS)})")
     relative = Path(CHECKPOINT_DIR) / profile.name / f"{method}.pt"
-    for candidate in (relative, _repository_root() / relative):
+    for candidate in (relative, SOURCE_ROOT / relative):
         if candidate.is_file():
             return candidate
     return None

@@ -21,14 +21,14 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
+from benchctl.calibration.setups import optical_setup
 from benchctl.cgh import get_method
 from benchctl.files import atomic_write_bytes, ensure_dir
+from benchctl.holograms.checkpoints import find_checkpoint
+from benchctl.holograms.scene import compute_scene
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import Profile
 from benchctl.provenance import source_hash
-from benchctl.runner.holograms import compute_scene
-from benchctl.runner.learned.checkpoint import find_checkpoint
-from benchctl.runner.setups import optical_setup
 from benchctl.targets import target_plane
 
 CACHE_ENV = "BENCHCTL_CACHE_DIR"

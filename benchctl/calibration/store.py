@@ -7,7 +7,7 @@
     calibration/<profile name>/optical-model.json  per colour: fitted wavefront error (Zernike waves) and beam,
                                                     residual, when, for which geometry (model calibration)
     calibration/<profile name>/rejected/           calibrations that failed their acceptance test
-                                                    (runner.acceptance), `<run>-<file>`, kept for inspection only
+                                                    (calibration.acceptance), `<run>-<file>`, kept for inspection only
 
 The root is $BENCHCTL_CALIBRATION_DIR, else ./calibration. A colour's stored calibration is used only while what
 `validity` records for it is unchanged (its optical geometry, the SLM's bit depth and flips, the camera); one older
@@ -25,7 +25,7 @@ from typing import Any
 
 import msgspec
 
-from benchctl.calibration_files import LutIndex, OpticalModelFile, RegistrationFile, checked_json
+from benchctl.calibration.files import LutIndex, OpticalModelFile, RegistrationFile, checked_json
 from benchctl.errors import BenchctlError
 from benchctl.files import ensure_dir, file_sha256, write_json
 from benchctl.profiles import Profile

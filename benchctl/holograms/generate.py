@@ -10,15 +10,15 @@ import numpy as np
 import torch
 
 import benchctl
-from benchctl.calibration_files import calibration_used
+from benchctl.calibration.files import calibration_used
+from benchctl.calibration.store import Calibration
 from benchctl.cgh import DEFAULT_METHOD
 from benchctl.files import ensure_dir, write_json
+from benchctl.holograms.scene import SceneResult, compute_scene
 from benchctl.images import write_png
 from benchctl.optics import linear_to_srgb
 from benchctl.profiles import Profile
 from benchctl.provenance import code_identity
-from benchctl.runner.calibration import Calibration
-from benchctl.runner.holograms import SceneResult, compute_scene
 from benchctl.targets import load_target, prepare_target
 
 

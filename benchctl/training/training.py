@@ -16,12 +16,12 @@ the weights stay identical; only rank 0 validates, prints and writes checkpoints
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import shlex
 import time
 from collections.abc import Callable, Mapping, Sequence
-import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
@@ -33,24 +33,25 @@ import torch.nn.functional as F
 from msgspec.structs import replace
 from torch import nn
 
+from benchctl.calibration.files import fitted_model_entry
+from benchctl.calibration.geometry import grid_profile
+from benchctl.calibration.setups import optical_setups
+from benchctl.calibration.store import Calibration, validity
 from benchctl.cgh.learned.models import LEARNED_METHODS, VARIANTS, build_model
-from benchctl.cgh.method import get_method
 from benchctl.cgh.learned.vgg import PERCEPTUAL_WEIGHT, PerceptualLoss, load_vgg19
-from benchctl.terminal import ProgressLine
+from benchctl.cgh.method import get_method
 from benchctl.errors import BadValueError, BenchctlError
 from benchctl.files import ensure_dir
+from benchctl.holograms.checkpoints import RESUME_SUFFIX, WEIGHT_DTYPES, Checkpoint, read_checkpoint
 from benchctl.memory import Estimate, check_training_memory, size_text, training_estimate
 from benchctl.optics.metrics import amplitude_scores, crop_roi, lsq_scale, psnr
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import Profile
-from benchctl.runner.calibration import Calibration, validity
-from benchctl.runner.geometry import grid_profile
-from benchctl.runner.learned.averaging import WeightAverage
-from benchctl.runner.learned.checkpoint import RESUME_SUFFIX, WEIGHT_DTYPES, Checkpoint, read_checkpoint
-from benchctl.runner.learned.data import ImageSource, describe_sources, image_sources, split_sources
-from benchctl.runner.learned.health import StepStats, TrainingHealth, clamped_fraction, gradient_norm
-from benchctl.runner.setups import optical_setups
 from benchctl.targets import prepare_target, target_plane
+from benchctl.terminal import ProgressLine
+from benchctl.training.averaging import WeightAverage
+from benchctl.training.data import ImageSource, describe_sources, image_sources, split_sources
+from benchctl.training.health import StepStats, TrainingHealth, clamped_fraction, gradient_norm
 
 LOSSES = ("mse", "l2-perceptual")
 MAX_LR = 0.1  # Adam on these networks diverges far below this; above it a value is a typo
@@ -615,7 +616,7 @@ def with_model_calibration(profile: Profile, settings: TrainSettings) -> Profile
         calibrated = replace(profile, optics=replace(optics, model=path.resolve()))
     model = calibrated.section("optics").model
     for name in settings.colours or [channel.name for channel in profile.channels]:
-        entry = calibrated.fitted_model(profile.channel(name).name)  # a bad file: one line naming key and value
+        entry = fitted_model_entry(calibrated, profile.channel(name).name)  # a bad file: one line naming key and value
         if entry is None:
             raise BadValueError(f"{flag}: {model} has no fitted model for {name!r}")
         fitted_for, here = entry.get("geometry"), validity(profile, name)

@@ -8,6 +8,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Sequence
 
+from benchctl.calibration.files import fitted_model_entry
 from benchctl.devices.slm import SLM
 from benchctl.optics.fitted import FittedOptics
 from benchctl.optics.setup import OpticalSetup
@@ -16,8 +17,8 @@ from benchctl.profiles import Profile
 
 def fitted_model(profile: Profile, channel: str) -> FittedOptics | None:
     """`channel`'s fitted optical model from the file the profile names (`optics.model`), checked
-    (benchctl.calibration_files: one line naming file, key and value for a bad one); None without one."""
-    entry = profile.fitted_model(channel)
+    (benchctl.calibration.files: one line naming file, key and value for a bad one); None without one."""
+    entry = fitted_model_entry(profile, channel)
     return FittedOptics.from_dict(entry) if entry is not None else None
 
 

@@ -38,7 +38,7 @@ MAX_CROSSTALK_PX = 5.0
 MAX_BEAM_MISS_WAISTS = 3.0
 
 Waves = Annotated[float, Meta(ge=-MAX_WAVES, le=MAX_WAVES)]
-# What a calibration was made for (benchctl.runner.calibration.geometry): compared as a whole, never read key by key.
+# What a calibration was made for (benchctl.calibration.store.geometry): compared as a whole, never read key by key.
 Geometry = dict[str, str | int | float | bool | list[int | float | bool] | None]
 
 
