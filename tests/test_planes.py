@@ -8,7 +8,7 @@ import torch
 
 from benchctl.optics.geometry import Geometry
 from benchctl.optics.planes import (MAX_PLANES, axial_resolution_m, choose_planes, even_planes, finest_resolution_m,
-                                    numerical_aperture, plane_count)
+                                    numerical_aperture)
 
 
 def test_axial_resolution_is_lambda_over_na_squared_with_the_iris_or_the_slm_extent_limiting_na():
@@ -64,10 +64,14 @@ def test_a_cluster_with_a_sliver_of_the_light_gets_no_plane():
 
 
 def test_even_planes_and_the_planes_option():
+    import argparse
+
+    from benchctl.cli.args import plane_count
+
     depth, light = _maps((0.066, 1.0), (0.074, 1.0), (0.050, 0.0))
     assert even_planes(depth, light, 3).planes_m == pytest.approx((0.066, 0.070, 0.074))
     assert even_planes(depth, light, 1).planes_m == pytest.approx((0.070,))
     assert plane_count("auto") is None and plane_count("4") == 4
     for bad in ("0", "-2", "two", ""):
-        with pytest.raises(ValueError, match="'auto' or a whole number"):
+        with pytest.raises(argparse.ArgumentTypeError, match="'auto' or a whole number"):
             plane_count(bad)

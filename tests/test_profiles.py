@@ -211,7 +211,7 @@ def test_camera_section_defaults(small_profile_path: Path) -> None:
 
 
 def test_a_scaled_bench_scales_depth_offsets_with_the_grid_side_and_the_distance_with_its_area():
-    from benchctl.runner.geometry import grid_profile
+    from benchctl.calibration.geometry import grid_profile
 
     profile = load_profile("simulated")
     assert profile.section("optics").depth_range_mm == (65.0, 75.0)

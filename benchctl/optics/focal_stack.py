@@ -79,12 +79,18 @@ def focal_stack_loss(recon: torch.Tensor, target: torch.Tensor, masks: torch.Ten
     of one plane; `recon` (..., K, h, w), `target` (h, w), `masks` (K, h, w). s is the least-squares scale of the
     whole stack, held constant for autograd (exact at the optimum, as for `sgd.roi_loss`). With one plane and a
     mask of ones it is that plane's MSE after `lsq_scale`."""
-    weighted = masks * recon.detach()
-    numerator = (weighted * target).sum(dim=(-3, -2, -1), keepdim=True)
-    denominator = (weighted * recon.detach()).sum(dim=(-3, -2, -1), keepdim=True)
-    scale = torch.where(denominator > 0, numerator / torch.where(denominator > 0, denominator, 1.0), 1.0)
+    scale = stack_scale(recon.detach(), target, masks)
     error = (masks * (scale * recon - target).square()).sum(dim=(-3, -2, -1))
     return (error / (target.shape[-2] * target.shape[-1])).mean()
+
+
+def stack_scale(recon: torch.Tensor, target: torch.Tensor, masks: torch.Tensor) -> torch.Tensor:
+    """The least-squares scale of a focal stack (..., K, h, w) against `target` (h, w) over the in-focus `masks`
+    (K, h, w): sum(m r t) / sum(m r^2), shaped (..., 1, 1, 1); 1 where the stack is dark."""
+    weighted = masks * recon
+    numerator = (weighted * target).sum(dim=(-3, -2, -1), keepdim=True)
+    denominator = (weighted * recon).sum(dim=(-3, -2, -1), keepdim=True)
+    return torch.where(denominator > 0, numerator / torch.where(denominator > 0, denominator, 1.0), 1.0)
 
 
 def masked_scores(recon: torch.Tensor, target: torch.Tensor, region: torch.Tensor, *,
@@ -132,7 +138,11 @@ def focal_stack_scores(recon: torch.Tensor, target: torch.Tensor, masks: torch.T
                          f"{tuple(target.shape)} must be (K, h, w), (K, h, w) and (h, w)")
     owner = masks.argmax(dim=0)
     per_plane = [masked_scores(recon[k], target, owner == k, perceptual=perceptual) for k in range(len(recon))]
-    present = [scores for scores in per_plane if scores is not None]
-    keys = dict.fromkeys(key for scores in present for key in scores)
-    mean = {key: sum(s[key] for s in present if key in s) / sum(key in s for s in present) for key in keys}
-    return FocalStackScores(tuple(float(z) for z in planes_m), per_plane, mean)
+    return FocalStackScores(tuple(float(z) for z in planes_m), per_plane, mean_scores(per_plane))
+
+
+def mean_scores(scores: Sequence[dict[str, float] | None]) -> dict[str, float]:
+    """Key by key, the mean over the score dicts that have the key (None entries left out); {} for none."""
+    present = [s for s in scores if s is not None]
+    keys = dict.fromkeys(key for s in present for key in s)
+    return {key: sum(s[key] for s in present if key in s) / sum(key in s for s in present) for key in keys}

@@ -112,12 +112,3 @@ def finest_resolution_m(geometries: Sequence[Geometry]) -> float:
     """The smallest axial resolution over the colours: planes shared by all colours must resolve the finest."""
     return min(axial_resolution_m(g) for g in geometries)
 
-
-def plane_count(spec: str) -> int | None:
-    """A `--planes` value: "auto" (None) or a whole number of planes >= 1."""
-    if spec == "auto":
-        return None
-    if spec.isdigit() and int(spec) >= 1:
-        return int(spec)
-    raise ValueError(f"planes must be 'auto' or a whole number >= 1, got {spec!r}")
-

@@ -104,10 +104,12 @@ class OpticalSetup(Geometry):
         is its own distance; built once per distance and cached."""
         if float(distance_m) == self.distance_m:
             return self
-        twins: dict[float, OpticalSetup] = self.__dict__.setdefault("_at_distance", {})
-        if float(distance_m) not in twins:
-            twins[float(distance_m)] = dataclasses.replace(self, distance_m=float(distance_m))
-        return twins[float(distance_m)]
+        # Keyed by the display too: `with_display` twins share this cache (and the propagators in it).
+        twins: dict[tuple[float, object], OpticalSetup] = self.__dict__.setdefault("_at_distance", {})
+        key = (float(distance_m), self.display)
+        if key not in twins:
+            twins[key] = dataclasses.replace(self, distance_m=float(distance_m))
+        return twins[key]
 
     def slm_propagator(self) -> Propagator:
         """The cached propagator target plane -> SLM (-z)."""
