@@ -111,3 +111,22 @@ def test_speed_vs_error_puts_the_depth_methods_on_a_scenes_front(tmp_path, depth
     assert all(r["psnr_amplitude_db"] > 10 and r["front"] in (True, False) for r in front)
     rows = (tmp_path / "speed_vs_error.csv").read_text().splitlines()
     assert rows[0].split(",")[4] == "planes" and all(row.split(",")[4] == "2" for row in rows[1:])
+
+
+def test_bench_depth_judges_every_plane_count_on_one_stack_and_checks_two_planes_against_2d(depth_profile):
+    from benchctl.benchmarks.depth import EVALUATION_PLANES, run_depth_bench
+    from benchctl.profiles import load_profile
+
+    lines: list[str] = []
+    rows = run_depth_bench(load_profile(depth_profile), scenes=("rgbd:two-planes", "rgbd:flat"), counts=(1, 2),
+                           iterations=2, out=lines.append)
+    two = [r for r in rows if r["scene"] == "rgbd:two-planes" and "check" not in r]
+    assert [r["planes"] for r in two] == [1, 2, "auto"] and [r["count"] for r in two] == [1, 2, 2]
+    assert two[2]["planes_m"] == pytest.approx((0.0168, 0.0232)) == two[1]["planes_m"]
+    assert all(r["seconds"] > 0 and 5 < r["psnr_db"] < 100 for r in two)
+    flat = [r for r in rows if r["scene"] == "rgbd:flat"]
+    assert [r["planes"] for r in flat] == [1, "auto"]  # every K is the one plane of a flat scene
+    checks = [r for r in rows if r.get("check") == "two-plane"]
+    assert [c["plane_m"] for c in checks] == pytest.approx([0.0168, 0.0232])
+    assert any(f"judged on {EVALUATION_PLANES} planes" in line for line in lines)
+    assert any("auto chose the best K" in line or "from the best" in line for line in lines)

@@ -51,6 +51,23 @@ def _cmd_bench_propagation(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_depth(args: argparse.Namespace) -> int:
+    from benchctl.benchmarks.depth import DEFAULT_SCENES, run_depth_bench
+    from benchctl.benchmarks.speed_vs_error import resized_profile
+    from benchctl.files import ensure_dir, write_csv
+    from benchctl.profiles import load_profile
+
+    profile = load_profile(args.profile).require("slm", "optics", "laser")
+    slm = profile.section("slm")
+    size = args.size or (slm.height // 4, slm.width // 4)
+    rows = run_depth_bench(resized_profile(profile, size), scenes=args.scenes or DEFAULT_SCENES,
+                           counts=range(1, args.max_planes + 1), method=args.method, iterations=args.iterations,
+                           colour=args.colour)
+    if args.out:
+        print(f"wrote {write_csv(ensure_dir(Path(args.out)) / 'depth.csv', rows)}")
+    return 0
+
+
 def _cmd_bench_learned(args: argparse.Namespace) -> int:
     from benchctl.benchmarks.learned import MEMORY_TABLE_METHODS, run_learned_bench, run_memory_table
     from benchctl.errors import BadValueError
@@ -151,6 +168,25 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     prop.add_argument("--out", "-o", metavar="DIR", help="also write propagation.csv (and multiplane.csv) here")
     add_profile(prop)
     prop.set_defaults(func=_cmd_bench_propagation)
+
+    depth = bench.add_parser("depth", help="scenes with depth: focal-stack PSNR against the number of planes, the "
+                                           "planes --planes auto chooses, multi-plane against 2D SGD",
+                             description="Per bundled scene, the method's hologram at K = 1 .. max planes evenly over "
+                                         "the scene's depth and at the planes --planes auto chooses, each judged on "
+                                         "the same 16-plane focal stack (in-focus amplitude PSNR) and timed; then "
+                                         "multi-plane SGD on rgbd:two-planes against 2D SGD on each plane's image "
+                                         "alone. One colour, scaled bench as speed-vs-error, no SLM quantisation.")
+    depth.add_argument("--scenes", nargs="+", metavar="SCENE", help="rgbd scenes (default: all bundled ones)")
+    depth.add_argument("--max-planes", type=positive_int, default=16, metavar="K", help="largest K (default: 16)")
+    depth.add_argument("--method", "-m", default="sgd", help="a method that makes focal stacks (default: sgd)")
+    depth.add_argument("--iterations", "-n", type=positive_int, default=100, help="iterations (default: 100)")
+    depth.add_argument("--colour", default="green", help="laser channel (default: green)")
+    depth.add_argument("--size", type=grid_size, metavar="HxW",
+                       help="SLM grid; ROI, distance and depth range scaled (default: a quarter of the profile's grid "
+                            "per axis)")
+    depth.add_argument("--out", "-o", metavar="DIR", help="also write depth.csv here")
+    add_profile(depth)
+    depth.set_defaults(func=_cmd_bench_depth)
 
     learned = bench.add_parser("learned", help="learned methods side by side: parameters, inference time, training "
                                                "memory, PSNR/SSIM, ratios to the baseline network",

@@ -1,0 +1,158 @@
+"""`benchctl bench depth`: how many planes a scene with depth needs, measured.
+
+Per bundled scene, a method (SGD by default) makes the scene's hologram at K = 1 .. 16 planes spread evenly over
+the scene's lit depth, and at the planes `--planes auto` chooses; every hologram is judged on the same dense focal
+stack (16 planes evenly over the scene's depth, each scored in its in-focus region: the stack a viewer focusing
+anywhere in the scene sees), so that the curve of focal-stack PSNR against K shows what more planes buy and what
+they cost. The scene's two-plane check follows: multi-plane SGD's in-focus PSNR on each plane against 2D SGD on that
+plane's image alone at the same iterations. One colour, the profile's optics (its fitted model where it has one),
+no SLM quantisation: the hologram method and the planes are what is measured.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from typing import Any, Callable
+
+import torch
+
+from benchctl.calibration.setups import optical_setup
+from benchctl.cgh import get_method
+from benchctl.optics.focal_stack import FocalStackTarget, focal_stack_scores
+from benchctl.optics.metrics import centred_slices
+from benchctl.holograms.depth import scene_planes
+from benchctl.optics.planes import PlaneChoice, even_planes
+from benchctl.optics.setup import OpticalSetup
+from benchctl.profiles import Profile
+from benchctl.scenes import list_scenes, load_scene, prepare_scene
+from benchctl.targets import target_plane
+
+DEFAULT_SCENES = tuple(list_scenes())
+EVALUATION_PLANES = 16
+AUTO = "auto"
+
+
+def _timed(device: torch.device, fn: Callable[..., torch.Tensor], *args: Any,
+           **kwargs: Any) -> tuple[torch.Tensor, float]:
+    """`fn(*args, **kwargs)` and the seconds it took, the device synchronised around it."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    start = time.perf_counter()
+    result = fn(*args, **kwargs)
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    return result, time.perf_counter() - start
+
+
+def _stack_psnr(setup: OpticalSetup, phase: torch.Tensor, judge: FocalStackTarget) -> tuple[float, list[float | None]]:
+    """Mean and per-plane in-focus amplitude PSNR of `phase`'s focal stack at the judging planes."""
+    rows, cols = setup.roi_slices
+    recon = setup.reconstruct_planes_roi(phase, judge.planes_m) if len(judge.planes_m) > 1 else \
+        setup.at_distance(judge.planes_m[0]).reconstruct_roi(phase)[None]
+    scores = focal_stack_scores(recon.cpu(), judge.amplitude[rows, cols].cpu(), judge.masks[:, rows, cols].cpu(),
+                                judge.planes_m)
+    per_plane = [None if s is None else s["psnr_amplitude_db"] for s in scores.per_plane]
+    return scores.mean["psnr_amplitude_db"], per_plane
+
+
+def run_depth_bench(
+    profile: Profile,
+    scenes: Sequence[str] = DEFAULT_SCENES,
+    counts: Sequence[int] = tuple(range(1, 17)),
+    *,
+    method: str = "sgd",
+    iterations: int | None = 100,
+    colour: str = "green",
+    seed: int = 0,
+    device: str | torch.device = "cpu",
+    out: Callable[[str], None] = print,
+) -> list[dict[str, Any]]:
+    """Print and return one row per scene and plane count (K, or "auto"): planes, seconds, focal-stack PSNR on the
+    judging stack; then per scene the best K, the chosen one and whether the chosen is within 0.5 dB of the best at
+    no more than half its time; then the two-plane check on rgbd:two-planes where it is among `scenes`."""
+    device = torch.device(device)
+    generate = get_method(method)
+    if generate.default_iterations is None:
+        iterations = None  # a one-shot method
+    slm, optics = profile.section("slm"), profile.section("optics")
+    grid, roi = slm.shape, optics.roi
+    setup = optical_setup(profile, colour)
+    rows, cols = centred_slices(grid, roi)
+    channel_plane = target_plane(profile.channel(colour))
+    out(f"grid {grid[0]}x{grid[1]}, ROI {roi[0]}x{roi[1]}, distance {optics.distance_mm:g} mm, depth range "
+        f"{optics.depth_range_mm}, {colour}, {method} at {iterations} iterations, device {device}; judged on "
+        f"{EVALUATION_PLANES} planes evenly over each scene's depth")
+    results: list[dict[str, Any]] = []
+    for spec in scenes:
+        amplitude, depth = prepare_scene(load_scene(spec, roi, optics.depth_range_m), grid, roi)
+        amplitude, depth = amplitude[channel_plane].to(device), depth.to(device)
+        light = amplitude[rows, cols].square()
+        judge_planes = even_planes(depth[rows, cols], light, EVALUATION_PLANES)
+        judge = FocalStackTarget(amplitude, depth, judge_planes.planes_m)
+        auto = scene_planes(depth[rows, cols], light, {colour: setup}, None)
+        choices: list[tuple[int | str, PlaneChoice]] = [(k, even_planes(depth[rows, cols], light, k)) for k in counts]
+        choices.append((AUTO, auto))
+        warm_up = 2 if generate.default_iterations is not None else None  # kernels and caches built outside the timing
+        generate(FocalStackTarget(amplitude, depth, auto.planes_m), setup, iterations=warm_up)
+        seen: set[tuple[float, ...]] = set()
+        for count, choice in choices:
+            if count != AUTO and choice.planes_m in seen:
+                continue  # a flat scene: every K is one plane
+            seen.add(choice.planes_m)
+            target = FocalStackTarget(amplitude, depth, choice.planes_m)
+            phase, seconds = _timed(device, generate, target, setup, iterations=iterations, seed=seed)
+            psnr, _ = _stack_psnr(setup, phase, judge)
+            results.append({"scene": spec, "planes": count, "planes_m": choice.planes_m, "count": len(choice.planes_m),
+                            "seconds": seconds, "psnr_db": psnr})
+        _summarise(spec, [r for r in results if r["scene"] == spec], auto, out)
+    if "rgbd:two-planes" in scenes:
+        results += _two_plane_check(profile, setup, channel_plane, generate.name, iterations, seed, device, out)
+    return results
+
+
+def _summarise(spec: str, rows: list[dict[str, Any]], auto: PlaneChoice, out: Callable[[str], None]) -> None:
+    out("")
+    out(f"{spec}: auto: {auto.reason}")
+    out(f"  {'K':>5} {'planes':>6} {'seconds':>8} {'PSNR dB':>8}")
+    for row in rows:
+        out(f"  {row['planes']!s:>5} {row['count']:>6} {row['seconds']:>8.2f} {row['psnr_db']:>8.2f}")
+    fixed = [r for r in rows if r["planes"] != AUTO]
+    best = max(fixed, key=lambda r: r["psnr_db"])
+    chosen = next(r for r in rows if r["planes"] == AUTO)
+    if chosen["planes_m"] == best["planes_m"]:
+        out(f"  auto chose the best K: {best['count']} plane(s), {best['psnr_db']:.2f} dB")
+        return
+    within = best["psnr_db"] - chosen["psnr_db"] <= 0.5
+    cheaper = chosen["seconds"] <= 0.5 * best["seconds"]
+    out(f"  best K {best['planes']} ({best['psnr_db']:.2f} dB, {best['seconds']:.2f} s); auto {chosen['count']} "
+        f"plane(s): {chosen['psnr_db'] - best['psnr_db']:+.2f} dB from the best "
+        f"({'within' if within else 'NOT within'} 0.5 dB), {chosen['seconds'] / best['seconds']:.2f}x its time"
+        f" ({'at most' if cheaper else 'more than'} half)")
+
+
+def _two_plane_check(profile: Profile, setup: OpticalSetup, channel_plane: int, method: str,
+                     iterations: int | None, seed: int, device: torch.device,
+                     out: Callable[[str], None]) -> list[dict[str, Any]]:
+    """Multi-plane SGD on rgbd:two-planes against 2D SGD on each plane's image alone, at the same iterations."""
+    optics, grid = profile.section("optics"), profile.section("slm").shape
+    rows, cols = centred_slices(grid, optics.roi)
+    amplitude, depth = prepare_scene(load_scene("rgbd:two-planes", optics.roi, optics.depth_range_m), grid, optics.roi)
+    amplitude, depth = amplitude[channel_plane].to(device), depth.to(device)
+    planes = scene_planes(depth[rows, cols], amplitude[rows, cols].square(), {"": setup}, None).planes_m
+    target = FocalStackTarget(amplitude, depth, planes)
+    generate = get_method(method)
+    _, stack = _stack_psnr(setup, generate(target, setup, iterations=iterations, seed=seed), target)
+    out("")
+    out(f"rgbd:two-planes, {method} at {iterations} iterations: in-focus PSNR per plane, the focal stack against 2D on "
+        "the plane's image alone")
+    found = []
+    for k, plane in enumerate(planes):
+        alone = generate(amplitude * target.masks[k], setup.at_distance(plane), iterations=iterations, seed=seed)
+        _, flat = _stack_psnr(setup, alone, target)
+        gap = (stack[k] or 0.0) - (flat[k] or 0.0)
+        out(f"  plane {k + 1} at {plane * 1e3:.3f} mm: focal stack {stack[k]:.2f} dB, 2D alone {flat[k]:.2f} dB "
+            f"({gap:+.2f} dB; goal within 2 dB: {'met' if gap >= -2 else 'NOT met'})")
+        found.append({"scene": "rgbd:two-planes", "check": "two-plane", "plane_m": plane, "stack_psnr_db": stack[k],
+                      "alone_psnr_db": flat[k]})
+    return found
