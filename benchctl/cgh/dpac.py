@@ -20,7 +20,7 @@ from benchctl.optics.focal_stack import FocalStackTarget
 from benchctl.optics.propagation import propagate
 from benchctl.optics.setup import OpticalSetup
 
-ANTI_ALIAS_SIGMA_PX = 0.5
+ANTI_ALIAS_SIGMA_PX = 0.7
 """Standard deviation (SLM pixels) of the Gaussian low-pass before a scene's double-phase coding (docs/depth.md
 measures the choice)."""
 
