@@ -11,6 +11,7 @@ no SLM quantisation: the hologram method and the planes are what is measured.
 
 from __future__ import annotations
 
+import statistics
 import time
 from collections.abc import Sequence
 from typing import Any, Callable
@@ -21,12 +22,13 @@ from benchctl.calibration.setups import optical_setup
 from benchctl.cgh import get_method
 from benchctl.optics.focal_stack import FocalStackTarget, focal_stack_scores
 from benchctl.optics.metrics import centred_slices
-from benchctl.holograms.depth import scene_planes
+from benchctl.holograms.depth import compute_depth_scene, scene_planes
+from benchctl.holograms.scene import compute_scene
 from benchctl.optics.planes import PlaneChoice, even_planes
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import Profile
 from benchctl.scenes import list_scenes, load_scene, prepare_scene
-from benchctl.targets import target_plane
+from benchctl.targets import load_target, prepare_target, target_plane
 
 DEFAULT_SCENES = tuple(list_scenes())
 EVALUATION_PLANES = 16
@@ -108,7 +110,45 @@ def run_depth_bench(
         _summarise(spec, [r for r in results if r["scene"] == spec], auto, out)
     if "rgbd:two-planes" in scenes:
         results += _two_plane_check(profile, setup, channel_plane, generate.name, iterations, seed, device, out)
+    if "rgbd:flat" in scenes and device.type == "cpu":
+        results.append(flat_scene_check(profile, generate.name, iterations, colour, out=out))
     return results
+
+
+def flat_scene_check(profile: Profile, method: str, iterations: int | None, colour: str, *, repeats: int = 5,
+                     out: Callable[[str], None] = print) -> dict[str, Any]:
+    """rgbd:flat (a Siemens star on one plane, the middle of the depth range) with --planes auto against
+    chart:siemens in 2D at that plane, in turn `repeats` times: both loaded, prepared and computed as generate
+    computes them (the displayed hologram and its scores, without the perceptual scores); whether the holograms are
+    the same, and the medians of the per-round time ratios, the hologram alone and the whole."""
+    slm, optics = profile.section("slm"), profile.section("optics")
+    grid, roi = slm.shape, optics.roi
+    plane = float(load_scene("rgbd:flat", (1, 1), optics.depth_range_m).depth_m[0, 0])
+    at_plane = {colour: optical_setup(profile, colour).at_distance(plane)}  # the profile's distance, unless scaled
+    ratios_hologram, ratios_total = [], []
+    for _ in range(repeats + 1):  # the first round warms up
+        start = time.perf_counter()
+        flat = compute_scene(prepare_target(load_target("chart:siemens", roi), grid, roi), profile, method,
+                             iterations=iterations, colours=[colour], setups=at_plane)
+        flat_total = time.perf_counter() - start
+        start = time.perf_counter()
+        amplitude, depth = prepare_scene(load_scene("rgbd:flat", roi, optics.depth_range_m), grid, roi)
+        deep = compute_depth_scene(amplitude, depth, profile, method, iterations=iterations, colours=[colour],
+                                   perceptual=False)
+        deep_total = time.perf_counter() - start
+        ratios_hologram.append(deep.colours[0].seconds / flat.colours[0].seconds)
+        ratios_total.append(deep_total / flat_total)
+    same = flat.colours[0].gray is not None and deep.colours[0].gray is not None and bool(
+        (flat.colours[0].gray == deep.colours[0].gray).all())
+    psnr_2d, psnr_3d = flat.colours[0].scores["psnr_amplitude_db"], deep.mean_scores["psnr_amplitude_db"]
+    hologram, total = statistics.median(ratios_hologram[1:]), statistics.median(ratios_total[1:])
+    out("")
+    out(f"rgbd:flat --planes auto against chart:siemens in 2D ({method}, {colour}, {repeats} rounds): "
+        f"{len(deep.planes.planes_m)} plane; same hologram: {'yes' if same else 'NO'}; PSNR {psnr_3d:.3f} dB against "
+        f"{psnr_2d:.3f} dB; time 3D / 2D: hologram {hologram:.3f}, with loading and scoring {total:.3f} "
+        f"(goal within 5 %: {'met' if total <= 1.05 else 'NOT met'})")
+    return {"scene": "rgbd:flat", "check": "flat", "same_hologram": same, "psnr_2d_db": psnr_2d, "psnr_3d_db": psnr_3d,
+            "hologram_time_ratio": hologram, "total_time_ratio": total}
 
 
 def _summarise(spec: str, rows: list[dict[str, Any]], auto: PlaneChoice, out: Callable[[str], None]) -> None:
