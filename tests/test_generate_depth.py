@@ -133,3 +133,23 @@ def test_bench_depth_judges_every_plane_count_on_one_stack_and_checks_two_planes
     flat_check = next(r for r in rows if r.get("check") == "flat")
     assert flat_check["same_hologram"] is True and flat_check["psnr_3d_db"] == flat_check["psnr_2d_db"]
     assert flat_check["total_time_ratio"] > 0
+
+
+def test_the_readme_depth_example_runs_on_a_small_bench(depth_profile):
+    import contextlib
+    import io
+    import re
+
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    start = text.index("## Scenes with depth (3D holograms)")
+    code = re.search(r"```python\n(.*?)```", text[start:], re.S)[1]
+    for old, new in (('load_profile("simulated")', f"load_profile({str(depth_profile)!r})"),
+                     ("iterations=20", "iterations=3")):
+        assert code.count(old) == 1, old
+        code = code.replace(old, new)
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        exec(compile(code, "README.md", "exec"), {})
+    lines = printed.getvalue().splitlines()
+    assert "2 plane(s) at 16.80, 23.20 mm" in lines[0]
+    assert re.fullmatch(r"mean in-focus PSNR \d+\.\d\d dB over 2 planes", lines[1])

@@ -84,10 +84,7 @@ def run_propagation_bench(
     timed = _timer(device)
     rows: list[dict[str, Any]] = []
     for shape in sizes:
-        generator = torch.Generator().manual_seed(seed)
-        phase = (2.0 * torch.rand(tuple(shape), generator=generator, dtype=torch.float64) - 1.0) * math.pi
-        field64 = torch.polar(torch.ones_like(phase), phase).to(device)
-        field32 = field64.to(torch.complex64)
+        field64, field32 = _slm_fields(shape, seed, device)
         bench = grid_profile(profile.require("slm", "optics", "laser"), (shape[0], shape[1]))
         for channel in bench.channels:
             colour, geometry = channel.name, bench.geometry(channel.name)
@@ -143,6 +140,14 @@ def run_propagation_bench(
         out("Summary")
         _print_table(rows, out, with_case=True)
     return rows
+
+
+def _slm_fields(shape: tuple[int, int], seed: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """What a phase SLM shows: unit amplitude, uniformly random phase (seeded), in complex128 and complex64."""
+    generator = torch.Generator().manual_seed(seed)
+    phase = (2.0 * torch.rand(tuple(shape), generator=generator, dtype=torch.float64) - 1.0) * math.pi
+    field64 = torch.polar(torch.ones_like(phase), phase).to(device)
+    return field64, field64.to(torch.complex64)
 
 
 def _propagator(mode: Padding, geometry: Geometry) -> Propagator:
@@ -218,10 +223,7 @@ def run_multiplane_bench(
     timed = _timer(device)
     rows: list[dict[str, Any]] = []
     for shape in sizes:
-        generator = torch.Generator().manual_seed(seed)
-        phase = (2.0 * torch.rand(tuple(shape), generator=generator, dtype=torch.float64) - 1.0) * math.pi
-        field64 = torch.polar(torch.ones_like(phase), phase).to(device)
-        field32 = field64.to(torch.complex64)
+        field64, field32 = _slm_fields(shape, seed, device)
         bench = grid_profile(profile.require("slm", "optics", "laser"), (shape[0], shape[1]))
         distances = bench_planes(bench, planes)
         for channel in bench.channels:
