@@ -79,6 +79,7 @@ def test_a_fixed_number_of_planes_spreads_them_over_the_scenes_depth(capsys, tmp
     (["rgbd:two-planes"], "optics.depth_range_mm"),
     (["rgbd:two-planes", "-m", "gs"], "makes holograms of one plane"),
     (["rgbd:nowhere"], "no bundled scene or scene file"),
+    (["chart:siemens", "--planes", "2"], "--planes and --fit-depth are for scenes with depth (rgbd:...)"),
 ])
 def test_generate_refuses_what_it_cannot_show_in_one_line(capsys, tmp_path, small_profile_path, depth_profile, argv,
                                                            message):

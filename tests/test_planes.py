@@ -71,7 +71,7 @@ def test_even_planes_and_the_planes_option():
     depth, light = _maps((0.066, 1.0), (0.074, 1.0), (0.050, 0.0))
     assert even_planes(depth, light, 3).planes_m == pytest.approx((0.066, 0.070, 0.074))
     assert even_planes(depth, light, 1).planes_m == pytest.approx((0.070,))
-    assert plane_count("auto") is None and plane_count("4") == 4
+    assert plane_count("auto") == "auto" and plane_count("4") == 4
     for bad in ("0", "-2", "two", ""):
         with pytest.raises(argparse.ArgumentTypeError, match="'auto' or a whole number"):
             plane_count(bad)

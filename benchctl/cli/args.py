@@ -78,10 +78,10 @@ positive_int = whole_number(1)
 port = whole_number(0, 65535)
 
 
-def plane_count(text: str) -> int | None:
-    """The argument type of --planes: "auto" (None: the planes a scene's depth needs) or a whole number >= 1."""
+def plane_count(text: str) -> int | str:
+    """The argument type of --planes: "auto" (the planes a scene's depth needs) or a whole number >= 1."""
     if text == "auto":
-        return None
+        return text
     try:
         return positive_int(text)
     except argparse.ArgumentTypeError:

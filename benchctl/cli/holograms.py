@@ -12,15 +12,20 @@ from benchctl.cli.args import EPILOG, add_profile, count, grid_size, name_list, 
 def _cmd_generate(args: argparse.Namespace) -> int:
     from benchctl.calibration.files import calibration_lines
     from benchctl.cgh import DEFAULT_METHOD
+    from benchctl.errors import BadValueError
     from benchctl.holograms.generate import run_generate
+    from benchctl.scenes import is_scene
     from benchctl.profiles import load_profile
     from benchctl.terminal import ProgressLine
 
     profile = load_profile(args.profile)
     method = args.method or DEFAULT_METHOD
+    if not is_scene(args.target) and (args.planes is not None or args.fit_depth):
+        raise BadValueError(f"--planes and --fit-depth are for scenes with depth (rgbd:...), not {args.target}")
+    planes = args.planes if isinstance(args.planes, int) else None  # None: auto
     metrics = run_generate(args.target, profile, Path(args.out), method=method, iterations=args.iterations,
                            colours=args.colours, seed=args.seed, progress=ProgressLine, checkpoint=args.checkpoint,
-                           planes=args.planes, fit_depth=args.fit_depth)
+                           planes=planes, fit_depth=args.fit_depth)
     if metrics["checkpoint"]:
         print(f"{method}: trained models from {metrics['checkpoint']}")
     for line in calibration_lines(metrics["calibration"]):
