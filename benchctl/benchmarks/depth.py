@@ -83,7 +83,7 @@ def run_depth_bench(
     rows, cols = centred_slices(grid, roi)
     channel_plane = target_plane(profile.channel(colour))
     out(f"grid {grid[0]}x{grid[1]}, ROI {roi[0]}x{roi[1]}, distance {optics.distance_mm:g} mm, depth range "
-        f"{optics.depth_range_mm}, {colour}, {method} at {iterations} iterations, device {device}; judged on "
+        f"{optics.depth_range_mm}, {colour}, {method} {_budget(iterations)}, device {device}; judged on "
         f"{EVALUATION_PLANES} planes evenly over each scene's depth")
     results: list[dict[str, Any]] = []
     for spec in scenes:
@@ -151,6 +151,10 @@ def flat_scene_check(profile: Profile, method: str, iterations: int | None, colo
             "hologram_time_ratio": hologram, "total_time_ratio": total}
 
 
+def _budget(iterations: int | None) -> str:
+    return "one shot" if iterations is None else f"at {iterations} iterations"
+
+
 def _summarise(spec: str, rows: list[dict[str, Any]], auto: PlaneChoice, out: Callable[[str], None]) -> None:
     out("")
     out(f"{spec}: auto: {auto.reason}")
@@ -158,6 +162,8 @@ def _summarise(spec: str, rows: list[dict[str, Any]], auto: PlaneChoice, out: Ca
     for row in rows:
         out(f"  {row['planes']!s:>5} {row['count']:>6} {row['seconds']:>8.2f} {row['psnr_db']:>8.2f}")
     fixed = [r for r in rows if r["planes"] != AUTO]
+    if not fixed:
+        return
     best = max(fixed, key=lambda r: r["psnr_db"])
     chosen = next(r for r in rows if r["planes"] == AUTO)
     if chosen["planes_m"] == best["planes_m"]:
@@ -184,8 +190,8 @@ def _two_plane_check(profile: Profile, setup: OpticalSetup, channel_plane: int, 
     generate = get_method(method)
     _, stack = _stack_psnr(setup, generate(target, setup, iterations=iterations, seed=seed), target)
     out("")
-    out(f"rgbd:two-planes, {method} at {iterations} iterations: in-focus PSNR per plane, the focal stack against 2D on "
-        "the plane's image alone")
+    out(f"rgbd:two-planes, {method} {_budget(iterations)}: in-focus PSNR per plane, the focal stack against 2D on the "
+        "plane's image alone")
     found = []
     for k, plane in enumerate(planes):
         alone = generate(amplitude * target.masks[k], setup.at_distance(plane), iterations=iterations, seed=seed)
