@@ -129,7 +129,7 @@ def test_bench_depth_judges_every_plane_count_on_one_stack_and_checks_two_planes
     assert [r["planes"] for r in flat] == [1, "auto"]  # every K is the one plane of a flat scene
     checks = [r for r in rows if r.get("check") == "two-plane"]
     assert [c["plane_m"] for c in checks] == pytest.approx([0.0168, 0.0232])
-    assert any(f"judged on {EVALUATION_PLANES} planes" in line for line in lines)
+    assert any(f"all-in-focus image from {EVALUATION_PLANES} planes" in line for line in lines)
     assert any("auto chose the best K" in line or "from the best" in line for line in lines)
     flat_check = next(r for r in rows if r.get("check") == "flat")
     assert flat_check["same_hologram"] is True and flat_check["psnr_3d_db"] == flat_check["psnr_2d_db"]
