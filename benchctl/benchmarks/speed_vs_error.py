@@ -162,12 +162,17 @@ def run_speed_vs_error(
     slm, optics = profile.section("slm"), profile.section("optics")
     grid, roi = slm.shape, optics.roi
     unit = _propagation_seconds(profile, colours[0] if colours else profile.channels[0].name)
-    # Warm-up: every colour's transfer functions are built here once, outside the timed frames.
-    for first in amplitudes.values():
-        if isinstance(first, tuple):
-            compute_depth_scene(*first, profile, "dpac", colours=colours, perceptual=False)
-        else:
-            compute_scene(first, profile, "dpac", colours=colours)
+    # Warm-up, outside the timed frames: every colour's transfer functions, and each method's first call (the first
+    # Adam step alone took 8 s: lazy imports), once on each kind of target.
+    for first in {isinstance(a, tuple): a for a in amplitudes.values()}.values():
+        for method in dict.fromkeys(("dpac", *methods)):
+            if isinstance(first, tuple) and get_method(method).focal_stack is None:
+                continue
+            shortest = budgets_for(method, (1,))[0]
+            if isinstance(first, tuple):
+                compute_depth_scene(*first, profile, method, iterations=shortest, colours=colours, perceptual=False)
+            else:
+                compute_scene(first, profile, method, iterations=shortest, colours=colours)
     out(f"grid {grid[0]}x{grid[1]}, ROI {roi[0]}x{roi[1]}, distance {optics.distance_mm:g} mm, "
         f"pitch {slm.pitch_um:g} um, targets: {', '.join(amplitudes)}")
     out(f"one propagation ({colours[0] if colours else profile.channels[0].name}, measured in this run): "
