@@ -34,6 +34,8 @@ from benchctl.targets import load_target, prepare_target, target_plane
 
 DEFAULT_SCENES = tuple(list_scenes())
 EVALUATION_PLANES = 64
+TIE_DB = 0.1
+"""Plane counts whose PSNR lies within this of the highest count as the best: the fewest of them is "the best K"."""
 AUTO = "auto"
 
 
@@ -181,7 +183,9 @@ def _summarise(spec: str, rows: list[dict[str, Any]], auto: PlaneChoice, out: Ca
     fixed = [r for r in rows if r["planes"] != AUTO]
     if not fixed:
         return
-    best = max(fixed, key=lambda r: r["psnr_db"])
+    top = max(r["psnr_db"] for r in fixed)
+    # the fewest planes within TIE_DB of the top: planes with nothing in focus change the PSNR by hundredths
+    best = min((r for r in fixed if r["psnr_db"] >= top - TIE_DB), key=lambda r: r["count"])
     chosen = next(r for r in rows if r["planes"] == AUTO)
     if chosen["planes_m"] == best["planes_m"]:
         out(f"  auto chose the best K: {best['count']} plane(s), {best['psnr_db']:.2f} dB")
