@@ -78,6 +78,16 @@ positive_int = whole_number(1)
 port = whole_number(0, 65535)
 
 
+def plane_count(text: str) -> int | str:
+    """The argument type of --planes: "auto" (the planes a scene's depth needs) or a whole number >= 1."""
+    if text == "auto":
+        return text
+    try:
+        return positive_int(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"expected 'auto' or a whole number of planes >= 1, got {text!r}") from None
+
+
 class Parser(argparse.ArgumentParser):
     """benchctl's argument parser: a value that starts with '-' and a digit ('-5mW', '-3x4') is read as a value, so
     that its own check says what is wrong ("is negative") instead of argparse's "expected one argument" (argparse

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from benchctl.cli.args import add_profile, grid_size, int_list, name_list, positive_int, seconds
+from benchctl.cli.args import add_profile, grid_size, int_list, name_list, positive_int, seconds, whole_number
 
 
 def _cmd_bench_speed(args: argparse.Namespace) -> int:
@@ -34,13 +34,37 @@ def _cmd_bench_speed(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_propagation(args: argparse.Namespace) -> int:
-    from benchctl.benchmarks.propagation import PAPER_SIZES, run_propagation_bench
+    from benchctl.benchmarks.propagation import PAPER_SIZES, run_multiplane_bench, run_propagation_bench
     from benchctl.files import ensure_dir, write_csv
     from benchctl.profiles import load_profile
 
-    rows = run_propagation_bench(load_profile(args.profile), sizes=args.size or PAPER_SIZES, repeats=args.repeats)
+    profile = load_profile(args.profile)
+    sizes = args.size or PAPER_SIZES
+    rows = [] if args.planes_only else run_propagation_bench(profile, sizes=sizes, repeats=args.repeats)
+    planes = run_multiplane_bench(profile, sizes=sizes, planes=args.planes, repeats=args.repeats) if args.planes else []
     if args.out:
-        print(f"wrote {write_csv(ensure_dir(Path(args.out)) / 'propagation.csv', rows)}")
+        folder = ensure_dir(Path(args.out))
+        if rows:
+            print(f"wrote {write_csv(folder / 'propagation.csv', rows)}")
+        if planes:
+            print(f"wrote {write_csv(folder / 'multiplane.csv', planes)}")
+    return 0
+
+
+def _cmd_bench_depth(args: argparse.Namespace) -> int:
+    from benchctl.benchmarks.depth import DEFAULT_SCENES, run_depth_bench
+    from benchctl.benchmarks.speed_vs_error import resized_profile
+    from benchctl.files import ensure_dir, write_csv
+    from benchctl.profiles import load_profile
+
+    profile = load_profile(args.profile).require("slm", "optics", "laser")
+    slm = profile.section("slm")
+    size = args.size or (slm.height // 4, slm.width // 4)
+    rows = run_depth_bench(resized_profile(profile, size), scenes=args.scenes or DEFAULT_SCENES,
+                           counts=args.planes, method=args.method, iterations=args.iterations,
+                           colour=args.colour)
+    if args.out:
+        print(f"wrote {write_csv(ensure_dir(Path(args.out)) / 'depth.csv', rows)}")
     return 0
 
 
@@ -137,9 +161,33 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     prop.add_argument("--size", type=grid_size, nargs="+", metavar="HxW",
                       help="grids to measure (default: 1088x1920 2160x3840)")
     prop.add_argument("--repeats", type=positive_int, default=5, help="timed repeats per case (default: 5)")
-    prop.add_argument("--out", "-o", metavar="DIR", help="also write propagation.csv here")
+    prop.add_argument("--planes", type=whole_number(0, 64), default=8, metavar="K",
+                      help="also time one field propagated to K planes over the profile's depth range against K "
+                           "independent propagations, with both errors (default: 8; 0: leave out)")
+    prop.add_argument("--planes-only", action="store_true", help="only the multi-plane comparison")
+    prop.add_argument("--out", "-o", metavar="DIR", help="also write propagation.csv (and multiplane.csv) here")
     add_profile(prop)
     prop.set_defaults(func=_cmd_bench_propagation)
+
+    depth = bench.add_parser("depth", help="scenes with depth: focal-stack PSNR against the number of planes, the "
+                                           "planes --planes auto chooses, multi-plane against 2D SGD",
+                             description="Per bundled scene, the method's hologram at each K of --planes evenly over "
+                                         "the scene's depth and at the planes --planes auto chooses, each judged on "
+                                         "the same 16-plane focal stack (in-focus amplitude PSNR) and timed; then "
+                                         "multi-plane SGD on rgbd:two-planes against 2D SGD on each plane's image "
+                                         "alone. One colour, scaled bench as speed-vs-error, no SLM quantisation.")
+    depth.add_argument("--scenes", nargs="+", metavar="SCENE", help="rgbd scenes (default: all bundled ones)")
+    depth.add_argument("--planes", type=int_list, default=tuple(range(1, 17)), metavar="LIST",
+                       help="comma-separated plane counts K to measure (default: 1,2,...,16)")
+    depth.add_argument("--method", "-m", default="sgd", help="a method that makes focal stacks (default: sgd)")
+    depth.add_argument("--iterations", "-n", type=positive_int, default=100, help="iterations (default: 100)")
+    depth.add_argument("--colour", default="green", help="laser channel (default: green)")
+    depth.add_argument("--size", type=grid_size, metavar="HxW",
+                       help="SLM grid; ROI, distance and depth range scaled (default: a quarter of the profile's grid "
+                            "per axis)")
+    depth.add_argument("--out", "-o", metavar="DIR", help="also write depth.csv here")
+    add_profile(depth)
+    depth.set_defaults(func=_cmd_bench_depth)
 
     learned = bench.add_parser("learned", help="learned methods side by side: parameters, inference time, training "
                                                "memory, PSNR/SSIM, ratios to the baseline network",

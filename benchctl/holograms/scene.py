@@ -40,8 +40,9 @@ class ColourResult:
     skipped: bool
     seconds: float = 0.0
     gray: np.ndarray | None = None  # the SLM frame exactly as displayed (lookup table, offset, carrier, flips)
-    reconstruction: torch.Tensor | None = None  # ROI amplitude, least-squares scaled to the target
-    scores: dict[str, float] = field(default_factory=dict)
+    reconstruction: torch.Tensor | None = None  # ROI amplitude (h, w) or focal stack (K, h, w), least-squares scaled
+    scores: dict[str, float] = field(default_factory=dict)  # a scene with depth: the means over its planes
+    plane_scores: list[dict[str, float] | None] = field(default_factory=list)  # a scene with depth: per plane
 
 
 @dataclass
