@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from benchctl.cli.args import add_profile, grid_size, int_list, name_list, positive_int, seconds
+from benchctl.cli.args import add_device, add_profile, count, grid_size, int_list, name_list, positive_int, seconds
 
 
 def _cmd_bench_speed(args: argparse.Namespace) -> int:
@@ -81,18 +81,19 @@ def _cmd_bench_reproduce(args: argparse.Namespace) -> int:
     if args.resume:
         if args.out:
             raise BadValueError("--resume continues the run in its own folder; leave out --out")
-        run_reproduction(args.resume, jobs=args.jobs, memory=not args.no_memory)
+        run_reproduction(args.resume, jobs=args.jobs, jobs_per_gpu=args.jobs_per_gpu, memory=not args.no_memory)
         return 0
     if not args.out:
         raise BadValueError("give --out DIR for a new run (or --resume DIR / --report DIR for an existing one)")
-    methods = args.methods or list(DEFAULT_METHODS)
+    methods = list(DEFAULT_METHODS) if args.methods is None else args.methods  # --methods "" is refused, not all
     settings = dict(size=args.size, methods=methods, seeds=args.seeds, ablation_seeds=args.ablation_seeds,
                     colour=args.colour, data=args.data, lr=args.lr, max_steps=args.max_steps, min_steps=args.min_steps,
                     min_gain_db=args.min_gain, patience=args.patience, iris_test=not args.no_iris_test,
-                    threads=args.threads)
-    command = reproduce_command(args.profile, args.out, jobs=args.jobs, **settings)
+                    threads=args.threads, warmup=args.warmup, decay=args.decay, held_out=args.held_out,
+                    device=args.device)
+    command = reproduce_command(args.profile, args.out, jobs=args.jobs, jobs_per_gpu=args.jobs_per_gpu, **settings)
     new_plan(args.out, load_profile(args.profile), command=command, **settings)
-    run_reproduction(args.out, jobs=args.jobs, memory=not args.no_memory)
+    run_reproduction(args.out, jobs=args.jobs, jobs_per_gpu=args.jobs_per_gpu, memory=not args.no_memory)
     return 0
 
 
@@ -209,6 +210,11 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     reproduce.add_argument("--data", default="procedural:32+photos:train",
                            help="training images, as for train --data (default: procedural:32+photos:train)")
     reproduce.add_argument("--lr", type=float, default=5e-4, help="Adam learning rate (default: 5e-4, the paper's)")
+    reproduce.add_argument("--warmup", type=count, default=0, metavar="STEPS",
+                           help="linear learning-rate warm-up over the first STEPS steps (default: 0, the paper's)")
+    reproduce.add_argument("--decay", choices=("none", "cosine"), default="none",
+                           help="learning-rate decay after the warm-up: none, or cosine to zero at --max-steps "
+                                "(default: none, the paper's)")
     reproduce.add_argument("--max-steps", type=positive_int, default=8192, metavar="N",
                            help="step cap per job (default: 8192)")
     reproduce.add_argument("--min-steps", type=positive_int, default=1024, metavar="N",
@@ -219,10 +225,17 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     reproduce.add_argument("--patience", type=positive_int, default=2, metavar="N",
                            help="stop once N power-of-two steps in a row each gained less than --min-gain "
                                 "(default: 2: one dip of a noisy curve does not end a job)")
+    reproduce.add_argument("--held-out", default="photos:eval", metavar="DATA",
+                           help="images the tables score (never trained on), as for --data (default: photos:eval, "
+                                "the four held-out photographs)")
     reproduce.add_argument("--no-iris-test", action="store_true",
                            help="skip training holonet-dcm2 and holonet-lowdef2 again on the bench without its iris")
     reproduce.add_argument("--jobs", type=positive_int, default=2, help="jobs trained at a time (default: 2)")
     reproduce.add_argument("--threads", type=positive_int, default=1, help="torch threads per job (default: 1)")
+    add_device(reproduce)
+    reproduce.add_argument("--jobs-per-gpu", type=positive_int, default=1, metavar="K",
+                           help="on GPUs: K jobs at a time per GPU, each pinned to one GPU by CUDA_VISIBLE_DEVICES "
+                                "(--jobs is the CPU's count) (default: 1)")
     reproduce.add_argument("--no-memory", action="store_true", help="skip the training-step memory subprocesses")
     add_profile(reproduce)
     reproduce.set_defaults(func=_cmd_bench_reproduce)
