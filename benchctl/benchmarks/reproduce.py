@@ -32,6 +32,7 @@ import torch
 from benchctl.benchmarks.learned import measure_training_step
 from benchctl.benchmarks.reproduce_job import DEFAULT_HELD_OUT, JOB_DEVICE_ENV, bench_for, job_dir, read_done
 from benchctl.benchmarks.reproduce_report import write_report
+from benchctl.benchmarks.reproduce_slurm import check_partition, collect
 from benchctl.calibration.setups import optical_setup
 from benchctl.cgh.learned import LEARNED_METHODS
 from benchctl.errors import BadValueError, BenchctlError
@@ -80,14 +81,15 @@ def plan_jobs(methods: Sequence[str], seeds: Sequence[int], ablation_seeds: Sequ
 
 
 def _check(methods: Sequence[str], size: tuple[int, int], seeds: Sequence[int], lr: float, max_steps: int,
-           min_steps: int, min_gain_db: float, threads: int, device: str) -> None:
+           min_steps: int, min_gain_db: float, threads: int, device: str, here: bool) -> None:
     unknown = [m for m in methods if m not in LEARNED_METHODS]
     if unknown:
         raise BadValueError(f"--methods: unknown learned method(s) {', '.join(unknown)}; known: "
                             f"{', '.join(LEARNED_METHODS)}")
     if not methods:
         raise BadValueError("--methods: give at least one learned method")
-    on_cpu = resolve_device(device).type == "cpu"  # one line for a GPU that is not here
+    # one line for a GPU that is not here; a SLURM plan's GPUs are on its nodes
+    on_cpu = resolve_device(device).type == "cpu" if here else device == "cpu"
     if size[0] * size[1] > MAX_SIZE_PIXELS and on_cpu:
         raise BadValueError(f"--size {size[0]}x{size[1]}: at most {MAX_SIZE_PIXELS:,} pixels for a reproduction "
                             "run (each method trains for thousands of steps; 136x240 or 272x480 are CPU-trainable)")
@@ -110,10 +112,12 @@ def new_plan(run_dir: Path, profile: Profile, *, size: tuple[int, int] = DEFAULT
              patience: int = 2,
              first_evaluation: int = 32, iris_test: bool = True, threads: int = 1, warmup: int = 0,
              decay: str = "none", held_out: str = DEFAULT_HELD_OUT, device: str = "cpu",
-             command: str | None = None) -> dict[str, Any]:
+             slurm: dict[str, Any] | None = None, command: str | None = None) -> dict[str, Any]:
     """Write `run_dir/plan.json` for a new run (refusing a folder that holds one) and return the plan."""
     methods = list(dict.fromkeys(methods))
-    _check(methods, size, seeds, lr, max_steps, min_steps, min_gain_db, threads, device)
+    _check(methods, size, seeds, lr, max_steps, min_steps, min_gain_db, threads, device, here=slurm is None)
+    if slurm is not None:
+        check_partition(slurm["partition"])  # one line for a missing SLURM or a wrong partition
     Schedule(lr, warmup, decay, max_steps)  # one line for a warm-up longer than the run or an unknown decay
     image_sources(held_out)  # one line for a held-out set that is not there
     run_dir = Path(run_dir)
@@ -130,7 +134,7 @@ def new_plan(run_dir: Path, profile: Profile, *, size: tuple[int, int] = DEFAULT
     plan = {"profile": str(Path(profile.path).resolve()), "size": list(size), "colour": colour, "data": data,
             "lr": lr, "max_steps": max_steps, "min_steps": min_steps, "min_gain_db": min_gain_db, "patience": patience,
             "first_evaluation": first_evaluation, "threads": threads, "seeds": list(seeds), "warmup": warmup,
-            "decay": decay, "held_out": held_out, "device": device,
+            "decay": decay, "held_out": held_out, "device": device, "slurm": slurm,
             "jobs": plan_jobs(methods, seeds, list(ablation_seeds or seeds[:1]), iris_test), "command": command,
             "torch": torch.__version__}
     write_json(ensure_dir(run_dir) / "plan.json", plan)
@@ -244,8 +248,17 @@ def measure_memory(run_dir: Path, out: Callable[[str], None] = print, *, jobs_pe
 
 
 def run_reproduction(run_dir: Path, *, jobs: int = 2, jobs_per_gpu: int = 1, memory: bool = True,
-                     out: Callable[[str], None] = print) -> list[dict[str, Any]]:
-    """Train what the plan in `run_dir` still needs, measure memory, write the report; its table rows."""
+                     wait: bool = False, out: Callable[[str], None] = print) -> list[dict[str, Any]]:
+    """Train what the plan in `run_dir` still needs (locally, or on SLURM where the plan says so: submitted or
+    collected, and with `wait` until it is done), measure memory, write the report; its table rows."""
+    plan = read_plan(run_dir)
+    if plan.get("slurm"):
+        unfinished = collect(run_dir, plan, out, wait=wait)
+        rows = write_report(run_dir, out)
+        if unfinished:
+            out(f"{len(unfinished)} job(s) not finished on SLURM yet; the report covers the finished ones; collect "
+                f"again with: benchctl bench reproduce --resume {run_dir}" + ("" if wait else " [--wait]"))
+        return rows
     on_gpu = resolve_device(read_plan(run_dir).get("device", "cpu")).type == "cuda"
     if on_gpu:  # the GPU's pixel cap: measured before anything trains
         measure_memory(run_dir, out, jobs_per_gpu=jobs_per_gpu)
@@ -263,7 +276,8 @@ def reproduce_command(profile: str | None, out_dir: Path, *, size: tuple[int, in
                       seeds: Sequence[int], ablation_seeds: Sequence[int] | None, colour: str, data: str, lr: float,
                       max_steps: int, min_steps: int, min_gain_db: float, patience: int, iris_test: bool,
                       jobs: int, threads: int, warmup: int = 0, decay: str = "none",
-                      held_out: str = DEFAULT_HELD_OUT, device: str = "cpu", jobs_per_gpu: int = 1) -> str:
+                      held_out: str = DEFAULT_HELD_OUT, device: str = "cpu", jobs_per_gpu: int = 1,
+                      slurm: dict[str, Any] | None = None) -> str:
     """The `benchctl bench reproduce` command line that asks for exactly these settings."""
     words = ["benchctl", "bench", "reproduce", *(["--profile", profile] if profile else []),
              "--size", f"{size[0]}x{size[1]}", "--methods", ",".join(methods),
@@ -278,4 +292,5 @@ def reproduce_command(profile: str | None, out_dir: Path, *, size: tuple[int, in
     words += ["--jobs", str(jobs), "--threads", str(threads)]
     words += ["--device", device] if device != "cpu" else []
     words += ["--jobs-per-gpu", str(jobs_per_gpu)] if jobs_per_gpu != 1 else []
+    words += ["--slurm", slurm["partition"], "--slurm-time", str(slurm["time_min"])] if slurm else []
     return shlex.join(words + ["--out", str(out_dir)])

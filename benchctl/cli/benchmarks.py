@@ -81,7 +81,8 @@ def _cmd_bench_reproduce(args: argparse.Namespace) -> int:
     if args.resume:
         if args.out:
             raise BadValueError("--resume continues the run in its own folder; leave out --out")
-        run_reproduction(args.resume, jobs=args.jobs, jobs_per_gpu=args.jobs_per_gpu, memory=not args.no_memory)
+        run_reproduction(args.resume, jobs=args.jobs, jobs_per_gpu=args.jobs_per_gpu, memory=not args.no_memory,
+                         wait=args.wait)
         return 0
     if not args.out:
         raise BadValueError("give --out DIR for a new run (or --resume DIR / --report DIR for an existing one)")
@@ -90,10 +91,12 @@ def _cmd_bench_reproduce(args: argparse.Namespace) -> int:
                     colour=args.colour, data=args.data, lr=args.lr, max_steps=args.max_steps, min_steps=args.min_steps,
                     min_gain_db=args.min_gain, patience=args.patience, iris_test=not args.no_iris_test,
                     threads=args.threads, warmup=args.warmup, decay=args.decay, held_out=args.held_out,
-                    device=args.device)
+                    device=args.device,
+                    slurm={"partition": args.slurm, "time_min": args.slurm_time} if args.slurm else None)
     command = reproduce_command(args.profile, args.out, jobs=args.jobs, jobs_per_gpu=args.jobs_per_gpu, **settings)
     new_plan(args.out, load_profile(args.profile), command=command, **settings)
-    run_reproduction(args.out, jobs=args.jobs, jobs_per_gpu=args.jobs_per_gpu, memory=not args.no_memory)
+    run_reproduction(args.out, jobs=args.jobs, jobs_per_gpu=args.jobs_per_gpu, memory=not args.no_memory,
+                     wait=args.wait)
     return 0
 
 
@@ -237,6 +240,15 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                            help="on GPUs: K jobs at a time per GPU, each pinned to one GPU by CUDA_VISIBLE_DEVICES "
                                 "(--jobs is the CPU's count) (default: 1)")
     reproduce.add_argument("--no-memory", action="store_true", help="skip the training-step memory subprocesses")
+    reproduce.add_argument("--slurm", metavar="PARTITION",
+                           help="run the plan's jobs as one SLURM job array in PARTITION (through submitit; the run "
+                                "folder must be on a file system the nodes share); --resume DIR then collects what "
+                                "finished and submits again what left the queue unfinished")
+    reproduce.add_argument("--slurm-time", type=positive_int, default=1440, metavar="MIN",
+                           help="SLURM time limit per job in minutes: a job that reaches it is requeued and "
+                                "continues from its saved state (default: 1440)")
+    reproduce.add_argument("--wait", action="store_true",
+                           help="with --slurm (or --resume of a SLURM run): wait until every job has finished")
     add_profile(reproduce)
     reproduce.set_defaults(func=_cmd_bench_reproduce)
 
