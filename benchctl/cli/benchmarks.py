@@ -4,9 +4,20 @@ paper's tables)."""
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
-from benchctl.cli.args import add_device, add_profile, count, grid_size, int_list, name_list, positive_int, seconds
+from benchctl.cli.args import (
+    add_device,
+    add_profile,
+    count,
+    grid_size,
+    int_list,
+    name_list,
+    positive_int,
+    seconds,
+    seed_number,
+)
 
 
 def _cmd_bench_speed(args: argparse.Namespace) -> int:
@@ -98,6 +109,42 @@ def _cmd_bench_reproduce(args: argparse.Namespace) -> int:
     run_reproduction(args.out, jobs=args.jobs, jobs_per_gpu=args.jobs_per_gpu, memory=not args.no_memory,
                      wait=args.wait)
     return 0
+
+
+def _cmd_bench_sweep(args: argparse.Namespace) -> int:
+    from benchctl.benchmarks.sweep import new_sweep, run_sweep
+    from benchctl.errors import BadValueError
+    from benchctl.profiles import load_profile
+
+    if args.resume:
+        if args.out:
+            raise BadValueError("--resume continues the sweep in its own folder; leave out --out")
+        settings = json.loads((args.resume / "sweep-settings.json").read_text()) \
+            if (args.resume / "sweep-settings.json").is_file() else {}
+        run_sweep(args.resume, load_profile(settings.get("profile") or args.profile))
+        return 0
+    if not args.out:
+        raise BadValueError("give --out DIR for a new sweep (or --resume DIR to continue one)")
+    if not args.method:
+        raise BadValueError("give --method, the learned method to tune (`benchctl models` lists them)")
+    profile = load_profile(args.profile)
+    recipe = {"size": args.size, "data": args.data, "held_out": args.held_out, "colour": args.colour,
+              "max_steps": args.max_steps, "min_steps": min(args.min_steps, args.max_steps),
+              "min_gain_db": args.min_gain, "patience": args.patience, "threads": args.threads, "device": args.device,
+              "iris_test": False}
+    new_sweep(args.out, profile, method=args.method, trials=args.trials, lr=args.lr_range, warmup=args.warmup_choices,
+              decay=args.decay_choices, seed=args.seed, recipe=recipe)
+    run_sweep(args.out, profile)
+    return 0
+
+
+def lr_range(text: str) -> tuple[float, float]:
+    """LOW:HIGH learning rates, e.g. 1e-4:2e-3."""
+    try:
+        low, high = (float(v) for v in text.split(":"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected LOW:HIGH such as 1e-4:2e-3, got {text!r}") from None
+    return low, high
 
 
 def _cmd_bench_console(args: argparse.Namespace) -> int:
@@ -251,6 +298,41 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                            help="with --slurm (or --resume of a SLURM run): wait until every job has finished")
     add_profile(reproduce)
     reproduce.set_defaults(func=_cmd_bench_reproduce)
+
+    sweep = bench.add_parser(
+        "sweep", help="hyperparameter search (lr, warm-up, decay) for one learned method through Optuna, resumable",
+        description="Optuna's TPE sampler proposes a learning rate (log-uniform in --lr-range), a warm-up and a "
+                    "decay per trial; each trial trains one bench reproduce job (its own seed: --seed + the trial's "
+                    "number) until its validation score flattens, and its best validation PSNR is the objective. "
+                    "The study is kept in DIR/sweep.journal (Optuna's file journal); --resume DIR continues an "
+                    "interrupted trial exactly and runs the rest. `benchctl runs compare DIR` shows the trials.")
+    sweep.add_argument("--method", "-m", help="learned method to tune (a new sweep needs one)")
+    sweep.add_argument("--trials", type=positive_int, default=8, help="trials to finish (default: 8)")
+    sweep.add_argument("--lr-range", type=lr_range, default=(1e-4, 2e-3), metavar="LOW:HIGH",
+                       help="learning rates tried, log-uniform (default: 1e-4:2e-3)")
+    sweep.add_argument("--warmup-choices", type=lambda t: [int(v) for v in t.split(",")], default=[0, 64, 256],
+                       metavar="LIST", help="warm-up step counts tried (default: 0,64,256)")
+    sweep.add_argument("--decay-choices", type=name_list, default=["none", "cosine"], metavar="LIST",
+                       help="decays tried (default: none,cosine)")
+    sweep.add_argument("--seed", type=seed_number, default=42,
+                       help="the first trial's seed (trial n trains with seed + n) and the sampler's (default: 42)")
+    sweep.add_argument("--size", type=grid_size, default=(136, 240), metavar="HxW", help="SLM grid (default: 136x240)")
+    sweep.add_argument("--data", default="procedural:32+photos:train", help="training images, as for train --data")
+    sweep.add_argument("--held-out", default="photos:eval", metavar="DATA", help="images scored at the end")
+    sweep.add_argument("--colour", "--color", default="red", help="laser channel (default: red)")
+    sweep.add_argument("--max-steps", type=positive_int, default=2048, metavar="N",
+                       help="step cap per trial, also where a decay ends (default: 2048)")
+    sweep.add_argument("--min-steps", type=positive_int, default=512, metavar="N",
+                       help="no convergence test before this step (default: 512)")
+    sweep.add_argument("--min-gain", type=float, default=0.2, metavar="DB", help="as for bench reproduce (default 0.2)")
+    sweep.add_argument("--patience", type=positive_int, default=2, metavar="N",
+                       help="as for bench reproduce (default 2)")
+    sweep.add_argument("--threads", type=positive_int, default=1, help="torch threads (default: 1)")
+    add_device(sweep)
+    sweep.add_argument("--out", "-o", type=Path, metavar="DIR", help="folder of a new sweep")
+    sweep.add_argument("--resume", type=Path, metavar="DIR", help="continue the sweep in DIR")
+    add_profile(sweep)
+    sweep.set_defaults(func=_cmd_bench_sweep)
 
     console = bench.add_parser("console", help="the live console from outside: preview fps, change-to-frame latency, "
                                                "status latency during an SGD hologram (a console server is started)")
