@@ -3,6 +3,7 @@ set of `bench reproduce`, and the resume of a job stopped after its last state a
 
 from __future__ import annotations
 
+import csv
 import json
 import math
 from pathlib import Path
@@ -14,6 +15,7 @@ import torch
 from benchctl.benchmarks import reproduce, reproduce_job
 from benchctl.benchmarks.reproduce import new_plan, run_jobs
 from benchctl.benchmarks.reproduce_job import run_job
+from benchctl.benchmarks.reproduce_report import t_interval, verdict, write_report
 from benchctl.cli import main
 from benchctl.errors import BadValueError
 from benchctl.profiles import load_profile
@@ -173,3 +175,37 @@ def test_a_job_stopped_between_its_last_state_and_its_record_ends_without_traini
                                                        "photo:rocket", "procedural-200000", "procedural-200001"]
     assert all(math.isfinite(e["psnr"]) and 0 < e["ssim"] <= 1 for e in done["per_image"])
     assert done["curve"][-1]["psnr"] == pytest.approx(sum(e["psnr"] for e in done["per_image"]) / 6)
+
+
+def test_verdicts_follow_the_written_rule() -> None:
+    assert verdict(None, 0.4) == "not resolved"  # one seed: no interval
+    assert verdict((-1.08, -1.83, -0.33), 0.36) == "disagrees"  # the paper's value outside the interval
+    assert verdict((0.9, 0.33, 1.47), 0.88) == "agrees"  # inside, and the interval within +-1 dB
+    assert verdict((-2.8, -19.8, 14.1), 1.47) == "not resolved"  # inside, but the interval is too wide
+    assert verdict((0.1, -0.2, 0.4), -14.2, "the iris") == "not testable here"
+    mean, low, high = t_interval([-1.39, -1.06, -0.78])  # t(0.975, 2 dof) = 4.3027
+    assert (mean, low, high) == pytest.approx((-1.0767, -1.0767 - 4.3027 * 0.30531 / 3 ** 0.5,
+                                               -1.0767 + 4.3027 * 0.30531 / 3 ** 0.5), abs=2e-4)
+    assert t_interval([1.0]) is None
+
+
+@pytest.mark.slow  # DPAC on the four held-out photographs at 136 x 240
+def test_the_shipped_reproduction_is_reported_again_from_its_csvs(tmp_path: Path) -> None:
+    """docs/reproduction's run folder is gone; its CSVs hold the curves, and the report is built from them."""
+    shipped = Path(__file__).resolve().parents[1] / "docs" / "reproduction"
+    for name in ("plan.json", "curves.csv", "reproduction.csv"):
+        (tmp_path / name).write_bytes((shipped / name).read_bytes())
+    lines: list[str] = []
+    rows = write_report(tmp_path, out=lines.append)
+    assert {r["method"]: round(r["psnr_db"][0], 2) for r in rows}["holonet-dcm4"] == 27.02
+    claims = {c["claim"]: c for c in csv.DictReader((tmp_path / "comparisons.csv").open())}
+    x2 = claims["x2 about equal to HoloNet"]
+    assert (round(float(x2["ci_low_db"]), 2), round(float(x2["ci_high_db"]), 2)) == (-1.83, -0.33)
+    assert x2["verdict"] == "disagrees" and claims["CCNN x4 about equal to CCNN"]["verdict"] == "agrees"
+    assert float(claims["SR -> PixelShuffle costs about 0.5 dB at x4"]["here_db"]) == pytest.approx(0.08, abs=0.005)
+    assert claims["propagating at low definition collapses quality"]["verdict"] == "not testable here"
+    assert json.loads((tmp_path / "dpac.json").read_text())["psnr_db"] == pytest.approx(27.93, abs=0.005)
+    table = (tmp_path / "reproduction.md").read_text()
+    assert "| holonet-dcm2 (no iris) | 1 | flat (stopping rule) | 2048 |" in table
+    assert "No per-image scores: this run was reported from its CSVs" in table
+    assert (tmp_path / "curves.csv").read_bytes() == (shipped / "curves.csv").read_bytes()  # its data, unchanged

@@ -254,7 +254,7 @@ def run_job(run_dir: Path, name: str, out: Any = print) -> dict[str, Any]:
                 reason = "step cap"
             elif (reason is None and math.log2(step).is_integer()
                   and flat_doublings(curve, plan["min_steps"], plan["min_gain_db"]) >= plan.get("patience", 1)):
-                reason = "converged"
+                reason = "flat"
             save()
             saved_at = time.perf_counter()
         elif time.perf_counter() - saved_at > SAVE_EVERY_S:
