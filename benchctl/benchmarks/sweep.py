@@ -89,6 +89,8 @@ def run_sweep(run_dir: Path, profile: Profile, out: Callable[[str], None] = prin
     running = [t for t in study.get_trials(deepcopy=False) if t.state == optuna.trial.TrialState.RUNNING]
     for trial in running:  # interrupted: its job continues exactly, its result goes to the same trial
         out(f"trial {trial.number}: continuing ({_values(trial.params)})")
+        if not (_trial_dir(run_dir, trial.number) / "plan.json").is_file():  # stopped before its plan was written
+            _plan_trial(run_dir, profile, settings, trial.number, trial.params, trial.user_attrs["seed"])
         _finish(run_dir, study, trial.number, out)
     while (done := _complete(study, optuna)) < settings["trials"]:
         trial = study.ask()
@@ -98,10 +100,15 @@ def run_sweep(run_dir: Path, profile: Profile, out: Callable[[str], None] = prin
         seed = settings["seed"] + trial.number
         trial.set_user_attr("seed", seed)
         out(f"trial {trial.number} ({done + 1} of {settings['trials']}): {_values(params)}, seed {seed}")
-        new_plan(_trial_dir(run_dir, trial.number), profile, methods=[settings["method"]], seeds=[seed],
-                 lr=params["lr"], warmup=params["warmup"], decay=params["decay"], **settings["recipe"])
+        _plan_trial(run_dir, profile, settings, trial.number, params, seed)
         _finish(run_dir, study, trial.number, out)
     return write_table(run_dir, study, out)
+
+
+def _plan_trial(run_dir: Path, profile: Profile, settings: dict[str, Any], number: int, params: dict[str, Any],
+                seed: int) -> None:
+    new_plan(_trial_dir(run_dir, number), profile, methods=[settings["method"]], seeds=[seed], lr=params["lr"],
+             warmup=params["warmup"], decay=params["decay"], **settings["recipe"])
 
 
 def _trial_dir(run_dir: Path, number: int) -> Path:

@@ -138,6 +138,29 @@ def _cmd_bench_sweep(args: argparse.Namespace) -> int:
     return 0
 
 
+def add_recipe(parser: argparse.ArgumentParser, *, max_steps: int, min_steps: int) -> None:
+    """The options of a reproduction job's recipe that `bench reproduce` and `bench sweep` share."""
+    parser.add_argument("--size", type=grid_size, default=(136, 240), metavar="HxW",
+                        help="SLM grid; ROI and distance scaled to keep the Fresnel number (default: 136x240)")
+    parser.add_argument("--colour", "--color", default="red", help="laser channel (default: red, as Table 4)")
+    parser.add_argument("--data", default="procedural:32+photos:train",
+                        help="training images, as for train --data (default: procedural:32+photos:train)")
+    parser.add_argument("--held-out", default="photos:eval", metavar="DATA",
+                        help="images the tables score (never trained on), as for --data (default: photos:eval, the "
+                             "four held-out photographs)")
+    parser.add_argument("--max-steps", type=positive_int, default=max_steps, metavar="N",
+                        help=f"step cap per job, where a decay ends (default: {max_steps})")
+    parser.add_argument("--min-steps", type=positive_int, default=min_steps, metavar="N",
+                        help=f"no convergence test before this step (default: {min_steps})")
+    parser.add_argument("--min-gain", type=float, default=0.2, metavar="DB",
+                        help="stop once the validation score gains less than this per doubling of steps (default: "
+                             "0.2)")
+    parser.add_argument("--patience", type=positive_int, default=2, metavar="N",
+                        help="stop once N power-of-two steps in a row each gained less than --min-gain (default: 2: "
+                             "one dip of a noisy curve does not end a job)")
+    parser.add_argument("--threads", type=positive_int, default=1, help="torch threads per job (default: 1)")
+
+
 def lr_range(text: str) -> tuple[float, float]:
     """LOW:HIGH learning rates, e.g. 1e-4:2e-3."""
     try:
@@ -248,40 +271,22 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     reproduce.add_argument("--resume", type=Path, metavar="DIR", help="continue the run in DIR (its own settings)")
     reproduce.add_argument("--report", type=Path, metavar="DIR",
                            help="write the report from the finished jobs in DIR and exit (trains nothing)")
-    reproduce.add_argument("--size", type=grid_size, default=(136, 240), metavar="HxW",
-                           help="SLM grid; ROI and distance scaled to keep the Fresnel number (default: 136x240)")
     reproduce.add_argument("--methods", type=name_list, metavar="LIST",
                            help="comma-separated learned methods (default: those of Tables 1, 2, 4)")
     reproduce.add_argument("--seeds", type=int_list, default=(42, 43, 44), metavar="LIST",
                            help="seeds of holonet, its x2 / x4 / pyramid, ccnn and ccnn-dcm4 (default: 42,43,44)")
     reproduce.add_argument("--ablation-seeds", type=int_list, metavar="LIST",
                            help="seeds of the ablations (default: the first of --seeds)")
-    reproduce.add_argument("--colour", "--color", default="red", help="laser channel (default: red, as Table 4)")
-    reproduce.add_argument("--data", default="procedural:32+photos:train",
-                           help="training images, as for train --data (default: procedural:32+photos:train)")
     reproduce.add_argument("--lr", type=float, default=5e-4, help="Adam learning rate (default: 5e-4, the paper's)")
     reproduce.add_argument("--warmup", type=count, default=0, metavar="STEPS",
                            help="linear learning-rate warm-up over the first STEPS steps (default: 0, the paper's)")
     reproduce.add_argument("--decay", choices=("none", "cosine"), default="none",
                            help="learning-rate decay after the warm-up: none, or cosine to zero at --max-steps "
                                 "(default: none, the paper's)")
-    reproduce.add_argument("--max-steps", type=positive_int, default=8192, metavar="N",
-                           help="step cap per job (default: 8192)")
-    reproduce.add_argument("--min-steps", type=positive_int, default=1024, metavar="N",
-                           help="no convergence test before this step (default: 1024)")
-    reproduce.add_argument("--min-gain", type=float, default=0.2, metavar="DB",
-                           help="stop once the validation score gains less than this per doubling of steps "
-                                "(default: 0.2)")
-    reproduce.add_argument("--patience", type=positive_int, default=2, metavar="N",
-                           help="stop once N power-of-two steps in a row each gained less than --min-gain "
-                                "(default: 2: one dip of a noisy curve does not end a job)")
-    reproduce.add_argument("--held-out", default="photos:eval", metavar="DATA",
-                           help="images the tables score (never trained on), as for --data (default: photos:eval, "
-                                "the four held-out photographs)")
     reproduce.add_argument("--no-iris-test", action="store_true",
                            help="skip training holonet-dcm2 and holonet-lowdef2 again on the bench without its iris")
+    add_recipe(reproduce, max_steps=8192, min_steps=1024)
     reproduce.add_argument("--jobs", type=positive_int, default=2, help="jobs trained at a time (default: 2)")
-    reproduce.add_argument("--threads", type=positive_int, default=1, help="torch threads per job (default: 1)")
     add_device(reproduce)
     reproduce.add_argument("--jobs-per-gpu", type=positive_int, default=1, metavar="K",
                            help="on GPUs: K jobs at a time per GPU, each pinned to one GPU by CUDA_VISIBLE_DEVICES "
@@ -316,18 +321,7 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                        help="decays tried (default: none,cosine)")
     sweep.add_argument("--seed", type=seed_number, default=42,
                        help="the first trial's seed (trial n trains with seed + n) and the sampler's (default: 42)")
-    sweep.add_argument("--size", type=grid_size, default=(136, 240), metavar="HxW", help="SLM grid (default: 136x240)")
-    sweep.add_argument("--data", default="procedural:32+photos:train", help="training images, as for train --data")
-    sweep.add_argument("--held-out", default="photos:eval", metavar="DATA", help="images scored at the end")
-    sweep.add_argument("--colour", "--color", default="red", help="laser channel (default: red)")
-    sweep.add_argument("--max-steps", type=positive_int, default=2048, metavar="N",
-                       help="step cap per trial, also where a decay ends (default: 2048)")
-    sweep.add_argument("--min-steps", type=positive_int, default=512, metavar="N",
-                       help="no convergence test before this step (default: 512)")
-    sweep.add_argument("--min-gain", type=float, default=0.2, metavar="DB", help="as for bench reproduce (default 0.2)")
-    sweep.add_argument("--patience", type=positive_int, default=2, metavar="N",
-                       help="as for bench reproduce (default 2)")
-    sweep.add_argument("--threads", type=positive_int, default=1, help="torch threads (default: 1)")
+    add_recipe(sweep, max_steps=2048, min_steps=512)
     add_device(sweep)
     sweep.add_argument("--out", "-o", type=Path, metavar="DIR", help="folder of a new sweep")
     sweep.add_argument("--resume", type=Path, metavar="DIR", help="continue the sweep in DIR")
