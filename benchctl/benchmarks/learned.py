@@ -127,10 +127,16 @@ def training_step_memory(method: str, geometry: dict[str, Any], device: str) -> 
         before = torch.cuda.memory_allocated(dev)
         torch.cuda.reset_peak_memory_stats(dev)
         start, start_cpu = time.perf_counter(), time.process_time()
-        training_step(model, optimiser, setup, amplitude, loss_fn)
+        try:
+            training_step(model, optimiser, setup, amplitude, loss_fn)
+        except torch.cuda.OutOfMemoryError:
+            return {"out_of_memory": True, "total_bytes": torch.cuda.get_device_properties(dev).total_memory}
         torch.cuda.synchronize(dev)
         seconds, cpu_seconds = time.perf_counter() - start, time.process_time() - start_cpu
         peak = torch.cuda.max_memory_allocated(dev) - before
+        extra = {"reserved_bytes": torch.cuda.max_memory_reserved(dev),
+                 "allocated_total_bytes": torch.cuda.max_memory_allocated(dev),
+                 "total_bytes": torch.cuda.get_device_properties(dev).total_memory}
         how = "torch.cuda.max_memory_allocated during the step minus memory allocated before it"
     else:
         if not _reset_peak():
@@ -140,16 +146,17 @@ def training_step_memory(method: str, geometry: dict[str, Any], device: str) -> 
         training_step(model, optimiser, setup, amplitude, loss_fn)
         seconds, cpu_seconds = time.perf_counter() - start, time.process_time() - start_cpu
         peak = _proc_status()["VmHWM"] - before
+        extra = {}
         how = "peak resident set (VmHWM, reset before the step) minus resident set before the step"
     return {"peak_bytes": int(peak), "baseline_bytes": int(before), "step_seconds": seconds,
-            "step_cpu_seconds": cpu_seconds, "measure": how}
+            "step_cpu_seconds": cpu_seconds, "measure": how} | extra
 
 
 OUT_OF_MEMORY = "out of memory"
 
 
 def measure_training_step(method: str, setup: OpticalSetup, device: torch.device,
-                          memory_cap: int | None = None) -> dict[str, Any]:
+                          memory_cap: int | None = None, env: dict[str, str] | None = None) -> dict[str, Any]:
     """`training_step_memory` for `method` in a fresh Python subprocess; its JSON result.
 
     `memory_cap` (bytes) limits the subprocess's address space (CPU; the kernel's out-of-memory killer is told to
@@ -158,7 +165,7 @@ def measure_training_step(method: str, setup: OpticalSetup, device: torch.device
     request = json.dumps({"method": method, "geometry": setup.geometry.to_dict(), "device": str(device),
                           "memory_cap": memory_cap})
     proc = subprocess.run([sys.executable, "-m", "benchctl.benchmarks.learned", request], capture_output=True,
-                          text=True, env=os.environ.copy(), check=False)
+                          text=True, env=env or os.environ.copy(), check=False)
     if memory_cap and proc.returncode in (-9, 137):  # killed by the kernel's out-of-memory killer
         return {"out_of_memory": True, "cap_bytes": memory_cap}
     if proc.returncode != 0:

@@ -9,6 +9,7 @@ and is only listed until confirmed with `yes`.
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 import time
@@ -22,6 +23,7 @@ from benchctl.memory import size_text
 from benchctl.runner.record import RUN_FILE, RunRecord, run_folder_lock
 
 METRICS_FILE = "metrics.json"  # written by each procedure's report (runner.report)
+SWEEP_FILE = "sweep.json"  # written by `bench sweep` (benchmarks.sweep): its trials, values, seeds and scores
 SCORE_WORDS = ("psnr", "ssim", "residual", "rms")  # the figures `compare` puts side by side
 UNFINISHED = "no stop record"
 
@@ -125,21 +127,47 @@ def scores(folder: Path) -> dict[str, float]:
             if any(word in key.rsplit(".", 1)[-1].lower() for word in SCORE_WORDS)}
 
 
+def sweep_trials(folder: Path) -> list[tuple[str, str, dict[str, float]]]:
+    """A sweep's trials (`bench sweep`'s sweep.json) as (name, state, values and scores); [] for other folders."""
+    path = Path(folder) / SWEEP_FILE
+    if not path.is_file():
+        return []
+    try:
+        trials = json.loads(path.read_text())["trials"]
+        columns = []
+        for trial in trials:
+            values = {k: float(v) for k, v in trial["params"].items() if not isinstance(v, str)}
+            seed = math.nan if trial["seed"] is None else float(trial["seed"])
+            columns.append((trial["name"], f"sweep: {trial['state'].lower()}",
+                            values | {"seed": seed} | dict(trial["scores"])))
+        return columns
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise BenchctlError(f"{path}: cannot read the sweep's trials: {exc}") from None
+
+
 def compare_lines(folders: list[Path]) -> list[str]:
-    """The runs' scores side by side: one row per score any of them has, one column per run ('-': not there)."""
-    runs = [read_run(folder) for folder in folders]
-    table = [scores(run.folder) for run in runs]
+    """The runs' scores side by side: one row per score any of them has, one column per run ('-': not there); a
+    sweep's folder gives one column per trial, with its values and seed."""
+    columns: list[tuple[str, str, dict[str, float]]] = []
+    for folder in folders:
+        trials = sweep_trials(folder)
+        if trials:
+            columns += trials
+        else:
+            run = read_run(folder)
+            columns.append((run.folder.name, run.procedure, scores(run.folder)))
+    table = [found for _, _, found in columns]
     keys = list(dict.fromkeys(key for found in table for key in found))
     if not keys:
-        return ["no scores in " + ", ".join(f"{run.folder / METRICS_FILE}" for run in runs)]
-    names = [run.folder.name for run in runs]
+        return ["no scores in " + ", ".join(f"{Path(folder) / METRICS_FILE}" for folder in folders)]
+    names = [name for name, _, _ in columns]
     width = max(len("score"), *(len(key) for key in keys))
-    columns = [max(len(name), 9) for name in names]
-    lines = ["score".ljust(width) + "".join(f"  {name:>{size}}" for name, size in zip(names, columns)),
-             "procedure".ljust(width) + "".join(f"  {run.procedure:>{size}}" for run, size in zip(runs, columns))]
+    widths = [max(len(name), 9) for name in names]
+    lines = ["score".ljust(width) + "".join(f"  {name:>{size}}" for name, size in zip(names, widths)),
+             "procedure".ljust(width) + "".join(f"  {what:>{size}}" for (_, what, _), size in zip(columns, widths))]
     for key in keys:
         cells = [f"{found[key]:.4g}" if key in found else "-" for found in table]
-        lines.append(key.ljust(width) + "".join(f"  {cell:>{size}}" for cell, size in zip(cells, columns)))
+        lines.append(key.ljust(width) + "".join(f"  {cell:>{size}}" for cell, size in zip(cells, widths)))
     return lines
 
 
