@@ -1,4 +1,6 @@
-"""Writing result files so that a crash never leaves a half-written one: temp file in the same folder, then rename."""
+"""Writing result files so that a crash never leaves a half-written one (temp file in the same folder, then rename),
+and reading a user's file with a size cap (a named device or an endless file is refused, never read until memory
+runs out)."""
 
 from __future__ import annotations
 
@@ -15,6 +17,34 @@ from benchctl.errors import BenchctlError
 
 _UMASK = os.umask(0)
 os.umask(_UMASK)
+
+
+# Settings and records a user names or edits: profiles, procedures, calibration files, run records. The largest
+# shipped is a few kB; a run's step log grows by about 1 kB a step (its own, larger cap: RECORD_BYTES).
+TEXT_BYTES = 16 * 2**20
+RECORD_BYTES = 1 << 30
+# Images and RAW frames: 64 Mpx (limits.MAX_PIXELS) of 16-bit RGBA stored uncompressed is 512 MiB.
+IMAGE_BYTES = 1 << 30
+
+
+def read_capped(path: str | Path, what: str, limit: int = TEXT_BYTES) -> bytes:
+    """The bytes of the file at `path` (a `what`: "hardware profile", "calibration", ...), at most `limit` of them:
+    a larger or endless one (/dev/zero, a pipe that never ends) is a BenchctlError naming it, read no further than
+    the cap. FileNotFoundError passes through (callers say what was not found); other OS errors are one line."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as handle:
+            data = handle.read(limit + 1)
+    except FileNotFoundError:
+        raise
+    except IsADirectoryError:
+        raise BenchctlError(f"{path}: is a folder, not a file ({what} expected)") from None
+    except OSError as exc:
+        raise BenchctlError(f"{path}: cannot read {what}: {exc.strerror or exc}") from None
+    if len(data) > limit:
+        raise BenchctlError(f"{path}: over {limit / 2**20:g} MiB, read no further ({what} files are smaller: is it the "
+                            "file you meant?)")
+    return data
 
 
 def ensure_dir(path: Path) -> Path:

@@ -23,6 +23,7 @@ from benchctl import SOURCE_ROOT
 from benchctl.dng import CFA_LAYOUTS
 from benchctl.drivers import driver_names
 from benchctl.errors import BenchctlError
+from benchctl.files import read_capped
 from benchctl.limits import check_pixels
 from benchctl.optics.geometry import Geometry
 from benchctl.schema import Model, decode, fail
@@ -205,6 +206,20 @@ class SimSLMConfig(Model, kw_only=True):
     zero_order: Fraction = 0.02
     # Fringing fields: the driven phase is blurred by a Gaussian of this many pixels (sigma) before it modulates.
     crosstalk_px: NonNegative = 0.0
+
+
+# A Gaussian beam narrower than this many SLM pixels (1/e^2 radius) lights a few hundred pixels at most: no hologram
+# can use it, and far below it the beam's profile underflows to no light at all (a unit slip: metres written as mm).
+MIN_WAIST_PX = 10.0
+
+
+def waist_problem(waist_mm: float, slm: SLMConfig) -> str | None:
+    """Why a Gaussian beam of `waist_mm` (0: uniform light) cannot light the panel of `slm`; None if it can."""
+    least = MIN_WAIST_PX * slm.pitch_um * 1e-3
+    if 0 < waist_mm < least:
+        return (f"must be 0 (uniform light) or at least {least:g} mm ({MIN_WAIST_PX:g} SLM pixels), got {waist_mm!r}: "
+                "a narrower beam lights almost none of the panel")
+    return None
 
 
 class SimBeamConfig(Model, kw_only=True):
@@ -409,12 +424,9 @@ def load_profile(path_or_name: str | Path | None = None) -> Profile:
     """Read, decode and check a hardware profile (see resolve_profile_path for how it is found)."""
     path = resolve_profile_path(path_or_name)
     try:
-        with path.open("rb") as f:
-            raw = tomllib.load(f)
+        raw = tomllib.loads(read_capped(path, "hardware profile").decode("utf-8"))
     except FileNotFoundError:
         raise BenchctlError(f"{path}: hardware profile not found") from None
-    except OSError as exc:
-        raise BenchctlError(f"{path}: cannot read hardware profile: {exc.strerror or exc}") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         if path.suffix.lower() != ".toml":
             raise BenchctlError(f"{path}: not a hardware profile (a TOML file such as "
@@ -455,6 +467,9 @@ def _checked(path: Path, file: ProfileFile) -> Profile:
             if channel not in names:
                 raise fail(path, f"{section}.{channel}", f"no laser channel {channel!r} (known: {known})")
     _check_sensor(path, file.sim.sensor)
+    beam = waist_problem(file.sim.beam.waist_mm, slm) if slm else None
+    if beam:
+        raise fail(path, "sim.beam.waist_mm", beam)
     fields = {key: getattr(file, key) for key in file.__struct_fields__}
     return Profile(**{**fields, "name": name, "laser": laser, "path": path})
 

@@ -144,6 +144,36 @@ def test_partial_profiles(tmp_path: Path, small_profile_path: Path, capsys: pyte
     assert line == f"benchctl: error: {laser_only}: this needs a [slm] section, which the profile lacks"
 
 
+def test_an_endless_file_named_as_profile_procedure_calibration_or_image_is_read_no_further_than_a_cap(
+        tmp_path: Path, small_profile_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """/dev/zero (endless) behind every name a user gives; before, each was read until memory ran out. Calibration
+    files named by a profile are found through their real path: there a sparse file larger than the cap stands in."""
+    zero = {suffix: tmp_path / f"zero{suffix}" for suffix in (".toml", ".png")}
+    for link in zero.values():
+        link.symlink_to("/dev/zero")
+    for suffix in (".json", ".csv", ".npy"):
+        zero[suffix] = tmp_path / f"large{suffix}"
+        with open(zero[suffix], "wb") as sparse:
+            sparse.truncate(17 * 2**20)
+    cap = "read no further ({} files are smaller: is it the file you meant?)"
+    text = small_profile_path.read_text()
+    with_model = tmp_path / "with_model.toml"
+    with_model.write_text(text.replace("[optics]\n", f'[optics]\nmodel = "{zero[".json"]}"\n'))
+    for suffix in (".csv", ".npy"):
+        with_lut = tmp_path / f"with_lut{suffix}.toml"
+        with_lut.write_text(text + f'\n[slm.lut]\ngreen = "{zero[suffix]}"\n')
+        line = one_error_line(capsys, ["profile", "check", str(with_lut)])
+        assert line == f"benchctl: error: {zero[suffix]}: over 16 MiB, {cap.format('lookup table')}"
+    for argv, path, what in (
+            (["profile", "check", str(zero[".toml"])], zero[".toml"], "hardware profile"),
+            (["profile", "check", str(with_model)], zero[".json"], "calibration"),
+            (["run", str(zero[".toml"]), "-p", str(small_profile_path), "--dry-run"], zero[".toml"], "procedure")):
+        assert one_error_line(capsys, argv) == f"benchctl: error: {path}: over 16 MiB, {cap.format(what)}"
+    line = one_error_line(capsys, ["generate", str(zero[".png"]), "-o", str(tmp_path / "g"), "-p",
+                                   str(small_profile_path)])
+    assert line == f"benchctl: error: {zero['.png']}: over 1024 MiB, {cap.format('image')}"
+
+
 # -- procedures -------------------------------------------------------------------------------------------------------
 
 

@@ -259,9 +259,7 @@ class Context:
         folder = None
         if keep:
             folder = self.path(layout.raw_folder(step.key))
-            attempt = self.record.attempts.get(step.key, 1) if self.record else 1
-            if attempt > 1:
-                set_aside(folder, attempt - 1)
+            set_aside(folder)
         return self.instruments.expose(folder, channel, power_w, frame, frames=frames, dark_frames=dark_frames)
 
 
