@@ -61,7 +61,9 @@ class FittedColour(Entry, kw_only=True):
     # written by model calibration, shown in reports
     residual: NonNegative | None = None
     initial_residual: NonNegative | None = None
+    held_out_residual: NonNegative | None = None  # on captures the fit did not see
     patterns: NonNegativeInt | None = None
+    held_out: NonNegativeInt | None = None
     flat: bool = False
     camera_blur_px: NonNegative = 0.0
     crosstalk_fitted_px: NonNegative | None = None
