@@ -58,6 +58,27 @@ def ensure_dir(path: Path) -> Path:
     return path
 
 
+def folder_problem(path: Path) -> str | None:
+    """Why folders cannot be created in (or as) `path`, found without writing anything: a file in its place or on
+    its way, a folder that is not writable, or a file system without a disk (/proc, /sys); None if they can."""
+    existing = Path(path)
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if existing.exists() and not existing.is_dir():
+        return f"{existing} is a file, not a folder"
+    if not os.access(existing, os.W_OK | os.X_OK):
+        return f"{existing} is not writable"
+    try:
+        stats = os.statvfs(existing)
+    except OSError as exc:
+        return f"{existing}: {exc.strerror or exc}"
+    if stats.f_flag & os.ST_RDONLY:
+        return f"{existing} is on a read-only file system"
+    if stats.f_blocks == 0:
+        return f"{existing} is on a file system without a disk (such as /proc or /sys)"
+    return None
+
+
 def atomic_write_bytes(path: Path, data: bytes, *, overwrite: bool = True) -> Path:
     """Write `data` to `path` atomically (readers see the old file or the new one, never a partial one).
     `overwrite=False`: an existing `path` is never replaced (BenchctlError naming it), even one created meanwhile."""

@@ -22,7 +22,7 @@ from msgspec import Meta
 from benchctl import SOURCE_ROOT
 from benchctl.dng import CFA_LAYOUTS
 from benchctl.drivers import driver_names
-from benchctl.errors import BenchctlError
+from benchctl.errors import BenchctlError, did_you_mean
 from benchctl.files import read_capped
 from benchctl.limits import check_pixels
 from benchctl.optics.geometry import Geometry
@@ -417,7 +417,9 @@ def resolve_profile_path(path_or_name: str | Path | None = None) -> Path:
     if Path(text).is_file():  # -p README.md: read, to be told what it is not
         return Path(text)
     searched = ", ".join(str(c) for c in candidates)
-    raise BenchctlError(f"hardware profile {text!r}{origin} not found (looked for {searched})")
+    known = {p.stem for folder in {c.parent for c in candidates} if folder.is_dir() for p in folder.glob("*.toml")}
+    raise BenchctlError(f"hardware profile {text!r}{origin} not found{did_you_mean(text, known)} (looked for "
+                        f"{searched})")
 
 
 def load_profile(path_or_name: str | Path | None = None) -> Profile:
@@ -426,7 +428,9 @@ def load_profile(path_or_name: str | Path | None = None) -> Profile:
     try:
         raw = tomllib.loads(read_capped(path, "hardware profile").decode("utf-8"))
     except FileNotFoundError:
-        raise BenchctlError(f"{path}: hardware profile not found") from None
+        known = [str(p) for p in path.parent.glob("*.toml")] if path.parent.is_dir() else []
+        hint = did_you_mean(str(path), known, key=lambda name: Path(name).name)
+        raise BenchctlError(f"{path}: hardware profile not found{hint}") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         if path.suffix.lower() != ".toml":
             raise BenchctlError(f"{path}: not a hardware profile (a TOML file such as "

@@ -34,7 +34,7 @@ if sys.version_info >= (3, 11):
 else:
     from typing_extensions import dataclass_transform
 
-T = TypeVar("T", bound="Model")
+T = TypeVar("T", bound=msgspec.Struct)
 
 
 # msgspec's subclasses inherit frozen=True, but a type checker reads each subclass by PEP 681, where frozen is a

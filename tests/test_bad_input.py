@@ -174,6 +174,42 @@ def test_an_endless_file_named_as_profile_procedure_calibration_or_image_is_read
     assert line == f"benchctl: error: {zero['.png']}: over 1024 MiB, {cap.format('image')}"
 
 
+def test_out_that_cannot_hold_run_folders_is_named_by_the_dry_run(tmp_path: Path, bench_profile_path: Path,
+                                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    """`--out` naming a file was accepted by the dry run, and `--out /proc/x` was refused as out of disk space."""
+    procedure = tmp_path / "p.toml"
+    procedure.write_text('procedure = "power-sweep"\n[parameters]\ncolours = ["green"]\n')
+    run = ["run", str(procedure), "-p", str(bench_profile_path)]
+    for out, problem in ((procedure, f"{procedure} is a file, not a folder"),
+                         (procedure / "runs", f"{procedure} is a file, not a folder"),
+                         (Path("/proc/x"), "/proc is on a file system without a disk (such as /proc or /sys)")):
+        for dry in (["--dry-run"], []):
+            line = one_error_line(capsys, [*run, "--out", str(out), *dry])
+            assert line == f"benchctl: error: --out {out}: {problem}: a run folder cannot be created there", line
+
+
+def test_misspelt_names_get_a_did_you_mean_and_an_empty_sgd_says_so(
+        tmp_path: Path, small_profile_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    monkeypatch.chdir(tmp_path)
+    procedure = tmp_path / "colour.toml"
+    procedure.write_text('procedure = "colour-captur"\n')
+    assert one_error_line(capsys, ["profile", "check", "simulatd"]).startswith(
+        "benchctl: error: hardware profile 'simulatd' not found (did you mean 'simulated'?) (looked for ")
+    assert one_error_line(capsys, ["profile", "check", str(tmp_path / "smal.toml")]) == (
+        f"benchctl: error: {tmp_path / 'smal.toml'}: hardware profile not found (did you mean "
+        f"'{small_profile_path}'?)")
+    line = one_error_line(capsys, ["run", str(tmp_path / "colur.toml"), "--dry-run"])
+    assert line == f"benchctl: error: {tmp_path / 'colur.toml'}: procedure file not found (did you mean '{procedure}'?)"
+    line = one_error_line(capsys, ["run", str(procedure), "-p", str(small_profile_path), "--dry-run"])
+    assert line.startswith(f"benchctl: error: {procedure}: procedure: unknown procedure 'colour-captur' (did you mean "
+                           "'colour-capture'?) (built-ins: ")
+    assert main(["generate", "chart:bars", "--method", "sgd", "--iterations", "0", "--colours", "green", "-o", "g",
+                 "-p", str(small_profile_path)]) == 0
+    assert capsys.readouterr().out.splitlines()[0] == ("sgd: --iterations 0 runs no iteration: the holograms are "
+                                                       "sgd's starting phase alone")
+
+
 # -- procedures -------------------------------------------------------------------------------------------------------
 
 

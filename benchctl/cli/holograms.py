@@ -10,13 +10,15 @@ from benchctl.cli.args import EPILOG, add_profile, count, grid_size, name_list, 
 
 def _cmd_generate(args: argparse.Namespace) -> int:
     from benchctl.calibration.files import calibration_lines
-    from benchctl.cgh import DEFAULT_METHOD
+    from benchctl.cgh import DEFAULT_METHOD, get_method
     from benchctl.holograms.generate import run_generate
     from benchctl.profiles import load_profile
     from benchctl.terminal import ProgressLine
 
     profile = load_profile(args.profile)
     method = args.method or DEFAULT_METHOD
+    if args.iterations == 0 and get_method(method).default_iterations is not None:
+        print(f"{method}: --iterations 0 runs no iteration: the holograms are {method}'s starting phase alone")
     metrics = run_generate(args.target, profile, Path(args.out), method=method, iterations=args.iterations,
                            colours=args.colours, seed=args.seed, progress=ProgressLine, checkpoint=args.checkpoint)
     if metrics["checkpoint"]:

@@ -28,7 +28,7 @@ from benchctl.calibration.files import check_calibration
 from benchctl.calibration.store import REGISTRATION_FILE, Calibration
 from benchctl.devices.power import format_power
 from benchctl.errors import BenchctlError
-from benchctl.files import file_sha256, write_json
+from benchctl.files import file_sha256, folder_problem, write_json
 from benchctl.memory import check_memory
 from benchctl.profiles import Profile, load_profile, resolve_profile_path
 from benchctl.runner.context import Context, Step, StepRedo
@@ -57,8 +57,8 @@ def _line(step: Step) -> str:
 
 def _describe(steps: list[Step], procedure: Procedure, profile: Profile) -> list[str]:
     """The dry run's account: every step with its exposures, then per laser channel the exposures and the highest
-    power the plan declares against the channel's limit (exposures whose power is chosen at run time are bounded
-    by the limit itself)."""
+    power the run may reach against the channel's limit: the powers the plan declares, and for those chosen at run
+    time (automatic exposure) the bound they are chosen under (the procedure's cap, else the channel's limit)."""
     lines = [f"procedure {procedure.name!r} ({procedure.kind}) on profile {profile.name!r} ({profile.path}): "
              f"{len(steps)} steps"]
     lines += [f"  {number:>3}. {step.key}: {_line(step)}" for number, step in enumerate(steps, 1)]
@@ -67,11 +67,13 @@ def _describe(steps: list[Step], procedure: Procedure, profile: Profile) -> list
         mine = [expose for expose in exposures if expose.channel == channel.name]
         if mine:
             known = [expose.power_w for expose in mine if expose.power_w is not None]
-            highest = f"at most {format_power(max(known))}" if known else "powers chosen at run time"
-            chosen = sum(expose.power_w is None for expose in mine)
-            later = f" ({chosen} at a power chosen at run time)" if known and chosen else ""
-            lines.append(f"  {channel.name}: {len(mine)} exposure(s), {highest}{later}; limit "
-                         f"{channel.max_power_mw:g} mW")
+            bounds = [expose.max_w if expose.max_w is not None else channel.max_power_mw * 1e-3
+                      for expose in mine if expose.power_w is None]
+            later = (f" ({len(bounds)} at a power chosen at run time, up to {format_power(max(bounds))}"
+                     + (", the channel's limit" if max(bounds) >= channel.max_power_mw * 1e-3 else "")
+                     + ")" if bounds else "")
+            lines.append(f"  {channel.name}: {len(mine)} exposure(s), at most {format_power(max(known + bounds))}"
+                         f"{later}; limit {channel.max_power_mw:g} mW")
     return lines
 
 
@@ -143,6 +145,9 @@ def _run(path: Path | None, profile: str | None, out: Path, dry_run: bool, resum
             where = path if record is None else record.folder / record.info()["procedure_file"]
             raise BenchctlError(f"{where}: {exc}") from None
         estimate = RunEstimate(steps, effective)
+        problem = folder_problem(Path(out)) if record is None else None
+        if problem:
+            raise BenchctlError(f"--out {out}: {problem}: a run folder cannot be created there")
         todo = [step for step in steps if record is None or not record.is_done(step.key)]
         if dry_run:
             for line in [*_describe(steps, procedure, bench_profile), *checked,

@@ -126,7 +126,9 @@ def _import(path: Path) -> tuple[ModuleType, dict[str, bytes]]:
         exec(compile(source, str(path), "exec"), module.__dict__)
     except Exception as exc:
         del sys.modules[spec.name]
-        raise BenchctlError(f"{path}: cannot load procedure: {type(exc).__name__}: {exc}") from exc
+        hint = (" (PARAMETERS is a msgspec Struct: give a list parameter a tuple default, e.g. grays: tuple[int, ...] "
+                "= (64, 128))" if isinstance(exc, TypeError) and "mutable collection" in str(exc) else "")
+        raise BenchctlError(f"{path}: cannot load procedure: {type(exc).__name__}: {exc}{hint}") from exc
     for attribute in ("PARAMETERS", "plan"):
         if not hasattr(module, attribute):
             raise BenchctlError(f"{path}: a Python procedure must define {attribute} (see benchctl.runner.api)")

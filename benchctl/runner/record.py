@@ -20,12 +20,14 @@ from importlib import metadata
 from pathlib import Path, PurePosixPath
 from typing import Any
 
+import msgspec
+
 from benchctl.devices.lock import DeviceHeld, DeviceLock
 from benchctl.errors import BenchctlError
 from benchctl.files import RECORD_BYTES, atomic_write_bytes, ensure_dir, file_sha256, read_capped, write_json
 from benchctl.provenance import code_identity
 from benchctl.runner.layout import RUN_FILE, STEP_LOG
-from benchctl.schema import Model, decode, fail
+from benchctl.schema import decode, fail
 
 PACKAGES = ("benchctl", "torch", "numpy", "pyserial", "pyusb", "opencv-contrib-python-headless", "rawpy")
 
@@ -49,12 +51,12 @@ RUN_FOLDER = re.compile(r"\d{8}-\d{6}-[A-Za-z0-9_.-]+")  # create_run's names: <
 Checksums = dict[str, str]  # run-relative path -> SHA-256
 
 
-class _Record(Model, forbid_unknown_fields=False, kw_only=True):
-    """What benchctl reads back from a run's records to resume it, checked before use (further keys are kept as
-    they are: only these are interpreted)."""
+class _Record(msgspec.Struct, frozen=True, kw_only=True):
+    """What benchctl reads back from a run's records to resume it, checked before use (unlike a configuration
+    `Model`, further keys are allowed and kept as they are: only these are interpreted)."""
 
 
-class StartRecord(_Record, kw_only=True):
+class StartRecord(_Record, frozen=True, kw_only=True):
     """run.json, as a resume reads it."""
 
     procedure_file: str | None = None  # the procedure as used, a file of the run folder (a resume needs both)
@@ -64,12 +66,12 @@ class StartRecord(_Record, kw_only=True):
     resumed: list[dict[str, Any]] = []
 
 
-class StepResult(_Record, kw_only=True):
+class StepResult(_Record, frozen=True, kw_only=True):
     checksums: Checksums = {}  # files later steps read
     archived: Checksums = {}  # files kept only as a record
 
 
-class Event(_Record, kw_only=True):
+class Event(_Record, frozen=True, kw_only=True):
     """One line of steps.jsonl."""
 
     event: str
