@@ -9,6 +9,7 @@ import hashlib
 import io
 import json
 import os
+import stat
 import tempfile
 from pathlib import Path
 from typing import Any, Iterable, Mapping
@@ -29,11 +30,19 @@ IMAGE_BYTES = 1 << 30
 
 def read_capped(path: str | Path, what: str, limit: int = TEXT_BYTES) -> bytes:
     """The bytes of the file at `path` (a `what`: "hardware profile", "calibration", ...), at most `limit` of them:
-    a larger or endless one (/dev/zero, a pipe that never ends) is a BenchctlError naming it, read no further than
-    the cap. FileNotFoundError passes through (callers say what was not found); other OS errors are one line."""
+    a device (/dev/zero) is refused unread, a larger file unread too, and an endless pipe once the cap is read; each
+    a BenchctlError naming it. FileNotFoundError passes through (callers say what was not found); other OS errors are
+    one line."""
     path = Path(path)
+    too_large = BenchctlError(f"{path}: over {limit / 2**20:g} MiB, read no further ({what} files are smaller: is it "
+                              "the file you meant?)")
     try:
         with open(path, "rb") as handle:
+            info = os.fstat(handle.fileno())
+            if stat.S_ISCHR(info.st_mode) or stat.S_ISBLK(info.st_mode):
+                raise BenchctlError(f"{path}: is a device, not a file ({what} expected)")
+            if stat.S_ISREG(info.st_mode) and info.st_size > limit:
+                raise too_large
             data = handle.read(limit + 1)
     except FileNotFoundError:
         raise
@@ -42,8 +51,7 @@ def read_capped(path: str | Path, what: str, limit: int = TEXT_BYTES) -> bytes:
     except OSError as exc:
         raise BenchctlError(f"{path}: cannot read {what}: {exc.strerror or exc}") from None
     if len(data) > limit:
-        raise BenchctlError(f"{path}: over {limit / 2**20:g} MiB, read no further ({what} files are smaller: is it the "
-                            "file you meant?)")
+        raise too_large
     return data
 
 

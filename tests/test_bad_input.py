@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import itertools
+import os
 import struct
 import zlib
 from pathlib import Path
@@ -144,10 +146,13 @@ def test_partial_profiles(tmp_path: Path, small_profile_path: Path, capsys: pyte
     assert line == f"benchctl: error: {laser_only}: this needs a [slm] section, which the profile lacks"
 
 
-def test_an_endless_file_named_as_profile_procedure_calibration_or_image_is_read_no_further_than_a_cap(
+def test_an_endless_file_named_as_profile_procedure_calibration_or_image_is_refused_without_reading_it_all(
         tmp_path: Path, small_profile_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """/dev/zero (endless) behind every name a user gives; before, each was read until memory ran out. Calibration
-    files named by a profile are found through their real path: there a sparse file larger than the cap stands in."""
+    """/dev/zero behind every name a user gives was read until memory ran out: a device is now refused unread, a
+    file larger than the cap unread too (calibration files named by a profile are found through their real path: a
+    sparse file stands in), and an endless pipe once the cap is read."""
+    import threading
+
     zero = {suffix: tmp_path / f"zero{suffix}" for suffix in (".toml", ".png")}
     for link in zero.values():
         link.symlink_to("/dev/zero")
@@ -164,14 +169,28 @@ def test_an_endless_file_named_as_profile_procedure_calibration_or_image_is_read
         with_lut.write_text(text + f'\n[slm.lut]\ngreen = "{zero[suffix]}"\n')
         line = one_error_line(capsys, ["profile", "check", str(with_lut)])
         assert line == f"benchctl: error: {zero[suffix]}: over 16 MiB, {cap.format('lookup table')}"
+    assert one_error_line(capsys, ["profile", "check", str(with_model)]) == (
+        f"benchctl: error: {zero['.json']}: over 16 MiB, {cap.format('calibration')}")
     for argv, path, what in (
             (["profile", "check", str(zero[".toml"])], zero[".toml"], "hardware profile"),
-            (["profile", "check", str(with_model)], zero[".json"], "calibration"),
-            (["run", str(zero[".toml"]), "-p", str(small_profile_path), "--dry-run"], zero[".toml"], "procedure")):
-        assert one_error_line(capsys, argv) == f"benchctl: error: {path}: over 16 MiB, {cap.format(what)}"
-    line = one_error_line(capsys, ["generate", str(zero[".png"]), "-o", str(tmp_path / "g"), "-p",
-                                   str(small_profile_path)])
-    assert line == f"benchctl: error: {zero['.png']}: over 1024 MiB, {cap.format('image')}"
+            (["run", str(zero[".toml"]), "-p", str(small_profile_path), "--dry-run"], zero[".toml"], "procedure"),
+            (["generate", str(zero[".png"]), "-o", str(tmp_path / "g"), "-p", str(small_profile_path)], zero[".png"],
+             "image")):
+        assert one_error_line(capsys, argv) == f"benchctl: error: {path}: is a device, not a file ({what} expected)"
+    pipe = tmp_path / "endless.toml"
+    os.mkfifo(pipe)
+
+    def endless() -> None:
+        with contextlib.suppress(BrokenPipeError), open(pipe, "wb") as writer:
+            while True:
+                writer.write(b"# " * 2**15)
+
+    writer = threading.Thread(target=endless, daemon=True)
+    writer.start()
+    assert one_error_line(capsys, ["profile", "check", str(pipe)]) == (
+        f"benchctl: error: {pipe}: over 16 MiB, {cap.format('hardware profile')}")
+    writer.join(timeout=10)
+    assert not writer.is_alive()
 
 
 def test_out_that_cannot_hold_run_folders_is_named_by_the_dry_run(tmp_path: Path, bench_profile_path: Path,

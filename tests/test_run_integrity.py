@@ -313,6 +313,15 @@ def test_a_crafted_run_record_is_one_line_on_resume(tmp_path: Path, bench_profil
             path.write_text("".join(json.dumps(e) + "\n" for e in events))
         line = one_error_line(capsys, ["run", "--resume", str(folder)])
         assert line.startswith(f"benchctl: error: {folder}/{message}"), (line, message)
+    # a well-formed log whose exposure result lacks what the report reads (the report's own lines removed)
+    folder = shutil.copytree(finished, tmp_path / "crafted-result")
+    events = [json.loads(line) for line in (folder / "steps.jsonl").read_text().splitlines()]
+    events = [{**e, "result": {"frames": 5}} if e["event"] == "done" and e["step"] == "sweep/green/0" else e
+              for e in events if e.get("step") != "report"]
+    (folder / "steps.jsonl").write_text("".join(json.dumps(e) + "\n" for e in events))
+    assert one_error_line(capsys, ["run", "--resume", str(folder)]) == (
+        f"benchctl: error: {folder}/steps.jsonl: step 'sweep/green/0': no 'folder' in its recorded result: the step "
+        "log is damaged (start the run anew)")
 
 
 def test_frames_left_in_a_steps_folder_are_set_aside_even_when_the_log_lost_its_start(

@@ -149,9 +149,10 @@ class RunRecord:
         return key in self.done
 
     def result(self, key: str) -> dict[str, Any]:
-        """The result a finished step recorded; an error if it has not finished."""
+        """The result a finished step recorded; an error if it has not finished. A key the reader needs and the
+        result lacks (a damaged or hand-made step log) is one line naming the step and the key."""
         try:
-            return self.done[key]
+            return Recorded(self.done[key], f"{self.folder / STEP_LOG}: step {key!r}")
         except KeyError:
             raise BenchctlError(f"{self.folder}: step {key!r} has not finished") from None
 
@@ -251,6 +252,23 @@ class RunRecord:
             log.write(line)
             log.flush()
             os.fsync(log.fileno())
+
+
+class Recorded(dict[str, Any]):
+    """A step's recorded result as later steps read it: a missing key, at any depth, is a BenchctlError naming the
+    step log, the step and the key (a KeyError traceback before)."""
+
+    def __init__(self, data: dict[str, Any], where: str) -> None:
+        super().__init__(data)
+        self._where = where
+
+    def __getitem__(self, name: str) -> Any:
+        value = super().__getitem__(name)
+        return Recorded(value, f"{self._where}, {name!r}") if isinstance(value, dict) else value
+
+    def __missing__(self, name: str) -> Any:
+        raise BenchctlError(f"{self._where}: no {name!r} in its recorded result: the step log is damaged (start the "
+                            "run anew)")
 
 
 def _damaged(folder: Path, checksums: dict[str, str], when: str = "it was written") -> str | None:
