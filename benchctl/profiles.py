@@ -41,6 +41,9 @@ SECTIONS = ("optics", "slm", "laser", "camera")
 
 Positive = Annotated[float, Meta(gt=0)]
 NonNegative = Annotated[float, Meta(ge=0)]
+# A liquid crystal settles within a second; a minute or more is a unit slip (seconds or microseconds as ms) that would
+# leave a run waiting for days after every frame.
+SettleMs = Annotated[float, Meta(ge=0, le=60_000)]
 Fraction = Annotated[float, Meta(ge=0, le=1)]
 PositiveInt = Annotated[int, Meta(gt=0)]
 NonNegativeInt = Annotated[int, Meta(ge=0)]
@@ -87,7 +90,7 @@ class SLMConfig(Model, kw_only=True):
     height: PositiveInt
     pitch_um: Annotated[float, Meta(ge=0.1, le=1000)]  # the pitches optics.setup accepts (0.1 um .. 1 mm)
     bit_depth: Annotated[int, Meta(ge=1, le=16)]
-    settle_ms: NonNegative = 100.0  # wait after showing a frame before the image is trusted
+    settle_ms: SettleMs = 100.0  # wait after showing a frame before the image is trusted
     flip_x: bool = False
     flip_y: bool = False
     phase_offset_rad: float = 0.0

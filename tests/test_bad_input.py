@@ -193,6 +193,23 @@ def test_an_endless_file_named_as_profile_procedure_calibration_or_image_is_refu
     assert not writer.is_alive()
 
 
+def test_a_run_name_too_long_for_a_folder_and_a_settle_time_of_days_are_named(
+        tmp_path: Path, bench_profile_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A 300-character procedure name was an OSError traceback (file name too long) once the run started, and
+    settle_ms = 1e9 (a unit slip) was accepted: a run would have waited 11 days after every SLM frame."""
+    procedure = tmp_path / "p.toml"
+    procedure.write_text(f'name = "{"x" * 300}"\nprocedure = "power-sweep"\n')
+    line = one_error_line(capsys, ["run", str(procedure), "-p", str(bench_profile_path), "--dry-run"])
+    assert line == f"benchctl: error: {procedure}: name: at most 100 characters, got 300"
+    procedure.write_text('procedure = "power-sweep"\n[parameters]\nsettle_ms = 1e9\n')
+    line = one_error_line(capsys, ["run", str(procedure), "-p", str(bench_profile_path), "--dry-run"])
+    assert line == f"benchctl: error: {procedure}: parameters.settle_ms: must be <= 60000, got 1000000000.0"
+    profile = tmp_path / "slow.toml"
+    profile.write_text(bench_profile_path.read_text().replace("settle_ms = 0", "settle_ms = 1e12"))
+    line = one_error_line(capsys, ["profile", "check", str(profile)])
+    assert line == f"benchctl: error: {profile}: slm.settle_ms: must be <= 60000, got 1000000000000.0"
+
+
 def test_out_that_cannot_hold_run_folders_is_named_by_the_dry_run(tmp_path: Path, bench_profile_path: Path,
                                                                   capsys: pytest.CaptureFixture[str]) -> None:
     """`--out` naming a file was accepted by the dry run, and `--out /proc/x` was refused as out of disk space."""

@@ -26,9 +26,10 @@ from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
-from typing import Any
+from typing import Annotated, Any
 
 import msgspec
+from msgspec import Meta
 
 from benchctl.errors import BenchctlError, did_you_mean
 from benchctl.files import read_capped
@@ -56,7 +57,7 @@ MAX_STEPS = 100_000  # a plan longer than this is a mistake (repeats = 1000000),
 class ProcedureFile(Model, kw_only=True):
     """What a procedure file (.toml) says."""
 
-    name: str | None = None  # names the run folder; default: the file's name without .toml
+    name: Annotated[str, Meta(max_length=100)] | None = None  # names the run folder; default: the file's name
     procedure: str  # a built-in (see BUILTINS) or a Python file in this file's folder
     description: str = ""  # default: the procedure's DESCRIPTION
     # Decoded into the procedure's PARAMETERS once the procedure is known.

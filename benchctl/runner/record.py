@@ -362,6 +362,8 @@ def create_run(out: Path, name: str, start: dict[str, Any], files: dict[str, byt
             folder.mkdir()
         except FileExistsError:
             continue
+        except OSError as exc:
+            raise BenchctlError(f"cannot create run folder {folder}: {exc.strerror or exc}") from None
         break
     else:
         raise BenchctlError(f"{out}: cannot create a new run folder for {name!r}")

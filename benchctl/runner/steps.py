@@ -28,7 +28,7 @@ from benchctl.holograms.cache import Hologram, hologram
 from benchctl.holograms.scene import resolve_method
 from benchctl.images import read_image, write_png
 from benchctl.optics import linear_to_srgb
-from benchctl.profiles import LaserChannel, NonNegative, NonNegativeInt, Profile
+from benchctl.profiles import LaserChannel, NonNegativeInt, Profile, SettleMs
 from benchctl.runner import layout
 from benchctl.runner.context import Context, Expose, P, Parameters, Step
 from benchctl.runner.instruments import Exposure
@@ -47,7 +47,7 @@ class ExposureParameters(Parameters, kw_only=True):
     setpoints: dict[str, str] = msgspec.field(default_factory=dict)  # colour -> "40mW" | "5%" (default: profile's)
     frames: Frames = 2
     dark_frames: DarkFrames = 1
-    settle_ms: NonNegative | None = None  # after a new SLM frame (default: the profile's slm.settle_ms)
+    settle_ms: SettleMs | None = None  # after a new SLM frame (default: the profile's slm.settle_ms)
     # a calibration the procedure measures (registration, lookup tables, optical model) replaces the stored one only
     # if it passes its acceptance test ("tested"), or always ("always": said, and in the report)
     accept: AcceptMode = "tested"
