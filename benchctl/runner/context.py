@@ -266,7 +266,8 @@ class Context:
 
 
 def _allows(expose: Expose, channel: str, power_w: float, frames: int, dark_frames: int) -> bool:
-    """Whether `expose` declared this exposure (a power chosen at run time: any, within the channel's limit)."""
+    """Whether `expose` declared this exposure (a power chosen at run time: within its max_w, else the channel's
+    limit, which `Context.expose` checks too)."""
     bound = expose.power_w if expose.power_w is not None else expose.max_w
     limit = bound * (1 + POWER_TOLERANCE) if bound is not None else float("inf")
     return (expose.channel == channel and 0 <= power_w <= limit and expose.frames == frames
