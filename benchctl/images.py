@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 
 from benchctl.errors import BenchctlError
-from benchctl.files import atomic_write_bytes
+from benchctl.files import IMAGE_BYTES, atomic_write_bytes, read_capped
 from benchctl.limits import check_pixels
 
 _SWAP_RB = [2, 1, 0, 3]  # BGR(A) <-> RGB(A) channel order; the same permutation both ways
@@ -23,8 +23,8 @@ def read_image(path: str | Path) -> np.ndarray:
     """Decode an image file as stored: dtype kept, (H, W) gray or (H, W, 3|4) in RGB(A) order."""
     path = Path(path)
     try:
-        data = path.read_bytes()
-    except OSError as exc:
+        data = read_capped(path, "image", IMAGE_BYTES)
+    except FileNotFoundError as exc:
         raise BenchctlError(f"{path}: cannot read image: {exc.strerror or exc}") from None
     if not data:
         raise BenchctlError(f"{path}: empty file (0 bytes), not an image")
