@@ -12,6 +12,7 @@ import os
 import re
 import signal
 import socket
+import struct
 import subprocess
 import sys
 import threading
@@ -340,6 +341,11 @@ def test_uploads_are_capped_and_named_by_number(client: TestClient, console: Con
     huge = bytearray(png.tobytes())
     huge[16:24] = (100000).to_bytes(4, "big") + (100000).to_bytes(4, "big")  # the header claims 10 Gpx
     assert "above the console's limit" in client.post("/api/upload", content=bytes(huge)).json()["error"]
+    tiff = b"II*\x00" + struct.pack("<IH", 8, 2) + struct.pack("<HHII", 256, 4, 1, 30000) + struct.pack(
+        "<HHII", 257, 4, 1, 30000) + bytes(4)  # a TIFF header claiming 900 Mpx: refused before decoding
+    assert "30000 x 30000 pixels is above the console's limit" in client.post("/api/upload", content=tiff).json()[
+        "error"]
+    assert "header gives no image size" in client.post("/api/upload", content=tiff[:8]).json()["error"]
     console.uploads.max_bytes = 100
     assert "above the limit of 100" in client.post("/api/upload", content=png.tobytes()).json()["error"]
     console.uploads.max_bytes = 10**6
