@@ -415,6 +415,51 @@ def test_laser_off_from_another_shell_while_the_console_runs(bench_profile_path:
         assert "console stopped: emission off, devices closed" in server.stdout.read()
 
 
+class LaserOnSocket(threading.Thread):
+    """The simulated RGB laser unit behind a TCP socket (a profile reaches it as pyserial's socket://), which can go
+    deaf: from `deaf.set()` on it neither obeys nor answers, as a unit whose cable was pulled."""
+
+    def __init__(self) -> None:
+        super().__init__(daemon=True)
+        self.server = socket.create_server(("127.0.0.1", 0))
+        self.url = f"socket://127.0.0.1:{self.server.getsockname()[1]}"
+        self.deaf = threading.Event()
+
+    def run(self) -> None:
+        from benchctl.devices.sim.laser_emulators import make_emulator
+
+        with contextlib.suppress(OSError):
+            while True:
+                connection, _ = self.server.accept()
+                unit = make_emulator("rgb-laser", {})
+                with connection:
+                    while data := connection.recv(4096):
+                        if not self.deaf.is_set() and (reply := unit.receive(data)):
+                            connection.sendall(reply)
+
+
+@pytest.mark.slow
+def test_a_switch_off_that_fails_at_stop_is_said_and_fails(bench_profile_path: Path, tmp_path: Path) -> None:
+    """The laser stops answering while green is on; stopping the console must not claim "emission off": its last
+    line says the state is unknown, and its exit status is an error (round 4 printed success)."""
+    laser = LaserOnSocket()
+    laser.start()
+    profile = tmp_path / "socket-laser.toml"
+    profile.write_text(bench_profile_path.read_text().replace('"sim://rgb-laser"', f'"{laser.url}"'))
+    with console_process(profile, tmp_path, "--deadman", "60") as (server, base, headers):
+        assert post(base, "/api/laser/green/power", {"power": "1mW"}, headers) == 200
+        assert post(base, "/api/laser/green/emission", {"on": True}, headers) == 200
+        laser.deaf.set()
+        server.send_signal(signal.SIGTERM)
+        assert server.wait(timeout=60) != 0
+        lines = server.stdout.read().strip().splitlines()
+    laser.server.close()
+    assert laser_channel(2)["emission"] is True  # the unit never heard the off command: "possibly ON" was right
+    assert not any("stopped: emission off" in line or "Traceback" in line for line in lines), lines
+    assert lines[-1] == "benchctl: error: console stopped: emission state UNKNOWN, possibly ON: check the laser"
+    assert any(line.startswith("laser: ") and "UNKNOWN" in line for line in lines[:-1]), lines
+
+
 class Page(threading.Thread):
     """A script that behaves as the console's page: answers every state message and frame, and sends a heartbeat
     every second besides."""

@@ -81,13 +81,18 @@ class Console:
             thread.start()
         self.say(f"console started on profile {self.profile.name!r}")
 
-    def close(self) -> None:
-        """Emission off and the laser closed first, then everything else; what the SLM shows stays."""
+    def close(self) -> str | None:
+        """Emission off and the laser closed first, then everything else; what the SLM shows stays. Returns None
+        when emission is known to be off, else why it is not (to be said loudly: the laser may still emit)."""
         self._stop.set()
         self.procedures.stop(wait_s=15.0)
+        unknown = None
         try:
             if self.laser is not None:
                 self.laser.close()
+                unknown = self.laser.unknown
+            if self.procedures.active:
+                unknown = f"procedure {self.procedures.running} still holds the laser after SIGTERM"
         finally:
             for held in (self.slm.held if self.slm else None, self.camera):
                 if held is not None:
@@ -98,9 +103,11 @@ class Console:
                 if thread.is_alive() and thread is not threading.current_thread():
                     thread.join(timeout=5.0)
             self.uploads.remove_all()
+        return unknown
 
     def emergency_off(self) -> None:
-        """Emission off and the laser let go now (a termination signal): `benchctl laser off` waits for that."""
+        """Emission off and the laser let go now (a termination signal): `benchctl laser off` waits for that. A
+        switch-off that cannot be confirmed is kept in `laser.unknown` for `close` to report."""
         if self.laser is not None:
             self.laser.close()
 
@@ -270,9 +277,8 @@ class Console:
 
     def _release_for_run(self, devices: list[str]) -> None:
         """Let go of the devices a run will use (emission off first): one holder per device."""
-        if "laser" in devices and self.laser is not None:
-            self.laser.held.release()
-            self.laser.emitting.clear()
+        if "laser" in devices and self.laser is not None and not self.laser.let_go():
+            raise BenchctlError(f"laser: {self.laser.unknown}; the procedure was not started")
         for name, held in (("slm", self.slm.held if self.slm else None), ("camera", self.camera)):
             if name in devices and held is not None:
                 held.release()

@@ -55,15 +55,27 @@ class LaserControl:
             self._watch.start()
 
     def close(self) -> None:
-        """Emission off on every channel and the laser closed (the driver's close); the dead-man stops."""
+        """The dead-man stops and the laser is let go (`let_go`); never raises: `unknown` keeps why emission could
+        not be confirmed off, for the console's last word."""
         self._stop.set()
+        self.let_go()
+
+    def let_go(self) -> bool:
+        """Emission off on every channel, setpoints back and the laser closed (the driver's close, which closes the
+        ports however it ends). True when emission is known to be off (confirmed now, or by an earlier let-go);
+        False, with `unknown` saying why, when switching off could not be confirmed."""
+        was_held = self.held.connected
         try:
             self.held.release()
-        except EmissionNotOff as exc:
-            self.unknown = str(exc)
-            raise
+        except Exception as exc:  # noqa: BLE001 - whatever went wrong on the way out, emission is not confirmed off
+            self.unknown = str(exc) if UNKNOWN_EMISSION in str(exc) else f"{exc}; {UNKNOWN_EMISSION}"
+            self.say(f"laser: letting go failed: {self.unknown}")
+            return False
         finally:
             self.emitting.clear()
+        if was_held:
+            self.unknown = None
+        return self.unknown is None
 
     def _shut(self, laser: Laser) -> None:
         """Let go of the laser as a run does: emission off, every setpoint back to the profile's (said), closed."""

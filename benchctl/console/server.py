@@ -26,6 +26,7 @@ from benchctl.profiles import Profile
 # torch threads in the console's process (the live view's light; holograms run in their own process). On a busy
 # 2-core machine one thread recomputed the light twice as fast as two, which waited for each other (docs/console.md).
 LIVE_VIEW_THREADS = 1
+STOPPED_UNKNOWN = "emission state UNKNOWN, possibly ON: check the laser"
 
 
 class _Server(uvicorn.Server):
@@ -88,7 +89,8 @@ def listen(bind: str, port: int) -> socket.socket:
 
 def serve(profile: Profile, *, port: int, bind: str = "127.0.0.1", out: Path = Path("runs"),
           procedures: Path | None = None, deadman_s: float = DEADMAN_S, say: Callable[[str], None] = print) -> None:
-    """Run the console until a termination signal; every device is closed (emission off first) however it ends."""
+    """Run the console until a termination signal; every device is closed (emission off first) however it ends.
+    BenchctlError (after the laser's own line) when emission could not be confirmed off."""
     import torch
 
     torch.set_num_threads(LIVE_VIEW_THREADS)
@@ -113,5 +115,8 @@ def serve(profile: Profile, *, port: int, bind: str = "127.0.0.1", out: Path = P
         _Server(config, console).run(sockets=[sock])
     finally:
         sock.close()
-        console.close()
+        unknown = console.close()
+        if unknown is not None:  # the last word is what is known, and the exit status says it went wrong
+            say(f"laser: {unknown}")
+            raise BenchctlError(f"console stopped: {STOPPED_UNKNOWN}") from None
         say("console stopped: emission off, devices closed")
