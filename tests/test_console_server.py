@@ -51,7 +51,7 @@ def console(bench_profile_path: Path, tmp_path: Path) -> Iterator[Console]:
 @pytest.fixture
 def client(console: Console) -> Iterator[TestClient]:
     with TestClient(create_app(console, access()), base_url=ORIGIN) as client:
-        client.headers["x-benchctl-token"] = TOKEN
+        client.headers.update({"x-benchctl-token": TOKEN, "origin": ORIGIN})  # as the page sends them
         yield client
 
 
@@ -78,18 +78,36 @@ def wait_for(condition, timeout_s: float = 10.0) -> bool:
     return condition()
 
 
-def test_the_page_needs_the_token_once_then_a_cookie(console: Console) -> None:
+def test_the_page_needs_the_token_in_its_url_and_no_cookie_holds_it(console: Console) -> None:
     with TestClient(create_app(console, access()), base_url=ORIGIN) as client:
         assert client.get("/").status_code == 403
         assert client.get("/?token=wrong").status_code == 403
-        first = client.get(f"/?token={TOKEN}", follow_redirects=False)
-        assert first.status_code == 303 and first.headers["location"] == "/"
-        assert "HttpOnly" in first.headers["set-cookie"] and "SameSite=Strict" in first.headers["set-cookie"]
-        page = client.get("/")  # the cookie the redirect set
+        page = client.get(f"/?token={TOKEN}", follow_redirects=False)
         assert page.status_code == 200 and "<title>benchctl console</title>" in page.text
-        assert client.get("/static/console.js").text.startswith("// benchctl console page")
-        assert client.get("/static/../core.py").status_code == 404
+        assert "set-cookie" not in page.headers and not client.cookies  # cookies ignore ports: never the token
+        assert page.headers["referrer-policy"] == "no-referrer"
+        assert client.get("/").status_code == 403  # nothing was kept: the page sends the token itself
+        assert client.get("/static/console.js").text.startswith("// benchctl console page")  # no secret in it
+        assert client.get("/static/../core.py").status_code == 403  # /core.py: not the page's, needs the token
         assert client.get("/static/secrets.txt").status_code == 404
+        assert client.get("/api/state").status_code == 403
+        assert client.get("/api/state", headers={TOKEN_HEADER: TOKEN}).status_code == 200
+
+
+def test_a_request_that_changes_a_device_needs_the_pages_origin(console: Console, sent: list[str]) -> None:
+    with TestClient(create_app(console, access()), base_url=ORIGIN) as client:
+        refused = client.post("/api/laser/green/power", json={"power": "5mW"}, headers={TOKEN_HEADER: TOKEN})
+        assert refused.status_code == 403 and "needs the Origin header" in refused.text
+        with pytest.raises(WebSocketDisconnect) as closed:
+            with client.websocket_connect(f"{WS}?token={TOKEN}"):
+                pass
+        assert closed.value.code == 1008
+        assert sent == [] and laser_channel(2)["setpoint_w"] == 0.0
+        allowed = client.post("/api/laser/green/power", json={"power": "5mW"},
+                              headers={TOKEN_HEADER: TOKEN, "origin": ORIGIN})
+        assert allowed.status_code == 200 and laser_channel(2)["setpoint_w"] == pytest.approx(0.005)
+        with client.websocket_connect(f"{WS}?token={TOKEN}", headers={"origin": ORIGIN}) as page:
+            assert next_frame(page)[0]["seq"] >= 1  # the page's socket: token in its URL, its Origin
 
 
 def test_the_page_loads_nothing_from_the_internet(client: TestClient) -> None:
@@ -104,6 +122,7 @@ def test_the_page_loads_nothing_from_the_internet(client: TestClient) -> None:
     {"x-benchctl-token": TOKEN, "origin": "http://evil.example"},  # a cross-site page (CSRF)
     {"x-benchctl-token": TOKEN, "host": f"evil.example:{PORT}"},  # DNS rebinding: the hostile name arrives
     {"x-benchctl-token": TOKEN, "origin": f"http://127.0.0.1:{PORT + 1}"},  # another local server's page
+    {"cookie": f"benchctl_console_{PORT}={TOKEN}", "origin": ORIGIN},  # a cookie is no credential
 ])
 def test_refused_requests_reach_no_device(console: Console, sent: list[str], headers: dict[str, str]) -> None:
     before = (laser_channel(2), read_displayed()[1])
@@ -385,7 +404,8 @@ def console_process(profile_path: Path, tmp_path: Path, *options: str) -> Iterat
         while not (url := re.search(r"http://\S+", lines[-1] if lines else "")):
             lines.append(server.stdout.readline())
             assert lines[-1], "".join(lines)
-        headers = {"x-benchctl-token": url.group(0).split("token=")[1], "content-type": "application/json"}
+        headers = {"x-benchctl-token": url.group(0).split("token=")[1], "content-type": "application/json",
+                   "origin": url.group(0).split("/?")[0]}
         yield server, url.group(0).split("/?")[0], headers
     finally:
         if server.poll() is None:

@@ -43,7 +43,7 @@ class _Client:
         from websockets.sync.client import connect
 
         self.base, token = url.split("/?token=")
-        self.headers = {"x-benchctl-token": token, "content-type": "application/json"}
+        self.headers = {"x-benchctl-token": token, "content-type": "application/json", "origin": self.base}
         self.socket = stack.enter_context(connect(self.base.replace("http://", "ws://") + "/ws",
                                                   additional_headers=self.headers, max_size=None))
         self._beat = 0.0

@@ -1,6 +1,9 @@
-// benchctl console page: live view over a WebSocket, controls over JSON POSTs (same origin, token cookie).
+// benchctl console page: live view over a WebSocket, controls over JSON POSTs. The token comes from this page's URL
+// and goes with every request as a header (and in the socket's URL), never as a cookie: cookies ignore ports, so
+// every other web server on this computer would receive it.
 "use strict";
 const $ = (id) => document.getElementById(id);
+const TOKEN = new URLSearchParams(location.search).get("token") || "";
 const COLOURS = ["#ff5050", "#40d060", "#5090ff"];
 let info = null;
 let socket = null;
@@ -14,10 +17,11 @@ let laserState = {};
 function say(text) { const pre = $("events"); pre.textContent = text + "\n" + pre.textContent; }
 
 async function api(path, body, raw) {
-  const options = { method: body === undefined ? "GET" : "POST", credentials: "same-origin" };
+  const options = { method: body === undefined ? "GET" : "POST", credentials: "omit",
+    headers: { "x-benchctl-token": TOKEN } };
   if (body !== undefined) {
     options.body = raw ? body : JSON.stringify(body);
-    options.headers = { "content-type": raw ? "application/octet-stream" : "application/json" };
+    options.headers["content-type"] = raw ? "application/octet-stream" : "application/json";
   }
   const response = await fetch(path, options);
   const data = await response.json().catch(() => ({ error: `HTTP ${response.status}` }));
@@ -30,6 +34,7 @@ function option(select, value, text) {
 }
 
 async function init() {
+  $("report").href = "/api/procedures/report?token=" + encodeURIComponent(TOKEN);
   info = await api("/api/info");
   $("profile").textContent = "profile " + info.profile;
   if (info.deadman_s) $("deadman").textContent = `(emission off ${info.deadman_s} s after the page goes away)`;
@@ -74,7 +79,7 @@ function showFields() {
 }
 
 function connect() {
-  socket = new WebSocket(`ws://${location.host}/ws`);
+  socket = new WebSocket(`ws://${location.host}/ws?token=${encodeURIComponent(TOKEN)}`);
   socket.binaryType = "arraybuffer";
   socket.onopen = () => { $("link").textContent = "connected"; $("link").className = "badge on"; drawnSeq = 0; };
   socket.onclose = () => {
@@ -189,7 +194,7 @@ function state(s) {
   $("show").disabled = !!job.busy; $("capture").disabled = !!job.busy;
   if (s.slm) {
     const shows = s.slm.shows;
-    if (shows.frame !== shownFrame) { shownFrame = shows.frame; $("thumbnail").src = "/api/slm/thumbnail.png?f=" + shows.frame; }
+    if (shows.frame !== shownFrame) { shownFrame = shows.frame; thumbnail(); }
     $("slm-shows").textContent = shows.kind ? describe(shows) : (s.slm.error || "nothing shown yet");
   }
   for (const [id, name] of Object.entries(s.uploads)) {
@@ -199,6 +204,15 @@ function state(s) {
   $("procedure-lines").textContent = p.lines.join("\n") || $("procedure-lines").textContent;
   $("report").hidden = !p.report;
   $("stop").disabled = !p.running;
+}
+
+let thumbnailUrl = null;
+async function thumbnail() {
+  const response = await fetch("/api/slm/thumbnail.png", { credentials: "omit", headers: { "x-benchctl-token": TOKEN } });
+  if (!response.ok) return;
+  if (thumbnailUrl) URL.revokeObjectURL(thumbnailUrl);
+  thumbnailUrl = URL.createObjectURL(await response.blob());
+  $("thumbnail").src = thumbnailUrl;
 }
 
 function describe(shows) {
