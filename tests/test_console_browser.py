@@ -20,7 +20,8 @@ from selenium.webdriver.support.ui import Select
 
 from benchctl.console.app import create_app
 from benchctl.console.core import Console
-from benchctl.console.server import listen
+from benchctl.console.connections import Limits
+from benchctl.console.server import listen, server_config
 from benchctl.devices.sim.slm import read_displayed
 from benchctl.profiles import load_profile
 from console_bench import TOKEN, access, laser_channel, make_console
@@ -32,12 +33,14 @@ BROWSER_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-backgr
 
 
 @contextlib.contextmanager
-def serve(profile_path: Path, tmp_path: Path, deadman_s: float = 30.0) -> Iterator[tuple[Console, str]]:
-    """A console on the small bench behind a real uvicorn server on a free port; its URL with the token."""
+def serve(profile_path: Path, tmp_path: Path, deadman_s: float = 30.0,
+          limits: Limits | None = None) -> Iterator[tuple[Console, str]]:
+    """A console on the small bench behind a real uvicorn server (as `benchctl console` configures it, `limits`
+    for its connections) on a free port; its URL with the token."""
     console = make_console(load_profile(profile_path), tmp_path, deadman_s=deadman_s)
     sock = listen("127.0.0.1", 0)
     port = sock.getsockname()[1]
-    server = uvicorn.Server(uvicorn.Config(create_app(console, access(port)), log_level="warning", lifespan="off"))
+    server = uvicorn.Server(server_config(create_app(console, access(port)), limits))
     thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
     thread.start()
     try:

@@ -141,6 +141,15 @@ class Console:
         finally:
             self.refresh_laser()
 
+    def emission_off(self) -> dict[str, Any]:
+        """ALL OFF: a procedure that holds the laser is stopped (SIGTERM: the runner switches emission off), else
+        emission off on every channel, read back."""
+        if self.procedures.active:
+            self.procedures.stop()
+            return {"ok": True, "stopped": "procedure"}
+        self.all_off()
+        return {"ok": True}
+
     def refresh_laser(self) -> None:
         """Read the laser's state now (also done twice a second)."""
         if self.laser is not None:

@@ -13,10 +13,12 @@ import threading
 from collections.abc import Callable
 from pathlib import Path
 from types import FrameType
+from typing import Any
 
 import uvicorn
 
 from benchctl.console.app import create_app
+from benchctl.console.connections import BACKLOG, Limits, guarded_protocol
 from benchctl.console.core import Console
 from benchctl.console.laser import DEADMAN_S
 from benchctl.console.security import LOOPBACK_NAMES, Access, new_token
@@ -83,8 +85,15 @@ def listen(bind: str, port: int) -> socket.socket:
     except OSError as exc:
         sock.close()
         raise BenchctlError(f"cannot listen on {bind}:{port}: {exc.strerror or exc} (choose another --port)") from None
-    sock.listen(64)
+    sock.listen(BACKLOG)
     return sock
+
+
+def server_config(app: Any, limits: Limits | None = None) -> uvicorn.Config:
+    """uvicorn's settings for the console: its connections bounded (`connections.Limits`, this process's by
+    default), quiet, and a short graceful shutdown."""
+    return uvicorn.Config(app, log_level="warning", lifespan="off", timeout_graceful_shutdown=2, backlog=BACKLOG,
+                          http=guarded_protocol(limits or Limits.for_this_process()))
 
 
 def serve(profile: Profile, *, port: int, bind: str = "127.0.0.1", out: Path = Path("runs"),
@@ -102,8 +111,7 @@ def serve(profile: Profile, *, port: int, bind: str = "127.0.0.1", out: Path = P
         console.start()
         for line in list(console.events):
             say(line)
-        config = uvicorn.Config(create_app(console, access), log_level="warning", lifespan="off",
-                                timeout_graceful_shutdown=2)
+        config = server_config(create_app(console, access))
         host = "127.0.0.1" if is_loopback(bind) else url_host(bind)
         if host.strip("[]") in ("0.0.0.0", "::"):
             host = url_host(socket.gethostname())

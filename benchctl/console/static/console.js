@@ -87,7 +87,11 @@ function connect() {
     setTimeout(connect, 1000);
   };
   socket.onmessage = (event) => {
-    if (typeof event.data === "string") { send("heartbeat"); state(JSON.parse(event.data)); }
+    if (typeof event.data === "string") {
+      send("heartbeat");
+      const message = JSON.parse(event.data);
+      if ("all_off" in message) allOffAnswered(message.all_off); else state(message);
+    }
     else frame(event.data).then((seq) => send("ack " + seq), () => send("ack " + lastSeq));
   };
 }
@@ -246,7 +250,22 @@ function pattern() {
 
 $("kind").onchange = showFields;
 $("show").onclick = () => api("/api/slm", pattern()).catch(() => {});
-$("all-off").onclick = () => api("/api/laser/off", {}).then(() => say("all off"), () => {});
+// ALL OFF goes over the open socket first: it needs no new connection, so a flood of connections to the console
+// cannot hold it up; a request is the fallback when the socket is closed or does not answer within 2 s.
+let allOffWait = null;
+function allOff() {
+  if (socket && socket.readyState === 1) {
+    socket.send("all-off");
+    clearTimeout(allOffWait);
+    allOffWait = setTimeout(allOffByRequest, 2000);
+  } else allOffByRequest();
+}
+function allOffByRequest() { allOffWait = null; api("/api/laser/off", {}).then(() => say("all off"), () => {}); }
+function allOffAnswered(answer) {
+  clearTimeout(allOffWait); allOffWait = null;
+  say(answer.error ? "ALL OFF: " + answer.error : answer.stopped ? "all off: the procedure was stopped" : "all off");
+}
+$("all-off").onclick = allOff;
 $("zoom-clear").onclick = () => api("/api/view", { zoom: null }).catch(() => {});
 for (const radio of document.querySelectorAll("input[name=mode]")) radio.onchange = () => api("/api/view", { mode: radio.value }).catch(() => {});
 $("frame").onclick = (event) => {
