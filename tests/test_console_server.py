@@ -36,6 +36,7 @@ from benchctl.console.server import allowed_hosts
 from benchctl.console.uploads import MAX_UPLOADS
 from benchctl.devices.serial_link import SerialLink
 from benchctl.devices.sim.slm import read_displayed
+from benchctl.errors import BadValueError
 from benchctl.optics.aberration import wavefront_phase
 from benchctl.profiles import load_profile
 from console_bench import (ORIGIN, PORT, TOKEN, WS, access, expected_phase_frame, laser_channel, make_console,
@@ -228,6 +229,12 @@ def test_stopping_the_console_leaves_emission_off_at_the_profiles_setpoint(bench
     assert laser_channel(2)["setpoint_w"] == pytest.approx(2e-3)  # the profile's: the next `laser on` is no surprise
 
 
+def test_a_dead_man_of_more_than_minutes_is_refused_by_the_console_itself(bench_profile_path: Path,
+                                                                         tmp_path: Path) -> None:
+    with pytest.raises(BadValueError, match="at most 300 s, got 1e"):
+        Console(load_profile(bench_profile_path), tmp_path, deadman_s=1e9)
+
+
 def test_slm_patterns_round_trip_to_the_displayed_frame(client: TestClient, bench_profile_path: Path) -> None:
     profile = load_profile(bench_profile_path)
     rows, cols = profile.slm.shape
@@ -388,6 +395,30 @@ def test_procedures_dry_run_then_run_with_the_devices_handed_over(client: TestCl
     assert any(line.startswith("run folder: ") for line in state["lines"]) and state["report"]
     assert "<html" in client.get("/api/procedures/report").text.lower()
     assert wait_for(lambda: console.laser.held.connected and console.camera.connected, 5)
+
+
+def test_the_console_runs_only_what_its_procedures_folder_holds(client: TestClient, tmp_path: Path) -> None:
+    """A TOML procedure names a Python file, and a dry run imports it: one outside the console's folder (an absolute
+    path, ../) is refused before that; a link that leads out of the folder is not even offered."""
+    outside = tmp_path / "elsewhere"
+    outside.mkdir()
+    marker = tmp_path / "imported"
+    (outside / "evil.py").write_text(f"open({str(marker)!r}, 'w').close()\n")
+    (outside / "evil.toml").write_text('procedure = "evil.py"\n')
+    folder = tmp_path / "procedures"
+    (folder / "absolute.toml").write_text(f'procedure = "{outside / "evil.py"}"\n')
+    (folder / "up.toml").write_text('procedure = "../elsewhere/evil.py"\n')
+    (folder / "linked.toml").symlink_to(outside / "evil.toml")
+    (folder / "inside.py").write_text("")  # a Python file the folder holds is offered (it fails its dry run)
+    assert client.get("/api/info").json()["procedures"] == ["absolute.toml", "inside.py", "sweep.toml", "up.toml"]
+    for name, named in (("absolute.toml", str(outside / "evil.py")), ("up.toml", "../elsewhere/evil.py")):
+        for path in ("/api/procedures/dry-run", "/api/procedures/start"):
+            refused = client.post(path, json={"name": name}).json()["error"]
+            assert refused == (f"{name}: procedure = {named!r} is outside the console's procedures folder {folder}: "
+                               "the console runs only what its folder holds"), refused
+    assert "no procedure 'linked.toml'" in client.post("/api/procedures/dry-run", json={"name": "linked.toml"}).json()[
+        "error"]
+    assert not marker.exists()
 
 
 @contextlib.contextmanager

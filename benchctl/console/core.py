@@ -44,8 +44,8 @@ class Console:
         self.profile = profile
         self.out = Path(out)
         self.events: deque[str] = deque(maxlen=EVENTS_KEPT)
-        self.uploads = Uploads()
         self.laser = LaserControl(profile, self.say, deadman_s) if profile.laser is not None else None
+        self.uploads = Uploads()
         self.slm = (SlmControl(profile, self.uploads, self._checkpoints())
                     if profile.slm is not None and profile.optics is not None else None)
         self.camera: Held[Camera] | None = (Held("camera", lambda: open_camera(profile), Camera.close)

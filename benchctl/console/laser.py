@@ -20,10 +20,11 @@ from benchctl.devices.errors import EmissionNotOff
 from benchctl.devices.laser import Laser, open_laser
 from benchctl.devices.laser.base import UNKNOWN_EMISSION
 from benchctl.devices.power import format_power
-from benchctl.errors import BenchctlError
+from benchctl.errors import BadValueError, BenchctlError
 from benchctl.profiles import Profile
 
 DEADMAN_S = 3.0  # no heartbeat from any page for this long: emission off
+MAX_DEADMAN_S = 300.0  # a dead-man that waits longer than minutes guards nothing
 STALL_S = 0.5  # the watchdog woke this late: the process was stopped
 STALL_GRACE_S = 1.0  # after a stall, time for the server to read what the page sent meanwhile
 
@@ -36,6 +37,9 @@ class LaserControl:
         self.config = profile.section("laser")
         self.held: Held[Laser] = Held("laser", lambda: open_laser(self.config), self._shut)
         self.say = say
+        if not 0 < deadman_s <= MAX_DEADMAN_S:
+            raise BadValueError(f"the dead-man timeout must be above 0 and at most {MAX_DEADMAN_S:g} s, got "
+                                f"{deadman_s:g} s")
         self.deadman_s = deadman_s
         self.emitting: set[str] = set()  # channels this console switched on and not off since
         self.unknown: str | None = None  # set when a switch-off could not be confirmed
