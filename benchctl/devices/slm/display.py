@@ -131,6 +131,7 @@ class DisplaySLM(SLM):
         self._rows_per_request = max(1, request_bytes // (4 * output.width))
         self._presenter = Presenter.on(self._x, self._window, output.crtc)
         self._x.sync()
+        self._current = np.zeros(self.shape, self.gray_dtype)  # a new window shows its black background
 
     @property
     def presentation(self) -> str:
