@@ -9,6 +9,7 @@ import json
 import threading
 import time
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -32,11 +33,18 @@ BROWSER_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-backgr
                 "--disable-component-update", "--disable-sync", "--no-first-run", "--window-size=1500,1000"]
 
 
+@dataclass
+class Served:
+    console: Console
+    url: str  # with the token, as printed
+    server: uvicorn.Server
+
+
 @contextlib.contextmanager
-def serve(profile_path: Path, tmp_path: Path, deadman_s: float = 30.0,
-          limits: Limits | None = None) -> Iterator[tuple[Console, str]]:
+def serving(profile_path: Path, tmp_path: Path, deadman_s: float = 30.0,
+            limits: Limits | None = None) -> Iterator[Served]:
     """A console on the small bench behind a real uvicorn server (as `benchctl console` configures it, `limits`
-    for its connections) on a free port; its URL with the token."""
+    for its connections) on a free port."""
     console = make_console(load_profile(profile_path), tmp_path, deadman_s=deadman_s)
     sock = listen("127.0.0.1", 0)
     port = sock.getsockname()[1]
@@ -44,12 +52,20 @@ def serve(profile_path: Path, tmp_path: Path, deadman_s: float = 30.0,
     thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
     thread.start()
     try:
-        yield console, f"http://127.0.0.1:{port}/?token={TOKEN}"
+        yield Served(console, f"http://127.0.0.1:{port}/?token={TOKEN}", server)
     finally:
         server.should_exit = True
         thread.join(timeout=10)
         sock.close()
         console.close()
+
+
+@contextlib.contextmanager
+def serve(profile_path: Path, tmp_path: Path, deadman_s: float = 30.0,
+          limits: Limits | None = None) -> Iterator[tuple[Console, str]]:
+    """`serving`'s console and URL."""
+    with serving(profile_path, tmp_path, deadman_s, limits) as served:
+        yield served.console, served.url
 
 
 @pytest.fixture
@@ -277,3 +293,62 @@ def test_another_local_server_never_receives_what_moves_the_laser(served: tuple[
     assert "benchctl" not in received.lower(), received  # no cookie, no header of the console's
     assert not laser_channel(2)["emission"] and laser_channel(2)["setpoint_w"] == pytest.approx(0.003)
     assert not any("emission ON" in line for line in console.events)
+
+
+def test_a_page_that_lost_its_console_greys_out_and_says_the_laser_state_is_unknown(
+        bench_profile_path: Path, tmp_path: Path, browser: webdriver.Chrome) -> None:
+    """A new user saw "green ON, out 6.995 mW" long after the console had stopped: a page that lost its console
+    knows nothing of the bench."""
+    with serving(bench_profile_path, tmp_path) as served:
+        connected(browser, served.url)
+        served.console.set_power("green", "1mW")
+        row = browser.find_element(By.ID, "laser-green")
+        row.find_element(By.CLASS_NAME, "emit").click()
+        until(lambda: row.find_element(By.CLASS_NAME, "emit").text == "ON")
+        assert not browser.find_element(By.ID, "lost").is_displayed()
+        served.server.should_exit = True  # the console stops (here without switching the light off first)
+        until(lambda: "lost" in browser.find_element(By.TAG_NAME, "body").get_attribute("class"))
+    banner = browser.find_element(By.ID, "lost")
+    assert banner.is_displayed() and "laser's state is UNKNOWN (possibly ON)" in banner.text
+    assert "benchctl laser off" in banner.text
+    enabled = browser.execute_script("return [...document.querySelectorAll('button, input, select')]"
+                                     ".filter(e => !e.disabled).map(e => e.id || e.className);")
+    assert enabled == [], enabled
+    assert row.find_element(By.CLASS_NAME, "emit").text == "?" and "ON" not in row.text
+    assert row.find_element(By.CLASS_NAME, "readback").text == "unknown"
+    assert browser.find_element(By.TAG_NAME, "main").value_of_css_property("opacity") == "0.45"
+    browser.save_screenshot(str(tmp_path / "lost.png"))
+
+
+def page_width(browser: webdriver.Chrome) -> list[int]:
+    return browser.execute_script("const e = document.documentElement; return [e.scrollWidth, e.clientWidth];")
+
+
+def cut_off(browser: webdriver.Chrome, panel: str) -> list[str]:
+    """The visible controls of `panel` that reach past its right edge (off its column, or off the screen)."""
+    return browser.execute_script("""
+        const panel = document.getElementById(arguments[0]).getBoundingClientRect();
+        return [...document.getElementById(arguments[0]).querySelectorAll('input, select, button, img')]
+          .filter(e => e.offsetParent !== null && e.getBoundingClientRect().right > panel.right + 0.5)
+          .map(e => e.id || e.className || e.tagName);""", panel)
+
+
+@pytest.mark.parametrize("width", [1000, 1400])
+def test_nothing_is_wider_than_the_window(served: tuple[Console, str], browser: webdriver.Chrome, tmp_path: Path,
+                                         width: int) -> None:
+    """The hologram form was wider than the window at 1000 and 1400 px (the colour and iterations off-screen), and a
+    click for the zoom pushed more out."""
+    console, url = served
+    browser.set_window_size(width, 900)
+    connected(browser, url)
+    Select(browser.find_element(By.ID, "kind")).select_by_value("hologram")
+    browser.find_element(By.CSS_SELECTOR, "#zernike-box summary").click()
+    assert page_width(browser)[0] <= page_width(browser)[1], page_width(browser)
+    assert cut_off(browser, "slm-panel") == [] and cut_off(browser, "laser-panel") == []
+    browser.find_element(By.ID, "frame").click()  # the 1:1 zoom appears beside the histogram
+    until(lambda: browser.find_element(By.ID, "zoom-box").is_displayed())
+    until(lambda: browser.execute_script("return document.getElementById('zoom').naturalWidth > 0;"))
+    assert page_width(browser)[0] <= page_width(browser)[1], page_width(browser)
+    assert cut_off(browser, "view") == [] and cut_off(browser, "slm-panel") == []
+    assert browser.find_element(By.ID, "all-off").is_displayed()
+    browser.save_screenshot(str(tmp_path / f"console-{width}.png"))

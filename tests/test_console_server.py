@@ -256,6 +256,52 @@ def test_slm_patterns_round_trip_to_the_displayed_frame(client: TestClient, benc
     assert thumbnail.shape == (rows, cols) and not thumbnail.any()  # 192 px wide: shown at its own size
 
 
+def test_the_slm_panel_shows_what_the_slm_holds_and_who_put_it_there(bench_profile_path: Path,
+                                                                     tmp_path: Path) -> None:
+    """A new user met "nothing shown yet" while the panel held an earlier frame, and after a procedure the console
+    still named its own old hologram: the console reads the frame and its provenance from the device."""
+    from benchctl.images import write_png
+
+    profile = load_profile(bench_profile_path)
+    rows, cols = profile.slm.shape
+    earlier = (np.indices((rows, cols)).sum(axis=0) % 256).astype(np.uint8)
+    write_png(tmp_path / "earlier.png", earlier)
+
+    def benchctl(*argv: str) -> None:  # another program on this bench
+        subprocess.run([sys.executable, "-m", "benchctl", *argv, "-p", str(bench_profile_path)], check=True,
+                       capture_output=True)
+
+    def thumbnail() -> np.ndarray:
+        return cv2.imdecode(np.frombuffer(client.get("/api/slm/thumbnail.png").content, np.uint8), 0)
+
+    benchctl("slm", "show", str(tmp_path / "earlier.png"))
+    console = make_console(profile, tmp_path)
+    try:
+        with TestClient(create_app(console, access()), base_url=ORIGIN) as client:
+            client.headers.update({"x-benchctl-token": TOKEN, "origin": ORIGIN})
+            shows = client.get("/api/state").json()["slm"]["shows"]
+            assert shows["kind"] is None and shows["frame"] == 1 and shows["by"].startswith("`benchctl slm show` (pid")
+            assert np.array_equal(thumbnail(), earlier)  # the panel's frame, not a blank one
+            assert any("at start: the SLM shows frame 1, put there by `benchctl slm show`" in line
+                       for line in console.events)
+            own = client.post("/api/slm", json={"kind": "grating", "period_px": 8, "channel": "green"}).json()
+            assert own["frame"] == 2 and own["by"].endswith(f"(pid {os.getpid()})")  # this console's
+            console._release_for_run(["slm"])  # a procedure takes the SLM and shows a frame of its own
+            benchctl("slm", "blank")
+            console._reconnect()
+            shows = client.get("/api/state").json()["slm"]["shows"]
+            assert (shows["kind"], shows["frame"], shows["at"]) == (None, 3, read_displayed()[1]["time"])
+            assert shows["by"].startswith("`benchctl slm blank` (pid")
+            assert any("after procedure None: the SLM shows frame 3, put there by `benchctl slm blank`" in line
+                       for line in console.events)
+            assert not thumbnail().any()
+            console._release_for_run(["slm"])  # a procedure that leaves the SLM alone: nothing to say
+            console._reconnect()
+            assert sum("the SLM shows frame" in line for line in console.events) == 2
+    finally:
+        console.close()
+
+
 def test_holograms_are_the_ones_a_run_displays(client: TestClient, bench_profile_path: Path) -> None:
     from benchctl.runner.hologram_cache import hologram
     from benchctl.targets import load_target, prepare_target

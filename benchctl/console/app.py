@@ -141,16 +141,7 @@ def create_app(console: Console, access: Access) -> AccessMiddleware:
         return await _in_thread(console.capture, frames)
 
     async def connect(request: Request) -> dict[str, Any]:
-        name = (await body(request)).get("device")
-        devices = {"laser": console.laser.held if console.laser else None,
-                   "slm": console.slm.held if console.slm else None, "camera": console.camera}
-        held = devices.get(name) if isinstance(name, str) else None
-        if held is None:
-            raise BadValueError(f"no device {name!r} to connect (laser, slm or camera)")
-        if console.procedures.active:
-            raise BenchctlError("a procedure holds the devices; wait for it or stop it")
-        await _in_thread(console.laser.connect if name == "laser" and console.laser else held.connect)
-        return {"connected": held.connected, "error": held.error}
+        return await _in_thread(console.connect, str((await body(request)).get("device")))
 
     async def dry_run(request: Request) -> dict[str, Any]:
         name = (await body(request)).get("name")

@@ -76,6 +76,7 @@ class Console:
         for held in (self.slm.held if self.slm else None, self.camera):
             if held is not None and not held.connect():
                 self.say(f"{held.name}: {held.error}")
+        self._read_slm("at start")
         self.refresh_laser()
         for thread in self._threads:
             thread.start()
@@ -204,7 +205,7 @@ class Console:
     def _slm_settings(self) -> dict[str, Any] | None:
         if self.slm is None or not self.slm.held.connected:
             return None
-        with self.slm.held.use() as slm:
+        with self.slm.device() as slm:
             return {"shows": self.slm.shown, "info": slm.info(), "displayed_frame": slm.displayed_frame()}
 
     def set_view(self, mode: str | None, zoom: list[float] | None, clear_zoom: bool) -> None:
@@ -293,9 +294,35 @@ class Console:
                 held.release()
 
     def _reconnect(self) -> None:
+        """Take the devices back after a procedure, and say when it changed what the SLM shows."""
         for held in (self.laser.held if self.laser else None, self.slm.held if self.slm else None, self.camera):
             if held is not None and not held.connected:
                 held.connect()
+        self._read_slm(f"after procedure {self.procedures.running}")
+
+    def connect(self, name: str) -> dict[str, Any]:
+        """Connect device `name` (laser, slm or camera) again, e.g. after it was lost or held elsewhere."""
+        devices = {"laser": self.laser.held if self.laser else None, "slm": self.slm.held if self.slm else None,
+                   "camera": self.camera}
+        held = devices.get(name)
+        if held is None:
+            raise BadValueError(f"no device {name!r} to connect (laser, slm or camera)")
+        if self.procedures.active:
+            raise BenchctlError("a procedure holds the devices; wait for it or stop it")
+        if name == "laser" and self.laser is not None:
+            self.laser.connect()
+        elif held.connect() and name == "slm":
+            self._read_slm("connected again")
+        return {"connected": held.connected, "error": held.error}
+
+    def _read_slm(self, when: str) -> None:
+        if self.slm is not None:
+            try:
+                changed = self.slm.read_device()
+            except BenchctlError as exc:
+                changed = str(exc)
+            if changed:
+                self.say(f"{when}: {changed}")
 
     # -- state -----------------------------------------------------------------------------------------------------
 
