@@ -168,7 +168,8 @@ def test_capture_from_the_page(served: tuple[Console, str], browser: webdriver.C
     folder = Path(result.split(": ")[0])
     assert folder.parent == tmp_path / "runs" and folder.is_dir()
     assert result.endswith(": frame-000.dng, frame-001.dng, settings.json")  # the SLM has shown nothing yet
-    assert sorted(path.name for path in folder.iterdir()) == ["frame-000.dng", "frame-001.dng", "settings.json"]
+    assert sorted(path.name for path in folder.iterdir()) == ["frame-000.dng", "frame-001.dng", "run.json",
+                                                              "settings.json", "steps.jsonl"]
     assert len(json.loads((folder / "settings.json").read_text())["camera"]["frames"]) == 2
     until(lambda: "capture done" in browser.find_element(By.ID, "job").text)
 

@@ -402,6 +402,26 @@ def test_capture_writes_raw_frames_and_settings_into_a_new_folder(client: TestCl
     assert client.post("/api/capture", json={"frames": 0}).status_code == 400
 
 
+def test_console_captures_are_runs_that_runs_lists_and_removes(client: TestClient, tmp_path: Path,
+                                                                capsys: pytest.CaptureFixture[str]) -> None:
+    """A new user found console captures invisible to `benchctl runs`, and `runs remove` refused them."""
+    from benchctl.cli import main
+    from benchctl.files import file_sha256
+
+    client.post("/api/slm", json={"kind": "grating", "period_px": 6, "channel": "green"})
+    folder = Path(client.post("/api/capture", json={"frames": 2}).json()["folder"])
+    steps = [json.loads(line) for line in (folder / "steps.jsonl").read_text().splitlines()]
+    assert [step["event"] for step in steps] == ["start", "done"]
+    assert steps[1]["result"]["sha256"] == {name: file_sha256(folder / name) for name in (
+        "frame-000.dng", "frame-001.dng", "settings.json", "slm-frame.png")}
+    assert main(["runs", "--out", str(tmp_path / "runs")]) == 0
+    listed = capsys.readouterr().out.splitlines()
+    assert listed[0].startswith(f"{folder.name}  console capture on bench  finished  ")
+    assert listed[0].endswith("  2 RAW frame(s) from the console") and listed[-1].startswith("1 run(s) in ")
+    assert main(["runs", "remove", str(folder), "--yes"]) == 0
+    assert f"removed {folder}" in capsys.readouterr().out and not folder.exists()
+
+
 def test_uploads_are_capped_and_named_by_number(client: TestClient, console: Console) -> None:
     ok, png = cv2.imencode(".png", np.full((40, 60, 3), 200, np.uint8))
     answer = client.post("/api/upload?name=../../evil.png", content=png.tobytes()).json()

@@ -198,7 +198,8 @@ class Console:
             settings = {"profile": {"name": self.profile.name, "path": str(self.profile.path)},
                         "laser": self.laser.status() if self.laser else None,
                         "slm": self._slm_settings()}
-            result = capture.capture(self.out, camera, frames, settings, self.slm.frame if self.slm else None)
+            result = capture.capture(self.out, self.profile, camera, frames, settings,
+                                     self.slm.frame if self.slm else None)
         self.say(f"captured {len(result['files'])} files into {result['folder']}")
         return result
 
