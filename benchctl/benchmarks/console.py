@@ -140,8 +140,12 @@ def run_console_bench(profile: str | None = None, seconds: float = 10.0, repeats
                 figures["load"] = [round(load, 2), round(os.getloadavg()[0], 2)]
                 say(f"load average {figures['load'][1]:.1f} at the end")
         finally:
-            process.terminate()
-            process.wait(timeout=30)
+            process.terminate()  # the console switches emission off and stops; a starved one is killed after 60 s
+            try:
+                process.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
         (out / "console.json").write_text(json.dumps(figures, indent=2) + "\n")
