@@ -72,6 +72,8 @@ def test_a_misspelt_method_in_a_procedure_gets_a_suggestion(tmp_path: Path, benc
     (["console", "--port", "99999"], "argument --port: must lie between 0 and 65535, got 99999"),
     (["console", "--deadman", "inf"], "argument --deadman: must be a finite number of seconds above 0, got 'inf'"),
     (["console", "--deadman", "0"], "argument --deadman: must be a finite number of seconds above 0, got '0'"),
+    (["console", "--deadman", "1e9"], "argument --deadman: must be at most 300 seconds (a dead-man switch that "
+                                      "waits longer guards nothing), got '1e9'"),
     (["bench", "console", "--seconds", "-1"],
      "argument --seconds: must be a finite number of seconds above 0, got '-1'"),
 ])
