@@ -312,8 +312,9 @@ def lock_dir(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.Monke
 
 # -- the quick loop stays quick -----------------------------------------------------------------------------------
 # `pytest -m "not slow"` is the loop a developer runs after each change: a test that takes longer than SLOW_S of
-# wall time belongs to the slow set. With BENCHCTL_TEST_TIMES=strict (what `make test` sets) an unmarked test over
-# it fails the session; a test still running after STILL_RUNNING_S is named on the terminal as it runs.
+# wall time belongs to the slow set. Every unmarked test over it is listed at the end; with
+# BENCHCTL_TEST_TIMES=strict (what `.ci/run` sets) it fails the session; a test still running after
+# STILL_RUNNING_S is named on the terminal as it runs.
 SLOW_S = 5.0
 STILL_RUNNING_S = 30.0
 _unmarked_slow: list[tuple[str, float]] = []
@@ -343,9 +344,10 @@ def pytest_runtest_logreport(report: pytest.TestReport) -> None:
 
 
 def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
-    if not _unmarked_slow or os.environ.get("BENCHCTL_TEST_TIMES") != "strict":
+    if not _unmarked_slow:
         return
     lines = "\n".join(f"  {seconds:5.1f} s  {nodeid}" for nodeid, seconds in sorted(_unmarked_slow))
     sys.__stderr__.write(f"\n{len(_unmarked_slow)} test(s) not marked slow took over {SLOW_S:g} s (mark them "
                          f"@pytest.mark.slow, or make them quicker):\n{lines}\n")
-    session.exitstatus = pytest.ExitCode.TESTS_FAILED
+    if os.environ.get("BENCHCTL_TEST_TIMES") == "strict":
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED
