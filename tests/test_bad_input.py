@@ -32,6 +32,7 @@ def png_header(height: int, width: int) -> bytes:
 # -- image files ----------------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_a_zero_byte_image_is_one_line_everywhere(tmp_path: Path, small_profile_path: Path, bench_profile_path: Path,
                                                   capsys: pytest.CaptureFixture[str]) -> None:
     empty = tmp_path / "data" / "empty.png"

@@ -22,8 +22,6 @@ from benchctl.optics.fitted import FitDiverged, FittedOptics, calibration_patter
 from benchctl.profiles import Profile
 from benchctl.runner.builtin import model_calibration
 
-pytestmark = pytest.mark.slow  # procedure runs: seconds each
-
 
 @pytest.fixture
 def profile(make_bench_profile: Callable[..., Profile]) -> Profile:
@@ -45,6 +43,7 @@ def fit_results(out: Path) -> dict:
     return {event["step"]: event["result"] for event in events if event["event"] == "done"}
 
 
+@pytest.mark.slow
 def test_captures_without_light_never_replace_a_good_model(tmp_path: Path, profile: Profile,
                                                            capsys: pytest.CaptureFixture[str]) -> None:
     """The red team's case: light that never reached the camera (residual 0.999 -> 0.998) replaced a stored model
@@ -79,6 +78,7 @@ def test_captures_without_light_never_replace_a_good_model(tmp_path: Path, profi
     assert not list(store.folder.glob("*rejected*.json"))  # kept only in rejected/, which later runs do not copy
 
 
+@pytest.mark.slow
 def test_a_fit_no_better_than_no_model_is_not_stored(tmp_path: Path, profile: Profile,
                                                      capsys: pytest.CaptureFixture[str]) -> None:
     """learning_rate = 1.0 (the bound) leaves the fit no better than the ideal model, or makes it diverge, depending
@@ -107,6 +107,7 @@ def test_patterns_without_points_are_refused_before_anything_runs(tmp_path: Path
                                   "20): at most 13"), line
 
 
+@pytest.mark.slow
 def test_a_fit_that_explains_only_its_own_captures_is_not_stored(tmp_path: Path, profile: Profile,
                                                                  capsys: pytest.CaptureFixture[str],
                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
@@ -137,6 +138,7 @@ def test_a_fit_that_explains_only_its_own_captures_is_not_stored(tmp_path: Path,
     assert not (Calibration.store(profile).folder / "optical-model.json").exists()
 
 
+@pytest.mark.slow
 def test_accept_always_stores_a_calibration_that_fails_and_says_so(tmp_path: Path, profile: Profile,
                                                                     capsys: pytest.CaptureFixture[str]) -> None:
     procedure = tmp_path / "model.toml"
@@ -153,6 +155,7 @@ def test_accept_always_stores_a_calibration_that_fails_and_says_so(tmp_path: Pat
     assert "yes, forced" in report
 
 
+@pytest.mark.slow
 def test_a_better_fit_replaces_the_stored_model_with_both_residuals_reported(
         tmp_path: Path, profile: Profile, capsys: pytest.CaptureFixture[str]) -> None:
     """A stored model without the beam (worse than the truth) is replaced by the fit, whose residual is lower on the
@@ -172,6 +175,7 @@ def test_a_better_fit_replaces_the_stored_model_with_both_residuals_reported(
     assert "stored only if it passes its acceptance test" in (folder / "report.html").read_text()
 
 
+@pytest.mark.slow
 def test_the_residual_of_a_given_model_is_the_fits_own(make_bench_profile: Callable[..., Profile]) -> None:
     """model_residual of the fitted model (with the fit's camera blur) is the residual fit_optics reports, so the
     stored model and the new fit are compared on one scale."""
@@ -241,6 +245,7 @@ gray_step = 16
 """
 
 
+@pytest.mark.slow
 def test_a_lookup_table_measured_without_light_keeps_the_stored_one(
         tmp_path: Path, make_bench_profile: Callable[..., Profile], capsys: pytest.CaptureFixture[str]) -> None:
     """A first table is measured and stored (on the gray levels it was not read from it beats the linear one: this
@@ -267,6 +272,7 @@ def test_a_lookup_table_measured_without_light_keeps_the_stored_one(
     assert "stored only if it passes its acceptance test" in report and "no table could be read" in report
 
 
+@pytest.mark.slow
 def test_a_lookup_table_is_judged_on_gray_levels_it_was_not_read_from(tmp_path: Path, profile: Profile,
                                                                       capsys: pytest.CaptureFixture[str]) -> None:
     """On this bench green's true response is the linear table. A table read from every signal follows them by
@@ -306,6 +312,7 @@ max_rms_target_px = %s
 """
 
 
+@pytest.mark.slow
 def test_a_refused_registration_keeps_the_stored_one_or_is_captured_again(
         tmp_path: Path, make_bench_profile: Callable[..., Profile], capsys: pytest.CaptureFixture[str]) -> None:
     """A fit above its RMS limit is not stored: with a stored registration that one stays (rc 2 once the run is

@@ -243,6 +243,7 @@ def test_progress_is_reported_after_each_iteration(setup: OpticalSetup, name: st
     assert calls == [(1, 4), (2, 4), (3, 4), (4, 4)]
 
 
+@pytest.mark.slow
 def test_sgd_optimises_under_no_grad_and_inference_mode(setup: OpticalSetup) -> None:
     target = sharp_target(setup)
     expected = SGD(target, setup, iterations=3)
@@ -345,6 +346,7 @@ def test_dpac_reconstruction_correlates_with_target(setup: OpticalSetup, make, m
     assert roi_correlation(setup, DPAC(target, setup), target) > minimum
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("make", [smooth_target, sharp_target])
 def test_gs_error_decreases_with_iterations(setup: OpticalSetup, make) -> None:
     target = make(setup)
@@ -354,6 +356,7 @@ def test_gs_error_decreases_with_iterations(setup: OpticalSetup, make) -> None:
     assert at_50 < errors[-1] and at_50 < 0.4 * errors[0]  # measured ratio 0.28 (smooth), 0.31 (sharp)
 
 
+@pytest.mark.slow
 def test_sgd_starts_from_dpac_and_never_ends_worse(setup: OpticalSetup) -> None:
     for make in (smooth_target, sharp_target):
         target = make(setup)
@@ -384,6 +387,7 @@ def test_stopped_improving(losses: list[float], stops: bool) -> None:
     assert stopped_improving(losses, tolerance=0.01, window=20) is stops
 
 
+@pytest.mark.slow
 def test_sgd_stops_early_on_a_converged_case_only(setup: OpticalSetup) -> None:
     target = sharp_target(setup)
     calls: list[tuple[int, int]] = []
@@ -399,6 +403,7 @@ def test_sgd_stops_early_on_a_converged_case_only(setup: OpticalSetup) -> None:
     assert calls[-1] == (60, 60) and len(calls) == 60
 
 
+@pytest.mark.slow
 def test_gs_stops_early_once_converged(setup: OpticalSetup) -> None:
     target = sharp_target(setup)
     calls: list[tuple[int, int]] = []
@@ -452,6 +457,7 @@ def test_a_phase_the_panel_cannot_show_is_moved_to_the_one_it_shows(setup: Optic
     assert setup.within_reach(phase) is phase  # every phase shown: nothing to move
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("stroke", "make", "ratio"), [(0.88, "smooth", 0.2), (0.75, "smooth", 0.1),
                                                        (0.75, "sharp", 0.95)])
 def test_sgd_keeps_its_phase_where_the_panel_can_show_it(setup: OpticalSetup, monkeypatch: pytest.MonkeyPatch,
@@ -468,6 +474,7 @@ def test_sgd_keeps_its_phase_where_the_panel_can_show_it(setup: OpticalSetup, mo
     assert seeing < ratio * stuck, (seeing, stuck)
 
 
+@pytest.mark.slow
 def test_sgd_through_a_short_stroke_panel_beats_sgd_that_ignores_it(setup: OpticalSetup) -> None:
     _, shown = short_stroke_display(0.88)
     quantised = setup.with_display(shown)

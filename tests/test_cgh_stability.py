@@ -72,22 +72,26 @@ def test_every_registered_method_is_covered(methods: dict[str, Method]) -> None:
     assert set(methods) == set(METHODS) and not any(m.needs_checkpoint for m in methods.values())
 
 
+@pytest.mark.slow
 def test_all_black_target_every_method(setup: OpticalSetup, methods: dict[str, Method]) -> None:
     run_every_method(methods, torch.zeros(setup.shape), setup)
 
 
+@pytest.mark.slow
 def test_all_white_target_every_method(setup: OpticalSetup, methods: dict[str, Method]) -> None:
     full = OpticalSetup(520e-9, 8e-6, 20e-3, setup.shape, setup.shape)
     run_every_method(methods, torch.ones(full.shape), full)
     run_every_method(methods, roi_target(setup), setup)
 
 
+@pytest.mark.slow
 def test_single_pixel_target_every_method(setup: OpticalSetup, methods: dict[str, Method]) -> None:
     target = torch.zeros(setup.shape)
     target[setup.shape[0] // 2, setup.shape[1] // 2] = 1.0
     run_every_method(methods, target, setup)
 
 
+@pytest.mark.slow
 def test_amplitudes_above_one(setup: OpticalSetup, methods: dict[str, Method]) -> None:
     generator = torch.Generator().manual_seed(0)
     target = roi_target(setup) * torch.rand(setup.shape, generator=generator)

@@ -110,6 +110,7 @@ def test_straight_through_gradient_is_the_models_with_the_captured_value(make_be
     torch.testing.assert_close(phase.grad, explicit, rtol=1e-5, atol=1e-9)
 
 
+@pytest.mark.slow
 def test_citl_raises_captured_psnr_and_logs_every_iteration(tmp_path: Path, profile: Profile) -> None:
     """Six iterations lift the captured PSNR by about 2.5 dB over the DPAC start (15.4 -> 18.0 dB measured), where
     model-only SGD with the same six steps captures about what DPAC does (15.0 dB)."""
@@ -141,6 +142,7 @@ def test_a_gpu_asked_for_where_torch_sees_none_is_refused_before_anything_runs(
     assert gradient_device("auto") == torch.device("cpu") and gradient_device("cpu") == torch.device("cpu")
 
 
+@pytest.mark.slow
 def test_auto_exposure_probes_the_start_once_and_captures_every_iteration_at_its_power(tmp_path: Path,
                                                                                        profile: Profile) -> None:
     folder = run(tmp_path, profile, "runs", iterations=3, baseline=True)
@@ -164,6 +166,7 @@ def test_auto_exposure_probes_the_start_once_and_captures_every_iteration_at_its
     assert done(outcome.folder)["citl/green/0000"]["setpoint_w"] == pytest.approx(setpoint_w)
 
 
+@pytest.mark.slow
 def test_disk_policy_keeps_exactly_the_first_last_and_every_nth_raw(tmp_path: Path, profile: Profile) -> None:
     folder = run(tmp_path, profile, "runs", iterations=9, every=4)
     assert [k for k in range(10) if keeps_raw(k, 9, 4)] == [0, 4, 8, 9]
@@ -176,6 +179,7 @@ def test_disk_policy_keeps_exactly_the_first_last_and_every_nth_raw(tmp_path: Pa
     assert [k for k in range(10) if keeps_raw(k, 9, 0)] == [0, 9]
 
 
+@pytest.mark.slow
 def test_a_damaged_kept_raw_is_reported_on_resume_and_its_iteration_stands(tmp_path: Path,
                                                                          profile: Profile) -> None:
     """A kept RAW is a record that no later step reads (the iteration's result is its saved phase), and re-doing
@@ -200,6 +204,7 @@ def test_a_damaged_kept_raw_is_reported_on_resume_and_its_iteration_stands(tmp_p
     assert np.array_equal(final_phase(folder), phase)
 
 
+@pytest.mark.slow
 def test_resume_after_a_pulled_cable_continues_bit_for_bit_with_the_laser_off(
         tmp_path: Path, profile: Profile, monkeypatch: pytest.MonkeyPatch) -> None:
     reference = run(tmp_path, profile, "reference", iterations=8)

@@ -29,6 +29,7 @@ def _png(path: Path) -> np.ndarray:
     return image
 
 
+@pytest.mark.slow
 def test_generate_writes_phase_pngs_reconstruction_and_metrics(capsys, tmp_path, small_profile_path):
     out = tmp_path / "gen"
     code, stdout, _ = _run(capsys, "generate", "chart:bars", "--profile", str(small_profile_path), "-o", str(out))
@@ -70,6 +71,7 @@ def test_generate_skips_colours_black_in_target(capsys, tmp_path, small_profile_
     assert "red: skipped" in stdout
 
 
+@pytest.mark.slow
 def test_generate_is_deterministic_for_a_seed(capsys, tmp_path, small_profile_path):
     outs = []
     for name in ("a", "b", "c"):
@@ -114,6 +116,7 @@ def test_unknown_method_is_one_line_listing_every_method(capsys, tmp_path, metho
     assert not (tmp_path / "x").exists()
 
 
+@pytest.mark.slow
 def test_generate_takes_iterations_from_zero_and_the_procedures_default_method(capsys, tmp_path, small_profile_path):
     """--iterations has the bound procedures and methods have (>= 0: SGD at 0 is its start, the DPAC hologram),
     and --method the default they have (cgh.DEFAULT_METHOD)."""

@@ -51,6 +51,7 @@ def test_device_commands_never_import_torch(command: list[str]) -> None:
     assert _loaded(command) == [], command
 
 
+@pytest.mark.slow
 def test_slm_frames_from_files_never_import_torch(tmp_path: Path) -> None:
     frame, phase = tmp_path / "frame.png", tmp_path / "phase.npy"
     write_png(frame, np.full((1088, 1920), 7, np.uint8))

@@ -109,6 +109,7 @@ def green_level(browser: webdriver.Chrome) -> float:
         let sum = 0; for (let i = 1; i < d.length; i += 4) sum += d[i]; return sum / (d.length / 4);""")
 
 
+@pytest.mark.slow
 def test_the_page_drives_the_bench(served: tuple[Console, str], browser: webdriver.Chrome, tmp_path: Path) -> None:
     console, url = served
     browser.get(url)
@@ -152,6 +153,7 @@ def connected(browser: webdriver.Chrome, url: str) -> None:
     until(lambda: frames_seen(browser) >= 2)
 
 
+@pytest.mark.slow
 def test_capture_from_the_page(served: tuple[Console, str], browser: webdriver.Chrome, tmp_path: Path) -> None:
     console, url = served
     browser.set_window_size(1000, 800)  # a laptop's window: every panel fits its column, ALL OFF in view
@@ -203,6 +205,7 @@ def test_a_procedure_from_the_page(served: tuple[Console, str], browser: webdriv
     assert "/api/procedures/report?token=" in browser.current_url and "<table" in browser.page_source
 
 
+@pytest.mark.slow
 def test_a_live_page_keeps_the_light_on_and_a_closed_one_does_not(bench_profile_path: Path, tmp_path: Path,
                                                                    browser: webdriver.Chrome) -> None:
     """The page's heartbeats answer what the server sends, so a page whose timers do not run (a browser slows a
@@ -266,6 +269,7 @@ class _Recording(http.server.BaseHTTPRequestHandler):
         pass
 
 
+@pytest.mark.slow
 def test_another_local_server_never_receives_what_moves_the_laser(served: tuple[Console, str],
                                                                   browser: webdriver.Chrome) -> None:
     """The operator opens the console, uses it, then visits a page of another web server on this computer (cookies
@@ -296,6 +300,7 @@ def test_another_local_server_never_receives_what_moves_the_laser(served: tuple[
     assert not any("emission ON" in line for line in console.events)
 
 
+@pytest.mark.slow
 def test_a_page_that_lost_its_console_greys_out_and_says_the_laser_state_is_unknown(
         bench_profile_path: Path, tmp_path: Path, browser: webdriver.Chrome) -> None:
     """A new user saw "green ON, out 6.995 mW" long after the console had stopped: a page that lost its console
@@ -334,6 +339,7 @@ def cut_off(browser: webdriver.Chrome, panel: str) -> list[str]:
           .map(e => e.id || e.className || e.tagName);""", panel)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("width", [1000, 1400])
 def test_nothing_is_wider_than_the_window(served: tuple[Console, str], browser: webdriver.Chrome, tmp_path: Path,
                                          width: int) -> None:

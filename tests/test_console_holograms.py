@@ -26,6 +26,7 @@ def request(profile_path: Path, iterations: int, method: str = "sgd") -> Request
     return Request(profile, target, "green", method, iterations, 0, None)
 
 
+@pytest.mark.slow
 def test_the_worker_computes_what_a_run_computes_in_its_own_process(bench_profile_path: Path) -> None:
     worker = HologramWorker()
     try:
@@ -45,6 +46,7 @@ def test_the_worker_computes_what_a_run_computes_in_its_own_process(bench_profil
     assert worker._process is None and not Path(f"/proc/{pid}").exists()
 
 
+@pytest.mark.slow
 def test_a_worker_that_dies_is_said_in_one_line_and_replaced(bench_profile_path: Path) -> None:
     worker = HologramWorker()
     started = threading.Event()

@@ -317,6 +317,7 @@ def test_live_view_that_never_comes_is_a_timeout(monkeypatch: pytest.MonkeyPatch
             cam.preview()
 
 
+@pytest.mark.slow
 def test_the_simulated_eos_body_shows_the_bench_in_its_live_view(make_bench_profile) -> None:
     profile = make_bench_profile(camera={"driver": "ptp", "transport": "sim"})
     with open_camera(profile) as camera:

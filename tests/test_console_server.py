@@ -313,6 +313,7 @@ def test_the_slm_panel_shows_what_the_slm_holds_and_who_put_it_there(bench_profi
         console.close()
 
 
+@pytest.mark.slow
 def test_holograms_are_the_ones_a_run_displays(client: TestClient, bench_profile_path: Path) -> None:
     from benchctl.holograms.cache import hologram
     from benchctl.targets import load_target, prepare_target
@@ -367,6 +368,7 @@ def test_preview_frames_show_the_light(client: TestClient) -> None:
     assert lit[:, :, 1].mean() > dark[:, :, 1].mean() + 5
 
 
+@pytest.mark.slow
 def test_a_page_that_does_not_keep_up_gets_no_backlog(client: TestClient, console: Console) -> None:
     with client.websocket_connect(WS) as page:
         seqs, states = [], 0
@@ -433,6 +435,7 @@ def test_console_captures_are_runs_that_runs_lists_and_removes(client: TestClien
     assert f"removed {folder}" in capsys.readouterr().out and not folder.exists()
 
 
+@pytest.mark.slow
 def test_uploads_are_capped_and_named_by_number(client: TestClient, console: Console) -> None:
     ok, png = cv2.imencode(".png", np.full((40, 60, 3), 200, np.uint8))
     answer = client.post("/api/upload?name=../../evil.png", content=png.tobytes()).json()
@@ -459,6 +462,7 @@ def test_uploads_are_capped_and_named_by_number(client: TestClient, console: Con
     assert len(list(console.uploads.folder.iterdir())) == MAX_UPLOADS
 
 
+@pytest.mark.slow
 def test_procedures_dry_run_then_run_with_the_devices_handed_over(client: TestClient, console: Console) -> None:
     assert client.get("/api/info").json()["procedures"] == ["sweep.toml"]
     lines = client.post("/api/procedures/dry-run", json={"name": "sweep.toml"}).json()["lines"]

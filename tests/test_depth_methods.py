@@ -42,6 +42,7 @@ def _plane_psnrs(setup: OpticalSetup, phase: torch.Tensor, target: FocalStackTar
     return [s["psnr_amplitude_db"] for s in scores.per_plane if s is not None]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method, iterations", [("dpac", None), ("sgd", 15), ("gs", 10)])
 def test_a_flat_scene_gets_exactly_the_2d_hologram_at_its_plane(method, iterations):
     target = _target("flat", (0.02,))
@@ -61,6 +62,7 @@ def test_a_2d_only_method_refuses_a_scene_on_several_planes_naming_those_that_ca
         get_method("gs")(_target("two-planes", PLANES), _setup(), iterations=3)
 
 
+@pytest.mark.slow
 def test_multiplane_sgd_reaches_each_planes_2d_quality_on_the_two_plane_scene():
     setup, target, iterations = _setup(), _target("two-planes", PLANES), 40
     phase = get_method("sgd")(target, setup, iterations=iterations)
@@ -73,6 +75,7 @@ def test_multiplane_sgd_reaches_each_planes_2d_quality_on_the_two_plane_scene():
         assert stack[k] > start[k] + 1.5  # it optimised the focal stack, not just kept its layered-DPAC start
 
 
+@pytest.mark.slow
 def test_multiplane_sgd_optimises_through_the_fitted_model_and_the_display():
     model = FittedOptics((("defocus", 0.4), ("astigmatism_vertical", 0.3)), waist_m=300e-6, zero_order=0.04)
 

@@ -188,6 +188,7 @@ margin = [4, 6]
 """
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("driver", ["sim", "ptp"])
 def test_camera_capture_writes_a_dng_rawpy_reads(capsys, tmp_path, small_profile_path, driver):
     from benchctl.capture.raw import decode_raw

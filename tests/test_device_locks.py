@@ -30,6 +30,7 @@ def test_a_second_holder_is_told_who_holds_the_lock(lock_dir: Path) -> None:
     DeviceLock("slm:framebuffer:/dev/fb1", "SLM").acquire().release()  # free again once released
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("command", [["slm", "blank"], ["camera", "capture", "-o", "x.dng"], ["laser", "status"],
                                      ["run", "PROCEDURE"]])
 def test_commands_are_refused_while_another_holds_the_devices(tmp_path: Path, bench_profile_path: Path,

@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 SUITE = '''
 import pytest
 
@@ -42,6 +44,7 @@ def run(tmp_path: Path, require: str | None) -> tuple[int, str]:
     return done.returncode, done.stdout
 
 
+@pytest.mark.slow
 def test_a_skipped_third_party_device_test_fails_only_where_devices_are_required(tmp_path: Path) -> None:
     code, out = run(tmp_path, None)
     assert code == 0 and re.search(r"\b1 passed, 3 skipped\b", out), out

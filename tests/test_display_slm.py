@@ -464,6 +464,7 @@ LAB_EDITS = [  # (line of hardware_profiles/genicam_hdmi.toml, what this lab wri
 ]
 
 
+@pytest.mark.slow
 def test_a_lab_runs_the_colour_capture_after_editing_only_the_example_profile(tmp_path: Path,
                                                                               x_display: str) -> None:
     """The issue's "done when": hardware_profiles/genicam_hdmi.toml with only lines marked CHECK changed, for a

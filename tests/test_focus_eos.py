@@ -83,6 +83,7 @@ def test_drives_outside_live_view_and_into_an_end_stop_are_answered_ok_and_ignor
         camera.close()
 
 
+@pytest.mark.slow
 def test_step_size_spread_makes_counted_positions_drift() -> None:
     lens = Mechanism(msgspec.structs.replace(LENS, step_spread=0.2, backlash_steps=0.0, range_steps=10**6,
                                              start_steps=1000))
@@ -102,6 +103,7 @@ def test_a_body_without_drive_lens_is_refused_in_one_line() -> None:
         focus.move(1)
 
 
+@pytest.mark.slow
 def test_the_simulated_eos_profile_drives_the_benchs_lens_and_holds_the_camera() -> None:
     profile = load_profile("simulated-eos")
     focus = focus_for(profile)

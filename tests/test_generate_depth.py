@@ -27,6 +27,7 @@ def _run(capsys, *argv: str) -> tuple[int, str, str]:
     return code, captured.out, captured.err
 
 
+@pytest.mark.slow
 def test_generate_a_two_plane_scene_writes_its_focal_stack_and_prints_the_planes(capsys, tmp_path, depth_profile):
     out = tmp_path / "stack"
     code, stdout, _ = _run(capsys, "generate", "rgbd:two-planes", "-m", "sgd", "-n", "5", "--planes", "auto",
@@ -65,6 +66,7 @@ def test_a_flat_scene_is_generated_and_scored_exactly_as_2d(capsys, tmp_path, de
         assert three_d["mean"][key] == pytest.approx(two_d["colours"]["green"][key], abs=1e-3)
 
 
+@pytest.mark.slow
 def test_a_fixed_number_of_planes_spreads_them_over_the_scenes_depth(capsys, tmp_path, depth_profile):
     out = tmp_path / "three"
     code, stdout, _ = _run(capsys, "generate", "rgbd:tilted", "--planes", "3", "--colours", "green",
@@ -100,6 +102,7 @@ def test_planes_must_be_auto_or_a_positive_count(capsys, tmp_path, depth_profile
     assert "expected 'auto' or a whole number of planes >= 1, got '0'" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_speed_vs_error_puts_the_depth_methods_on_a_scenes_front(tmp_path, depth_profile, monkeypatch):
     import benchctl.benchmarks.speed_vs_error as bench
     from benchctl.benchmarks.speed_vs_error import run_speed_vs_error
@@ -125,6 +128,7 @@ def test_speed_vs_error_puts_the_depth_methods_on_a_scenes_front(tmp_path, depth
     assert rows[0].split(",")[4] == "planes" and all(row.split(",")[4] == "2" for row in rows[1:])
 
 
+@pytest.mark.slow
 def test_bench_depth_judges_every_plane_count_on_one_stack_and_checks_two_planes_against_2d(depth_profile):
     from benchctl.benchmarks.depth import EVALUATION_PLANES, run_depth_bench
     from benchctl.profiles import load_profile

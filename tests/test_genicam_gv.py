@@ -32,12 +32,14 @@ def scenario(name: str, **args: Any) -> dict[str, Any]:
     return result
 
 
+@pytest.mark.slow
 def test_discovery_and_streaming() -> None:
     result = scenario("streaming", lost_per_thousand=0, frames=5, frame_retries=2, image_timeout_s=5.0)
     assert result["found"] == [["Aravis-Fake-GV01", "GV01", "GigEVision", "127.0.0.1"]]
     assert result["error"] is None and result["kept_exact"] == [True] * 5
 
 
+@pytest.mark.slow
 def test_lost_packets_give_retried_frames_never_incomplete_ones() -> None:
     """20 % of the stream's packets dropped: frames that lost some are re-triggered; every frame kept is exact."""
     result = scenario("streaming", lost_per_thousand=200, frames=12, frame_retries=20, image_timeout_s=1.0)
@@ -46,6 +48,7 @@ def test_lost_packets_give_retried_frames_never_incomplete_ones() -> None:
     assert result["refused"], "no frame lost a packet at 20 % loss"
 
 
+@pytest.mark.slow
 def test_a_frame_that_never_arrives_whole_is_refused_in_one_line() -> None:
     result = scenario("streaming", lost_per_thousand=1000, frames=1, frame_retries=1, image_timeout_s=1.0)
     assert result["kept_exact"] == []

@@ -227,6 +227,7 @@ def test_a_channel_found_emitting_at_connect_is_reported(dialect: str) -> None:
         assert laser.connect_report() == []
 
 
+@pytest.mark.slow
 def test_every_laser_command_and_a_run_say_what_was_found_emitting(tmp_path, small_profile_path, bench_profile_path,
                                                                    capsys) -> None:
     import json

@@ -31,6 +31,7 @@ def _run(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]
     return code, captured.out, captured.err
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ABLATIONS)
 def test_ablation_trains_saves_loads_and_generates(name: str, capsys, tmp_path: Path, small_profile_path: Path) -> None:
     ckpt = tmp_path / "ckpt"
@@ -63,6 +64,7 @@ def test_training_data_combines_procedural_images_and_training_photographs() -> 
             image_sources(bad)
 
 
+@pytest.mark.slow
 def test_reproduce_runs_end_to_end_and_writes_table_comparisons_curves_and_plots(capsys, tmp_path: Path,
                                                                                  small_profile_path: Path) -> None:
     out = tmp_path / "repro"
@@ -102,6 +104,7 @@ def test_reproduce_runs_end_to_end_and_writes_table_comparisons_curves_and_plots
     assert code == 2 and "--resume" in err  # a run folder is never started twice
 
 
+@pytest.mark.slow
 def test_an_interrupted_reproduction_job_continues_exactly(tmp_path: Path, small_profile_path: Path,
                                                            monkeypatch: pytest.MonkeyPatch) -> None:
     settings = dict(size=(32, 48), methods=["ccnn-dcm4"], seeds=[3], data="procedural:2", max_steps=6, min_steps=4,

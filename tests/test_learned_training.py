@@ -39,7 +39,6 @@ from benchctl.training.training import (
     with_model_calibration,
 )
 
-pytestmark = pytest.mark.slow  # training runs: seconds to a minute each
 
 PLANES = {"red": 0, "green": 1, "blue": 2}
 
@@ -179,6 +178,7 @@ def _settings(**changes: object) -> TrainSettings:
     return TrainSettings(**(base | changes))  # type: ignore[arg-type]
 
 
+@pytest.mark.slow
 def test_training_writes_checkpoints_and_an_interrupted_run_resumes_exactly(tmp_path: Path,
                                                                             small_profile_path: Path) -> None:
     profile = load_profile(small_profile_path)
@@ -299,6 +299,7 @@ TORCHVISION_VGG19_CONVS = {0: (64, 3), 2: (64, 64), 5: (128, 64), 7: (128, 128),
                            25: (512, 512), 28: (512, 512), 30: (512, 512), 32: (512, 512), 34: (512, 512)}
 
 
+@pytest.mark.slow
 def test_perceptual_loss_loads_torchvision_format_weights_and_trains_one_step(
         capsys, tmp_path: Path, small_profile_path: Path) -> None:
     generator = torch.Generator().manual_seed(0)
@@ -334,6 +335,7 @@ def test_perceptual_loss_loads_torchvision_format_weights_and_trains_one_step(
     assert "validation PSNR" in stdout
 
 
+@pytest.mark.slow
 def test_a_small_grid_training_run_beats_dpac_on_its_own_validation_images(tmp_path: Path) -> None:
     """ccnn on the simulated bench scaled to 68 x 120 (Fresnel number kept), green, 200 steps: its validation PSNR
     passes DPAC's on the same held-out images, which every epoch reports beside it (measured: 21.4 against
@@ -374,6 +376,7 @@ def test_the_weight_average_is_the_bias_corrected_exponential_average_of_the_ste
         WeightAverage(model, decay=0.9).load_state(average.to_state())
 
 
+@pytest.mark.slow
 def test_training_with_a_weight_average_checkpoints_the_average_and_resumes_it_exactly(
         tmp_path: Path, small_profile_path: Path) -> None:
     profile = load_profile(small_profile_path)
@@ -398,6 +401,7 @@ def test_training_with_a_weight_average_checkpoints_the_average_and_resumes_it_e
             assert torch.allclose(resumed.models[colour].state_dict()[name], value, atol=1e-6), (colour, name)
 
 
+@pytest.mark.slow
 def test_a_training_step_that_cannot_fit_in_memory_is_refused_before_anything_starts(
         capsys, tmp_path: Path, small_profile_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The estimate (measured bytes per pixel of the network, times the grid and the batch) against the memory limit:

@@ -26,8 +26,6 @@ from benchctl.profiles import load_profile
 from benchctl.targets import load_target, prepare_target
 from benchctl.training.training import TrainSettings, train
 
-pytestmark = pytest.mark.slow  # training runs: seconds to a minute each
-
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
@@ -106,6 +104,7 @@ def test_a_learned_method_serves_only_the_setups_it_was_trained_for(trained) -> 
         method(target, other)
 
 
+@pytest.mark.slow
 def test_shipped_checkpoint_is_found_listed_and_used_by_default(capsys, tmp_path, monkeypatch, trained) -> None:
     profile_path, checkpoint = trained
     monkeypatch.chdir(tmp_path)
@@ -143,6 +142,7 @@ def test_shipped_checkpoint_is_found_listed_and_used_by_default(capsys, tmp_path
     assert "not running ccnn-dcm4" in stdout and "grid 64x96 in the checkpoint, 32x48" in stdout
 
 
+@pytest.mark.slow
 def test_bench_learned_measures_side_by_side_with_ratios(capsys, tmp_path, trained) -> None:
     profile_path, checkpoint = trained
     out = tmp_path / "bench"
@@ -167,6 +167,7 @@ def test_bench_learned_measures_side_by_side_with_ratios(capsys, tmp_path, train
     assert base["psnr_amplitude_db"] == ""  # no checkpoint for the baseline: no quality figures
 
 
+@pytest.mark.slow
 def test_the_memory_table_reports_a_step_above_the_cap_as_out_of_memory(capsys, tmp_path) -> None:
     """Each step runs in a subprocess whose address space is capped: one that fits gives its peak and time, one
     that does not gives a line saying so (and larger grids are not tried), never a traceback or a killed machine."""

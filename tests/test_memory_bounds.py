@@ -21,6 +21,7 @@ from benchctl.memory import decode_estimate, exposure_estimate, fit_estimate, me
 from benchctl.profiles import load_profile
 
 
+@pytest.mark.slow
 def test_frames_are_averaged_as_they_are_decoded() -> None:
     """A generator of decoded frames is consumed one at a time: when a frame is decoded, no earlier one but the
     first (the reference for the grid) is still alive."""

@@ -84,6 +84,7 @@ def test_fit_recovers_the_hidden_wavefront_beam_and_tilt(make_bench_profile: Cal
     assert fit.residual < 0.1 * fit.initial_residual
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("crosstalk_px", [0.0, 0.05, 0.15, 0.3])
 def test_fit_recovers_the_slm_crosstalk(make_bench_profile: Callable[..., Profile], crosstalk_px: float) -> None:
     """The panel blurs the phase it drives (its table's phase, jumping where the gray levels wrap) by a Gaussian of
@@ -106,6 +107,7 @@ def test_fit_recovers_the_slm_crosstalk(make_bench_profile: Callable[..., Profil
     assert float(torch.corrcoef(torch.stack([shown.flatten(), captured[0].flatten().float()]))[0, 1]) > 0.99
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("zero_order, crosstalk_px", [(0.02, 0.05), (0.05, 0.1)])
 def test_fit_recovers_the_zero_order_and_with_it_the_crosstalk(make_bench_profile: Callable[..., Profile],
                                                                zero_order: float, crosstalk_px: float) -> None:
@@ -160,6 +162,7 @@ registration = "stored"
 """
 
 
+@pytest.mark.slow
 def test_the_procedure_fits_stores_and_hands_the_model_to_generation(tmp_path: Path, profile: Profile,
                                                                     capsys: pytest.CaptureFixture[str]) -> None:
     """Display, capture (RAW, dark-subtracted), register with the stored registration and fit: the same recovery
@@ -205,6 +208,7 @@ def test_the_procedure_fits_stores_and_hands_the_model_to_generation(tmp_path: P
     assert all(not state.get("emission") for state in load_state("rgb-laser").get("channels", {}).values())
 
 
+@pytest.mark.slow
 def test_through_the_camera_its_blur_is_fitted_and_the_panel_found(tmp_path: Path,
                                                                     make_bench_profile: Callable[..., Profile]) -> None:
     """The registered captures are blurred by the camera (its resampling onto the sensor, the Bayer sampling, the
@@ -400,6 +404,7 @@ def test_a_learned_checkpoint_fine_tuned_through_the_fitted_model_shows_better(
     assert "--model-calibration stored: " in err and "has no fitted model for 'red'" in err, err
 
 
+@pytest.mark.slow
 def test_two_colours_share_one_panel_crosstalk(tmp_path: Path, make_bench_profile: Callable[..., Profile]) -> None:
     """The panel's crosstalk (its liquid crystal's fringing) is the same in pixels at every wavelength, so with
     several colours fitted the procedure stores the median of their fits for all of them (what generation then

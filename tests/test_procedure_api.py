@@ -86,6 +86,7 @@ def test_only_the_layout_module_spells_the_run_folders(path: Path) -> None:
     assert spelt == [], path
 
 
+@pytest.mark.slow
 def test_the_readme_example_runs(tmp_path: Path, make_bench_profile, capsys: pytest.CaptureFixture[str]) -> None:
     """The procedure the README shows, run as it is on a bench with a stored registration for each colour, then from
     a TOML file that gives its list parameter and its power in mW; a list default is one line that says what to write

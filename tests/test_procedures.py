@@ -26,7 +26,6 @@ from benchctl.runner.plots import front_plot
 from benchctl.runner.record import create_run, open_run
 from benchctl.training.training import TrainSettings, train
 
-pytestmark = pytest.mark.slow  # whole procedure runs / training: seconds to a minute each
 
 REPO = Path(__file__).resolve().parents[1]
 CAPTURE = """\
@@ -156,6 +155,7 @@ def test_a_step_log_cut_by_a_crash_is_read_up_to_the_cut(tmp_path: Path) -> None
     assert again.info()["resumed"][0]["finished_steps"] == 1
 
 
+@pytest.mark.slow
 def test_colour_capture_from_a_fresh_profile(tmp_path: Path, bench_profile_path: Path,
                                              capture_procedure: Path) -> None:
     """From a fresh profile, colour capture first measures the SLM's lookup tables and registers the camera
@@ -211,6 +211,7 @@ def test_colour_capture_from_a_fresh_profile(tmp_path: Path, bench_profile_path:
     assert all(not state.get("emission") for state in laser_channels().values())
 
 
+@pytest.mark.slow
 def test_resume_after_a_pulled_cable_finishes_without_recapturing(tmp_path: Path, bench_profile_path: Path,
                                                                  capture_procedure: Path, sim_state_dir: Path,
                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
@@ -258,6 +259,7 @@ def test_resume_refuses_a_changed_profile(tmp_path: Path, bench_profile_path: Pa
         run_procedure(None, resume=folder, say=lambda line: None)
 
 
+@pytest.mark.slow
 def test_sigterm_during_a_capture_leaves_emission_off(tmp_path: Path, bench_profile_path: Path,
                                                       capture_procedure: Path) -> None:
     slow = write(tmp_path / "slow.toml", bench_profile_path.read_text() + "readout_s = 30.0\n")
@@ -279,6 +281,7 @@ def test_sigterm_during_a_capture_leaves_emission_off(tmp_path: Path, bench_prof
     assert "--resume" in out.decode()
 
 
+@pytest.mark.slow
 def test_power_sweep_is_linear_and_its_exposure_advice_holds(tmp_path: Path, bench_profile_path: Path) -> None:
     sweep = write(tmp_path / "sweep.toml", 'procedure = "power-sweep"\n[parameters]\ncolours = ["red", "blue"]\n'
                   'setpoints = { red = "100%", blue = "100%" }\n')
@@ -302,6 +305,7 @@ def test_power_sweep_is_linear_and_its_exposure_advice_holds(tmp_path: Path, ben
     assert peak == pytest.approx(0.8, abs=0.02)
 
 
+@pytest.mark.slow
 def test_python_procedure_example_measures_the_grating_shift(tmp_path: Path, bench_profile_path: Path) -> None:
     """procedures/grating_shift.py on a calibrated bench: each colour's image moves by z lambda / (P pitch^2)."""
     for name in ("lut_calibration.toml", "registration.toml"):
@@ -333,6 +337,7 @@ def test_run_needs_a_procedure_or_a_run_to_resume(tmp_path: Path, capsys: pytest
     assert "missing.toml: procedure file not found" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_auto_exposure_puts_every_colours_peak_near_the_goal(tmp_path: Path, bench_profile_path: Path,
                                                               capture_procedure: Path) -> None:
     """Setpoints far too low for blue and far too high for red: one probe frame per colour sets the power so the
@@ -361,6 +366,7 @@ def test_auto_exposure_puts_every_colours_peak_near_the_goal(tmp_path: Path, ben
     assert (folder / "raw" / "probe" / "bars" / "blue" / "frame-000.dng").is_file()
 
 
+@pytest.mark.slow
 def test_colour_capture_with_several_methods_draws_their_front(tmp_path: Path, bench_profile_path: Path,
                                                                capture_procedure: Path) -> None:
     """method = [dpac, sgd]: each target is captured with each method under its own label; metrics.json and

@@ -304,6 +304,7 @@ def _roi_errors(shape, z, wavelength, modes):
                        reference) for mode in modes}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("wavelength", [680e-9, 520e-9, 450e-9], ids=["red", "green", "blue"])
 def test_auto_is_within_twice_the_2x_error_on_scaled_paper_geometry(wavelength):
     # The paper's 4K geometry (2160 x 3840, 3.74 um, 70 mm) scaled down 8x in grid and distance: same K / N.
@@ -312,6 +313,7 @@ def test_auto_is_within_twice_the_2x_error_on_scaled_paper_geometry(wavelength):
     assert errors["2x"] < 0.05 < errors["none"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("wavelength", [680e-9, 450e-9], ids=["red", "blue"])
 def test_auto_pads_much_less_than_2x_where_spread_is_small(wavelength):
     shape, z = (270, 480), 2e-3  # K / N between 0.07 and 0.18

@@ -28,8 +28,6 @@ from benchctl.profiles import Profile
 from benchctl.runner.builtin.citl.procedure import _save_state
 from benchctl.runner.engine import run_procedure
 
-pytestmark = pytest.mark.slow  # procedure runs: seconds each
-
 
 @pytest.fixture
 def profile(make_bench_profile: Callable[..., Profile]) -> Profile:
@@ -74,6 +72,7 @@ DAMAGE: dict[str, Callable[[Path], None]] = {
 }
 
 
+@pytest.mark.slow
 def test_a_damaged_citl_state_is_recomputed_from_the_last_good_one(tmp_path: Path, profile: Profile) -> None:
     """Each kind of damage to the state iteration 3 starts from sends the resumed run back to iteration 2 (whose own
     state is good), which recomputes it; the run finishes, and a second resume has nothing left to do."""
@@ -94,6 +93,7 @@ def test_a_damaged_citl_state_is_recomputed_from_the_last_good_one(tmp_path: Pat
         assert run_procedure(None, resume=folder, say=lambda line: None).ran == [], name
 
 
+@pytest.mark.slow
 def test_both_states_damaged_go_back_to_the_start(tmp_path: Path, profile: Profile) -> None:
     folder = citl_cut_at_iteration_3(tmp_path, profile)
     for k in (2, 3):

@@ -81,6 +81,7 @@ def _finished_run(tmp_path: Path, procedure: Path, profile: Path) -> Path:
     return outcome.folder
 
 
+@pytest.mark.slow
 def test_a_step_log_cut_at_any_byte_of_its_last_event_is_repaired_on_resume(tmp_path: Path) -> None:
     from benchctl.runner.record import create_run, open_run
 

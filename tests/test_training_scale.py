@@ -143,6 +143,7 @@ def test_a_held_out_range_of_procedural_images_and_its_mistakes() -> None:
             image_sources(bad)
 
 
+@pytest.mark.slow
 def test_a_job_stopped_between_its_last_state_and_its_record_ends_without_training(
         tmp_path: Path, small_profile_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     new_plan(tmp_path, load_profile(str(small_profile_path)), size=(32, 48), methods=["ccnn"], seeds=[1],
