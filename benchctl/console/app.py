@@ -22,7 +22,7 @@ import threading
 import time
 from collections.abc import Awaitable, Callable
 from importlib import resources
-from typing import Any, TypeVar, get_args
+from typing import Any, TypeVar
 
 from starlette.applications import Starlette
 from starlette.concurrency import run_in_threadpool
@@ -33,8 +33,9 @@ from starlette.websockets import WebSocket, WebSocketDisconnect
 
 from benchctl.console.core import Console
 from benchctl.console.security import Access, AccessMiddleware
-from benchctl.console.slm import ZernikeName, parse_pattern
+from benchctl.console.slm import parse_pattern
 from benchctl.errors import BadValueError, BenchctlError
+from benchctl.optics.aberration import ZERNIKE_TERMS
 
 STATIC = {"console.js": "text/javascript", "console.css": "text/css", "index.html": "text/html"}
 STATE_PERIOD_S = 0.5
@@ -319,7 +320,7 @@ def _static(name: str) -> Response:
 def _info(console: Console) -> dict[str, Any]:
     """What the page's forms offer: channels and their limits, patterns, targets, methods, checkpoints,
     procedures."""
-    from benchctl.holograms.scene import usable_methods
+    from benchctl.holograms import usable_methods
     from benchctl.targets import list_targets
 
     profile = console.profile
@@ -327,10 +328,10 @@ def _info(console: Console) -> dict[str, Any]:
         "profile": profile.name,
         "channels": [{"name": c.name, "wavelength_nm": c.wavelength_nm, "limit_mw": c.max_power_mw,
                       "setpoint_mw": c.setpoint_mw} for c in profile.channels],
-        "zernike": list(get_args(ZernikeName)),
+        "zernike": list(ZERNIKE_TERMS),
         "targets": list(list_targets()),
         "methods": usable_methods(profile) if console.slm is not None else [],
-        "checkpoints": list(console.slm.checkpoints) if console.slm else [],
+        "checkpoints": list(console.slm.checkpoints()) if console.slm else [],
         "procedures": list(console.procedures.files()),
         "deadman_s": console.laser.deadman_s if console.laser else None,
     }

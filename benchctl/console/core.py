@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from benchctl.calibration import Calibrated
 from benchctl.console import capture, preview
 from benchctl.console.devices import Held
 from benchctl.console.laser import DEADMAN_S, LaserControl
@@ -37,17 +38,14 @@ class Console:
 
     def __init__(self, profile: Profile, out: Path, *, deadman_s: float = DEADMAN_S,
                  procedures_dir: Path | None = None) -> None:
-        from benchctl.calibration.calibrated import Calibrated
-
-        if profile.slm is not None and profile.optics is not None:
-            profile = Calibrated.stored(profile).profile  # measured tables and fitted model, as a run
-        self.profile = profile
+        self.configured = profile
+        # the bench as calibrated (measured tables, fitted model, registrations), as a run has it
+        self.bench = Calibrated.stored(profile) if profile.slm is not None and profile.optics is not None else None
         self.out = Path(out)
         self.events: deque[str] = deque(maxlen=EVENTS_KEPT)
         self.laser = LaserControl(profile, self.say, deadman_s) if profile.laser is not None else None
         self.uploads = Uploads()
-        self.slm = (SlmControl(profile, self.uploads, self._checkpoints())
-                    if profile.slm is not None and profile.optics is not None else None)
+        self.slm = SlmControl(self.bench, self.uploads) if self.bench is not None else None
         self.camera: Held[Camera] | None = (Held("camera", lambda: open_camera(profile), Camera.close)
                                             if profile.camera is not None else None)
         self.procedures = Procedures(profile, procedures_dir, self.out, self._release_for_run, self._reconnect,
@@ -106,6 +104,11 @@ class Console:
             self.uploads.remove_all()
         return unknown
 
+    @property
+    def profile(self) -> Profile:
+        """The profile in effect: with the bench's calibration applied where it has an SLM and optics."""
+        return self.bench.profile if self.bench is not None else self.configured
+
     def emergency_off(self) -> None:
         """Emission off and the laser let go now (a termination signal): `benchctl laser off` waits for that. A
         switch-off that cannot be confirmed is kept in `laser.unknown` for `close` to report."""
@@ -127,14 +130,14 @@ class Console:
         try:
             watts = self._laser().set_power(channel, power)
         finally:
-            self.refresh_laser()
+            self.refresh_laser(channel)
         return {"setpoint_mw": round(watts * 1e3, 4)}
 
     def set_emission(self, channel: str, on: bool) -> None:
         try:
             self._laser().set_emission(channel, on)
         finally:
-            self.refresh_laser()
+            self.refresh_laser(channel)
 
     def all_off(self) -> None:
         try:
@@ -151,10 +154,11 @@ class Console:
         self.all_off()
         return {"ok": True}
 
-    def refresh_laser(self) -> None:
-        """Read the laser's state now (also done twice a second)."""
+    def refresh_laser(self, channel: str | None = None) -> None:
+        """Read the laser's state now (every channel's is also read each STATUS_PERIOD_S); `channel`: only that
+        channel's, what a button press changed."""
         if self.laser is not None:
-            self.laser_status = self.laser.status()
+            self.laser_status = self.laser.status(channel, self.laser_status)
 
     def _status_loop(self) -> None:
         while not self._stop.wait(STATUS_PERIOD_S):
@@ -271,7 +275,6 @@ class Console:
         fractions of the frame, for the page to draw; nothing while the frame's size on the sensor is unknown."""
         if full_shape is None or self.profile.slm is None or self.profile.optics is None:
             return {}
-        from benchctl.calibration.store import Calibration
         from benchctl.capture.registration import apply_homography
 
         (h, w), (rh, rw) = self.profile.slm.shape, self.profile.optics.roi
@@ -279,7 +282,8 @@ class Console:
         corners = np.array([[left, top], [left + rw, top], [left + rw, top + rh], [left, top + rh]])
         rows, cols = full_shape
         overlay = {}
-        for colour, entry in Calibration.store(self.profile).registrations().items():
+        assert self.bench is not None
+        for colour, entry in self.bench.registrations.items():
             points = apply_homography(np.array(entry["homography"]), corners)
             overlay[colour] = [[round(x / cols, 5), round(y / rows, 5)] for x, y in points]
         return overlay
@@ -296,6 +300,7 @@ class Console:
 
     def _reconnect(self) -> None:
         """Take the devices back after a procedure, and say when it changed what the SLM shows."""
+        self._recalibrate()
         for held in (self.laser.held if self.laser else None, self.slm.held if self.slm else None, self.camera):
             if held is not None and not held.connected:
                 held.connect()
@@ -312,9 +317,27 @@ class Console:
             raise BenchctlError("a procedure holds the devices; wait for it or stop it")
         if name == "laser" and self.laser is not None:
             self.laser.connect()
-        elif held.connect() and name == "slm":
-            self._read_slm("connected again")
+        else:
+            if not held.connected:
+                self._recalibrate()
+            if held.connect() and name == "slm":
+                self._read_slm("connected again")
         return {"connected": held.connected, "error": held.error}
+
+    def _recalibrate(self) -> None:
+        """The bench built again from its calibration files before the SLM or camera is taken back: calibrations are
+        measured with both, so one can only have changed while the console let go of one of them (a procedure it
+        ran, or a program that held a device the console could not open). A file that cannot be read now is said,
+        and the bench stays as it was."""
+        if self.bench is None:
+            return
+        try:
+            self.bench = self.bench.recalibrated()
+        except BenchctlError as exc:
+            self.say(f"calibration not read again: {exc}")
+            return
+        if self.slm is not None:
+            self.slm.bench = self.bench
 
     def _read_slm(self, when: str) -> None:
         if self.slm is not None:
@@ -341,10 +364,6 @@ class Console:
             "procedure": self.procedures.state(), "events": list(self.events)[-30:],
             "uploads": dict(self.uploads.names), "time": time.time(),
         }
-
-    def _checkpoints(self) -> dict[str, str]:
-        folder = Path("checkpoints") / self.profile.name
-        return {path.stem: str(path) for path in sorted(folder.glob("*.pt"))} if folder.is_dir() else {}
 
 
 class _Job:

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from benchctl.capture.raw import RawImage, decode_raw
-from benchctl.devices.camera.base import RAW_FORMATS, PreviewFrame, Window
+from benchctl.devices.camera import RAW_FORMATS, PreviewFrame, Window
 from benchctl.errors import BenchctlError
 from benchctl.optics.colour import linear_to_srgb, srgb_to_linear
 
