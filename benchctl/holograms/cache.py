@@ -69,20 +69,28 @@ def _key(profile: Profile, setup: OpticalSetup, channel: str, plane: torch.Tenso
     return digest.hexdigest()[:32]
 
 
+def cache_entry(bench: Calibrated, target: torch.Tensor, channel: str, method: str, *, iterations: int | None,
+                seed: int, checkpoint: str | None) -> tuple[Path, str | None]:
+    """Where the hologram of `channel` for `target` with these options is cached, and the checkpoint it is computed
+    with: the one given, else the one found for a learned method (or for a refined one's network: "ccnn-dcm4+sgd"
+    runs ccnn-dcm4's). That checkpoint's bytes are part of the key, as are the code, the bench and the target."""
+    network = get_method(method).network
+    if checkpoint is None and network is not None:
+        found = find_checkpoint(network, bench.profile)  # what compute_scene will use
+        checkpoint = str(found) if found else None
+    options = {"method": method, "iterations": iterations, "seed": seed, "checkpoint": checkpoint}
+    plane = target[target_plane(bench.profile.channel(channel))]
+    key = _key(bench.profile, bench.setup(channel), channel, plane, options)
+    return cache_dir() / "holograms" / f"{key}.npz", checkpoint
+
+
 def hologram(bench: Calibrated, target: torch.Tensor, channel: str, method: str, *, iterations: int | None,
              seed: int, checkpoint: str | None,
              progress: Callable[[str], Callable[[int, int], None]] | None = None) -> Hologram:
-    """The hologram of `channel` for `target` (3, H, W amplitude on the SLM grid), computed for `setup` (default:
-    the channel's setup on `profile`): from the cache when this exact computation was done before, else computed
-    (compute_scene, one colour) and cached."""
-    profile, setup = bench.profile, bench.setup(channel)
-    network = get_method(method).network  # "ccnn-dcm4+sgd" runs ccnn-dcm4's checkpoint
-    if checkpoint is None and network is not None:
-        found = find_checkpoint(network, profile)  # what compute_scene will use: its bytes belong in the key
-        checkpoint = str(found) if found else None
-    options = {"method": method, "iterations": iterations, "seed": seed, "checkpoint": checkpoint}
-    plane = target[target_plane(profile.channel(channel))]
-    path = cache_dir() / "holograms" / f"{_key(profile, setup, channel, plane, options)}.npz"
+    """The hologram of `channel` for `target` (3, H, W amplitude on the SLM grid) on `bench`: from the cache when
+    this exact computation was done before (`cache_entry`), else computed (compute_scene, one colour) and cached."""
+    path, checkpoint = cache_entry(bench, target, channel, method, iterations=iterations, seed=seed,
+                                   checkpoint=checkpoint)
     if path.is_file():
         with np.load(path, allow_pickle=False) as data:
             return Hologram(data["gray"], data["reconstruction"], json.loads(str(data["scores"])),

@@ -111,11 +111,6 @@ class SLM(Connection):
         return self.config.shape
 
     @property
-    def resolution(self) -> tuple[int, int]:
-        """Same as `shape`, (H, W)."""
-        return self.shape
-
-    @property
     def pitch_m(self) -> float:
         """Pixel pitch in metres."""
         return self.config.pitch_m
