@@ -193,6 +193,8 @@ def test_a_procedure_from_the_page(served: tuple[Console, str], browser: webdriv
     until(lambda: "[4/4, about " in lines.text, timeout_s=180)  # its steps, one after the other
     until(lambda: "ended with exit code" in browser.find_element(By.ID, "events").text, timeout_s=180)
     assert console.procedures.returncode == 0, console.procedures.lines
+    progress = browser.find_element(By.ID, "procedure-progress").text  # from the run's event stream
+    assert progress == f"sweep.toml: 4/4 steps, finished · {console.procedures.run_folder}", progress
     assert not browser.find_element(By.ID, "stop").is_enabled()  # nothing left to stop
     report = browser.find_element(By.ID, "report")
     until(report.is_displayed)

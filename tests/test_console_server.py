@@ -552,9 +552,35 @@ def test_procedures_dry_run_then_run_with_the_devices_handed_over(client: TestCl
     assert wait_for(lambda: not console.procedures.active, 120)
     state = client.get("/api/state").json()["procedure"]
     assert state["returncode"] == 0, state["lines"]
-    assert any(line.startswith("run folder: ") for line in state["lines"]) and state["report"]
+    (folder,) = [path for path in console.out.iterdir() if (path / "run.json").is_file()]
+    plan = json.loads((folder / "run.json").read_text())["plan"]
+    # followed through the run's event stream (`run --events`), not its printed lines
+    assert state["folder"] == str(folder.resolve()) and state["report"]
+    assert state["progress"] == {"steps": len(plan), "done": len(plan), "step": None, "status": "finished",
+                                 "error": None}
     assert "<html" in client.get("/api/procedures/report").text.lower()
     assert wait_for(lambda: console.laser.held.connected and console.camera.connected, 5)
+
+
+def test_a_line_a_procedure_prints_does_not_steer_the_console(client: TestClient, console: Console,
+                                                               tmp_path: Path) -> None:
+    """The run's folder comes from its event stream: a procedure that prints the runner's own "run folder: ..." line
+    naming another folder (which holds a report) leaves the console on the run's real folder, with no report."""
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "report.html").write_text("<html>not this run's</html>")
+    (tmp_path / "procedures" / "says.py").write_text(
+        "from benchctl.runner.api import Parameters, Step\n\nDESCRIPTION = 'prints a line like the runner'\n"
+        "PARAMETERS = Parameters\n\n\ndef plan(context):\n"
+        f"    return [Step('say', 'print', lambda context: print('run folder: {elsewhere}', flush=True) or {{}})]\n")
+    assert client.post("/api/procedures/start", json={"name": "says.py"}).json()["ok"] is True
+    assert wait_for(lambda: not console.procedures.active, 120)
+    state = client.get("/api/state").json()["procedure"]
+    assert f"run folder: {elsewhere}" in state["lines"], state["lines"]
+    (folder,) = [path for path in console.out.iterdir() if (path / "run.json").is_file()]
+    assert state["folder"] == str(folder.resolve()) and not state["report"]
+    assert state["progress"]["status"] == "finished" and state["progress"]["done"] == 1
+    assert client.get("/api/procedures/report").status_code == 404
 
 
 def test_the_console_runs_only_what_its_procedures_folder_holds(client: TestClient, tmp_path: Path) -> None:

@@ -238,6 +238,10 @@ function state(s) {
   const p = s.procedure;
   $("procedure-lines").textContent = p.lines.join("\n") || $("procedure-lines").textContent;
   $("report").hidden = !p.report;
+  const run = p.progress || {};
+  $("procedure-progress").textContent = run.steps === undefined ? "" :
+    `${p.last}: ${run.done}/${run.steps} steps` + (run.status === "running" ? (run.step ? `, at ${run.step}` : "")
+      : `, ${run.status}` + (run.error ? `: ${run.error}` : "")) + (p.folder ? ` · ${p.folder}` : "");
   $("stop").disabled = !p.running;
 }
 

@@ -1,0 +1,59 @@
+"""`benchctl run --events FD`: the run's events as JSON lines for a program that follows it (the console), the same
+events its step log records, framed by where the run is and how it stopped."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from console_bench import POWER_SWEEP
+
+
+def _run(tmp_path: Path, profile: Path, *options: str, pass_fds: tuple[int, ...] = ()) -> subprocess.Popen[str]:
+    procedure = tmp_path / "sweep.toml"
+    procedure.write_text(POWER_SWEEP)
+    return subprocess.Popen([sys.executable, "-m", "benchctl", "run", str(procedure), "--profile", str(profile),
+                             "--out", str(tmp_path / "runs"), *options], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, pass_fds=pass_fds)
+
+
+def test_the_event_stream_is_the_step_log_framed_by_the_run_and_its_stop(tmp_path: Path,
+                                                                          bench_profile_path: Path) -> None:
+    reader, writer = os.pipe()
+    process = _run(tmp_path, bench_profile_path, "--events", str(writer), pass_fds=(writer,))
+    os.close(writer)
+    with open(reader, encoding="utf-8") as stream:
+        events = [json.loads(line) for line in stream]
+    output, _ = process.communicate(timeout=120)
+    assert process.returncode == 0, output
+    (folder,) = (tmp_path / "runs").iterdir()
+    record = json.loads((folder / "run.json").read_text())
+    logged = [json.loads(line) for line in (folder / "steps.jsonl").read_text().splitlines()]
+    assert events[0] == {"event": "run", "folder": str(folder.resolve()), "steps": len(record["plan"]),
+                         "todo": len(record["plan"]), "resumed": False}
+    assert events[1:-1] == logged  # every step-log event, as written, in order
+    assert [e["step"] for e in logged if e["event"] == "done"] == record["plan"]
+    assert events[-1] == {"event": "stop", **record["stop"]} and record["stop"]["status"] == "finished"
+
+
+def test_a_reader_that_goes_away_stops_the_stream_not_the_run(tmp_path: Path, bench_profile_path: Path) -> None:
+    reader, writer = os.pipe()
+    process = _run(tmp_path, bench_profile_path, "--events", str(writer), pass_fds=(writer,))
+    os.close(writer)
+    with open(reader, encoding="utf-8") as stream:
+        assert json.loads(stream.readline())["event"] == "run"
+    output, _ = process.communicate(timeout=120)  # the pipe has no reader left: writing to it fails in the run
+    assert process.returncode == 0, output
+    (folder,) = (tmp_path / "runs").iterdir()
+    assert json.loads((folder / "run.json").read_text())["stop"]["status"] == "finished"
+
+
+def test_events_to_a_descriptor_that_is_not_open_is_one_line(tmp_path: Path, bench_profile_path: Path) -> None:
+    process = _run(tmp_path, bench_profile_path, "--events", "97")
+    output, _ = process.communicate(timeout=60)
+    assert process.returncode != 0 and "Traceback" not in output
+    assert output.strip().splitlines()[-1].endswith("--events 97: not an open file descriptor (Bad file descriptor)")
+    assert not (tmp_path / "runs").exists()  # refused before anything was created
