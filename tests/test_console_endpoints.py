@@ -1,0 +1,82 @@
+"""The console's endpoints one at a time: each is a module-level function that finds its console in
+`request.app.state`, called here with a request built by hand (no application, no routing, no access middleware), on
+the small simulated bench."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from collections.abc import Iterator
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import pytest
+from console_bench import laser_channel, make_console
+
+from benchctl.console import app
+from benchctl.console.core import Console
+from benchctl.devices.errors import SafetyError
+from benchctl.errors import BadValueError, BenchctlError
+from benchctl.profiles import load_profile
+
+
+@pytest.fixture
+def console(bench_profile_path: Path, tmp_path: Path) -> Iterator[Console]:
+    console = make_console(load_profile(bench_profile_path), tmp_path)
+    yield console
+    console.close()
+
+
+def call(handler: Any, console: Console, payload: dict[str, Any] | None = None, **path_params: str) -> Any:
+    """`handler` awaited with a request that carries `payload` as its JSON body, as Starlette would hand it over."""
+    from starlette.requests import Request
+
+    body = json.dumps(payload).encode() if payload is not None else b""
+    messages = [{"type": "http.request", "body": body, "more_body": False}]
+
+    async def receive() -> dict[str, Any]:
+        return messages.pop(0) if messages else {"type": "http.disconnect"}
+
+    scope = {"type": "http", "method": "POST", "path": "/", "query_string": b"", "path_params": path_params,
+             "headers": [(b"content-length", str(len(body)).encode())],
+             "app": SimpleNamespace(state=SimpleNamespace(console=console))}
+    return asyncio.run(handler(Request(scope, receive)))
+
+
+def test_the_power_endpoint_alone_sets_and_reads_back(console: Console) -> None:
+    assert call(app.power, console, {"power": "3mW"}, channel="green") == {"setpoint_mw": 3.0}
+    assert laser_channel(2)["setpoint_w"] == pytest.approx(0.003)
+    with pytest.raises(SafetyError, match="above the profile's limit 40 mW"):
+        call(app.power, console, {"power": "41mW"}, channel="green")
+    assert laser_channel(2)["setpoint_w"] == pytest.approx(0.003)  # nothing sent
+    with pytest.raises(BadValueError, match='give the power as {"power": "5mW"}'):
+        call(app.power, console, {"power": 3}, channel="green")
+
+
+def test_the_emission_and_all_off_endpoints_alone(console: Console) -> None:
+    assert call(app.emission, console, {"on": True}, channel="blue") == {"ok": True}
+    assert laser_channel(3)["emission"] is True
+    state = call(app.state, console)
+    assert [ch["emission"] for ch in state["laser"]["channels"]] == [False, False, True]
+    assert call(app.all_off, console) == {"ok": True}
+    assert laser_channel(3)["emission"] is False and console.laser is not None and not console.laser.emitting
+    with pytest.raises(BadValueError, match="give emission as"):
+        call(app.emission, console, {"on": "yes"}, channel="blue")
+
+
+def test_the_view_and_connect_endpoints_alone(console: Console) -> None:
+    assert call(app.view, console, {"mode": "linear", "zoom": [0.25, 0.5]}) == {"mode": "linear",
+                                                                                "zoom": (0.25, 0.5)}
+    with pytest.raises(BadValueError, match="view mode must be 'gamma' or 'linear', got 'log'"):
+        call(app.view, console, {"mode": "log"})
+    assert call(app.connect, console, {"device": "camera"}) == {"connected": True, "error": None}
+    with pytest.raises(BenchctlError, match="no device 'focus' to connect"):
+        call(app.connect, console, {"device": "focus"})
+
+
+def test_the_application_is_its_routes_and_the_console_it_serves(console: Console) -> None:
+    from benchctl.console.security import Access
+
+    wrapped = app.create_app(console, Access("t" * 20, 8765))
+    assert wrapped.app.state.console is console and wrapped.app.routes == app.ROUTES
