@@ -367,12 +367,13 @@ def test_the_slm_panel_offers_the_checkpoints_a_run_finds(monkeypatch: pytest.Mo
     assert slm.checkpoints() == {**shipped, "ccnn-dcm4": str(Path("checkpoints/simulated/ccnn-dcm4.pt"))}
 
 
-def test_the_registration_overlay_is_read_once_per_calibration(bench_profile_path: Path, tmp_path: Path,
-                                                               monkeypatch: pytest.MonkeyPatch) -> None:
+def test_the_registration_overlay_is_read_again_only_when_its_file_changes(
+        bench_profile_path: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The overlay comes from the bench as calibrated (its registrations read once, not for every frame), built
-    again when the console takes its devices back from a procedure, which may have stored a new registration."""
+    again when a calibration file changes (its stamp, checked each status period)."""
     from conftest import truly_registered
 
+    from benchctl.console import core
     from benchctl.calibration.store import Calibration
     from benchctl.capture.registration import apply_homography
     from benchctl.devices.sim import physics
@@ -394,11 +395,16 @@ def test_the_registration_overlay_is_read_once_per_calibration(bench_profile_pat
         expected = [[x / cols, y / rows] for x, y in corners]
         assert all(list(header["overlay"]) == ["green"] for header in headers)
         assert np.allclose(headers[-1]["overlay"]["green"], expected, atol=1e-5)
-        assert len(reads) == 1  # once for the bench, not once per frame
-        truly_registered(profile, "blue")  # a registration procedure stores blue's
+        time.sleep(3 * core.STATUS_PERIOD_S)
+        assert len(reads) == 1  # once for the bench, not once per frame, nor while the file stays as it was
+        slm_opened = console.slm.held.device
+        truly_registered(profile, "blue")  # a registration stored by hand (or by a procedure) while the console runs
+        assert wait_for(lambda: sorted(console.registration_overlay((rows, cols))) == ["blue", "green"], 5.0)
+        assert len(reads) == 2 and any("changed: read again" in line for line in console.events)
+        assert console.slm.held.device is not slm_opened and console.slm.bench is console.bench  # new tables too
         console._release_for_run(["slm", "camera"])
-        console._reconnect()
-        assert sorted(console.registration_overlay((rows, cols))) == ["blue", "green"] and len(reads) == 2
+        console._reconnect()  # a procedure that stored nothing: nothing read again
+        assert len(reads) == 2 and console.slm.held.connected
     finally:
         console.close()
 

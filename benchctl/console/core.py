@@ -46,6 +46,7 @@ class Console:
         self.laser = LaserControl(profile, self.say, deadman_s) if profile.laser is not None else None
         self.uploads = Uploads()
         self.slm = SlmControl(self.bench, self.uploads) if self.bench is not None else None
+        self._calibration_stamp = self.bench.calibration.stamp() if self.bench and self.bench.calibration else ()
         self.camera: Held[Camera] | None = (Held("camera", lambda: open_camera(profile), Camera.close)
                                             if profile.camera is not None else None)
         self.procedures = Procedures(profile, procedures_dir, self.out, self._release_for_run, self._reconnect,
@@ -162,6 +163,7 @@ class Console:
 
     def _status_loop(self) -> None:
         while not self._stop.wait(STATUS_PERIOD_S):
+            self.follow_calibration()
             self.refresh_laser()
 
     # -- SLM -------------------------------------------------------------------------------------------------------
@@ -300,7 +302,7 @@ class Console:
 
     def _reconnect(self) -> None:
         """Take the devices back after a procedure, and say when it changed what the SLM shows."""
-        self._recalibrate()
+        self.follow_calibration()
         for held in (self.laser.held if self.laser else None, self.slm.held if self.slm else None, self.camera):
             if held is not None and not held.connected:
                 held.connect()
@@ -318,26 +320,36 @@ class Console:
         if name == "laser" and self.laser is not None:
             self.laser.connect()
         else:
-            if not held.connected:
-                self._recalibrate()
+            self.follow_calibration()
             if held.connect() and name == "slm":
                 self._read_slm("connected again")
         return {"connected": held.connected, "error": held.error}
 
-    def _recalibrate(self) -> None:
-        """The bench built again from its calibration files before the SLM or camera is taken back: calibrations are
-        measured with both, so one can only have changed while the console let go of one of them (a procedure it
-        ran, or a program that held a device the console could not open). A file that cannot be read now is said,
-        and the bench stays as it was."""
-        if self.bench is None:
+    def follow_calibration(self) -> None:
+        """The bench built again from its calibration files when one of them changed since it was built (a procedure
+        the console ran stored a measurement, a file was restored by hand), checked by their stamps (one stat per
+        file) each status period and before a device is taken back: the registration overlay, holograms and focus
+        depths follow, and an SLM the console holds is opened again with the new tables. A file that cannot be read
+        now is said, and the bench stays as it was."""
+        calibration = self.bench.calibration if self.bench is not None else None
+        if calibration is None:
             return
+        stamp = calibration.stamp()
+        if stamp == self._calibration_stamp:
+            return
+        self._calibration_stamp = stamp
         try:
-            self.bench = self.bench.recalibrated()
+            bench = Calibrated(self.configured, calibration)
+            bench.registrations  # noqa: B018 - read now, on this thread, not by the live view
         except BenchctlError as exc:
             self.say(f"calibration not read again: {exc}")
             return
+        self.bench = bench
+        self.say(f"calibration in {calibration.folder} changed: read again")
         if self.slm is not None:
-            self.slm.bench = self.bench
+            self.slm.bench = bench
+            if self.slm.held.reopen():
+                self._read_slm("opened again with the new calibration")
 
     def _read_slm(self, when: str) -> None:
         if self.slm is not None:
