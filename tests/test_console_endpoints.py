@@ -80,3 +80,40 @@ def test_the_application_is_its_routes_and_the_console_it_serves(console: Consol
 
     wrapped = app.create_app(console, Access("t" * 20, 8765))
     assert wrapped.app.state.console is console and wrapped.app.routes == app.ROUTES
+
+
+def test_state_answers_while_a_device_hangs(console: Console, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A laser that stops answering in the middle of a command holds that command's worker thread, never the event
+    loop: /api/state answers meanwhile (from what the console last read), and the command ends when the device does."""
+    import threading
+
+    from console_bench import ORIGIN, TOKEN, access
+    from starlette.testclient import TestClient
+
+    from benchctl.devices.serial_link import SerialLink
+
+    entered, released = threading.Event(), threading.Event()
+    exchange = SerialLink._exchange
+
+    def hanging(self: SerialLink, line: str, read: Any) -> Any:
+        if line.startswith("CH2:POW"):
+            entered.set()
+            released.wait(30)
+        return exchange(self, line, read)
+
+    monkeypatch.setattr(SerialLink, "_exchange", hanging)
+    with TestClient(app.create_app(console, access()), base_url=ORIGIN) as client:
+        client.headers.update({"x-benchctl-token": TOKEN, "origin": ORIGIN})
+        answers: dict[str, Any] = {}
+        command = threading.Thread(target=lambda: answers.update(
+            power=client.post("/api/laser/green/power", json={"power": "2mW"})))
+        command.start()
+        assert entered.wait(10)
+        reader = threading.Thread(target=lambda: answers.update(state=client.get("/api/state")))
+        reader.start()
+        reader.join(10)
+        hung = not released.is_set() and command.is_alive()
+        released.set()
+        command.join(10)
+    assert hung and answers["state"].status_code == 200 and answers["state"].json()["profile"] == "bench"
+    assert answers["power"].json()["setpoint_mw"] == 2.0
