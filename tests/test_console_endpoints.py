@@ -4,15 +4,12 @@ the small simulated bench."""
 
 from __future__ import annotations
 
-import asyncio
-import json
 from collections.abc import Iterator
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any
 
 import pytest
-from console_bench import laser_channel, make_console
+from console_bench import call, laser_channel, make_console
 
 from benchctl.console import app
 from benchctl.console.core import Console
@@ -26,22 +23,6 @@ def console(bench_profile_path: Path, tmp_path: Path) -> Iterator[Console]:
     console = make_console(load_profile(bench_profile_path), tmp_path)
     yield console
     console.close()
-
-
-def call(handler: Any, console: Console, payload: dict[str, Any] | None = None, **path_params: str) -> Any:
-    """`handler` awaited with a request that carries `payload` as its JSON body, as Starlette would hand it over."""
-    from starlette.requests import Request
-
-    body = json.dumps(payload).encode() if payload is not None else b""
-    messages = [{"type": "http.request", "body": body, "more_body": False}]
-
-    async def receive() -> dict[str, Any]:
-        return messages.pop(0) if messages else {"type": "http.disconnect"}
-
-    scope = {"type": "http", "method": "POST", "path": "/", "query_string": b"", "path_params": path_params,
-             "headers": [(b"content-length", str(len(body)).encode())],
-             "app": SimpleNamespace(state=SimpleNamespace(console=console))}
-    return asyncio.run(handler(Request(scope, receive)))
 
 
 def test_the_power_endpoint_alone_sets_and_reads_back(console: Console) -> None:
@@ -66,10 +47,14 @@ def test_the_emission_and_all_off_endpoints_alone(console: Console) -> None:
 
 
 def test_the_view_and_connect_endpoints_alone(console: Console) -> None:
-    assert call(app.view, console, {"mode": "linear", "zoom": [0.25, 0.5]}) == {"mode": "linear",
-                                                                                "zoom": (0.25, 0.5)}
+    view = {"mode": "linear", "zoom": (0.25, 0.5), "region": (0.1, 0.2, 0.5, 0.6)}
+    assert call(app.view, console, {"mode": "linear", "zoom": [0.25, 0.5], "region": [0.1, 0.2, 0.5, 0.6]}) == view
     with pytest.raises(BadValueError, match="view mode must be 'gamma' or 'linear', got 'log'"):
-        call(app.view, console, {"mode": "log"})
+        call(app.view, console, {"mode": "log", "region": None})
+    with pytest.raises(BadValueError, match=r"region must be \[x0, y0, x1, y1\] .* got \[0.5, 0.2, 0.1, 0.6\]"):
+        call(app.view, console, {"mode": "gamma", "region": [0.5, 0.2, 0.1, 0.6]})
+    assert console.view == view  # a refused view changes nothing
+    assert call(app.view, console, {"region": None})["region"] is None
     assert call(app.connect, console, {"device": "camera"}) == {"connected": True, "error": None}
     with pytest.raises(BenchctlError, match="no device 'focus' to connect"):
         call(app.connect, console, {"device": "focus"})

@@ -159,8 +159,28 @@ async def upload(request: Request) -> dict[str, Any]:
 
 async def view(request: Request) -> dict[str, Any]:
     console, data = held(request), await body(request)
-    console.set_view(data.get("mode"), data.get("zoom"), "zoom" in data and data["zoom"] is None)
+    console.set_view(data.get("mode"), data.get("zoom"), "zoom" in data and data["zoom"] is None,
+                     data.get("region"), "region" in data and data["region"] is None)
     return console.view
+
+
+async def focus_move(request: Request) -> dict[str, Any]:
+    steps = (await body(request)).get("steps")
+    if isinstance(steps, bool) or not isinstance(steps, int):
+        raise BadValueError(f'give the move as {{"steps": 200}} (signed, whole steps), got {steps!r}')
+    return await _in_thread(held(request).focus_move, steps)
+
+
+async def focus_home(request: Request) -> dict[str, Any]:
+    return await _in_thread(held(request).focus_home)
+
+
+async def focus_go(request: Request) -> dict[str, Any]:
+    data = await body(request)
+    depth, channel = data.get("depth"), data.get("channel")
+    if not isinstance(depth, str) or not (channel is None or isinstance(channel, str)):
+        raise BadValueError('give the depth as {"depth": "70.5mm", "channel": "green"} (or diopters: "14.2D")')
+    return await _in_thread(held(request).focus_go, depth, channel)
 
 
 async def capture(request: Request) -> dict[str, Any]:
@@ -234,6 +254,9 @@ ROUTES = [
     Route("/api/laser/{channel}/emission", api(emission), methods=["POST"]),
     Route("/api/slm", api(slm), methods=["POST"]), Route("/api/slm/thumbnail.png", thumbnail),
     Route("/api/upload", api(upload), methods=["POST"]), Route("/api/view", api(view), methods=["POST"]),
+    Route("/api/focus/move", api(focus_move), methods=["POST"]),
+    Route("/api/focus/home", api(focus_home), methods=["POST"]),
+    Route("/api/focus/go", api(focus_go), methods=["POST"]),
     Route("/api/capture", api(capture), methods=["POST"]), Route("/api/connect", api(connect), methods=["POST"]),
     Route("/api/procedures/dry-run", api(dry_run), methods=["POST"]),
     Route("/api/procedures/start", api(start), methods=["POST"]),

@@ -20,7 +20,9 @@ import numpy as np
 
 from benchctl.calibration import Calibrated
 from benchctl.console import capture, preview
+from benchctl.capture.focus import FocusMap
 from benchctl.console.devices import Held
+from benchctl.console.focus import FocusControl
 from benchctl.console.laser import DEADMAN_S, LaserControl
 from benchctl.console.procedures import Procedures
 from benchctl.console.slm import Pattern, SlmControl
@@ -49,9 +51,11 @@ class Console:
         self._calibration_stamp = self.bench.calibration.stamp() if self.bench and self.bench.calibration else ()
         self.camera: Held[Camera] | None = (Held("camera", lambda: open_camera(profile), Camera.close)
                                             if profile.camera is not None else None)
+        self.focus = (FocusControl(profile, self.camera, self._focus_maps, self.say) if profile.focus is not None
+                      else None)
         self.procedures = Procedures(profile, procedures_dir, self.out, self._release_for_run, self._reconnect,
                                      self.say)
-        self.view: dict[str, Any] = {"mode": "gamma", "zoom": None}
+        self.view: dict[str, Any] = {"mode": "gamma", "zoom": None, "region": None}
         self.job: dict[str, Any] = {"busy": None, "progress": None, "error": None, "started": None}
         self.laser_status: dict[str, Any] = self.laser.status() if self.laser else {"channels": []}
         self.preview_error: str | None = None
@@ -75,6 +79,8 @@ class Console:
         for held in (self.slm.held if self.slm else None, self.camera):
             if held is not None and not held.connect():
                 self.say(f"{held.name}: {held.error}")
+        if self.focus is not None and not self.focus.connect():  # after the camera: an EOS lens is driven through it
+            self.say(f"focus: {self.focus.held.error}")
         self._read_slm("at start")
         self.refresh_laser()
         for thread in self._threads:
@@ -94,7 +100,7 @@ class Console:
             if self.procedures.active:
                 unknown = f"procedure {self.procedures.running} still holds the laser after SIGTERM"
         finally:
-            for held in (self.slm.held if self.slm else None, self.camera):
+            for held in (self.slm.held if self.slm else None, self.focus.held if self.focus else None, self.camera):
                 if held is not None:
                     held.release()
             if self.slm is not None:
@@ -189,6 +195,28 @@ class Console:
             raise BenchctlError(f"busy with {self.job['busy']}; try again when it is done")
         return _Job(self, name)
 
+    # -- focus -----------------------------------------------------------------------------------------------------
+
+    def _focus(self) -> FocusControl:
+        if self.focus is None:
+            raise BenchctlError(f"profile {self.profile.name!r} has no [focus]")
+        if self.procedures.active:
+            raise BenchctlError("a procedure holds the focus; wait for it or stop it")
+        return self.focus
+
+    def _focus_maps(self) -> dict[str, FocusMap]:
+        """The focus calibration of the bench as calibrated (none without an SLM and optics: nothing to focus on)."""
+        return self.bench.focus_maps if self.bench is not None else {}
+
+    def focus_move(self, steps: int) -> dict[str, Any]:
+        return self._focus().move(steps)
+
+    def focus_home(self) -> dict[str, Any]:
+        return self._focus().home()
+
+    def focus_go(self, depth: str, channel: str | None) -> dict[str, Any]:
+        return self._focus().go(depth, channel)
+
     # -- camera ----------------------------------------------------------------------------------------------------
 
     def _camera(self) -> Held[Camera]:
@@ -215,17 +243,26 @@ class Console:
         with self.slm.device() as slm:
             return {"shows": self.slm.shown, "info": slm.info(), "displayed_frame": slm.displayed_frame()}
 
-    def set_view(self, mode: str | None, zoom: list[float] | None, clear_zoom: bool) -> None:
+    def set_view(self, mode: str | None, zoom: list[float] | None, clear_zoom: bool,
+                 region: list[float] | None = None, clear_region: bool = False) -> None:
+        """The live view's mode (gamma or linear), its 1:1 zoom's centre, and the region whose sharpness each frame
+        reports ([x0, y0, x1, y1] as fractions of the frame); a bad value changes nothing."""
+        view = dict(self.view)
         if mode is not None:
             if mode not in ("gamma", "linear"):
                 raise BadValueError(f"view mode must be 'gamma' or 'linear', got {mode!r}")
-            self.view["mode"] = mode
+            view["mode"] = mode
         if clear_zoom:
-            self.view["zoom"] = None
+            view["zoom"] = None
         elif zoom is not None:
             if len(zoom) != 2 or not all(isinstance(v, (int, float)) and 0 <= v <= 1 for v in zoom):
                 raise BadValueError(f"zoom centre must be [x, y] fractions of the frame, got {zoom!r}")
-            self.view["zoom"] = (float(zoom[0]), float(zoom[1]))
+            view["zoom"] = (float(zoom[0]), float(zoom[1]))
+        if clear_region:
+            view["region"] = None
+        elif region is not None:
+            view["region"] = preview.checked_region(region)
+        self.view = view
 
     def _preview_loop(self) -> None:
         while not self._stop.is_set():
@@ -251,10 +288,13 @@ class Console:
             render = (time.perf_counter() - clock, time.thread_time() - cpu)
         self._seq += 1
         return preview.shown_frame(self._seq, frame, zoom, mode=self.view["mode"], zoom_centre=centre,
-                                   render_started=started, render_s=render)
+                                   render_started=started, render_s=render, region=self.view["region"])
 
     def _publish(self, shown: preview.Shown) -> None:
         shown.header["overlay"] = self.registration_overlay(shown.header["full_shape"])
+        if self.focus is not None:  # where benchctl believed the focus was as this frame was published
+            shown.header["focus"] = {"moving": self.focus.moving,
+                                     **{key: self.focus.status.get(key) for key in ("position", "unit", "depth_mm")}}
         self.latest = shown
         self._frame_times.append(time.monotonic())
         for listener in list(self._listeners):
@@ -296,29 +336,35 @@ class Console:
         """Let go of the devices a run will use (emission off first): one holder per device."""
         if "laser" in devices and self.laser is not None and not self.laser.let_go():
             raise BenchctlError(f"laser: {self.laser.unknown}; the procedure was not started")
-        for name, held in (("slm", self.slm.held if self.slm else None), ("camera", self.camera)):
+        for name, held in (("slm", self.slm.held if self.slm else None),
+                           ("focus", self.focus.held if self.focus else None), ("camera", self.camera)):
             if name in devices and held is not None:
                 held.release()
 
     def _reconnect(self) -> None:
         """Take the devices back after a procedure, and say when it changed what the SLM shows."""
         self.follow_calibration()
-        for held in (self.laser.held if self.laser else None, self.slm.held if self.slm else None, self.camera):
+        for held in (self.laser.held if self.laser else None, self.slm.held if self.slm else None, self.camera,
+                     self.focus.held if self.focus else None):  # the focus after the camera it may drive through
             if held is not None and not held.connected:
                 held.connect()
+        if self.focus is not None:
+            self.focus.refresh()
         self._read_slm(f"after procedure {self.procedures.running}")
 
     def connect(self, name: str) -> dict[str, Any]:
-        """Connect device `name` (laser, slm or camera) again, e.g. after it was lost or held elsewhere."""
+        """Connect device `name` (laser, slm, camera or focus) again, e.g. after it was lost or held elsewhere."""
         devices = {"laser": self.laser.held if self.laser else None, "slm": self.slm.held if self.slm else None,
-                   "camera": self.camera}
+                   "camera": self.camera, "focus": self.focus.held if self.focus else None}
         held = devices.get(name)
         if held is None:
-            raise BadValueError(f"no device {name!r} to connect (laser, slm or camera)")
+            raise BadValueError(f"no device {name!r} to connect ({', '.join(k for k, v in devices.items() if v)})")
         if self.procedures.active:
             raise BenchctlError("a procedure holds the devices; wait for it or stop it")
         if name == "laser" and self.laser is not None:
             self.laser.connect()
+        elif name == "focus" and self.focus is not None:
+            self.focus.connect()
         else:
             self.follow_calibration()
             if held.connect() and name == "slm":
@@ -372,6 +418,7 @@ class Console:
                                              "shows": slm.shown, "channels": slm.channels},
             "camera": None if self.camera is None else {"connected": self.camera.connected,
                                                         "error": self.camera.error or self.preview_error},
+            "focus": None if self.focus is None else self.focus.state(),
             "view": self.view, "fps": round(self.fps, 2), "job": self.job,
             "procedure": self.procedures.state(), "events": list(self.events)[-30:],
             "uploads": dict(self.uploads.names), "time": time.time(),

@@ -34,7 +34,7 @@ if sys.version_info >= (3, 11):
 else:
     import tomli as tomllib
 
-DEVICES = ["laser", "slm", "camera"]
+DEVICES = ["laser", "slm", "camera", "focus"]
 LINES_KEPT = 400
 DRY_RUN_TIMEOUT_S = 300.0
 
