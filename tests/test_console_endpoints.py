@@ -4,6 +4,7 @@ the small simulated bench."""
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -102,3 +103,21 @@ def test_state_answers_while_a_device_hangs(console: Console, monkeypatch: pytes
         command.join(10)
     assert hung and answers["state"].status_code == 200 and answers["state"].json()["profile"] == "bench"
     assert answers["power"].json()["setpoint_mw"] == 2.0
+
+
+def test_the_page_is_served_from_memory(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The event loop reads no file for the page: its files are read once, the first time they are asked for."""
+    from importlib import resources
+
+    first = {name: asyncio.run(app.static(request_for(name))).body for name in app.STATIC}
+    monkeypatch.setattr(resources, "files", lambda package: pytest.fail(f"{package} read again"))
+    assert {name: asyncio.run(app.static(request_for(name))).body for name in app.STATIC} == first
+    assert b"benchctl console" in first["index.html"] and asyncio.run(app.page(request_for(""))).body == first[
+        "index.html"]
+
+
+def request_for(name: str) -> Any:
+    from starlette.requests import Request
+
+    return Request({"type": "http", "method": "GET", "path": f"/static/{name}", "query_string": b"", "headers": [],
+                    "path_params": {"name": name}})

@@ -16,6 +16,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import contextvars
+import functools
 import json
 import struct
 import threading
@@ -372,8 +373,13 @@ async def _on_own_thread(function: Callable[[], T]) -> T:
 
 
 def _static(name: str) -> Response:
-    data = (resources.files("benchctl.console") / "static" / name).read_bytes()
-    return Response(data, media_type=STATIC[name], headers={"cache-control": "no-store"})
+    return Response(_static_bytes(name), media_type=STATIC[name], headers={"cache-control": "no-store"})
+
+
+@functools.cache
+def _static_bytes(name: str) -> bytes:
+    """The page's file `name`, read from the package once (the event loop serves it from memory after that)."""
+    return (resources.files("benchctl.console") / "static" / name).read_bytes()
 
 
 def _info(console: Console) -> dict[str, Any]:
