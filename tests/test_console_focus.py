@@ -175,3 +175,17 @@ def test_a_procedure_takes_the_focus_and_gives_it_back(console: Console) -> None
         console.procedures._process = None
     console._reconnect()
     assert console.focus.held.connected and console.camera.connected
+
+
+def test_an_eos_lens_is_driven_through_the_consoles_own_camera(tmp_path: Path) -> None:
+    """The EOS body is opened once, by the console's camera; its lens moves through it, and through the new one
+    after the camera was lost and connected again (the position then unknown: a new session counts anew)."""
+    with started(load_profile("simulated-eos"), tmp_path) as console:
+        assert console.focus.held.device.camera is console.camera.device
+        call(app.focus_home, console)
+        moved = call(app.focus_move, console, {"steps": 5})
+        assert moved["position"] == 5 and moved["reported"] is None and moved["unit"] == "drive"
+        console.camera.lost("cable pulled")
+        assert call(app.connect, console, {"device": "camera"}) == {"connected": True, "error": None}
+        assert console.focus.held.device.camera is console.camera.device and console.focus.status["position"] is None
+        assert call(app.focus_move, console, {"steps": 2})["position"] is None  # moves, but from nowhere known

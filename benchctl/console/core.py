@@ -369,6 +369,9 @@ class Console:
             self.follow_calibration()
             if held.connect() and name == "slm":
                 self._read_slm("connected again")
+            if name == "camera" and self.focus is not None and self.focus.camera is not None:
+                self.focus.held.reopen()  # the lens is driven through the camera: through the one open now
+                self.focus.refresh()
         return {"connected": held.connected, "error": held.error}
 
     def follow_calibration(self) -> None:
