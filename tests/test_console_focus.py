@@ -162,6 +162,11 @@ def test_focus_go_needs_the_calibration_then_arrives_from_its_side(console: Cons
     with pytest.raises(BadValueError, match=r'give the move as {"steps": 200} .*got 1.5'):
         call(app.focus_move, console, {"steps": 1.5})
     assert call(app.state, console)["focus"]["position"] == 2000  # nothing moved
+    shifted = FocusMap.fit([(0, 11.0), (1000, 16.0), (2000, 21.0)], approach=1, backlash_steps=20,
+                           repeatability_steps=1.0, range_steps=(0, 4000))  # measured again, 1 mm further
+    Calibration.store(focus_profile).save_focus("green", {**shifted.to_dict(), "unit": "microstep"})
+    console.follow_calibration()
+    assert call(app.state, console)["focus"]["depth_mm"] == {"green": 21.0}  # the same position, the new map
 
 
 def test_a_procedure_takes_the_focus_and_gives_it_back(console: Console) -> None:

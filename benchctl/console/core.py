@@ -43,6 +43,8 @@ class Console:
         self.configured = profile
         # the bench as calibrated (measured tables, fitted model, registrations), as a run has it
         self.bench = Calibrated.stored(profile) if profile.slm is not None and profile.optics is not None else None
+        if self.bench is not None:
+            _read(self.bench)
         self.out = Path(out)
         self.events: deque[str] = deque(maxlen=EVENTS_KEPT)
         self.laser = LaserControl(profile, self.say, deadman_s) if profile.laser is not None else None
@@ -293,8 +295,7 @@ class Console:
     def _publish(self, shown: preview.Shown) -> None:
         shown.header["overlay"] = self.registration_overlay(shown.header["full_shape"])
         if self.focus is not None:  # where benchctl believed the focus was as this frame was published
-            shown.header["focus"] = {"moving": self.focus.moving,
-                                     **{key: self.focus.status.get(key) for key in ("position", "unit", "depth_mm")}}
+            shown.header["focus"] = self.focus.where()
         self.latest = shown
         self._frame_times.append(time.monotonic())
         for listener in list(self._listeners):
@@ -381,15 +382,14 @@ class Console:
         depths follow, and an SLM the console holds is opened again with the new tables. A file that cannot be read
         now is said, and the bench stays as it was."""
         calibration = self.bench.calibration if self.bench is not None else None
-        if calibration is None:
+        if self.bench is None or calibration is None:
             return
         stamp = calibration.stamp()
         if stamp == self._calibration_stamp:
             return
         self._calibration_stamp = stamp
         try:
-            bench = Calibrated(self.configured, calibration)
-            bench.registrations  # noqa: B018 - read now, on this thread, not by the live view
+            bench = _read(self.bench.recalibrated())
         except BenchctlError as exc:
             self.say(f"calibration not read again: {exc}")
             return
@@ -426,6 +426,14 @@ class Console:
             "procedure": self.procedures.state(), "events": list(self.events)[-30:],
             "uploads": dict(self.uploads.names), "time": time.time(),
         }
+
+
+def _read(bench: Calibrated) -> Calibrated:
+    """`bench` with what the page's state and the live view use of it read now, on this thread: never later on the
+    event loop or the live view's thread."""
+    bench.registrations  # noqa: B018 - a cached property, read for its side effect
+    bench.focus_maps  # noqa: B018
+    return bench
 
 
 class _Job:

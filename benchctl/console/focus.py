@@ -37,7 +37,7 @@ class FocusControl:
         self.say = say
         self.moving: str | None = None  # the command under way
         self.last: str | None = None  # what the last command did, in words
-        self.status: dict[str, Any] = {}  # as last read: position, the device's counter, unit, depth per colour
+        self.status: dict[str, Any] = {}  # as last read: position, the device's counter, unit, side approached from
         self.unread: str | None = None  # why the last read failed
 
     def _open(self) -> Focus:
@@ -94,7 +94,7 @@ class FocusControl:
         """What a command did, said, kept for the page and answered with the status read after it."""
         self.last = line
         self.say(f"focus: {line}")
-        return {"moved": line, **self.status}
+        return {"moved": line, **self.status, **self.where()}
 
     # -- state ------------------------------------------------------------------------------------------------
 
@@ -115,18 +115,22 @@ class FocusControl:
         except BenchctlError as exc:
             self.status, self.unread = {}, str(exc)
             return
-        position = status["position"]
-        self.unread = None
-        self.status = {**status, "depth_mm": {} if position is None else {
-            colour: round(found.depth_mm(position), 4) for colour, found in self.maps().items()}}
+        self.status, self.unread = status, None
+
+    def where(self) -> dict[str, Any]:
+        """Where the focus was last read to be (no device asked): the command under way, the position, its unit and,
+        through the focus calibration now in effect, the depth it focuses at per calibrated colour."""
+        position = self.status.get("position")
+        return {"moving": self.moving, "position": position, "unit": self.status.get("unit"),
+                "depth_mm": {} if position is None else {
+                    colour: round(found.depth_mm(position), 4) for colour, found in self.maps().items()}}
 
     def state(self) -> dict[str, Any]:
-        """What the page shows (no device asked): connection, position and depth per calibrated colour, the
-        calibrated depth range per colour, the command under way and the last one's result."""
-        maps = self.maps()
-        return {"connected": self.held.connected, "error": self.unread or self.held.error, "moving": self.moving,
-                "last": self.last, **self.status,
-                "calibrated": {colour: _depth_range(found) for colour, found in maps.items()}}
+        """What the page shows (no device asked): connection, `where`, the device's own counter, the calibrated depth
+        range per colour and the last command's result."""
+        return {"connected": self.held.connected, "error": self.unread or self.held.error, "last": self.last,
+                **self.status, **self.where(),
+                "calibrated": {colour: _depth_range(found) for colour, found in self.maps().items()}}
 
 
 def _depth_range(found: FocusMap) -> list[float]:
