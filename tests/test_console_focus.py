@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 import pytest
 from conftest import BENCH_PROFILE
-from console_bench import call, make_console
+from console_bench import ORIGIN, TOKEN, access, call, make_console
 
 from benchctl.calibration.store import Calibration
 from benchctl.capture.focus import FocusMap, sharpness
@@ -194,3 +194,23 @@ def test_an_eos_lens_is_driven_through_the_consoles_own_camera(tmp_path: Path) -
         assert call(app.connect, console, {"device": "camera"}) == {"connected": True, "error": None}
         assert console.focus.held.device.camera is console.camera.device and console.focus.status["position"] is None
         assert call(app.focus_move, console, {"steps": 2})["position"] is None  # moves, but from nowhere known
+
+
+@pytest.mark.parametrize("headers", [
+    {"x-benchctl-token": "not-the-token", "origin": ORIGIN},
+    {"x-benchctl-token": TOKEN},  # no Origin: a request that moves a device must carry the page's
+    {"x-benchctl-token": TOKEN, "origin": "http://evil.example"},
+])
+def test_refused_focus_requests_move_nothing(console: Console, headers: dict[str, str]) -> None:
+    from starlette.testclient import TestClient
+
+    call(app.focus_home, console)
+    with TestClient(app.create_app(console, access()), base_url=ORIGIN) as client:
+        for path, body in (("/api/focus/move", {"steps": 500}), ("/api/focus/home", {}),
+                           ("/api/focus/go", {"depth": "20mm"})):
+            refused = client.post(path, json=body, headers=headers)
+            assert refused.status_code == 403 and refused.text.startswith("refused: "), path
+        assert console.focus.held.device.status()["reported"] == 0  # the stage itself did not move
+        moved = client.post("/api/focus/move", json={"steps": 500}, headers={"x-benchctl-token": TOKEN,
+                                                                              "origin": ORIGIN})
+        assert moved.status_code == 200 and moved.json()["reported"] == 500
