@@ -63,3 +63,21 @@ def test_events_to_a_descriptor_that_is_not_open_is_one_line(tmp_path: Path, ben
                                    str(tmp_path / "runs"), "--events", "97"])
     assert line.endswith("--events 97: not an open file descriptor (Bad file descriptor)")
     assert not (tmp_path / "runs").exists()  # refused before anything was created
+
+
+def test_a_resumed_run_says_so_and_how_much_is_left(tmp_path: Path, bench_profile_path: Path) -> None:
+    from benchctl.runner.engine import run_procedure
+
+    procedure = tmp_path / "says.py"
+    procedure.write_text("from benchctl.runner.api import Parameters, Step\n\nDESCRIPTION = 'two quick steps'\n"
+                         "PARAMETERS = Parameters\n\n\ndef plan(context):\n"
+                         "    return [Step(key, key, lambda context: {}) for key in ('one', 'two')]\n")
+    first: list[dict] = []
+    done = run_procedure(procedure, profile=str(bench_profile_path), out=tmp_path / "runs", events=first.append,
+                         say=lambda line: None)
+    assert [(e["event"], e.get("step")) for e in first] == [
+        ("run", None), ("start", "one"), ("done", "one"), ("start", "two"), ("done", "two"), ("stop", None)]
+    again: list[dict] = []
+    run_procedure(None, resume=done.folder, allow_code=True, events=again.append, say=lambda line: None)
+    assert again[0] == {"event": "run", "folder": str(done.folder.resolve()), "steps": 2, "todo": 0, "resumed": True}
+    assert [e["event"] for e in again] == ["run", "stop"] and again[-1]["status"] == "finished"
