@@ -3,9 +3,11 @@ and the simulated devices' state as the emulators keep it."""
 
 from __future__ import annotations
 
+import asyncio
 import json
 import struct
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -73,3 +75,20 @@ def expected_phase_frame(profile: Profile, phase: np.ndarray, channel: str) -> n
     from benchctl.devices.slm import slm_for
 
     return slm_for(profile).encode(phase, channel)
+
+
+def call(handler: Any, console: Console, payload: dict[str, Any] | None = None, **path_params: str) -> Any:
+    """A console endpoint (benchctl.console.app) awaited alone with a request that carries `payload` as its JSON body,
+    as Starlette would hand it over: no application, routing or access middleware."""
+    from starlette.requests import Request
+
+    body = json.dumps(payload).encode() if payload is not None else b""
+    messages = [{"type": "http.request", "body": body, "more_body": False}]
+
+    async def receive() -> dict[str, Any]:
+        return messages.pop(0) if messages else {"type": "http.disconnect"}
+
+    scope = {"type": "http", "method": "POST", "path": "/", "query_string": b"", "path_params": path_params,
+             "headers": [(b"content-length", str(len(body)).encode())],
+             "app": SimpleNamespace(state=SimpleNamespace(console=console))}
+    return asyncio.run(handler(Request(scope, receive)))

@@ -195,6 +195,8 @@ def test_a_procedure_from_the_page(served: tuple[Console, str], browser: webdriv
     until(lambda: "[4/4, about " in lines.text, timeout_s=180)  # its steps, one after the other
     until(lambda: "ended with exit code" in browser.find_element(By.ID, "events").text, timeout_s=180)
     assert console.procedures.returncode == 0, console.procedures.lines
+    progress = browser.find_element(By.ID, "procedure-progress").text  # from the run's event stream
+    assert progress == f"sweep.toml: 4/4 steps, finished · {console.procedures.run_folder}", progress
     assert not browser.find_element(By.ID, "stop").is_enabled()  # nothing left to stop
     report = browser.find_element(By.ID, "report")
     until(report.is_displayed)
@@ -359,3 +361,64 @@ def test_nothing_is_wider_than_the_window(served: tuple[Console, str], browser: 
     assert cut_off(browser, "view") == [] and cut_off(browser, "slm-panel") == []
     assert browser.find_element(By.ID, "all-off").is_displayed()
     browser.save_screenshot(str(tmp_path / f"console-{width}.png"))
+
+
+@pytest.mark.slow
+def test_focus_by_hand_from_the_page(bench_profile_path: Path, tmp_path: Path, browser: webdriver.Chrome) -> None:
+    """Drag a region on the live view and read its sharpness; home the focus and step it, and see the position; once
+    a focus calibration is stored, go to a depth."""
+    import re
+
+    from conftest import BENCH_PROFILE
+    from selenium.webdriver.common.action_chains import ActionChains
+    from test_console_focus import FOCUS
+
+    from benchctl.calibration.store import Calibration
+    from benchctl.capture.focus import FocusMap
+
+    profile = tmp_path / "focus-bench.toml"
+    profile.write_text(BENCH_PROFILE + FOCUS.format(speed=200000))
+    with serve(profile, tmp_path) as (console, url):
+        browser.set_window_size(1000, 900)  # a laptop's window: the focus panel and the sharpness fit too
+        connected(browser, url)
+        position = browser.find_element(By.ID, "focus-position")
+        until(lambda: position.text == "unknown (home it)")  # not homed since the console connected the stage
+        assert browser.find_element(By.ID, "sharpness").text == "–"
+        frame = browser.find_element(By.ID, "frame")
+        width, height = frame.size["width"], frame.size["height"]
+        ActionChains(browser).move_to_element_with_offset(frame, -width // 4, -height // 4).click_and_hold() \
+            .move_by_offset(width // 2, height // 2).release().perform()  # the middle half of the frame
+        until(lambda: console.view["region"] is not None)
+        assert console.view["region"] == pytest.approx((0.25, 0.25, 0.75, 0.75), abs=0.02)
+        assert console.view["zoom"] is None  # a drag is no click
+        sharpness = browser.find_element(By.ID, "sharpness")
+        until(lambda: re.fullmatch(r"\d+\.\d{3}", sharpness.text))  # the number, from each frame
+        browser.find_element(By.ID, "focus-home").click()
+        until(lambda: position.text == "0 microstep(s)")
+        steps = browser.find_element(By.ID, "focus-steps")
+        steps.clear()
+        steps.send_keys("300")
+        browser.find_element(By.CSS_SELECTOR, '.focus-step[data-sign="1"]').click()
+        until(lambda: position.text == "300 microstep(s)")
+        assert console.focus.held.device.status()["reported"] == 300  # the stage itself
+        last = browser.find_element(By.ID, "focus-last")
+        until(lambda: last.text == "moved +300 microstep(s); believed position 300 microstep(s); the device reports "
+                                   "300")
+        seen = frames_seen(browser)
+        until(lambda: frames_seen(browser) > seen + 2)  # the live view goes on
+        browser.find_element(By.ID, "region-clear").click()
+        until(lambda: sharpness.text == "–")
+        go_row = browser.find_element(By.ID, "focus-go-row")
+        assert not go_row.is_displayed()  # depths only once the focus is calibrated
+        found = FocusMap.fit([(0, 10.0), (1000, 15.0), (2000, 20.0)], approach=1, backlash_steps=20,
+                             repeatability_steps=1.0, range_steps=(0, 4000))  # depth = 10 mm + 5 um per step
+        Calibration.store(console.configured).save_focus("green", {**found.to_dict(), "unit": "microstep"})
+        until(go_row.is_displayed)  # the console saw the new calibration file
+        assert browser.find_element(By.ID, "focus-colour").text == "green (10–30 mm)"
+        browser.find_element(By.ID, "focus-to").send_keys("22.5mm")
+        browser.find_element(By.ID, "focus-go").click()
+        until(lambda: position.text == "2500 microstep(s)")
+        until(lambda: browser.find_element(By.ID, "focus-depth").text == "green 22.5 mm")
+        assert page_width(browser)[0] <= page_width(browser)[1], page_width(browser)
+        assert cut_off(browser, "focus-panel") == [] and cut_off(browser, "view") == []
+        browser.save_screenshot(str(tmp_path / "console-focus.png"))

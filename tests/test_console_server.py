@@ -50,7 +50,7 @@ from benchctl.console.uploads import MAX_UPLOADS
 from benchctl.devices.serial_link import SerialLink
 from benchctl.devices.sim.slm import read_displayed
 from benchctl.errors import BadValueError
-from benchctl.optics.aberration import wavefront_phase
+from benchctl.optics.aberration import ZERNIKE_TERMS, wavefront_phase
 from benchctl.profiles import load_profile
 
 
@@ -257,9 +257,11 @@ def test_slm_patterns_round_trip_to_the_displayed_frame(client: TestClient, benc
     ramp = np.repeat(np.arange(rows, dtype=np.float64)[:, None] * (2 * math.pi / 8), cols, axis=1)
     expected = expected_phase_frame(profile, ramp, "green")
     assert np.array_equal(gray, expected) and len(np.unique(gray[:8, 0])) == 8  # rising along the rows
-    flat = {"kind": "flat", "phase_rad": 1.0, "channel": "red", "zernike": {"defocus": 0.5, "coma_vertical": -0.2}}
-    client.post("/api/slm", json=flat)
-    waves = wavefront_phase((rows, cols), profile.slm.pitch_m, {"defocus": 0.5, "coma_vertical": -0.2}).numpy()
+    terms = {"defocus": 0.5, "coma_vertical": -0.2, "tilt_horizontal": 0.3}  # optics.aberration's terms, by name
+    assert client.get("/api/info").json()["zernike"] == list(ZERNIKE_TERMS)
+    flat = {"kind": "flat", "phase_rad": 1.0, "channel": "red", "zernike": terms}
+    assert client.post("/api/slm", json=flat).status_code == 200
+    waves = wavefront_phase((rows, cols), profile.slm.pitch_m, terms).numpy()
     assert np.array_equal(read_displayed()[0], expected_phase_frame(profile, 1.0 + waves, "red"))
     client.post("/api/slm", json={"kind": "blank"})
     assert not read_displayed()[0].any() and read_displayed()[1]["frame"] == state["frame"] + 2
@@ -333,6 +335,8 @@ def test_holograms_are_the_ones_a_run_displays(client: TestClient, bench_profile
     ({"kind": "grating", "period_px": 1}, "period_px"),
     ({"kind": "spiral"}, "kind"),
     ({"kind": "flat", "zernike": {"defocus": 99}}, "zernike"),
+    ({"kind": "flat", "zernike": {"tilt": 1}}, "unknown Zernike term 'tilt'"),
+    ({"kind": "hologram", "method": "sgd", "iterations": -1}, "iterations must be an integer >= 0"),  # the method's
     ({"kind": "hologram", "target": "/etc/passwd"}, "choose chart:<name>"),
     ({"kind": "hologram", "target": "upload:7"}, "no upload '7'"),
     ({"kind": "hologram", "checkpoint": "../../x.pt", "method": "ccnn"}, "not one the console offers"),
@@ -343,6 +347,91 @@ def test_bad_slm_requests_are_refused_by_name(client: TestClient, pattern: dict,
     response = client.post("/api/slm", json=pattern)
     assert response.status_code == 400 and message in response.json()["error"]
     assert read_displayed()[1] == {}  # nothing was ever displayed
+
+
+def test_the_slm_panel_offers_the_checkpoints_a_run_finds(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """The console's checkpoints are the ones `holograms.find_checkpoint` finds: the shipped ones beside the package
+    when the working folder has none, the working folder's own first, never a training's resume file."""
+    from benchctl import SOURCE_ROOT
+    from benchctl.console.slm import SlmControl
+    from benchctl.console.uploads import Uploads
+
+    monkeypatch.chdir(tmp_path)
+    slm = SlmControl(Calibrated(load_profile("simulated")), Uploads())
+    shipped = {name: str(SOURCE_ROOT / "checkpoints" / "simulated" / f"{name}.pt")
+               for name in ("ccnn-dcm4", "holonet-dcm4")}
+    assert slm.checkpoints() == shipped
+    own = tmp_path / "checkpoints" / "simulated"
+    own.mkdir(parents=True)
+    for name in ("ccnn-dcm4.pt", "ccnn-dcm4.resume.pt"):
+        (own / name).write_bytes(b"")
+    assert slm.checkpoints() == {**shipped, "ccnn-dcm4": str(Path("checkpoints/simulated/ccnn-dcm4.pt"))}
+
+
+def test_the_registration_overlay_is_read_again_only_when_its_file_changes(
+        bench_profile_path: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The overlay comes from the bench as calibrated (its registrations read once, not for every frame), built
+    again when a calibration file changes (its stamp, checked each status period)."""
+    from conftest import truly_registered
+
+    from benchctl.console import core
+    from benchctl.calibration.store import Calibration
+    from benchctl.capture.registration import apply_homography
+    from benchctl.devices.sim import physics
+
+    reads: list[Path] = []
+    registrations = Calibration.registrations
+    monkeypatch.setattr(Calibration, "registrations", lambda self: reads.append(self.folder) or registrations(self))
+    profile = truly_registered(load_profile(bench_profile_path), "green")
+    console = make_console(profile, tmp_path)
+    try:
+        with TestClient(create_app(console, access()), base_url=ORIGIN) as client:
+            with client.websocket_connect(WS, headers={"x-benchctl-token": TOKEN, "origin": ORIGIN}) as page:
+                headers = [next_frame(page)[0] for _ in range(3)]
+        rows, cols = headers[-1]["full_shape"]
+        (h, w), (rh, rw) = profile.slm.shape, profile.optics.roi
+        top, left = (h - rh) / 2 - 0.5, (w - rw) / 2 - 0.5
+        corners = apply_homography(physics.camera_homography(profile),
+                                   np.array([[left, top], [left + rw, top], [left + rw, top + rh], [left, top + rh]]))
+        expected = [[x / cols, y / rows] for x, y in corners]
+        assert all(list(header["overlay"]) == ["green"] for header in headers)
+        assert np.allclose(headers[-1]["overlay"]["green"], expected, atol=1e-5)
+        time.sleep(3 * core.STATUS_PERIOD_S)
+        assert len(reads) == 1  # once for the bench, not once per frame, nor while the file stays as it was
+        slm_opened = console.slm.held.device
+        truly_registered(profile, "blue")  # a registration stored by hand (or by a procedure) while the console runs
+        assert wait_for(lambda: sorted(console.registration_overlay((rows, cols))) == ["blue", "green"], 5.0)
+        assert len(reads) == 2 and any("changed: read again" in line for line in console.events)
+        assert console.slm.held.device is not slm_opened and console.slm.bench is console.bench  # new tables too
+        console._release_for_run(["slm", "camera"])
+        console._reconnect()  # a procedure that stored nothing: nothing read again
+        assert len(reads) == 2 and console.slm.held.connected
+    finally:
+        console.close()
+
+
+def test_a_button_press_reads_back_only_the_channel_it_changed(bench_profile_path: Path, tmp_path: Path,
+                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every channel is read each status period; a press reads back the one it changed, the others kept."""
+    from benchctl.console import core
+
+    monkeypatch.setattr(core, "STATUS_PERIOD_S", 3600.0)  # no periodic read during the test
+    console = make_console(load_profile(bench_profile_path), tmp_path)
+    exchanged: list[str] = []
+    exchange = SerialLink._exchange
+    monkeypatch.setattr(SerialLink, "_exchange", lambda self, line, read: exchanged.append(line) or exchange(
+        self, line, read))
+    try:
+        with TestClient(create_app(console, access()), base_url=ORIGIN) as client:
+            client.headers.update({"x-benchctl-token": TOKEN, "origin": ORIGIN})
+            before = client.get("/api/state").json()["laser"]["channels"]
+            assert client.post("/api/laser/green/power", json={"power": "3mW"}).status_code == 200
+            after = client.get("/api/state").json()["laser"]["channels"]
+        assert exchanged and all(line.startswith("CH2:") for line in exchanged), exchanged
+        assert [ch["name"] for ch in after] == ["red", "green", "blue"] and after[1]["setpoint_mw"] == 3.0
+        assert after[0] == before[0] and after[2] == before[2]
+    finally:
+        console.close()
 
 
 def test_preview_frames_show_the_light(client: TestClient) -> None:
@@ -473,9 +562,35 @@ def test_procedures_dry_run_then_run_with_the_devices_handed_over(client: TestCl
     assert wait_for(lambda: not console.procedures.active, 120)
     state = client.get("/api/state").json()["procedure"]
     assert state["returncode"] == 0, state["lines"]
-    assert any(line.startswith("run folder: ") for line in state["lines"]) and state["report"]
+    (folder,) = [path for path in console.out.iterdir() if (path / "run.json").is_file()]
+    plan = json.loads((folder / "run.json").read_text())["plan"]
+    # followed through the run's event stream (`run --events`), not its printed lines
+    assert state["folder"] == str(folder.resolve()) and state["report"]
+    assert state["progress"] == {"steps": len(plan), "done": len(plan), "step": None, "status": "finished",
+                                 "error": None}
     assert "<html" in client.get("/api/procedures/report").text.lower()
     assert wait_for(lambda: console.laser.held.connected and console.camera.connected, 5)
+
+
+def test_a_line_a_procedure_prints_does_not_steer_the_console(client: TestClient, console: Console,
+                                                               tmp_path: Path) -> None:
+    """The run's folder comes from its event stream: a procedure that prints the runner's own "run folder: ..." line
+    naming another folder (which holds a report) leaves the console on the run's real folder, with no report."""
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "report.html").write_text("<html>not this run's</html>")
+    (tmp_path / "procedures" / "says.py").write_text(
+        "from benchctl.runner.api import Parameters, Step\n\nDESCRIPTION = 'prints a line like the runner'\n"
+        "PARAMETERS = Parameters\n\n\ndef plan(context):\n"
+        f"    return [Step('say', 'print', lambda context: print('run folder: {elsewhere}', flush=True) or {{}})]\n")
+    assert client.post("/api/procedures/start", json={"name": "says.py"}).json()["ok"] is True
+    assert wait_for(lambda: not console.procedures.active, 120)
+    state = client.get("/api/state").json()["procedure"]
+    assert f"run folder: {elsewhere}" in state["lines"], state["lines"]
+    (folder,) = [path for path in console.out.iterdir() if (path / "run.json").is_file()]
+    assert state["folder"] == str(folder.resolve()) and not state["report"]
+    assert state["progress"]["status"] == "finished" and state["progress"]["done"] == 1
+    assert client.get("/api/procedures/report").status_code == 404
 
 
 def test_the_console_runs_only_what_its_procedures_folder_holds(client: TestClient, tmp_path: Path) -> None:

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from benchctl.calibration.store import Calibration
+from benchctl.capture.focus import FocusMap
 from benchctl.devices.slm import SLM, slm_for
 from benchctl.profiles import Profile
 
@@ -83,6 +84,12 @@ class Calibrated:
     def decode(self, gray: np.ndarray, channel: str) -> np.ndarray:
         """The phase an SLM frame shows for `channel` (the inverse of `encode`, to its gray-level step)."""
         return self.slm.decode(gray, channel)
+
+    @functools.cached_property
+    def focus_maps(self) -> dict[str, FocusMap]:
+        """Colour -> stored focus calibration (steps <-> depth) valid for this geometry and focus device."""
+        stored = self.calibration.focus_maps() if self.calibration is not None else {}
+        return {colour: FocusMap.from_dict(entry) for colour, entry in stored.items()}
 
     @functools.cached_property
     def registrations(self) -> dict[str, dict[str, Any]]:

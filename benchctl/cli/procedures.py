@@ -11,6 +11,7 @@ from benchctl.errors import BenchctlError
 
 def _cmd_run(args: argparse.Namespace) -> int:
     from benchctl.runner.engine import run_procedure
+    from benchctl.runner.events import EventStream
 
     if args.procedure is None and args.resume is None:
         raise BenchctlError("give a procedure file (e.g. procedures/colour_capture.toml) or --resume RUN_DIR")
@@ -18,7 +19,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         raise BenchctlError("give either a procedure file or --resume RUN_DIR, not both (a resumed run uses its own "
                             "copy of the procedure)")
     run_procedure(args.procedure, profile=args.profile, out=args.out, dry_run=args.dry_run, resume=args.resume,
-                  allow_code=args.allow_code)
+                  allow_code=args.allow_code, events=EventStream(args.events) if args.events is not None else None)
     return 0
 
 
@@ -47,4 +48,8 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     run.add_argument("--allow-code", action="store_true",
                      help="let the Python file a TOML procedure names (in its own folder), or the Python procedure of "
                           "the run resumed, run with your rights (a .py given as PROCEDURE needs no flag)")
+    run.add_argument("--events", type=int, metavar="FD",
+                     help="also write the run's events as JSON lines to open file descriptor FD (its folder once "
+                          "created, each step's start and end as the step log has them, how it stopped), for a "
+                          "program that follows the run (README: following a run)")
     run.set_defaults(func=_cmd_run)

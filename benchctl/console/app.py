@@ -16,25 +16,27 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import contextvars
+import functools
 import json
 import struct
 import threading
 import time
 from collections.abc import Awaitable, Callable
 from importlib import resources
-from typing import Any, TypeVar, get_args
+from typing import Any, TypeVar
 
 from starlette.applications import Starlette
 from starlette.concurrency import run_in_threadpool
-from starlette.requests import Request
+from starlette.requests import HTTPConnection, Request
 from starlette.responses import FileResponse, JSONResponse, Response
 from starlette.routing import Route, WebSocketRoute
 from starlette.websockets import WebSocket, WebSocketDisconnect
 
 from benchctl.console.core import Console
 from benchctl.console.security import Access, AccessMiddleware
-from benchctl.console.slm import ZernikeName, parse_pattern
+from benchctl.console.slm import parse_pattern
 from benchctl.errors import BadValueError, BenchctlError
+from benchctl.optics.aberration import ZERNIKE_TERMS
 
 STATIC = {"console.js": "text/javascript", "console.css": "text/css", "index.html": "text/html"}
 STATE_PERIOD_S = 0.5
@@ -45,164 +47,223 @@ T = TypeVar("T")
 
 
 def create_app(console: Console, access: Access) -> AccessMiddleware:
-    """The application for one console start, wrapped in its access checks."""
+    """The application for one console start, wrapped in its access checks; its endpoints find the console in
+    `request.app.state.console`."""
+    app = Starlette(routes=ROUTES)
+    app.state.console = console
+    return AccessMiddleware(app, access)
 
-    def api(handler: Callable[[Request], Awaitable[Any]]) -> Handler:
-        """A JSON endpoint: its result as JSON (a command's with `server_s`, the seconds it took inside the server,
-        device work included, and `server_cpu_s`, the CPU seconds of its work on a worker thread); a BenchctlError
-        as 400 with its one line (nothing else changed)."""
 
-        async def endpoint(request: Request) -> Response:
-            started, cpu = time.perf_counter(), _CPU.set([0.0])
-            try:
-                result = await handler(request)
-            except BenchctlError as exc:
-                return JSONResponse({"error": str(exc)}, status_code=400)
-            finally:
-                spent = _CPU.get()[0]
-                _CPU.reset(cpu)
-            if request.method == "POST" and isinstance(result, dict):
-                result = {**result, "server_s": round(time.perf_counter() - started, 6),
-                          "server_cpu_s": round(spent, 6)}
-            return JSONResponse(result)
+def held(connection: HTTPConnection) -> Console:
+    """The console that the application serving `connection` (a request or a socket) was created for."""
+    console: Console = connection.app.state.console
+    return console
 
-        return endpoint
 
-    async def body(request: Request) -> dict[str, Any]:
-        raw = await _capped(request, MAX_JSON_BYTES, "request body")
+def api(handler: Callable[[Request], Awaitable[Any]]) -> Handler:
+    """A JSON endpoint: its result as JSON (a command's with `server_s`, the seconds it took inside the server,
+    device work included, and `server_cpu_s`, the CPU seconds of its work on a worker thread); a BenchctlError
+    as 400 with its one line (nothing else changed)."""
+
+    async def endpoint(request: Request) -> Response:
+        started, cpu = time.perf_counter(), _CPU.set([0.0])
         try:
-            data = json.loads(raw or b"{}")
-        except ValueError:
-            raise BadValueError("request body is not JSON") from None
-        if not isinstance(data, dict):
-            raise BadValueError("request body must be a JSON object")
-        return data
-
-    async def page(request: Request) -> Response:
-        return _static("index.html")
-
-    async def static(request: Request) -> Response:
-        name = request.path_params["name"]
-        if name not in STATIC:
-            return Response("not found\n", status_code=404, media_type="text/plain")
-        return _static(name)
-
-    async def state(request: Request) -> dict[str, Any]:
-        return console.state()
-
-    async def info(request: Request) -> dict[str, Any]:
-        return await _in_thread(_info, console)
-
-    async def power(request: Request) -> dict[str, Any]:
-        text = (await body(request)).get("power")
-        if not isinstance(text, str):
-            raise BadValueError('give the power as {"power": "5mW"} or {"power": "10%"}')
-        return await _in_thread(console.set_power, request.path_params["channel"], text)
-
-    async def emission(request: Request) -> dict[str, Any]:
-        on = (await body(request)).get("on")
-        if not isinstance(on, bool):
-            raise BadValueError('give emission as {"on": true} or {"on": false}')
-        if on and console.procedures.active:
-            raise BenchctlError("a procedure holds the laser; stop it first")
-        await _in_thread(console.set_emission, request.path_params["channel"], on)
-        return {"ok": True}
-
-    async def all_off(request: Request) -> dict[str, Any]:
-        return await _on_own_thread(console.emission_off)
-
-    async def slm(request: Request) -> dict[str, Any]:
-        pattern = parse_pattern(await body(request))
-        return await _in_thread(console.show, pattern)
-
-    async def thumbnail(request: Request) -> Response:
-        if console.slm is None:
-            return Response("no SLM\n", status_code=404, media_type="text/plain")
-        png = await _in_thread(console.slm.thumbnail)
-        return Response(png, media_type="image/png", headers={"cache-control": "no-store"})
-
-    async def upload(request: Request) -> dict[str, Any]:
-        console.uploads.check_room()
-        data = await _capped(request, console.uploads.max_bytes, "upload")
-        name = request.query_params.get("name", "image")
-        upload_id = await _in_thread(console.uploads.add, data, name)
-        console.say(f"uploaded {name!r} as upload:{upload_id}")
-        return {"target": f"upload:{upload_id}"}
-
-    async def view(request: Request) -> dict[str, Any]:
-        data = await body(request)
-        console.set_view(data.get("mode"), data.get("zoom"), "zoom" in data and data["zoom"] is None)
-        return console.view
-
-    async def capture(request: Request) -> dict[str, Any]:
-        frames = (await body(request)).get("frames")
-        if frames is not None and (isinstance(frames, bool) or not isinstance(frames, int)):
-            raise BadValueError(f"frames must be a whole number, got {frames!r}")
-        return await _in_thread(console.capture, frames)
-
-    async def connect(request: Request) -> dict[str, Any]:
-        return await _in_thread(console.connect, str((await body(request)).get("device")))
-
-    async def dry_run(request: Request) -> dict[str, Any]:
-        name = (await body(request)).get("name")
-        return {"lines": await _in_thread(console.procedures.dry_run, str(name))}
-
-    async def start(request: Request) -> dict[str, Any]:
-        name = (await body(request)).get("name")
-        await _in_thread(console.procedures.start, str(name))
-        return {"ok": True}
-
-    async def stop(request: Request) -> dict[str, Any]:
-        await _in_thread(console.procedures.stop)
-        return {"ok": True}
-
-    async def report(request: Request) -> Response:
-        path = console.procedures.report()
-        if path is None:
-            return Response("no report yet\n", status_code=404, media_type="text/plain")
-        return FileResponse(path, media_type="text/html")
-
-    async def socket(websocket: WebSocket) -> None:
-        await websocket.accept()
-        loop = asyncio.get_running_loop()
-        page = _Page()
-        stop_listening = console.listen(lambda: loop.call_soon_threadsafe(page.wake.set))
-        console.pages += 1
-        if console.laser is not None:
-            console.laser.heartbeat()
-        sender = asyncio.create_task(_send(websocket, console, page))
-        try:
-            while True:
-                message = await websocket.receive_text()
-                if console.laser is not None:
-                    console.laser.heartbeat()
-                if message.startswith("ack "):
-                    page.ack(message[4:])
-                elif message == "all-off":
-                    page.answer(await _all_off_answer(console))
-        except WebSocketDisconnect:
-            pass
+            result = await handler(request)
+        except BenchctlError as exc:
+            return JSONResponse({"error": str(exc)}, status_code=400)
         finally:
-            console.pages -= 1
-            stop_listening()
-            sender.cancel()
-            with contextlib.suppress(asyncio.CancelledError, WebSocketDisconnect, RuntimeError):
-                await sender
+            spent = _CPU.get()[0]
+            _CPU.reset(cpu)
+        if request.method == "POST" and isinstance(result, dict):
+            result = {**result, "server_s": round(time.perf_counter() - started, 6),
+                      "server_cpu_s": round(spent, 6)}
+        return JSONResponse(result)
 
-    routes = [
-        Route("/", page), Route("/static/{name}", static), Route("/api/state", api(state)),
-        Route("/api/info", api(info)), Route("/api/laser/off", api(all_off), methods=["POST"]),
-        Route("/api/laser/{channel}/power", api(power), methods=["POST"]),
-        Route("/api/laser/{channel}/emission", api(emission), methods=["POST"]),
-        Route("/api/slm", api(slm), methods=["POST"]), Route("/api/slm/thumbnail.png", thumbnail),
-        Route("/api/upload", api(upload), methods=["POST"]), Route("/api/view", api(view), methods=["POST"]),
-        Route("/api/capture", api(capture), methods=["POST"]), Route("/api/connect", api(connect), methods=["POST"]),
-        Route("/api/procedures/dry-run", api(dry_run), methods=["POST"]),
-        Route("/api/procedures/start", api(start), methods=["POST"]),
-        Route("/api/procedures/stop", api(stop), methods=["POST"]),
-        Route("/api/procedures/report", report), WebSocketRoute("/ws", socket),
-    ]
-    return AccessMiddleware(Starlette(routes=routes), access)
+    return endpoint
+
+
+async def body(request: Request) -> dict[str, Any]:
+    """The request's JSON object (at most MAX_JSON_BYTES; BadValueError when it is none)."""
+    raw = await _capped(request, MAX_JSON_BYTES, "request body")
+    try:
+        data = json.loads(raw or b"{}")
+    except ValueError:
+        raise BadValueError("request body is not JSON") from None
+    if not isinstance(data, dict):
+        raise BadValueError("request body must be a JSON object")
+    return data
+
+
+async def page(request: Request) -> Response:
+    return _static("index.html")
+
+
+async def static(request: Request) -> Response:
+    name = request.path_params["name"]
+    if name not in STATIC:
+        return Response("not found\n", status_code=404, media_type="text/plain")
+    return _static(name)
+
+
+async def state(request: Request) -> dict[str, Any]:
+    return held(request).state()
+
+
+async def info(request: Request) -> dict[str, Any]:
+    return await _in_thread(_info, held(request))
+
+
+async def power(request: Request) -> dict[str, Any]:
+    text = (await body(request)).get("power")
+    if not isinstance(text, str):
+        raise BadValueError('give the power as {"power": "5mW"} or {"power": "10%"}')
+    return await _in_thread(held(request).set_power, request.path_params["channel"], text)
+
+
+async def emission(request: Request) -> dict[str, Any]:
+    console = held(request)
+    on = (await body(request)).get("on")
+    if not isinstance(on, bool):
+        raise BadValueError('give emission as {"on": true} or {"on": false}')
+    if on and console.procedures.active:
+        raise BenchctlError("a procedure holds the laser; stop it first")
+    await _in_thread(console.set_emission, request.path_params["channel"], on)
+    return {"ok": True}
+
+
+async def all_off(request: Request) -> dict[str, Any]:
+    return await _on_own_thread(held(request).emission_off)
+
+
+async def slm(request: Request) -> dict[str, Any]:
+    pattern = parse_pattern(await body(request))
+    return await _in_thread(held(request).show, pattern)
+
+
+async def thumbnail(request: Request) -> Response:
+    console = held(request)
+    if console.slm is None:
+        return Response("no SLM\n", status_code=404, media_type="text/plain")
+    png = await _in_thread(console.slm.thumbnail)
+    return Response(png, media_type="image/png", headers={"cache-control": "no-store"})
+
+
+async def upload(request: Request) -> dict[str, Any]:
+    uploads = held(request).uploads
+    uploads.check_room()
+    data = await _capped(request, uploads.max_bytes, "upload")
+    name = request.query_params.get("name", "image")
+    upload_id = await _in_thread(uploads.add, data, name)
+    held(request).say(f"uploaded {name!r} as upload:{upload_id}")
+    return {"target": f"upload:{upload_id}"}
+
+
+async def view(request: Request) -> dict[str, Any]:
+    console, data = held(request), await body(request)
+    console.set_view(data.get("mode"), data.get("zoom"), "zoom" in data and data["zoom"] is None,
+                     data.get("region"), "region" in data and data["region"] is None)
+    return console.view
+
+
+async def focus_move(request: Request) -> dict[str, Any]:
+    steps = (await body(request)).get("steps")
+    if isinstance(steps, bool) or not isinstance(steps, int):
+        raise BadValueError(f'give the move as {{"steps": 200}} (signed, whole steps), got {steps!r}')
+    return await _in_thread(held(request).focus_move, steps)
+
+
+async def focus_home(request: Request) -> dict[str, Any]:
+    return await _in_thread(held(request).focus_home)
+
+
+async def focus_go(request: Request) -> dict[str, Any]:
+    data = await body(request)
+    depth, channel = data.get("depth"), data.get("channel")
+    if not isinstance(depth, str) or not (channel is None or isinstance(channel, str)):
+        raise BadValueError('give the depth as {"depth": "70.5mm", "channel": "green"} (or diopters: "14.2D")')
+    return await _in_thread(held(request).focus_go, depth, channel)
+
+
+async def capture(request: Request) -> dict[str, Any]:
+    frames = (await body(request)).get("frames")
+    if frames is not None and (isinstance(frames, bool) or not isinstance(frames, int)):
+        raise BadValueError(f"frames must be a whole number, got {frames!r}")
+    return await _in_thread(held(request).capture, frames)
+
+
+async def connect(request: Request) -> dict[str, Any]:
+    return await _in_thread(held(request).connect, str((await body(request)).get("device")))
+
+
+async def dry_run(request: Request) -> dict[str, Any]:
+    name = (await body(request)).get("name")
+    return {"lines": await _in_thread(held(request).procedures.dry_run, str(name))}
+
+
+async def start(request: Request) -> dict[str, Any]:
+    name = (await body(request)).get("name")
+    await _in_thread(held(request).procedures.start, str(name))
+    return {"ok": True}
+
+
+async def stop(request: Request) -> dict[str, Any]:
+    await _in_thread(held(request).procedures.stop)
+    return {"ok": True}
+
+
+async def report(request: Request) -> Response:
+    path = held(request).procedures.report()
+    if path is None:
+        return Response("no report yet\n", status_code=404, media_type="text/plain")
+    return FileResponse(path, media_type="text/html")
+
+
+async def socket(websocket: WebSocket) -> None:
+    """The page's socket: frames and state out (`_send`); acknowledgements, heartbeats and ALL OFF in."""
+    console = held(websocket)
+    await websocket.accept()
+    loop = asyncio.get_running_loop()
+    page = _Page()
+    stop_listening = console.listen(lambda: loop.call_soon_threadsafe(page.wake.set))
+    console.pages += 1
+    if console.laser is not None:
+        console.laser.heartbeat()
+    sender = asyncio.create_task(_send(websocket, console, page))
+    try:
+        while True:
+            message = await websocket.receive_text()
+            if console.laser is not None:
+                console.laser.heartbeat()
+            if message.startswith("ack "):
+                page.ack(message[4:])
+            elif message == "all-off":
+                page.answer(await _all_off_answer(console))
+    except WebSocketDisconnect:
+        pass
+    finally:
+        console.pages -= 1
+        stop_listening()
+        sender.cancel()
+        with contextlib.suppress(asyncio.CancelledError, WebSocketDisconnect, RuntimeError):
+            await sender
+
+
+ROUTES = [
+    Route("/", page), Route("/static/{name}", static), Route("/api/state", api(state)),
+    Route("/api/info", api(info)), Route("/api/laser/off", api(all_off), methods=["POST"]),
+    Route("/api/laser/{channel}/power", api(power), methods=["POST"]),
+    Route("/api/laser/{channel}/emission", api(emission), methods=["POST"]),
+    Route("/api/slm", api(slm), methods=["POST"]), Route("/api/slm/thumbnail.png", thumbnail),
+    Route("/api/upload", api(upload), methods=["POST"]), Route("/api/view", api(view), methods=["POST"]),
+    Route("/api/focus/move", api(focus_move), methods=["POST"]),
+    Route("/api/focus/home", api(focus_home), methods=["POST"]),
+    Route("/api/focus/go", api(focus_go), methods=["POST"]),
+    Route("/api/capture", api(capture), methods=["POST"]), Route("/api/connect", api(connect), methods=["POST"]),
+    Route("/api/procedures/dry-run", api(dry_run), methods=["POST"]),
+    Route("/api/procedures/start", api(start), methods=["POST"]),
+    Route("/api/procedures/stop", api(stop), methods=["POST"]),
+    Route("/api/procedures/report", report), WebSocketRoute("/ws", socket),
+]
 
 
 class _Page:
@@ -312,14 +373,19 @@ async def _on_own_thread(function: Callable[[], T]) -> T:
 
 
 def _static(name: str) -> Response:
-    data = (resources.files("benchctl.console") / "static" / name).read_bytes()
-    return Response(data, media_type=STATIC[name], headers={"cache-control": "no-store"})
+    return Response(_static_bytes(name), media_type=STATIC[name], headers={"cache-control": "no-store"})
+
+
+@functools.cache
+def _static_bytes(name: str) -> bytes:
+    """The page's file `name`, read from the package once (the event loop serves it from memory after that)."""
+    return (resources.files("benchctl.console") / "static" / name).read_bytes()
 
 
 def _info(console: Console) -> dict[str, Any]:
     """What the page's forms offer: channels and their limits, patterns, targets, methods, checkpoints,
     procedures."""
-    from benchctl.holograms.scene import usable_methods
+    from benchctl.holograms import usable_methods
     from benchctl.targets import list_targets
 
     profile = console.profile
@@ -327,10 +393,10 @@ def _info(console: Console) -> dict[str, Any]:
         "profile": profile.name,
         "channels": [{"name": c.name, "wavelength_nm": c.wavelength_nm, "limit_mw": c.max_power_mw,
                       "setpoint_mw": c.setpoint_mw} for c in profile.channels],
-        "zernike": list(get_args(ZernikeName)),
+        "zernike": list(ZERNIKE_TERMS),
         "targets": list(list_targets()),
         "methods": usable_methods(profile) if console.slm is not None else [],
-        "checkpoints": list(console.slm.checkpoints) if console.slm else [],
+        "checkpoints": list(console.slm.checkpoints()) if console.slm else [],
         "procedures": list(console.procedures.files()),
         "deadman_s": console.laser.deadman_s if console.laser else None,
     }

@@ -18,8 +18,11 @@ from typing import Any
 
 import numpy as np
 
+from benchctl.calibration import Calibrated
 from benchctl.console import capture, preview
+from benchctl.capture.focus import FocusMap
 from benchctl.console.devices import Held
+from benchctl.console.focus import FocusControl
 from benchctl.console.laser import DEADMAN_S, LaserControl
 from benchctl.console.procedures import Procedures
 from benchctl.console.slm import Pattern, SlmControl
@@ -37,22 +40,24 @@ class Console:
 
     def __init__(self, profile: Profile, out: Path, *, deadman_s: float = DEADMAN_S,
                  procedures_dir: Path | None = None) -> None:
-        from benchctl.calibration.calibrated import Calibrated
-
-        if profile.slm is not None and profile.optics is not None:
-            profile = Calibrated.stored(profile).profile  # measured tables and fitted model, as a run
-        self.profile = profile
+        self.configured = profile
+        # the bench as calibrated (measured tables, fitted model, registrations), as a run has it
+        self.bench = Calibrated.stored(profile) if profile.slm is not None and profile.optics is not None else None
+        if self.bench is not None:
+            _read(self.bench)
         self.out = Path(out)
         self.events: deque[str] = deque(maxlen=EVENTS_KEPT)
         self.laser = LaserControl(profile, self.say, deadman_s) if profile.laser is not None else None
         self.uploads = Uploads()
-        self.slm = (SlmControl(profile, self.uploads, self._checkpoints())
-                    if profile.slm is not None and profile.optics is not None else None)
+        self.slm = SlmControl(self.bench, self.uploads) if self.bench is not None else None
+        self._calibration_stamp = self.bench.calibration.stamp() if self.bench and self.bench.calibration else ()
         self.camera: Held[Camera] | None = (Held("camera", lambda: open_camera(profile), Camera.close)
                                             if profile.camera is not None else None)
+        self.focus = (FocusControl(profile, self.camera, self._focus_maps, self.say) if profile.focus is not None
+                      else None)
         self.procedures = Procedures(profile, procedures_dir, self.out, self._release_for_run, self._reconnect,
                                      self.say)
-        self.view: dict[str, Any] = {"mode": "gamma", "zoom": None}
+        self.view: dict[str, Any] = {"mode": "gamma", "zoom": None, "region": None}
         self.job: dict[str, Any] = {"busy": None, "progress": None, "error": None, "started": None}
         self.laser_status: dict[str, Any] = self.laser.status() if self.laser else {"channels": []}
         self.preview_error: str | None = None
@@ -76,6 +81,8 @@ class Console:
         for held in (self.slm.held if self.slm else None, self.camera):
             if held is not None and not held.connect():
                 self.say(f"{held.name}: {held.error}")
+        if self.focus is not None and not self.focus.connect():  # after the camera: an EOS lens is driven through it
+            self.say(f"focus: {self.focus.held.error}")
         self._read_slm("at start")
         self.refresh_laser()
         for thread in self._threads:
@@ -95,7 +102,7 @@ class Console:
             if self.procedures.active:
                 unknown = f"procedure {self.procedures.running} still holds the laser after SIGTERM"
         finally:
-            for held in (self.slm.held if self.slm else None, self.camera):
+            for held in (self.slm.held if self.slm else None, self.focus.held if self.focus else None, self.camera):
                 if held is not None:
                     held.release()
             if self.slm is not None:
@@ -105,6 +112,11 @@ class Console:
                     thread.join(timeout=5.0)
             self.uploads.remove_all()
         return unknown
+
+    @property
+    def profile(self) -> Profile:
+        """The profile in effect: with the bench's calibration applied where it has an SLM and optics."""
+        return self.bench.profile if self.bench is not None else self.configured
 
     def emergency_off(self) -> None:
         """Emission off and the laser let go now (a termination signal): `benchctl laser off` waits for that. A
@@ -127,14 +139,14 @@ class Console:
         try:
             watts = self._laser().set_power(channel, power)
         finally:
-            self.refresh_laser()
+            self.refresh_laser(channel)
         return {"setpoint_mw": round(watts * 1e3, 4)}
 
     def set_emission(self, channel: str, on: bool) -> None:
         try:
             self._laser().set_emission(channel, on)
         finally:
-            self.refresh_laser()
+            self.refresh_laser(channel)
 
     def all_off(self) -> None:
         try:
@@ -151,13 +163,15 @@ class Console:
         self.all_off()
         return {"ok": True}
 
-    def refresh_laser(self) -> None:
-        """Read the laser's state now (also done twice a second)."""
+    def refresh_laser(self, channel: str | None = None) -> None:
+        """Read the laser's state now (every channel's is also read each STATUS_PERIOD_S); `channel`: only that
+        channel's, what a button press changed."""
         if self.laser is not None:
-            self.laser_status = self.laser.status()
+            self.laser_status = self.laser.status(channel, self.laser_status)
 
     def _status_loop(self) -> None:
         while not self._stop.wait(STATUS_PERIOD_S):
+            self.follow_calibration()
             self.refresh_laser()
 
     # -- SLM -------------------------------------------------------------------------------------------------------
@@ -182,6 +196,28 @@ class Console:
         if not self._busy.acquire(blocking=False):
             raise BenchctlError(f"busy with {self.job['busy']}; try again when it is done")
         return _Job(self, name)
+
+    # -- focus -----------------------------------------------------------------------------------------------------
+
+    def _focus(self) -> FocusControl:
+        if self.focus is None:
+            raise BenchctlError(f"profile {self.profile.name!r} has no [focus]")
+        if self.procedures.active:
+            raise BenchctlError("a procedure holds the focus; wait for it or stop it")
+        return self.focus
+
+    def _focus_maps(self) -> dict[str, FocusMap]:
+        """The focus calibration of the bench as calibrated (none without an SLM and optics: nothing to focus on)."""
+        return self.bench.focus_maps if self.bench is not None else {}
+
+    def focus_move(self, steps: int) -> dict[str, Any]:
+        return self._focus().move(steps)
+
+    def focus_home(self) -> dict[str, Any]:
+        return self._focus().home()
+
+    def focus_go(self, depth: str, channel: str | None) -> dict[str, Any]:
+        return self._focus().go(depth, channel)
 
     # -- camera ----------------------------------------------------------------------------------------------------
 
@@ -209,17 +245,26 @@ class Console:
         with self.slm.device() as slm:
             return {"shows": self.slm.shown, "info": slm.info(), "displayed_frame": slm.displayed_frame()}
 
-    def set_view(self, mode: str | None, zoom: list[float] | None, clear_zoom: bool) -> None:
+    def set_view(self, mode: str | None, zoom: list[float] | None, clear_zoom: bool,
+                 region: list[float] | None = None, clear_region: bool = False) -> None:
+        """The live view's mode (gamma or linear), its 1:1 zoom's centre, and the region whose sharpness each frame
+        reports ([x0, y0, x1, y1] as fractions of the frame); a bad value changes nothing."""
+        view = dict(self.view)
         if mode is not None:
             if mode not in ("gamma", "linear"):
                 raise BadValueError(f"view mode must be 'gamma' or 'linear', got {mode!r}")
-            self.view["mode"] = mode
+            view["mode"] = mode
         if clear_zoom:
-            self.view["zoom"] = None
+            view["zoom"] = None
         elif zoom is not None:
             if len(zoom) != 2 or not all(isinstance(v, (int, float)) and 0 <= v <= 1 for v in zoom):
                 raise BadValueError(f"zoom centre must be [x, y] fractions of the frame, got {zoom!r}")
-            self.view["zoom"] = (float(zoom[0]), float(zoom[1]))
+            view["zoom"] = (float(zoom[0]), float(zoom[1]))
+        if clear_region:
+            view["region"] = None
+        elif region is not None:
+            view["region"] = preview.checked_region(region)
+        self.view = view
 
     def _preview_loop(self) -> None:
         while not self._stop.is_set():
@@ -245,10 +290,12 @@ class Console:
             render = (time.perf_counter() - clock, time.thread_time() - cpu)
         self._seq += 1
         return preview.shown_frame(self._seq, frame, zoom, mode=self.view["mode"], zoom_centre=centre,
-                                   render_started=started, render_s=render)
+                                   render_started=started, render_s=render, region=self.view["region"])
 
     def _publish(self, shown: preview.Shown) -> None:
         shown.header["overlay"] = self.registration_overlay(shown.header["full_shape"])
+        if self.focus is not None:  # where benchctl believed the focus was as this frame was published
+            shown.header["focus"] = self.focus.where()
         self.latest = shown
         self._frame_times.append(time.monotonic())
         for listener in list(self._listeners):
@@ -271,7 +318,6 @@ class Console:
         fractions of the frame, for the page to draw; nothing while the frame's size on the sensor is unknown."""
         if full_shape is None or self.profile.slm is None or self.profile.optics is None:
             return {}
-        from benchctl.calibration.store import Calibration
         from benchctl.capture.registration import apply_homography
 
         (h, w), (rh, rw) = self.profile.slm.shape, self.profile.optics.roi
@@ -279,7 +325,8 @@ class Console:
         corners = np.array([[left, top], [left + rw, top], [left + rw, top + rh], [left, top + rh]])
         rows, cols = full_shape
         overlay = {}
-        for colour, entry in Calibration.store(self.profile).registrations().items():
+        assert self.bench is not None
+        for colour, entry in self.bench.registrations.items():
             points = apply_homography(np.array(entry["homography"]), corners)
             overlay[colour] = [[round(x / cols, 5), round(y / rows, 5)] for x, y in points]
         return overlay
@@ -290,31 +337,68 @@ class Console:
         """Let go of the devices a run will use (emission off first): one holder per device."""
         if "laser" in devices and self.laser is not None and not self.laser.let_go():
             raise BenchctlError(f"laser: {self.laser.unknown}; the procedure was not started")
-        for name, held in (("slm", self.slm.held if self.slm else None), ("camera", self.camera)):
+        for name, held in (("slm", self.slm.held if self.slm else None),
+                           ("focus", self.focus.held if self.focus else None), ("camera", self.camera)):
             if name in devices and held is not None:
                 held.release()
 
     def _reconnect(self) -> None:
         """Take the devices back after a procedure, and say when it changed what the SLM shows."""
-        for held in (self.laser.held if self.laser else None, self.slm.held if self.slm else None, self.camera):
+        self.follow_calibration()
+        for held in (self.laser.held if self.laser else None, self.slm.held if self.slm else None, self.camera,
+                     self.focus.held if self.focus else None):  # the focus after the camera it may drive through
             if held is not None and not held.connected:
                 held.connect()
+        if self.focus is not None:
+            self.focus.refresh()
         self._read_slm(f"after procedure {self.procedures.running}")
 
     def connect(self, name: str) -> dict[str, Any]:
-        """Connect device `name` (laser, slm or camera) again, e.g. after it was lost or held elsewhere."""
+        """Connect device `name` (laser, slm, camera or focus) again, e.g. after it was lost or held elsewhere."""
         devices = {"laser": self.laser.held if self.laser else None, "slm": self.slm.held if self.slm else None,
-                   "camera": self.camera}
+                   "camera": self.camera, "focus": self.focus.held if self.focus else None}
         held = devices.get(name)
         if held is None:
-            raise BadValueError(f"no device {name!r} to connect (laser, slm or camera)")
+            raise BadValueError(f"no device {name!r} to connect ({', '.join(k for k, v in devices.items() if v)})")
         if self.procedures.active:
             raise BenchctlError("a procedure holds the devices; wait for it or stop it")
         if name == "laser" and self.laser is not None:
             self.laser.connect()
-        elif held.connect() and name == "slm":
-            self._read_slm("connected again")
+        elif name == "focus" and self.focus is not None:
+            self.focus.connect()
+        else:
+            self.follow_calibration()
+            if held.connect() and name == "slm":
+                self._read_slm("connected again")
+            if name == "camera" and self.focus is not None and self.focus.camera is not None:
+                self.focus.held.reopen()  # the lens is driven through the camera: through the one open now
+                self.focus.refresh()
         return {"connected": held.connected, "error": held.error}
+
+    def follow_calibration(self) -> None:
+        """The bench built again from its calibration files when one of them changed since it was built (a procedure
+        the console ran stored a measurement, a file was restored by hand), checked by their stamps (one stat per
+        file) each status period and before a device is taken back: the registration overlay, holograms and focus
+        depths follow, and an SLM the console holds is opened again with the new tables. A file that cannot be read
+        now is said, and the bench stays as it was."""
+        calibration = self.bench.calibration if self.bench is not None else None
+        if self.bench is None or calibration is None:
+            return
+        stamp = calibration.stamp()
+        if stamp == self._calibration_stamp:
+            return
+        self._calibration_stamp = stamp
+        try:
+            bench = _read(self.bench.recalibrated())
+        except BenchctlError as exc:
+            self.say(f"calibration not read again: {exc}")
+            return
+        self.bench = bench
+        self.say(f"calibration in {calibration.folder} changed: read again")
+        if self.slm is not None:
+            self.slm.bench = bench
+            if self.slm.held.reopen():
+                self._read_slm("opened again with the new calibration")
 
     def _read_slm(self, when: str) -> None:
         if self.slm is not None:
@@ -337,14 +421,19 @@ class Console:
                                              "shows": slm.shown, "channels": slm.channels},
             "camera": None if self.camera is None else {"connected": self.camera.connected,
                                                         "error": self.camera.error or self.preview_error},
+            "focus": None if self.focus is None else self.focus.state(),
             "view": self.view, "fps": round(self.fps, 2), "job": self.job,
             "procedure": self.procedures.state(), "events": list(self.events)[-30:],
             "uploads": dict(self.uploads.names), "time": time.time(),
         }
 
-    def _checkpoints(self) -> dict[str, str]:
-        folder = Path("checkpoints") / self.profile.name
-        return {path.stem: str(path) for path in sorted(folder.glob("*.pt"))} if folder.is_dir() else {}
+
+def _read(bench: Calibrated) -> Calibrated:
+    """`bench` with what the page's state and the live view use of it read now, on this thread: never later on the
+    event loop or the live view's thread."""
+    bench.registrations  # noqa: B018 - a cached property, read for its side effect
+    bench.focus_maps  # noqa: B018
+    return bench
 
 
 class _Job:

@@ -53,6 +53,15 @@ class Held(Generic[T]):
                 self.error = "released by the console"
                 self._closer(device)
 
+    def reopen(self) -> bool:
+        """Close and open again, if open, with no other thread using it in between (the opener may open it
+        differently now); True when it was open and is again."""
+        with self._lock:
+            if self.device is None:
+                return False
+            self.release()
+            return self.connect()
+
     def lost(self, reason: str) -> None:
         """The device stopped working (its X server went away, its cable was pulled): close what is left of it
         (errors on the way are the loss itself) and keep `reason` for the page, which offers to connect again."""

@@ -7,7 +7,7 @@ fresh interpreter: the console has threads, and a script that embeds the console
 the first hologram and kept until the console stops; requests and results travel as pickles over a socket pair.
 It leaves one core to the console's own process (WORKER_THREADS) and runs at a slightly lower priority
 (WORKER_NICE), so the live view keeps its pace; docs/console.md has the measurements behind both. It runs what a
-run runs (`holograms.cache.hologram`: the same method, calibration, fitted model and cache) and reports its
+run runs (`holograms.hologram`: the same method, calibration, fitted model and cache) and reports its
 progress as it goes. It holds no device.
 """
 
@@ -144,8 +144,8 @@ def _receive(connection: Connection) -> Any:
 
 
 def _compute(request: Request, connection: Connection) -> Result:
-    from benchctl.calibration.calibrated import Calibrated
-    from benchctl.holograms.cache import hologram
+    from benchctl.calibration import Calibrated
+    from benchctl.holograms import hologram
 
     def progress(label: str) -> Callable[[int, int], None]:
         return lambda done, total: _send(connection, ("progress", label, done, total))

@@ -17,8 +17,7 @@ from typing import Any
 
 from benchctl.console.devices import Held
 from benchctl.devices.errors import EmissionNotOff
-from benchctl.devices.laser import Laser, open_laser
-from benchctl.devices.laser.base import UNKNOWN_EMISSION
+from benchctl.devices.laser import UNKNOWN_EMISSION, Laser, open_laser
 from benchctl.devices.power import format_power
 from benchctl.errors import BadValueError, BenchctlError
 from benchctl.profiles import Profile
@@ -130,28 +129,34 @@ class LaserControl:
 
     # -- state ------------------------------------------------------------------------------------------------
 
-    def status(self) -> dict[str, Any]:
+    def status(self, changed: str | None = None, known: dict[str, Any] | None = None) -> dict[str, Any]:
         """Per channel: limit, setpoint and measured power (mW), emission, interlock and faults, as the device
-        reports them now; or why the laser cannot be read. `unknown` is set while emission may be on unseen."""
+        reports them now; or why the laser cannot be read. `unknown` is set while emission may be on unseen.
+        `changed`: only that channel is read, the others kept from `known` (the last status: what a button press
+        changed is read back at once, the rest by the next periodic read)."""
         base: dict[str, Any] = {"connected": self.held.connected, "error": self.held.error, "unknown": self.unknown,
                                 "deadman_s": self.deadman_s, "channels": []}
         limits = {channel.name: channel.max_power_mw for channel in self.config.channels}
         if not self.held.connected:
             base["channels"] = [{"name": name, "limit_mw": limit} for name, limit in limits.items()]
             return base
+        kept = {row["name"]: row for row in (known or {}).get("channels", []) if "emission" in row}
         try:
             with self.held.use() as laser:
-                statuses = [laser.status(name) for name in laser.channel_names]
+                names = laser.channel_names
+                read = [changed] if changed in names and set(names) - {changed} <= set(kept) else names
+                statuses = [laser.status(name) for name in read]
         except BenchctlError as exc:
             base["error"] = str(exc)
             base["unknown"] = self.unknown or (f"{exc}; {UNKNOWN_EMISSION}" if self.emitting else None)
             return base
-        base["channels"] = [{
+        rows = {s.name: {
             "name": s.name, "wavelength_nm": s.wavelength_nm, "limit_mw": limits[s.name],
             "setpoint_mw": round(s.setpoint_w * 1e3, 4),
             "measured_mw": None if s.measured_w is None else round(s.measured_w * 1e3, 4),
             "emission": s.emission, "interlock": s.interlock_ok, "faults": list(s.faults),
-        } for s in statuses]
+        } for s in statuses}
+        base["channels"] = [rows.get(name) or kept[name] for name in names]
         return base
 
     # -- dead-man --------------------------------------------------------------------------------------------------

@@ -18,9 +18,10 @@ import cv2
 import numpy as np
 import torch
 
+from benchctl.capture.focus import sharpness
 from benchctl.capture.raw import RawImage, decode_raw
-from benchctl.devices.camera.base import RAW_FORMATS, PreviewFrame, Window
-from benchctl.errors import BenchctlError
+from benchctl.devices.camera import RAW_FORMATS, PreviewFrame, Window
+from benchctl.errors import BadValueError, BenchctlError
 from benchctl.optics.colour import linear_to_srgb, srgb_to_linear
 
 DISPLAY_SIZE = (640, 960)  # (rows, cols) the page's preview is at most
@@ -151,12 +152,38 @@ class Shown:
     header: dict[str, Any]
 
 
+def checked_region(region: Any) -> tuple[float, float, float, float]:
+    """A region of the frame as [x0, y0, x1, y1] fractions (0..1, x0 < x1, y0 < y1); BadValueError otherwise."""
+    if (not isinstance(region, (list, tuple)) or len(region) != 4
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and 0 <= v <= 1 for v in region)
+            or not (region[0] < region[2] and region[1] < region[3])):
+        raise BadValueError(f"region must be [x0, y0, x1, y1] fractions of the frame with x0 < x1 and y0 < y1, got "
+                            f"{region!r}")
+    x0, y0, x1, y1 = (float(v) for v in region)
+    return x0, y0, x1, y1
+
+
+def region_sharpness(image: Linear, region: tuple[float, float, float, float]) -> dict[str, Any]:
+    """The focus calibration's sharpness (benchctl.capture.focus.sharpness) of the frame's linear light, colours
+    summed, inside `region`, at the live view's resolution; None where the region holds too few pixels to judge."""
+    rows, cols = image.rgb.shape[:2]
+    r0, r1 = int(region[1] * rows), max(int(region[1] * rows) + 1, round(region[3] * rows))
+    c0, c1 = int(region[0] * cols), max(int(region[0] * cols) + 1, round(region[2] * cols))
+    light = image.rgb[r0:r1, c0:c1].sum(axis=2)
+    try:
+        value: float | None = round(sharpness(light), 4)
+    except BadValueError:
+        value = None
+    return {"region": list(region), "pixels": list(light.shape), "value": value}
+
+
 def shown_frame(seq: int, frame: PreviewFrame, zoom: PreviewFrame | None, *, mode: Mode,
                 zoom_centre: tuple[float, float] | None, render_started: float,
-                render_s: tuple[float, float]) -> Shown:
+                render_s: tuple[float, float], region: tuple[float, float, float, float] | None = None) -> Shown:
     """Decode, measure and encode one frame (and its zoom: the camera's own 1:1 window when it has one, else the
-    frame's crop at its own resolution). `render_s`: the seconds and CPU seconds the camera took for it; the
-    header has both for rendering and encoding (CPU seconds: this thread's, what a free core would take)."""
+    frame's crop at its own resolution; and the sharpness in `region` when one is given). `render_s`: the seconds
+    and CPU seconds the camera took for it; the header has both for rendering and encoding (CPU seconds: this
+    thread's, what a free core would take)."""
     started, cpu = time.perf_counter(), time.thread_time()
     image = decode(frame)
     zoom_jpeg = None
@@ -173,6 +200,7 @@ def shown_frame(seq: int, frame: PreviewFrame, zoom: PreviewFrame | None, *, mod
     header = {
         "seq": seq, "format": frame.format, "shape": list(image.rgb.shape[:2]), "full_shape": image.full_shape,
         "zoom_window": window, "stats": statistics(image),
+        "sharpness": None if region is None else region_sharpness(image, region),
         "source": {key: frame.metadata[key] for key in ("slm_frame", "lasers_on_w", "coarse", "exposure_s", "iso",
                                                         "bin") if key in frame.metadata},
         "render_started": render_started, "render_s": round(render_s[0], 6), "render_cpu_s": round(render_s[1], 6),

@@ -1,9 +1,11 @@
 """Procedures from the console: `benchctl run` in a child process, its dry run first, its steps followed live.
 
 The console couples to the runner through the command line only (`benchctl run FILE --dry-run`, then
-`benchctl run FILE`), so a run started here is exactly the run a shell starts: same plan, same run folder, same
-safety on every exit path. Before the run starts the console lets go of its devices (one holder per device: the
-run opens them itself) and takes them back when the run ends. Stop sends the run SIGTERM, on which the runner
+`benchctl run FILE --events FD`), so a run started here is exactly the run a shell starts: same plan, same run folder,
+same safety on every exit path. The run's folder, its steps and how it stopped come from its event stream (`--events`:
+JSON lines on a pipe, `runner.events`), never from what it prints; the printed lines are only shown. Before the
+run starts the console lets go of its devices (one holder per device: the run opens them itself) and takes them back
+when the run ends. Stop sends the run SIGTERM, on which the runner
 switches emission off, records where it stopped and exits (`benchctl run --resume` finishes it later).
 The page chooses a procedure by name among the files of the console's procedures folder, never by path, and the
 console runs only what that folder holds: a file (or symbolic link) that leads outside it is not offered, and a TOML
@@ -13,8 +15,8 @@ would import that file.
 
 from __future__ import annotations
 
+import json
 import os
-import re
 import signal
 import subprocess
 import sys
@@ -32,10 +34,9 @@ if sys.version_info >= (3, 11):
 else:
     import tomli as tomllib
 
-DEVICES = ["laser", "slm", "camera"]
+DEVICES = ["laser", "slm", "camera", "focus"]
 LINES_KEPT = 400
 DRY_RUN_TIMEOUT_S = 300.0
-_RUN_FOLDER = re.compile(r"^run folder: (?P<folder>.+)$")
 
 
 class Procedures:
@@ -53,6 +54,8 @@ class Procedures:
         self.running: str | None = None
         self.run_folder: Path | None = None
         self.returncode: int | None = None
+        self.progress: dict[str, Any] = {}  # from the run's events: steps, done, step, status
+        self.has_report = False
         self._process: subprocess.Popen[str] | None = None
         self._lock = threading.Lock()
 
@@ -104,7 +107,8 @@ class Procedures:
         return lines
 
     def start(self, name: str) -> None:
-        """Start procedure `name` after letting go of the devices; its output lines arrive in `lines`."""
+        """Start procedure `name` after letting go of the devices; its output lines arrive in `lines`, its events in
+        `run_folder` and `progress`."""
         path = self._file(name)
         with self._lock:
             if self._process is not None and self._process.poll() is None:
@@ -112,20 +116,58 @@ class Procedures:
             self._release(DEVICES)
             self.lines.clear()
             self.running, self.run_folder, self.returncode = name, None, None
-            self._process = subprocess.Popen(self._command(path, "--out", str(self.out)), stdout=subprocess.PIPE,
-                                             stderr=subprocess.STDOUT, text=True, env=_unbuffered())
+            self.progress, self.has_report = {}, False
+            events, writer = os.pipe()
+            try:
+                self._process = subprocess.Popen(
+                    self._command(path, "--out", str(self.out), "--events", str(writer)), stdout=subprocess.PIPE,
+                    stderr=subprocess.STDOUT, text=True, env=_unbuffered(), pass_fds=(writer,))
+            except OSError:
+                os.close(events)
+                raise
+            finally:
+                os.close(writer)  # the run holds the only writing end: the stream ends when the run does
         self.say(f"procedure {name} started (pid {self._process.pid}); the console let go of its devices")
-        threading.Thread(target=self._follow, args=(self._process,), name="console procedure", daemon=True).start()
+        follower = threading.Thread(target=self._follow_events, args=(events,), name="console run events",
+                                    daemon=True)
+        follower.start()
+        threading.Thread(target=self._follow, args=(self._process, follower), name="console procedure",
+                         daemon=True).start()
 
-    def _follow(self, process: subprocess.Popen[str]) -> None:
+    def _follow_events(self, fd: int) -> None:
+        """Read the run's event stream to its end (the run's exit)."""
+        with open(fd, encoding="utf-8") as stream:
+            for line in stream:
+                try:
+                    event = json.loads(line)
+                except ValueError:
+                    continue  # not the stream's (it writes only whole JSON lines)
+                if isinstance(event, dict):
+                    self._event(event)
+
+    def _event(self, event: dict[str, Any]) -> None:
+        """One event of the run's stream: the folder it writes, the step it is at, how it stopped."""
+        kind, step = event.get("event"), event.get("step")
+        if kind == "run":
+            self.run_folder = Path(str(event["folder"]))
+            self.progress = {"steps": event.get("steps"), "done": event.get("steps", 0) - event.get("todo", 0),
+                             "step": None, "status": "running"}
+        elif kind == "start":
+            self.progress["step"] = step
+        elif kind == "done":
+            self.progress["done"] = self.progress.get("done", 0) + 1
+        elif kind == "invalid":
+            self.progress["done"] = max(0, self.progress.get("done", 0) - 1)
+        elif kind == "stop":
+            self.progress.update(status=event.get("status"), step=event.get("step"), error=event.get("error"))
+            self.has_report = self.run_folder is not None and (self.run_folder / "report.html").is_file()
+
+    def _follow(self, process: subprocess.Popen[str], events: threading.Thread) -> None:
         assert process.stdout is not None
         for line in process.stdout:
-            line = line.rstrip("\n")
-            self.lines.append(line)
-            match = _RUN_FOLDER.match(line)
-            if match:
-                self.run_folder = Path(match["folder"])
+            self.lines.append(line.rstrip("\n"))
         self.returncode = process.wait()
+        events.join()
         self.say(f"procedure {self.running} ended with exit code {self.returncode}; the console takes its devices "
                  "back")
         self._reconnect()
@@ -146,15 +188,14 @@ class Procedures:
         return self._process is not None and self._process.poll() is None
 
     def report(self) -> Path | None:
-        """The last run's report.html, once it exists."""
-        path = self.run_folder / "report.html" if self.run_folder is not None else None
-        return path if path is not None and path.is_file() else None
+        """The last run's report.html, once it has stopped with one."""
+        return self.run_folder / "report.html" if self.has_report and self.run_folder is not None else None
 
     def state(self) -> dict[str, Any]:
-        return {"files": list(self.files()), "running": self.running if self.active else None,
-                "last": self.running, "returncode": self.returncode,
-                "folder": str(self.run_folder) if self.run_folder else None, "report": self.report() is not None,
-                "lines": list(self.lines)[-60:]}
+        """The run going or last run, as its events tell it (cheap: no disk access)."""
+        return {"running": self.running if self.active else None, "last": self.running,
+                "returncode": self.returncode, "folder": str(self.run_folder) if self.run_folder else None,
+                "progress": self.progress, "report": self.has_report, "lines": list(self.lines)[-60:]}
 
 
 def _unbuffered() -> dict[str, str]:

@@ -4,7 +4,7 @@ Patterns: blank (gray 0), a flat phase, a blazed grating (period, angle), the re
 hologram of a target (a bundled chart or photo, or an uploaded image) by a method for one colour. Zernike terms in
 waves (defocus, astigmatism, coma, spherical) are added to any phase pattern: the quick way to correct a bench by
 hand. Every phase goes through `SLM.show_phase` (the colour's lookup table, phase offset, carrier, flips); the
-holograms are the ones a run displays (`holograms.cache.hologram`: the same method, calibration, fitted model
+holograms are the ones a run displays (`holograms.hologram`: the same method, calibration, fitted model
 and cache), computed in the console's hologram worker process. The request is a typed model, so a bad value is
 refused with its name before anything is computed.
 """
@@ -20,17 +20,18 @@ import cv2
 import msgspec
 import numpy as np
 
+from benchctl.calibration import Calibrated
+from benchctl.cgh import DEFAULT_METHOD
 from benchctl.console.devices import Held
 from benchctl.console.holograms import HologramWorker, Request
 from benchctl.console.uploads import Uploads
 from benchctl.devices.errors import DeviceError
 from benchctl.devices.slm import SLM, open_slm
 from benchctl.errors import BadValueError, BenchctlError
+from benchctl.optics.aberration import ZERNIKE_TERMS, wavefront_phase
 from benchctl.profiles import Profile
 
 PatternKind = Literal["blank", "flat", "grating", "dots", "hologram"]
-ZernikeName = Literal["defocus", "astigmatism_vertical", "astigmatism_oblique", "coma_vertical", "coma_horizontal",
-                      "spherical"]
 Waves = Annotated[float, msgspec.Meta(ge=-20, le=20)]
 THUMBNAIL_WIDTH = 320
 
@@ -43,12 +44,17 @@ class Pattern(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
     phase_rad: Annotated[float, msgspec.Meta(ge=-100, le=100)] = 0.0  # flat
     period_px: Annotated[float, msgspec.Meta(ge=2, le=100000)] = 16.0  # grating
     angle_deg: Annotated[float, msgspec.Meta(ge=-360, le=360)] = 0.0  # grating, 0 = phase rising along columns
-    zernike: dict[ZernikeName, Waves] = msgspec.field(default_factory=dict)
+    zernike: dict[str, Waves] = msgspec.field(default_factory=dict)  # optics.aberration's terms
     target: str = "chart:bars"  # hologram: chart:<name>, photo:<name> or upload:<id>
-    method: str = "dpac"
-    iterations: Annotated[int, msgspec.Meta(ge=1, le=5000)] | None = None
+    method: str = DEFAULT_METHOD
+    iterations: int | None = None  # None: the method's own; the method refuses a count it cannot take
     checkpoint: str | None = None  # a learned method's checkpoint: a name the console lists, never a path
     seed: Annotated[int, msgspec.Meta(ge=0)] = 0
+
+    def __post_init__(self) -> None:
+        unknown = [term for term in self.zernike if term not in ZERNIKE_TERMS]
+        if unknown:  # a ValueError here is msgspec's ValidationError, with where it was
+            raise ValueError(f"unknown Zernike term {unknown[0]!r} (known: {', '.join(ZERNIKE_TERMS)})")
 
 
 def parse_pattern(data: Any) -> Pattern:
@@ -60,18 +66,21 @@ def parse_pattern(data: Any) -> Pattern:
 
 
 class SlmControl:
-    """The profile's SLM held by the console (lookup tables and fitted model as calibrated for the profile), and
-    what it shows now."""
+    """The bench's SLM held by the console (opened with the lookup tables and fitted model of `bench`, the bench as
+    calibrated: the console replaces it when a calibration changes), and what it shows now."""
 
-    def __init__(self, profile: Profile, uploads: Uploads, checkpoints: dict[str, str]) -> None:
-        self.profile = profile
+    def __init__(self, bench: Calibrated, uploads: Uploads) -> None:
+        self.bench = bench
         self.uploads = uploads
-        self.checkpoints = checkpoints  # name the page may choose -> checkpoint file
         self.worker = HologramWorker()
-        self.held: Held[SLM] = Held("SLM", lambda: open_slm(profile), SLM.close)
+        self.held: Held[SLM] = Held("SLM", lambda: open_slm(self.bench.profile), SLM.close)
         self.shown: dict[str, Any] = {"kind": None}  # the pattern, or (kind None) what the device says it shows
         self.frame: np.ndarray | None = None
         self.last_hologram: dict[str, Any] | None = None  # how the last hologram was made: seconds, cache, scores
+
+    @property
+    def profile(self) -> Profile:
+        return self.bench.profile
 
     @property
     def channels(self) -> list[str]:
@@ -93,8 +102,6 @@ class SlmControl:
         else:
             phase = self._hologram(pattern, progress)
         if pattern.zernike:
-            from benchctl.optics.aberration import wavefront_phase
-
             waves: dict[str, float] = {term: value for term, value in pattern.zernike.items()}
             phase = phase + wavefront_phase((rows, cols), slm.pitch_m, waves).numpy()
         return phase
@@ -110,7 +117,7 @@ class SlmControl:
             from benchctl.capture.registration import dot_grid_target
 
             dots, _ = dot_grid_target(slm.shape, optics.roi)
-            amplitude, method, iterations, checkpoint = dots.expand(3, -1, -1).clone(), "dpac", None, None
+            amplitude, method, iterations, checkpoint = dots.expand(3, -1, -1).clone(), DEFAULT_METHOD, None, None
             label = "registration dot grid"
         else:
             srgb = load_target(self._target(pattern.target), size=optics.roi)
@@ -204,10 +211,20 @@ class SlmControl:
             return str(self.uploads.path(spec.removeprefix("upload:")))
         raise BadValueError(f"target {spec!r}: choose chart:<name>, photo:<name> or an uploaded image")
 
+    def checkpoints(self) -> dict[str, str]:
+        """Network -> its checkpoint file for this profile, as a run finds it (`holograms.find_checkpoint`): the
+        names the page may choose (reads the disk: call it off the server's event loop)."""
+        from benchctl.cgh.learned import LEARNED_METHODS
+        from benchctl.holograms import find_checkpoint
+
+        found = {name: find_checkpoint(name, self.profile) for name in LEARNED_METHODS}
+        return {name: str(path) for name, path in found.items() if path is not None}
+
     def _checkpoint(self, name: str | None) -> str | None:
         if name is None:
             return None
-        if name not in self.checkpoints:
+        offered = self.checkpoints()
+        if name not in offered:
             raise BadValueError(f"checkpoint {name!r} is not one the console offers (known: "
-                                f"{', '.join(self.checkpoints) or 'none'})")
-        return self.checkpoints[name]
+                                f"{', '.join(offered) or 'none'})")
+        return offered[name]

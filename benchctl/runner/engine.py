@@ -106,16 +106,19 @@ def _resumed(folder: Path, profile_arg: str | None, allow_code: bool) -> tuple[R
 
 def run_procedure(path: Path | None, *, profile: str | None = None, out: Path = Path("runs"),
                   dry_run: bool = False, resume: Path | None = None, allow_code: bool = False,
-                  say: Callable[[str], None] = print) -> RunOutcome:
+                  say: Callable[[str], None] = print,
+                  events: Callable[[dict[str, Any]], None] | None = None) -> RunOutcome:
     """Run (or with `dry_run` only plan and print) a procedure file; `resume` finishes an earlier run instead. The run
     folder is locked (`run_folder_lock`) for as long as this writes it. `allow_code`: Python code that a TOML
-    procedure names, or that a resumed run kept, may run (load_procedure)."""
+    procedure names, or that a resumed run kept, may run (load_procedure). `events`: told the run's events as they
+    happen (`runner.events` says which), for a program that follows the run."""
     with ExitStack() as held:
-        return _run(path, profile, out, dry_run, resume, allow_code, say, held)
+        return _run(path, profile, out, dry_run, resume, allow_code, say, events, held)
 
 
 def _run(path: Path | None, profile: str | None, out: Path, dry_run: bool, resume: Path | None, allow_code: bool,
-         say: Callable[[str], None], held: ExitStack) -> RunOutcome:
+         say: Callable[[str], None], events: Callable[[dict[str, Any]], None] | None,
+         held: ExitStack) -> RunOutcome:
     if resume is not None:
         if not (Path(resume) / RUN_FILE).is_file():
             raise BenchctlError(f"{resume}: not a benchctl run folder (no {RUN_FILE})")
@@ -173,6 +176,10 @@ def _run(path: Path | None, profile: str | None, out: Path, dry_run: bool, resum
             record.calibration_written(calibration.checksums())
             context.bench, context.record = Calibrated(bench.configured, calibration), record
         say(f"run folder: {record.folder}")
+        if events is not None:
+            record.listener = events
+            events({"event": "run", "folder": str(record.folder.resolve()), "steps": len(steps), "todo": len(todo),
+                    "resumed": resume is not None})
         for reason in [*record.invalidated, *record.damaged]:
             say(reason)
         return _execute(steps, context, record, estimate)

@@ -53,10 +53,20 @@ def focus_move(profile: Profile, steps: int) -> list[str]:
 
 
 def focus_go(profile: Profile, depth: str, channel: str | None) -> list[str]:
-    """Focus at `depth` ('70.2mm', '14.3D') for `channel` (default: the only calibrated colour, else green if
-    calibrated), from the calibrated side, past the backlash; homes first if the position is not known."""
+    """Focus at `depth` ('70.2mm', '14.3D') for `channel` (`calibrated_colour`), from the calibrated side, past the
+    backlash; homes first if the position is not known."""
     target_m = parse_depth(depth)
-    maps = _maps(profile)
+    channel, found = calibrated_colour(profile, _maps(profile), channel)
+    with open_focus(profile) as focus:
+        steps, move = go_to(focus, found, target_m)
+        side = "below" if found.approach > 0 else "above"
+        return [f"{channel}: {target_m * 1e3:.4g} mm from the SLM is {steps} {focus.unit}(s) (approached from "
+                f"{side}, {found.overshoot_steps} past the backlash first where needed)", _line(focus, move)]
+
+
+def calibrated_colour(profile: Profile, maps: dict[str, FocusMap], channel: str | None) -> tuple[str, FocusMap]:
+    """The colour whose focus calibration turns a depth into steps, and its map: `channel`, or by default the only
+    calibrated colour, else green if calibrated. BenchctlError without a calibration, or for a colour without one."""
     if not maps:
         raise BenchctlError(f"{profile.name}: no focus calibration for this profile and focus device; run "
                             f"`benchctl run procedures/focus_calibration.toml --profile {profile.name}` first")
@@ -66,13 +76,14 @@ def focus_go(profile: Profile, depth: str, channel: str | None) -> list[str]:
             raise BenchctlError(f"focus go: choose a colour with --channel ({', '.join(maps)})")
     if channel not in maps:
         raise BenchctlError(f"focus go: colour {channel!r} is not focus-calibrated (calibrated: {', '.join(maps)})")
-    found = maps[channel]
-    steps = found.steps_for(target_m)
-    with open_focus(profile) as focus:
-        move = focus.move_to(steps, approach=found.approach, overshoot=found.overshoot_steps)
-        side = "below" if found.approach > 0 else "above"
-        return [f"{channel}: {target_m * 1e3:.4g} mm from the SLM is {steps} {focus.unit}(s) (approached from "
-                f"{side}, {found.overshoot_steps} past the backlash first where needed)", _line(focus, move)]
+    return channel, maps[channel]
+
+
+def go_to(focus: Focus, found: FocusMap, depth_m: float) -> tuple[int, FocusMove]:
+    """Move `focus` to where `found` says it focuses at `depth_m`, arriving from the calibrated side (first past the
+    backlash where it has to come back): the position in steps, and the move."""
+    steps = found.steps_for(depth_m)
+    return steps, focus.move_to(steps, approach=found.approach, overshoot=found.overshoot_steps)
 
 
 def _line(focus: Focus, move: FocusMove) -> str:

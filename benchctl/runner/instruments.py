@@ -95,15 +95,9 @@ class Instruments:
     def focus(self) -> Focus:
         """The camera's focus; the EOS lens is driven through this run's camera (which it opens first)."""
         def opener() -> Focus:
-            from benchctl.devices.camera.ptp_camera import PtpCamera
             from benchctl.devices.focus import open_focus
-            from benchctl.devices.focus.eos import EosFocus
 
-            config = self.profile.section("focus")
-            camera = self.camera if config.driver == "eos" else None
-            if isinstance(camera, PtpCamera):
-                return EosFocus.on_camera(config, camera).open()
-            return open_focus(self.profile)
+            return open_focus(self.profile, self.camera if self.profile.section("focus").driver == "eos" else None)
 
         return self._device("focus", opener, lambda focus: focus.identity())
 

@@ -14,6 +14,7 @@ import platform
 import re
 import shutil
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import datetime
 from importlib import metadata
@@ -113,6 +114,7 @@ class RunRecord:
     damaged: list[str] = field(default_factory=list)  # records found changed, their steps standing (open_run)
     divergences: dict[str, int] = field(default_factory=dict)  # step key -> times a later step found it diverged
     calibration: dict[str, str] = field(default_factory=dict)  # the run's calibration copy: file name -> SHA-256
+    listener: Callable[[dict[str, Any]], None] | None = None  # told every event as it is recorded (`run --events`)
 
     @property
     def name(self) -> str:
@@ -142,6 +144,7 @@ class RunRecord:
         info = self.info()
         info["stop"] = {"status": status, "time": _now(), **extra}
         write_json(self.folder / RUN_FILE, info)
+        self._tell({"event": "stop", **info["stop"]})
 
     # -- the step log -----------------------------------------------------------------------------------------
 
@@ -247,11 +250,17 @@ class RunRecord:
 
     def _log(self, event: dict[str, Any]) -> None:
         """Append one event line and flush it to disk: the log survives a crash right after the event."""
-        line = json.dumps({"time": _now(), **event}, default=str) + "\n"
+        event = {"time": _now(), **event}
+        line = json.dumps(event, default=str) + "\n"
         with open(self.folder / STEP_LOG, "a", encoding="utf-8") as log:
             log.write(line)
             log.flush()
             os.fsync(log.fileno())
+        self._tell(event)
+
+    def _tell(self, event: dict[str, Any]) -> None:
+        if self.listener is not None:
+            self.listener(event)
 
 
 class Recorded(dict[str, Any]):

@@ -157,6 +157,7 @@ async function frame(buffer) {
   $("frame-count").textContent = frames;
   overlay(header);
   statistics(header.stats);
+  sharpness(header);
   return header.seq;
 }
 
@@ -174,12 +175,32 @@ function overlay(header) {
     // one label per colour, stacked above the rectangle's corner (registered colours usually nearly coincide)
     ctx.fillStyle = hue; ctx.fillText(colour, corners[0][0] * canvas.width + 4, corners[0][1] * canvas.height - 6 - 14 * i);
   });
+  const region = dragged || (header.sharpness && header.sharpness.region);
+  if (region) {
+    const [x0, y0, x1, y1] = region;
+    ctx.setLineDash([]); ctx.strokeStyle = "#ffffff";
+    ctx.strokeRect(x0 * canvas.width, y0 * canvas.height, (x1 - x0) * canvas.width, (y1 - y0) * canvas.height);
+  }
   const w = header.zoom_window; const full = header.full_shape || header.shape;
   if (w && full) {
     ctx.setLineDash([]); ctx.strokeStyle = "#4c9bff";
     ctx.strokeRect(w[1] / full[1] * canvas.width, w[0] / full[0] * canvas.height,
       w[3] / full[1] * canvas.width, w[2] / full[0] * canvas.height);
   }
+}
+
+// The region's sharpness as this frame measured it, and where the focus was (the frame's own word: it moves on).
+function sharpness(header) {
+  const s = header.sharpness;
+  $("sharpness").textContent = !s ? "–" : s.value === null ? "region too small" : s.value.toFixed(3);
+  $("region-clear").hidden = !s;
+  if (header.focus) focusPosition(header.focus);
+}
+
+function focusPosition(f) {
+  $("focus-position").textContent = f.position === null || f.position === undefined ? "unknown (home it)"
+    : `${f.position} ${f.unit}(s)`;
+  $("focus-depth").textContent = Object.entries(f.depth_mm || {}).map(([c, mm]) => `${c} ${mm} mm`).join(" · ");
 }
 
 function statistics(stats) {
@@ -235,9 +256,28 @@ function state(s) {
   for (const [id, name] of Object.entries(s.uploads)) {
     if (![...$("target").options].some((o) => o.value === "upload:" + id)) option($("target"), "upload:" + id, `${name} (upload ${id})`);
   }
+  const f = s.focus;
+  $("focus-panel").hidden = !f;
+  if (f) {
+    focusPosition(f);
+    $("focus-error").textContent = f.error || "";
+    $("focus-last").textContent = f.moving ? `moving: ${f.moving}…` : f.last || "";
+    const colours = Object.keys(f.calibrated);
+    $("focus-go-row").hidden = !colours.length;
+    if (colours.join() !== [...$("focus-colour").options].map((o) => o.value).join()) {
+      $("focus-colour").replaceChildren();
+      for (const c of colours) option($("focus-colour"), c, `${c} (${f.calibrated[c][0]}–${f.calibrated[c][1]} mm)`);
+    }
+    for (const b of document.querySelectorAll("#focus-panel button:not(.reconnect)")) b.disabled = !f.connected || !!f.moving;
+    reconnectable("focus", f.connected);
+  }
   const p = s.procedure;
   $("procedure-lines").textContent = p.lines.join("\n") || $("procedure-lines").textContent;
   $("report").hidden = !p.report;
+  const run = p.progress || {};
+  $("procedure-progress").textContent = run.steps === undefined ? "" :
+    `${p.last}: ${run.done}/${run.steps} steps` + (run.status === "running" ? (run.step ? `, at ${run.step}` : "")
+      : `, ${run.status}` + (run.error ? `: ${run.error}` : "")) + (p.folder ? ` · ${p.folder}` : "");
   $("stop").disabled = !p.running;
 }
 
@@ -317,10 +357,35 @@ function allOffAnswered(answer) {
 $("all-off").onclick = allOff;
 $("zoom-clear").onclick = () => api("/api/view", { zoom: null }).catch(() => {});
 for (const radio of document.querySelectorAll("input[name=mode]")) radio.onchange = () => api("/api/view", { mode: radio.value }).catch(() => {});
-$("frame").onclick = (event) => {
-  const box = event.target.getBoundingClientRect();
-  api("/api/view", { zoom: [(event.clientX - box.left) / box.width, (event.clientY - box.top) / box.height] }).catch(() => {});
+// On the live view a click asks for the 1:1 zoom there; a drag chooses the region whose sharpness each frame reports.
+let dragged = null;
+let dragFrom = null;
+function fraction(event) {
+  const box = $("frame").getBoundingClientRect();
+  return [Math.min(1, Math.max(0, (event.clientX - box.left) / box.width)),
+    Math.min(1, Math.max(0, (event.clientY - box.top) / box.height))];
+}
+$("frame").onpointerdown = (event) => { dragFrom = fraction(event); $("frame").setPointerCapture(event.pointerId); };
+$("frame").onpointermove = (event) => {
+  if (!dragFrom) return;
+  const to = fraction(event);
+  dragged = [Math.min(dragFrom[0], to[0]), Math.min(dragFrom[1], to[1]), Math.max(dragFrom[0], to[0]), Math.max(dragFrom[1], to[1])];
 };
+$("frame").onpointerup = (event) => {
+  const from = dragFrom; dragFrom = null;
+  if (!from) return;
+  const to = fraction(event); const box = $("frame").getBoundingClientRect();
+  const region = dragged; dragged = null;
+  if (Math.abs(to[0] - from[0]) * box.width < 6 && Math.abs(to[1] - from[1]) * box.height < 6) {
+    api("/api/view", { zoom: to }).catch(() => {});
+  } else api("/api/view", { region }).catch(() => {});
+};
+$("region-clear").onclick = () => api("/api/view", { region: null }).catch(() => {});
+$("focus-home").onclick = () => api("/api/focus/home", {}).catch(() => {});
+for (const button of document.querySelectorAll(".focus-step")) {
+  button.onclick = () => api("/api/focus/move", { steps: Number(button.dataset.sign) * Math.round(Number($("focus-steps").value)) }).catch(() => {});
+}
+$("focus-go").onclick = () => api("/api/focus/go", { depth: $("focus-to").value, channel: $("focus-colour").value }).catch(() => {});
 $("upload").onchange = async () => {
   const file = $("upload").files[0]; if (!file) return;
   const r = await api("/api/upload?name=" + encodeURIComponent(file.name), await file.arrayBuffer(), true).catch(() => null);

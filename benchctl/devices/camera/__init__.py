@@ -8,11 +8,12 @@
 
 from __future__ import annotations
 
-from benchctl.devices.camera.base import RAW_FORMATS, Camera, FrameSize, RawFrame
+from benchctl.devices.camera.base import RAW_FORMATS, Camera, FrameSize, PreviewFrame, RawFrame, Window
 from benchctl.drivers import driver_class
 from benchctl.profiles import Profile
 
-__all__ = ["RAW_FORMATS", "Camera", "FrameSize", "RawFrame", "camera_for", "frame_size", "open_camera"]
+__all__ = ["RAW_FORMATS", "Camera", "FrameSize", "PreviewFrame", "RawFrame", "Window", "camera_for", "frame_size",
+           "open_camera"]
 
 
 def camera_for(profile: Profile) -> Camera:

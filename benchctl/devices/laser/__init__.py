@@ -8,14 +8,14 @@
 
 from __future__ import annotations
 
-from benchctl.devices.laser.base import ChannelStatus, Laser, PortFactory
+from benchctl.devices.laser.base import UNKNOWN_EMISSION, ChannelStatus, Laser, PortFactory
 from benchctl.devices.laser.cobolt import CoboltLaser
 from benchctl.devices.laser.obis import ObisLaser
 from benchctl.devices.laser.template import TemplateLaser
 from benchctl.drivers import driver_class
 from benchctl.profiles import LaserConfig, Profile
 
-__all__ = ["ChannelStatus", "CoboltLaser", "Laser", "ObisLaser", "TemplateLaser", "open_laser"]
+__all__ = ["UNKNOWN_EMISSION", "ChannelStatus", "CoboltLaser", "Laser", "ObisLaser", "TemplateLaser", "open_laser"]
 
 
 def open_laser(profile_or_config: Profile | LaserConfig, *, leave_on: bool = False, observe: bool = False,
