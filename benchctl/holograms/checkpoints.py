@@ -230,7 +230,7 @@ def _read(path: str, mtime_ns: int, size: int) -> Checkpoint:
 def _model(path: str, mtime_ns: int, size: int, colour: str, device: str) -> torch.nn.Module:
     model = _read(path, mtime_ns, size).model(colour, device)
     if device == "cpu":  # oneDNN's convolutions, transposed ones above all, run faster on channels-last weights
-        model = model.to(memory_format=torch.channels_last)
+        model = model.to(memory_format=torch.channels_last)  # type: ignore[call-overload]  # documented, not typed
     return model
 
 
