@@ -182,6 +182,7 @@ def test_a_procedure_takes_the_focus_and_gives_it_back(console: Console) -> None
     assert console.focus.held.connected and console.camera.connected
 
 
+@pytest.mark.slow
 def test_an_eos_lens_is_driven_through_the_consoles_own_camera(tmp_path: Path) -> None:
     """The EOS body is opened once, by the console's camera; its lens moves through it, and through the new one
     after the camera was lost and connected again (the position then unknown: a new session counts anew)."""

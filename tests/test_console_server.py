@@ -368,6 +368,7 @@ def test_the_slm_panel_offers_the_checkpoints_a_run_finds(monkeypatch: pytest.Mo
     assert slm.checkpoints() == {**shipped, "ccnn-dcm4": str(Path("checkpoints/simulated/ccnn-dcm4.pt"))}
 
 
+@pytest.mark.slow
 def test_the_registration_overlay_is_read_again_only_when_its_file_changes(
         bench_profile_path: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The overlay comes from the bench as calibrated (its registrations read once, not for every frame), built
@@ -572,6 +573,7 @@ def test_procedures_dry_run_then_run_with_the_devices_handed_over(client: TestCl
     assert wait_for(lambda: console.laser.held.connected and console.camera.connected, 5)
 
 
+@pytest.mark.slow
 def test_a_line_a_procedure_prints_does_not_steer_the_console(client: TestClient, console: Console,
                                                                tmp_path: Path) -> None:
     """The run's folder comes from its event stream: a procedure that prints the runner's own "run folder: ..." line
