@@ -71,10 +71,20 @@ class OpticsConfig(Model, kw_only=True):
     # A fitted optical model (optical-model.json of model calibration), relative to the profile's folder: None uses
     # the ideal model. Calibration sets it from calibration/<profile>/ for runs when the profile names none.
     model: Path | None = None
+    # (near, far): the distances from the SLM along the axis between which the bench can show a scene with depth
+    # (where its camera or eyepiece can focus). None: the bench shows one plane only, and refuses RGB-D targets.
+    depth_range_mm: tuple[Positive, Positive] | None = None
 
     @property
     def distance_m(self) -> float:
         return self.distance_mm * 1e-3
+
+    @property
+    def depth_range_m(self) -> tuple[float, float] | None:
+        """`depth_range_mm` in metres."""
+        if self.depth_range_mm is None:
+            return None
+        return self.depth_range_mm[0] * 1e-3, self.depth_range_mm[1] * 1e-3
 
 
 class SLMConfig(Model, kw_only=True):
@@ -354,6 +364,9 @@ class Profile(ProfileFile, kw_only=True):
                 f"  ROI           {optics.roi[0]} x {optics.roi[1]} px (rows x cols), centred",
                 f"  Iris          {iris}",
             ]
+            if optics.depth_range_mm is not None:
+                near, far = optics.depth_range_mm
+                lines.append(f"  Depth range   {near:g} .. {far:g} mm from the SLM")
         if laser:
             where = f" on {laser.port}" if laser.port else ""
             lines.append(f"  Laser         {laser.driver}{where}, {laser.baudrate} baud, timeout {laser.timeout_s:g} s")
@@ -446,6 +459,8 @@ def _checked(path: Path, file: ProfileFile) -> Profile:
             path, "optics.roi",
             f"{list(optics.roi)} is larger than the SLM grid {slm.height} x {slm.width} (slm.height x slm.width)",
         )
+    if optics and optics.depth_range_mm is not None and not optics.depth_range_mm[0] < optics.depth_range_mm[1]:
+        raise fail(path, "optics.depth_range_mm", f"{list(optics.depth_range_mm)} must be [near, far] with near < far")
     laser = _checked_laser(path, file.laser) if file.laser else None
     names = {ch.name for ch in laser.channels} if laser else set()
     known = ", ".join(sorted(names)) or "none"

@@ -141,6 +141,9 @@ def test_toml_syntax_error_names_the_line(small_profile_path: Path) -> None:
         ("setpoint_mw = 2\n", "setpoint_mw = -1\n", "laser.channels[1].setpoint_mw: must be >= 0, got -1.0"),
         ("roi = [48, 80]", "roi = [65, 80]",
          "optics.roi: [65, 80] is larger than the SLM grid 64 x 96 (slm.height x slm.width)"),
+        ("roi = [48, 80]", "roi = [48, 80]\ndepth_range_mm = [25, 15]",
+         "optics.depth_range_mm: [25.0, 15.0] must be [near, far] with near < far"),
+        ("roi = [48, 80]", "roi = [48, 80]\ndepth_range_mm = [0, 15]", "optics.depth_range_mm[0]: must be > 0, got 0"),
         ("setpoint_mw = 40", "setpoint_mw = 41",
          "laser.channels[0].setpoint_mw: 41 mW is above max_power_mw 40 mW"),
         ('name = "blue"', 'name = "red"',
@@ -205,3 +208,16 @@ def test_camera_section_defaults(small_profile_path: Path) -> None:
     cam = profile.camera
     assert (cam.driver, cam.usb_id, cam.transport, cam.frames) == ("ptp", "04a9:32a0", "usb", 1)
     assert (cam.exposure_s, cam.iso, cam.write_properties, cam.image_timeout_s) == (None, None, False, 90.0)
+
+
+def test_a_scaled_bench_scales_depth_offsets_with_the_grid_side_and_the_distance_with_its_area():
+    from benchctl.runner.geometry import grid_profile
+
+    profile = load_profile("simulated")
+    assert profile.section("optics").depth_range_mm == (65.0, 75.0)
+    optics = grid_profile(profile, (272, 480), scale_distance=True).section("optics")
+    assert optics.distance_mm == pytest.approx(70 / 16)
+    assert optics.depth_range_mm == pytest.approx((70 / 16 - 5 / 4, 70 / 16 + 5 / 4))
+    tiny = grid_profile(profile, (34, 60), scale_distance=True).section("optics")  # offsets would reach the SLM
+    assert tiny.depth_range_mm[0] == pytest.approx(0.5 * tiny.distance_mm)
+    assert grid_profile(profile, (272, 480)).section("optics").depth_range_mm == (65.0, 75.0)

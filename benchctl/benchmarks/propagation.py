@@ -6,6 +6,10 @@ the centred ROI against a converged float64 propagation. Each colour is a profil
 (`grid_profile`: pitch and distance kept, ROI scaled; the iris left out, which is not what padding is about).
 The field is what a phase SLM shows: unit amplitude, uniformly random phase (seeded). Mode "auto+roi" is "auto"
 computing only the ROI.
+
+`run_multiplane_bench` times one field propagated to K planes (`MultiPlanePropagator`: one forward FFT, K inverse
+ones) against K independent propagations of the same field, side by side, with each one's error against
+independent float64 propagations.
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ import torch
 from benchctl.calibration.geometry import grid_profile
 from benchctl.optics.geometry import Geometry
 from benchctl.optics.metrics import centred_slices
+from benchctl.optics.multiplane import MultiPlanePropagator
 from benchctl.optics.propagation import Padding, Propagator
 from benchctl.profiles import Profile
 
@@ -182,3 +187,94 @@ def _print_table(rows: list[dict[str, Any]], out: Callable[[str], None], with_ca
     widths = [max(len(line[i]) for line in lines) for i in range(len(header))]
     for line in lines:
         out("  " + "  ".join(cell.rjust(width) for cell, width in zip(line, widths)))
+
+
+def bench_planes(profile: Profile, count: int) -> list[float]:
+    """`count` distances (m) evenly over the profile's depth range (its target plane +-5 % without one)."""
+    optics = profile.section("optics")
+    near, far = optics.depth_range_m or (0.95 * optics.distance_m, 1.05 * optics.distance_m)
+    if count == 1:
+        return [0.5 * (near + far)]
+    return [near + (far - near) * k / (count - 1) for k in range(count)]
+
+
+def run_multiplane_bench(
+    profile: Profile,
+    sizes: Sequence[tuple[int, int]] = PAPER_SIZES[:1],
+    *,
+    planes: int = 8,
+    repeats: int = 5,
+    seed: int = 0,
+    device: str | torch.device = "cpu",
+    out: Callable[[str], None] = print,
+) -> list[dict[str, Any]]:
+    """Per size and colour: one complex64 field to `planes` planes over the depth range, by one
+    `MultiPlanePropagator` and by as many independent `Propagator`s (each padded for its own distance), timed in
+    turn in each of `repeats` rounds after a warm-up; the ratio is the median of the per-round ratios. Errors: the
+    largest over planes of the relative L2 on the ROI against an independent float64 `Propagator` per plane."""
+    if planes < 1 or repeats < 1:
+        raise ValueError(f"planes and repeats must be >= 1, got {planes} and {repeats}")
+    device = torch.device(device)
+    timed = _timer(device)
+    rows: list[dict[str, Any]] = []
+    for shape in sizes:
+        generator = torch.Generator().manual_seed(seed)
+        phase = (2.0 * torch.rand(tuple(shape), generator=generator, dtype=torch.float64) - 1.0) * math.pi
+        field64 = torch.polar(torch.ones_like(phase), phase).to(device)
+        field32 = field64.to(torch.complex64)
+        bench = grid_profile(profile.require("slm", "optics", "laser"), (shape[0], shape[1]))
+        distances = bench_planes(bench, planes)
+        for channel in bench.channels:
+            geometry = bench.geometry(channel.name)
+            roi = centred_slices(geometry.shape, geometry.roi)
+            single = [Propagator(geometry.shape, z, geometry.wavelength_m, geometry.pitch_m) for z in distances]
+            many = MultiPlanePropagator(geometry.shape, distances, geometry.wavelength_m, geometry.pitch_m)
+
+
+            errors_shared, errors_many, errors_single = [], [], []
+            stack, each = many(field32), _each(single, field32)
+            shared = many(field64)  # float64 on the planes' shared grid: the float32 error alone
+            for k, p in enumerate(single):
+                own = Propagator(geometry.shape, p.plan.distance_m, geometry.wavelength_m, geometry.pitch_m)
+                expected = own(field64)[..., roi[0], roi[1]]  # float64 on the plane's own grid
+                errors_shared.append(_relative_l2(stack[k][..., roi[0], roi[1]], shared[k][..., roi[0], roi[1]]))
+                errors_many.append(_relative_l2(stack[k][..., roi[0], roi[1]], expected))
+                errors_single.append(_relative_l2(each[k][..., roi[0], roi[1]], expected))
+            del stack, each, shared
+            times_many, times_single = [], []
+            for _ in range(repeats):
+                times_single.append(timed(_each, single, field32))
+                times_many.append(timed(many, field32))
+            row = {
+                "size": f"{shape[0]}x{shape[1]}",
+                "colour": channel.name,
+                "planes": planes,
+                "distances_mm": f"{distances[0] * 1e3:g}..{distances[-1] * 1e3:g}",
+                "padded": f"{many.plan.padded_shape[0]}x{many.plan.padded_shape[1]}",
+                "multiplane_ms": statistics.median(times_many) * 1e3,
+                "independent_ms": statistics.median(times_single) * 1e3,
+                "ratio": _median_ratio(times_many, times_single),
+                "multiplane_rel_l2_shared_grid": max(errors_shared),
+                "multiplane_rel_l2": max(errors_many),
+                "independent_rel_l2": max(errors_single),
+            }
+            rows.append(row)
+            del single, many
+    out("")
+    out(f"One field to {planes} planes: one multi-plane propagation (1 forward FFT + {planes} inverse) against "
+        f"{planes} independent propagations. Errors, largest ROI rel L2 over the planes, against float64: on the "
+        "planes' shared grid (the farthest plane's) and on each plane's own grid")
+    header = ["size", "colour", "planes mm", "padded", "multi ms", "independent ms", "multi/indep",
+              "multi vs f64 shared", "multi vs f64 own", "indep vs f64 own"]
+    lines = [header] + [[r["size"], r["colour"], r["distances_mm"], r["padded"], f"{r['multiplane_ms']:.4g}",
+                         f"{r['independent_ms']:.4g}", f"{r['ratio']:.2f}", f"{r['multiplane_rel_l2_shared_grid']:.2e}",
+                         f"{r['multiplane_rel_l2']:.2e}", f"{r['independent_rel_l2']:.2e}"] for r in rows]
+    widths = [max(len(line[i]) for line in lines) for i in range(len(header))]
+    for line in lines:
+        out("  " + "  ".join(cell.rjust(width) for cell, width in zip(line, widths)))
+    return rows
+
+
+def _each(propagators: Sequence[Propagator], field: torch.Tensor) -> list[torch.Tensor]:
+    """`field` propagated by each of `propagators` on its own."""
+    return [p(field) for p in propagators]

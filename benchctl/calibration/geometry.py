@@ -31,11 +31,20 @@ def grid_profile(profile: Profile, size: tuple[int, int], *, scale_distance: boo
     if tuple(size) == (h, w):
         return profile
     roi = (max(1, round(rh * size[0] / h)), max(1, round(rw * size[1] / w)))
-    distance = profile.optics.distance_mm * (size[0] * size[1] / (h * w) if scale_distance else 1.0)
+    distance, depth_range = profile.optics.distance_mm, profile.optics.depth_range_mm
+    if scale_distance:
+        area = size[0] * size[1] / (h * w)
+        # A depth offset d defocuses by d NA / pitch pixels: offsets scale with the grid's side, so that a scene's
+        # blur keeps its size relative to the image, while the distance scales with the area (the near end kept
+        # beyond half the distance where a small grid would bring it to the SLM).
+        if depth_range is not None:
+            near, far = (distance * area + (end - distance) * math.sqrt(area) for end in depth_range)
+            depth_range = (max(near, 0.5 * distance * area), far)
+        distance *= area
     return msgspec.structs.replace(
         profile,
         slm=msgspec.structs.replace(profile.slm, height=size[0], width=size[1]),
-        optics=msgspec.structs.replace(profile.optics, roi=roi, distance_mm=distance),
+        optics=msgspec.structs.replace(profile.optics, roi=roi, distance_mm=distance, depth_range_mm=depth_range),
     )
 
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from benchctl.cli.args import add_profile, grid_size, int_list, name_list, positive_int, seconds
+from benchctl.cli.args import add_profile, grid_size, int_list, name_list, positive_int, seconds, whole_number
 
 
 def _cmd_bench_speed(args: argparse.Namespace) -> int:
@@ -34,13 +34,20 @@ def _cmd_bench_speed(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_propagation(args: argparse.Namespace) -> int:
-    from benchctl.benchmarks.propagation import PAPER_SIZES, run_propagation_bench
+    from benchctl.benchmarks.propagation import PAPER_SIZES, run_multiplane_bench, run_propagation_bench
     from benchctl.files import ensure_dir, write_csv
     from benchctl.profiles import load_profile
 
-    rows = run_propagation_bench(load_profile(args.profile), sizes=args.size or PAPER_SIZES, repeats=args.repeats)
+    profile = load_profile(args.profile)
+    sizes = args.size or PAPER_SIZES
+    rows = [] if args.planes_only else run_propagation_bench(profile, sizes=sizes, repeats=args.repeats)
+    planes = run_multiplane_bench(profile, sizes=sizes, planes=args.planes, repeats=args.repeats) if args.planes else []
     if args.out:
-        print(f"wrote {write_csv(ensure_dir(Path(args.out)) / 'propagation.csv', rows)}")
+        folder = ensure_dir(Path(args.out))
+        if rows:
+            print(f"wrote {write_csv(folder / 'propagation.csv', rows)}")
+        if planes:
+            print(f"wrote {write_csv(folder / 'multiplane.csv', planes)}")
     return 0
 
 
@@ -137,7 +144,11 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     prop.add_argument("--size", type=grid_size, nargs="+", metavar="HxW",
                       help="grids to measure (default: 1088x1920 2160x3840)")
     prop.add_argument("--repeats", type=positive_int, default=5, help="timed repeats per case (default: 5)")
-    prop.add_argument("--out", "-o", metavar="DIR", help="also write propagation.csv here")
+    prop.add_argument("--planes", type=whole_number(0, 64), default=8, metavar="K",
+                      help="also time one field propagated to K planes over the profile's depth range against K "
+                           "independent propagations, with both errors (default: 8; 0: leave out)")
+    prop.add_argument("--planes-only", action="store_true", help="only the multi-plane comparison")
+    prop.add_argument("--out", "-o", metavar="DIR", help="also write propagation.csv (and multiplane.csv) here")
     add_profile(prop)
     prop.set_defaults(func=_cmd_bench_propagation)
 

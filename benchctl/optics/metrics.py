@@ -64,9 +64,12 @@ def lsq_scale(recon: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 def psnr(pred: torch.Tensor, target: torch.Tensor, data_range: float) -> torch.Tensor:
     """Peak signal-to-noise ratio in dB per image, shaped (...); capped at 100 dB (see PSNR_MSE_FLOOR)."""
     _check_pair(pred, target, data_range)
-    mse = ((pred - target) ** 2).mean(dim=(-2, -1))
-    mse = mse.clamp(min=PSNR_MSE_FLOOR * data_range**2)
-    return 10.0 * torch.log10(data_range**2 / mse)
+    return psnr_of_mse(((pred - target) ** 2).mean(dim=(-2, -1)), data_range)
+
+
+def psnr_of_mse(mse: torch.Tensor, data_range: float) -> torch.Tensor:
+    """PSNR in dB of a mean squared error (any shape), capped at 100 dB as `psnr` is."""
+    return 10.0 * torch.log10(data_range**2 / mse.clamp(min=PSNR_MSE_FLOOR * data_range**2))
 
 
 def _gaussian_window(size: int, sigma: float, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
@@ -76,12 +79,18 @@ def _gaussian_window(size: int, sigma: float, dtype: torch.dtype, device: torch.
 
 
 def ssim(pred: torch.Tensor, target: torch.Tensor, data_range: float) -> torch.Tensor:
-    """Structural similarity (Wang et al. 2004) per image, shaped (...).
+    """Structural similarity (Wang et al. 2004) per image, shaped (...): `ssim_map` averaged over its pixels."""
+    return ssim_map(pred, target, data_range).mean(dim=(-2, -1))
 
-    Gaussian 11x11 window, sigma 1.5, K1 = 0.01, K2 = 0.03, population (not sample) statistics, averaged over
-    the valid region (no padding). Images narrower than 11 px in either direction use the largest odd window
-    that fits, with the same sigma (the Gaussian is truncated and renormalised). Two identical images score 1,
-    constant and black ones included, because C1 and C2 keep both fractions away from 0 / 0.
+
+def ssim_map(pred: torch.Tensor, target: torch.Tensor, data_range: float) -> torch.Tensor:
+    """The local structural similarity (Wang et al. 2004) of each window position, (..., H - s + 1, W - s + 1).
+
+    Gaussian s x s window, s = 11, sigma 1.5, K1 = 0.01, K2 = 0.03, population (not sample) statistics, on the
+    valid region (no padding): entry (i, j) is the window centred on pixel (i + s // 2, j + s // 2). Images
+    narrower than 11 px in either direction use the largest odd window that fits, with the same sigma (the
+    Gaussian is truncated and renormalised). Two identical images score 1, constant and black ones included,
+    because C1 and C2 keep both fractions away from 0 / 0.
     """
     _check_pair(pred, target, data_range)
     if not pred.is_floating_point():
@@ -104,7 +113,8 @@ def ssim(pred: torch.Tensor, target: torch.Tensor, data_range: float) -> torch.T
     c2 = (SSIM_K2 * data_range) ** 2
     luminance = (2 * mu_x * mu_y + c1) / (mu_x**2 + mu_y**2 + c1)
     structure = (2 * cov + c2) / (var_x + var_y + c2)
-    return (luminance * structure).mean(dim=(-3, -2, -1)).reshape(lead)
+    values = luminance * structure
+    return values.reshape(*lead, *values.shape[-2:])
 
 
 def amplitude_scores(recon: torch.Tensor, target: torch.Tensor) -> dict[str, float]:

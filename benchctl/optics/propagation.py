@@ -107,11 +107,38 @@ def _checked_field(field: torch.Tensor) -> torch.Tensor:
     return field
 
 
+class GuardBand:
+    """Puts fields in the top-left corner of a plan's padded grid, followed by the guard band of zeros.
+
+    Outside autograd it keeps one zero-padded work buffer, reused from call to call: on a CPU a fresh zeroed
+    buffer of the padded size costs about a third of an FFT. Not safe to call from two threads at once.
+    """
+
+    def __init__(self, plan: PropagationPlan) -> None:
+        self.shape, self.padded_shape = plan.shape, plan.padded_shape
+        self._buffer: torch.Tensor | None = None
+
+    def __call__(self, field: torch.Tensor) -> torch.Tensor:
+        """`field` (..., H, W) followed by its guard band: (..., padded rows, padded cols)."""
+        (h, w), (ph, pw) = self.shape, self.padded_shape
+        if (ph, pw) == (h, w):
+            return field
+        if torch.is_grad_enabled() and field.requires_grad:
+            return torch.nn.functional.pad(field, (0, pw - w, 0, ph - h))
+        shape = (*field.shape[:-2], ph, pw)
+        buffer = self._buffer
+        if buffer is None or buffer.shape != shape or buffer.dtype != field.dtype or buffer.device != field.device:
+            with torch.inference_mode(False):
+                buffer = self._buffer = field.new_zeros(shape)
+        buffer[..., :h, :w] = field  # the guard band is never written, so it stays zero
+        return buffer
+
+
 class Propagator:
     """Propagates fields of one shape over one distance at one wavelength; caches its transfer functions.
 
-    Outside autograd it also keeps one zero-padded work buffer, reused from call to call: on a CPU a fresh
-    zeroed buffer of the padded size costs about a third of an FFT. Not safe to call from two threads at once.
+    Outside autograd it reuses one zero-padded work buffer (`GuardBand`). Not safe to call from two threads at
+    once.
     """
 
     def __init__(
@@ -133,7 +160,7 @@ class Propagator:
         if window is not None:
             self.plan = window_plan(self.plan, window)
         self._kernels: dict[tuple[torch.dtype, torch.device], torch.Tensor] = {}
-        self._buffer: torch.Tensor | None = None
+        self._padded = GuardBand(self.plan)
 
     def kernel(self, dtype: torch.dtype, device: torch.device | str) -> torch.Tensor:
         """The transfer function for this dtype and device, computed once and cached."""
@@ -143,21 +170,6 @@ class Propagator:
             with torch.inference_mode(False):
                 self._kernels[key] = transfer_function(self.plan, dtype, device)
         return self._kernels[key]
-
-    def _padded(self, field: torch.Tensor) -> torch.Tensor:
-        """`field` followed by its guard band of zeros (the field sits in the top-left corner)."""
-        (h, w), (ph, pw) = self.plan.shape, self.plan.padded_shape
-        if (ph, pw) == (h, w):
-            return field
-        if torch.is_grad_enabled() and field.requires_grad:
-            return torch.nn.functional.pad(field, (0, pw - w, 0, ph - h))
-        shape = (*field.shape[:-2], ph, pw)
-        buffer = self._buffer
-        if buffer is None or buffer.shape != shape or buffer.dtype != field.dtype or buffer.device != field.device:
-            with torch.inference_mode(False):
-                buffer = self._buffer = field.new_zeros(shape)
-        buffer[..., :h, :w] = field  # the guard band is never written, so it stays zero
-        return buffer
 
     def __call__(self, field: torch.Tensor) -> torch.Tensor:
         """The field after propagation, same shape and complex dtype as `field` (the window's shape, if any)."""

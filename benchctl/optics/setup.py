@@ -6,7 +6,8 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
-from collections.abc import Callable
+from collections import OrderedDict
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import torch
@@ -14,12 +15,15 @@ import torch
 from benchctl.optics.fitted import FittedOptics
 from benchctl.optics.geometry import Geometry
 from benchctl.optics.metrics import centred_slices
+from benchctl.optics.multiplane import MultiPlanePropagator
 from benchctl.optics.propagation import Propagator
 
 REACH_TOLERANCE_RAD = 0.05
 """A phase the SLM shows further than this from the one asked for lies in a gap of its table: no gray level comes
 near it (a panel whose stroke falls short of 2 pi at this wavelength). Larger than the rounding to the nearest
 level of an 8-bit table, even where its levels are three times sparser than the mean."""
+
+_PLANE_CACHE_SIZE = 4  # multi-plane propagators kept per setup: each holds K transfer functions
 
 
 @dataclass(frozen=True)
@@ -76,6 +80,35 @@ class OpticalSetup(Geometry):
             object.__setattr__(self, "_to_roi", propagator)
         return propagator
 
+    def planes_propagator(self, distances_m: Sequence[float], *, roi: bool = False) -> MultiPlanePropagator:
+        """The propagator SLM -> the planes at `distances_m` (+z), of the whole grid or (`roi`) of the ROI only,
+        built on first use and cached (the last few plane sets)."""
+        key = (tuple(float(d) for d in distances_m), roi)
+        cache: OrderedDict[tuple[tuple[float, ...], bool], MultiPlanePropagator] = \
+            self.__dict__.setdefault("_planes", OrderedDict())
+        propagator = cache.get(key)
+        if propagator is None:
+            rows, cols = self.roi_slices
+            window = (rows.start, self.roi[0], cols.start, self.roi[1]) if roi else None
+            propagator = MultiPlanePropagator(self.shape, key[0], self.wavelength_m, self.pitch_m,
+                                              padding=self.padding, aperture=self.aperture, window=window)
+            cache[key] = propagator
+            if len(cache) > _PLANE_CACHE_SIZE:
+                cache.popitem(last=False)
+        else:
+            cache.move_to_end(key)
+        return propagator
+
+    def at_distance(self, distance_m: float) -> OpticalSetup:
+        """This setup (fitted model and display included) with its target plane at `distance_m`: itself where that
+        is its own distance; built once per distance and cached."""
+        if float(distance_m) == self.distance_m:
+            return self
+        twins: dict[float, OpticalSetup] = self.__dict__.setdefault("_at_distance", {})
+        if float(distance_m) not in twins:
+            twins[float(distance_m)] = dataclasses.replace(self, distance_m=float(distance_m))
+        return twins[float(distance_m)]
+
     def slm_propagator(self) -> Propagator:
         """The cached propagator target plane -> SLM (-z)."""
         return self._to_slm
@@ -100,6 +133,15 @@ class OpticalSetup(Geometry):
         """`reconstruct(phase)` on the ROI only, computed on the smaller grid that the ROI needs (`window_plan`):
         what every loss and score that looks only at the ROI uses."""
         return self.roi_propagator()(self.slm_field(phase)).abs()
+
+    def reconstruct_planes(self, phase: torch.Tensor, distances_m: Sequence[float]) -> torch.Tensor:
+        """The focal stack of a phase: `reconstruct(phase)` at each of the planes `distances_m` (+z from the SLM),
+        shaped (..., K, H, W), from one SLM field through one forward FFT (`MultiPlanePropagator`)."""
+        return self.planes_propagator(distances_m)(self.slm_field(phase)).abs()
+
+    def reconstruct_planes_roi(self, phase: torch.Tensor, distances_m: Sequence[float]) -> torch.Tensor:
+        """`reconstruct_planes` on the ROI only, (..., K, rows, cols), on the smaller grid the ROI needs."""
+        return self.planes_propagator(distances_m, roi=True)(self.slm_field(phase)).abs()
 
     def displayed(self, phase: torch.Tensor) -> torch.Tensor:
         """`phase` as the SLM shows it (`display`), its gradient passed straight through the quantisation, so an
