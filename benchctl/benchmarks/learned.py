@@ -35,7 +35,14 @@ import torch
 from benchctl.calibration.geometry import grid_profile
 from benchctl.calibration.setups import optical_setup
 from benchctl.cgh import OpticalSetup
-from benchctl.cgh.learned import LEARNED_METHODS, build_model, count_parameters, model_info
+from benchctl.cgh.learned import (
+    DEPTH_METHODS,
+    LEARNED_METHODS,
+    DepthHologramNet,
+    build_model,
+    count_parameters,
+    model_info,
+)
 from benchctl.cgh.learned.models import VARIANTS
 from benchctl.errors import BadValueError, BenchctlError
 from benchctl.files import ensure_dir, write_csv
@@ -46,7 +53,7 @@ from benchctl.profiles import Profile
 from benchctl.targets import load_target, prepare_target, target_plane
 
 DEFAULT_TARGETS = ("chart:siemens", "chart:bars", "chart:text")
-BASELINES = {"holonet": "holonet", "ccnn": "ccnn"}
+BASELINES = {"holonet": "holonet", "ccnn": "ccnn", "holonet3d": "holonet3d"}
 """The baseline network of each family, against which ratios are given."""
 
 
@@ -59,17 +66,20 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def inference_seconds(model: torch.nn.Module, amplitude: torch.Tensor, repeats: int) -> float:
-    """Median seconds of one forward pass (after a warm-up), synchronised on CUDA."""
+def inference_seconds(model: torch.nn.Module, amplitude: torch.Tensor, repeats: int,
+                      depth_m: torch.Tensor | None = None) -> float:
+    """Median seconds of one forward pass (after a warm-up), synchronised on CUDA; `depth_m` for a network that
+    reads depth."""
     model.eval()
     device = amplitude.device
+    inputs = (amplitude,) if depth_m is None else (amplitude, depth_m)
     times = []
     with torch.inference_mode():
-        model(amplitude)
+        model(*inputs)
         _sync(device)
         for _ in range(repeats):
             start = time.perf_counter()
-            model(amplitude)
+            model(*inputs)
             _sync(device)
             times.append(time.perf_counter() - start)
     return statistics.median(times)
@@ -102,8 +112,21 @@ def _reset_peak() -> bool:
         return False
 
 
-def training_step_memory(method: str, geometry: dict[str, Any], device: str) -> dict[str, Any]:
-    """In this process: set up `method` for `geometry`, run one training step, return its peak memory.
+def depth_step_scene(depth_range_m: tuple[float, float], shape: tuple[int, int], planes: int,
+                     device: torch.device) -> Any:
+    """The scene a depth network's measured training step trains on (`training.SceneDepth`): depth at random over
+    `depth_range_m` on an (H, W) grid, focal stack at `planes` planes spread evenly over the range (bin centres)."""
+    from benchctl.training.training import SceneDepth
+
+    near, far = depth_range_m
+    depth = near + (far - near) * torch.rand(1, 1, *shape, dtype=torch.float64, device=device)
+    return SceneDepth(depth, (tuple(near + (k + 0.5) * (far - near) / planes for k in range(planes)),))
+
+
+def training_step_memory(method: str, geometry: dict[str, Any], device: str,
+                         depth_range_m: tuple[float, float] | None = None, planes: int = 5) -> dict[str, Any]:
+    """In this process: set up `method` for `geometry`, run one training step, return its peak memory. A network
+    for scenes with depth trains on a scene over `depth_range_m` with a focal stack of `planes` planes.
 
     Meant to run in a fresh subprocess (see `measure_training_step`), one per model.
     """
@@ -112,13 +135,21 @@ def training_step_memory(method: str, geometry: dict[str, Any], device: str) -> 
     dev = torch.device(device)
     setup = OpticalSetup.of(Geometry.from_dict(geometry))
     torch.manual_seed(0)
-    model = build_model(method, setup).to(dev)
+    if method in DEPTH_METHODS and depth_range_m is None:
+        raise BadValueError(f"{method} trains on scenes with depth: give the depth range")
+    model = build_model(method, setup, depth_range_m).to(dev)
     optimiser = torch.optim.Adam(model.parameters(), lr=5e-4)
     amplitude = torch.zeros(1, 1, *setup.shape, device=dev)
     rows, cols = setup.roi_slices
     amplitude[..., rows, cols] = torch.rand(setup.roi, device=dev)  # content does not change memory
     amplitude = peak_normalised(amplitude)
-    for propagator in (setup.slm_propagator(), setup.target_propagator()):
+    scenes = None
+    propagators = [setup.slm_propagator(), setup.target_propagator()]
+    if isinstance(model, DepthHologramNet):
+        scenes = depth_step_scene(model.depth_range_m, setup.shape, planes, dev)
+        propagators = [setup.at_distance(model.middle_m).slm_propagator()]
+        setup.planes_propagator(scenes.planes_m[0], roi=True).kernels(torch.complex64, dev)
+    for propagator in propagators:
         propagator.kernel(torch.complex64, dev)
     loss_fn = ReconstructionLoss().to(dev)
     if dev.type == "cuda":
@@ -126,7 +157,7 @@ def training_step_memory(method: str, geometry: dict[str, Any], device: str) -> 
         before = torch.cuda.memory_allocated(dev)
         torch.cuda.reset_peak_memory_stats(dev)
         start, start_cpu = time.perf_counter(), time.process_time()
-        training_step(model, optimiser, setup, amplitude, loss_fn)
+        training_step(model, optimiser, setup, amplitude, loss_fn, scenes)
         torch.cuda.synchronize(dev)
         seconds, cpu_seconds = time.perf_counter() - start, time.process_time() - start_cpu
         peak = torch.cuda.max_memory_allocated(dev) - before
@@ -136,7 +167,7 @@ def training_step_memory(method: str, geometry: dict[str, Any], device: str) -> 
             raise BenchctlError(_PEAK_NEEDS)
         before = _proc_status()["VmRSS"]
         start, start_cpu = time.perf_counter(), time.process_time()
-        training_step(model, optimiser, setup, amplitude, loss_fn)
+        training_step(model, optimiser, setup, amplitude, loss_fn, scenes)
         seconds, cpu_seconds = time.perf_counter() - start, time.process_time() - start_cpu
         peak = _proc_status()["VmHWM"] - before
         how = "peak resident set (VmHWM, reset before the step) minus resident set before the step"
@@ -148,14 +179,15 @@ OUT_OF_MEMORY = "out of memory"
 
 
 def measure_training_step(method: str, setup: OpticalSetup, device: torch.device,
-                          memory_cap: int | None = None) -> dict[str, Any]:
+                          memory_cap: int | None = None, depth_range_m: tuple[float, float] | None = None,
+                          planes: int = 5) -> dict[str, Any]:
     """`training_step_memory` for `method` in a fresh Python subprocess; its JSON result.
 
     `memory_cap` (bytes) limits the subprocess's address space (CPU; the kernel's out-of-memory killer is told to
     pick it first): a step that would need more gives {"out_of_memory": True} instead of a traceback or a machine
     that swaps or kills its neighbours."""
     request = json.dumps({"method": method, "geometry": setup.geometry.to_dict(), "device": str(device),
-                          "memory_cap": memory_cap})
+                          "memory_cap": memory_cap, "depth_range_m": depth_range_m, "planes": planes})
     proc = subprocess.run([sys.executable, "-m", "benchctl.benchmarks.learned", request], capture_output=True,
                           text=True, env=os.environ.copy(), check=False)
     if memory_cap and proc.returncode in (-9, 137):  # killed by the kernel's out-of-memory killer
@@ -210,7 +242,7 @@ def run_memory_table(profile: Profile, *, grids: Sequence[tuple[int, int]] = MEM
             else:
                 bench = grid_profile(profile.require("slm", "optics", "laser"), grid)
                 setup = optical_setup(bench, bench.channels[0].name)
-                measured = measure_training_step(method, setup, device, cap)
+                measured = measure_training_step(method, setup, device, cap, _depth_range(method, bench))
                 if measured.get("out_of_memory"):
                     too_big = label
                     row |= {"result": f"{OUT_OF_MEMORY} above {memory_cap_gib:g} GiB"}
@@ -226,6 +258,17 @@ def run_memory_table(profile: Profile, *, grids: Sequence[tuple[int, int]] = MEM
     if out_dir is not None:
         out(f"wrote {write_csv(ensure_dir(Path(out_dir)) / 'learned_memory.csv', rows)}")
     return rows
+
+
+def _depth_range(method: str, bench: Profile) -> tuple[float, float] | None:
+    """The depth range a network for scenes with depth is measured over: the bench's (None for a 2D network)."""
+    if method not in DEPTH_METHODS:
+        return None
+    depth_range = bench.section("optics").depth_range_m
+    if depth_range is None:
+        raise BadValueError(f"{method} is a network for scenes with depth: profile {bench.name!r} has no "
+                            "optics.depth_range_mm")
+    return depth_range
 
 
 def _checkpoints(paths: Sequence[Path], methods: list[str], bench: Profile) -> dict[str, Path]:
@@ -296,15 +339,18 @@ def run_learned_bench(
     for name in names:
         torch.manual_seed(0)
         path = chosen.get(name)
+        depth_range = _depth_range(name, bench)
         model = (read_checkpoint(path).model(channel.name, device) if path is not None
-                 else build_model(name, setup).to(device))
+                 else build_model(name, setup, depth_range).to(device))
+        depth = (None if depth_range is None else
+                 depth_step_scene(depth_range, grid, 1, device).depth_m.to(torch.float32))
         row: dict[str, Any] = {"method": name, "family": VARIANTS[name].family, "tier": model_info(name, grid)["tier"],
                                "grid": f"{grid[0]}x{grid[1]}", "device": str(device),
                                "parameters": count_parameters(model),
-                               "inference_seconds": inference_seconds(model, amplitude, repeats)}
+                               "inference_seconds": inference_seconds(model, amplitude, repeats, depth)}
         del model
         if training_memory:
-            memory = measure_training_step(name, setup, device)
+            memory = measure_training_step(name, setup, device, depth_range_m=depth_range)
             row |= {"train_step_peak_mib": memory["peak_bytes"] / 2**20, "train_step_seconds": memory["step_seconds"],
                     "memory_measure": memory["measure"]}
         if path is not None:
@@ -372,7 +418,9 @@ def _child(argv: Sequence[str]) -> int:
     if request.get("memory_cap"):
         _limit_memory(int(request["memory_cap"]))
     try:
-        result = training_step_memory(request["method"], request["geometry"], request["device"])
+        depth_range = request.get("depth_range_m")
+        result = training_step_memory(request["method"], request["geometry"], request["device"],
+                                      tuple(depth_range) if depth_range else None, request.get("planes", 5))
     except MemoryError:
         result = {"out_of_memory": True}
     except RuntimeError as exc:  # torch's allocators say so in their message
