@@ -291,3 +291,56 @@ def test_depth_training_mistakes_are_one_line_errors(capsys, tmp_path: Path, sma
     with pytest.raises(BenchctlError, match="shows one plane only"):
         train(load_profile(small_profile_path), TrainSettings(method="holonet3d", data="procedural-rgbd:2"),
               tmp_path, {"red": 0})
+
+
+def _depth_checkpoint(path: Path, method: str, seed: int, depth_range: tuple[float, float] = (1.9e-3, 2.1e-3)) -> Path:
+    """Random weights on a bench whose Fresnel number (about 190) makes sharp images on a 32 x 64 grid."""
+    setup = OpticalSetup(wavelength_m=680e-9, pitch_m=8e-6, distance_m=2e-3, shape=(32, 64), roi=(24, 48))
+    torch.manual_seed(seed)
+    model = build_model(method, setup, depth_range)
+    return Checkpoint(method, {"red": setup.geometry}, {"red": model.state_dict()},
+                      training={"seed": seed}).save(path)
+
+
+def test_the_held_out_bench_scores_networks_dpac_and_multi_plane_sgd_per_plane_over_seeds(
+        tmp_path: Path, small_profile_path: Path) -> None:
+    from benchctl.benchmarks.learned_depth import DPAC_LABEL, SGD_LABEL, run_learned_depth_bench
+
+    paths = [_depth_checkpoint(tmp_path / f"{seed}.pt", "holonet3d-dcm4", seed) for seed in (1, 2)]
+    lines: list[str] = []
+    rows = run_learned_depth_bench(load_profile(small_profile_path), paths, scenes=["rgbd:two-planes", "rgbd:tilted"],
+                                   planes=3, sgd_iterations=30, out_dir=tmp_path / "out", out=lines.append)
+    two = [r for r in rows if r["scene"] == "rgbd:two-planes"]
+    assert sorted({r["plane_mm"] for r in two}) == pytest.approx([1.92, 2.08])  # its layers at 10 % and 90 %
+    tilted = [r for r in rows if r["scene"] == "rgbd:tilted" and r["method"] == SGD_LABEL]
+    assert [r["plane"] for r in tilted] == [0, 1, 2]  # continuous: 3 planes over its span
+    assert {(r["method"], r["seed"]) for r in rows} == {(DPAC_LABEL, ""), (SGD_LABEL, ""), ("holonet3d-dcm4", 1),
+                                                         ("holonet3d-dcm4", 2)}
+
+    def mean(method: str, scene: str) -> float:
+        return next(r["mean_psnr_amplitude_db"] for r in rows if r["method"] == method and r["scene"] == scene)
+
+    for scene in ("rgbd:two-planes", "rgbd:tilted"):
+        assert mean(SGD_LABEL, scene) > mean(DPAC_LABEL, scene) + 1  # it starts from DPAC and keeps its best
+    summary = (tmp_path / "out" / "learned_depth_summary.csv").read_text().splitlines()
+    network_all = [line for line in summary if line.startswith("all scenes,holonet3d-dcm4,2,")]
+    assert len(network_all) == 1
+    per_seed = [np.mean([r["mean_psnr_amplitude_db"] for r in rows if r["seed"] == seed and r["plane"] == 0])
+                for seed in (1, 2)]
+    assert float(network_all[0].split(",")[3]) == pytest.approx(np.mean(per_seed), abs=1e-6)
+    assert any(line.startswith("all scenes") and "+-" in line for line in lines)
+    other = _depth_checkpoint(tmp_path / "other.pt", "holonet3d", 1, (1.95e-3, 2.05e-3))
+    with pytest.raises(BadValueError, match="another bench or depth range"):
+        run_learned_depth_bench(load_profile(small_profile_path), [paths[0], other])
+
+
+def test_the_device_table_measures_every_network_in_one_process_with_ratios(small_profile_path: Path) -> None:
+    from benchctl.benchmarks.learned import run_device_table
+
+    text = small_profile_path.read_text().replace("roi = [48, 80]\n", "roi = [48, 80]\n" + DEPTH_PROFILE_LINE)
+    small_profile_path.write_text(text)
+    rows = run_device_table(load_profile(small_profile_path), grids=[(32, 64)], methods=DEPTH_METHODS, repeats=1,
+                            out=lambda _: None)
+    assert [r["method"] for r in rows] == list(DEPTH_METHODS)
+    assert [r["parameters"] for r in rows] == [model_info(m, (32, 64))["parameters"] for m in DEPTH_METHODS]
+    assert rows[0]["speedup"] == 1.0 and all(r["inference_seconds"] > 0 and "speedup" in r for r in rows)

@@ -271,6 +271,64 @@ def _depth_range(method: str, bench: Profile) -> tuple[float, float] | None:
     return depth_range
 
 
+def run_device_table(profile: Profile, *, grids: Sequence[tuple[int, int]], methods: Sequence[str], repeats: int = 5,
+                     out_dir: Path | None = None, out: Callable[[str], None] = print) -> list[dict[str, Any]]:
+    """Per grid and method, in this one process (for a GPU, where the allocator measures each step by itself): the
+    peak memory of one training step (`training_step_memory`) and the inference seconds (`inference_seconds`), with
+    the ratios against the family's baseline on the same grid; a step that runs out of memory is said so. Writes
+    learned_device.csv."""
+    unknown = [m for m in methods if m not in LEARNED_METHODS]
+    if unknown:
+        raise BadValueError(f"unknown learned method(s) {', '.join(unknown)}; known: {', '.join(LEARNED_METHODS)}")
+    device = _device()
+    out(f"one training step and inference (median of {repeats} after a warm-up) per method and grid, on {device}"
+        + (f" ({torch.cuda.get_device_name(device)})" if device.type == "cuda" else
+           f" ({torch.get_num_threads()} threads)"))
+    rows: list[dict[str, Any]] = []
+    for grid in grids:
+        bench = grid_profile(profile.require("slm", "optics", "laser"), grid)
+        channel = bench.channels[0]
+        setup = optical_setup(bench, channel.name)
+        grid_rows = []
+        for method in methods:
+            depth_range = _depth_range(method, bench)
+            row: dict[str, Any] = {"method": method, "family": VARIANTS[method].family, "grid": f"{grid[0]}x{grid[1]}",
+                                   "device": str(device)}
+            try:
+                memory = training_step_memory(method, setup.geometry.to_dict(), str(device), depth_range)
+                torch.manual_seed(0)
+                model = build_model(method, setup, depth_range).to(device)
+                amplitude = torch.rand(1, 1, *grid, device=device)
+                depth = (None if depth_range is None else
+                         depth_step_scene(depth_range, grid, 1, device).depth_m.to(torch.float32))
+                row |= {"parameters": count_parameters(model), "train_step_peak_mib": memory["peak_bytes"] / 2**20,
+                        "train_step_seconds": memory["step_seconds"],
+                        "inference_seconds": inference_seconds(model, amplitude, repeats, depth)}
+                del model, amplitude, depth
+            except torch.OutOfMemoryError:
+                row["result"] = OUT_OF_MEMORY
+            if device.type == "cuda":
+                torch.cuda.empty_cache()
+            grid_rows.append(row)
+            out(f"  {method:<16} {row['grid']:>10}: " + (
+                f"{row['train_step_peak_mib']:>9,.0f} MiB per training step ({row['train_step_seconds']:.3f} s), "
+                f"inference {row['inference_seconds']:.4f} s" if "result" not in row else row["result"]))
+        measured = [r for r in grid_rows if "result" not in r]
+        _add_ratios(measured)
+        rows += grid_rows
+    lines = [f"{'method':<16} {'grid':>10} {'train MiB':>10} {'mem -%':>7} {'s/frame':>9} {'speed-up':>8}"]
+    for r in rows:
+        lines.append(f"{r['method']:<16} {r['grid']:>10} " + (
+            f"{r['train_step_peak_mib']:>10,.0f} {r.get('memory_reduction_pct', float('nan')):>7.1f} "
+            f"{r['inference_seconds']:>9.4f} {r.get('speedup', float('nan')):>8.2f}" if "result" not in r
+            else r["result"]))
+    for line in lines:
+        out(line)
+    if out_dir is not None:
+        out(f"wrote {write_csv(ensure_dir(Path(out_dir)) / 'learned_device.csv', rows)}")
+    return rows
+
+
 def _checkpoints(paths: Sequence[Path], methods: list[str], bench: Profile) -> dict[str, Path]:
     """Method -> checkpoint: the given files (each names its method), else shipped ones that fit the grid."""
     chosen: dict[str, Path] = {}
