@@ -4,8 +4,9 @@ Per method, in one run, on one grid (the profile's, or --size with pitch and dis
 as for training):
 - trainable parameters;
 - inference seconds per frame: the full network (generator, full-definition propagation, encoder) on one
-  colour's target, median of `repeats` runs after one warm-up, under inference mode; on CUDA the device is
-  synchronised around every timed run;
+  colour's target (a depth network: and a depth map), median of `repeats` runs after one warm-up, under inference
+  mode; on CUDA the device is synchronised around every timed run; beside it the CPU seconds of the process (the
+  cost a loaded machine does not inflate, in a one-thread run: OMP_NUM_THREADS=1);
 - peak memory of one training step (forward, propagation to the target plane, ROI loss, backward, Adam step,
   batch 1), each model in its own fresh subprocess. CPU: the process's peak resident set (VmHWM) during the
   step minus its resident set just before it (after imports, model, propagation kernels and input were set
@@ -14,8 +15,12 @@ as for training):
   the memory allocated before it;
 - PSNR / SSIM (amplitude, mean over colours and targets, displayed 8-bit phase, as `benchctl generate`
   scores) where a trained checkpoint that fits the grid is given or shipped;
-- ratios against the family's baseline network (holonet, ccnn), measured in the same run:
-  speed-up = baseline seconds / seconds, memory reduction = 1 - peak / baseline peak.
+- ratios against the family's baseline network (holonet, ccnn, holonet3d), measured in the same run:
+  speed-up = baseline seconds / seconds (CPU x: the same of CPU seconds), memory reduction = 1 - peak / baseline
+  peak.
+
+The networks for scenes with depth (`holonet3d*`) are measured over the bench's depth range, their training step
+on a focal stack of 5 planes spread over it (`depth_step_scene`).
 """
 
 from __future__ import annotations
@@ -66,23 +71,31 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def inference_seconds(model: torch.nn.Module, amplitude: torch.Tensor, repeats: int,
-                      depth_m: torch.Tensor | None = None) -> float:
-    """Median seconds of one forward pass (after a warm-up), synchronised on CUDA; `depth_m` for a network that
-    reads depth."""
+def inference_timing(model: torch.nn.Module, amplitude: torch.Tensor, repeats: int,
+                     depth_m: torch.Tensor | None = None) -> tuple[float, float]:
+    """Median wall seconds and median CPU seconds of this process (all its threads) of one forward pass, after a
+    warm-up, synchronised on CUDA; `depth_m` for a network that reads depth. On a CPU shared with other work the wall
+    time grows with the load; the CPU time of a one-thread run does not."""
     model.eval()
     device = amplitude.device
     inputs = (amplitude,) if depth_m is None else (amplitude, depth_m)
-    times = []
+    times, cpu_times = [], []
     with torch.inference_mode():
         model(*inputs)
         _sync(device)
         for _ in range(repeats):
-            start = time.perf_counter()
+            start, start_cpu = time.perf_counter(), time.process_time()
             model(*inputs)
             _sync(device)
             times.append(time.perf_counter() - start)
-    return statistics.median(times)
+            cpu_times.append(time.process_time() - start_cpu)
+    return statistics.median(times), statistics.median(cpu_times)
+
+
+def inference_seconds(model: torch.nn.Module, amplitude: torch.Tensor, repeats: int,
+                      depth_m: torch.Tensor | None = None) -> float:
+    """Median wall seconds of one forward pass (`inference_timing`)."""
+    return inference_timing(model, amplitude, repeats, depth_m)[0]
 
 
 _PEAK_NEEDS = "peak resident memory needs Linux's /proc/self/status and /proc/self/clear_refs"
@@ -301,9 +314,10 @@ def run_device_table(profile: Profile, *, grids: Sequence[tuple[int, int]], meth
                 amplitude = torch.rand(1, 1, *grid, device=device)
                 depth = (None if depth_range is None else
                          depth_step_scene(depth_range, grid, 1, device).depth_m.to(torch.float32))
+                seconds, cpu_seconds = inference_timing(model, amplitude, repeats, depth)
                 row |= {"parameters": count_parameters(model), "train_step_peak_mib": memory["peak_bytes"] / 2**20,
-                        "train_step_seconds": memory["step_seconds"],
-                        "inference_seconds": inference_seconds(model, amplitude, repeats, depth)}
+                        "train_step_seconds": memory["step_seconds"], "inference_seconds": seconds,
+                        "inference_cpu_seconds": cpu_seconds}
                 del model, amplitude, depth
             except torch.OutOfMemoryError:
                 row["result"] = OUT_OF_MEMORY
@@ -402,10 +416,11 @@ def run_learned_bench(
                  else build_model(name, setup, depth_range).to(device))
         depth = (None if depth_range is None else
                  depth_step_scene(depth_range, grid, 1, device).depth_m.to(torch.float32))
+        seconds, cpu_seconds = inference_timing(model, amplitude, repeats, depth)
         row: dict[str, Any] = {"method": name, "family": VARIANTS[name].family, "tier": model_info(name, grid)["tier"],
                                "grid": f"{grid[0]}x{grid[1]}", "device": str(device),
-                               "parameters": count_parameters(model),
-                               "inference_seconds": inference_seconds(model, amplitude, repeats, depth)}
+                               "parameters": count_parameters(model), "inference_seconds": seconds,
+                               "inference_cpu_seconds": cpu_seconds}
         del model
         if training_memory:
             memory = measure_training_step(name, setup, device, depth_range_m=depth_range)
@@ -440,6 +455,8 @@ def _add_ratios(rows: list[dict[str, Any]]) -> None:
     for row, base in with_baselines(rows):
         row["parameters_ratio"] = row["parameters"] / base["parameters"]
         row["speedup"] = base["inference_seconds"] / row["inference_seconds"]
+        if row.get("inference_cpu_seconds") and base.get("inference_cpu_seconds"):
+            row["cpu_speedup"] = base["inference_cpu_seconds"] / row["inference_cpu_seconds"]
         if "train_step_peak_mib" in row and base.get("train_step_peak_mib"):
             row["memory_reduction_pct"] = 100.0 * (1.0 - row["train_step_peak_mib"] / base["train_step_peak_mib"])
 
@@ -449,12 +466,13 @@ def format_table(rows: Sequence[dict[str, Any]]) -> list[str]:
     def num(row: dict[str, Any], key: str, fmt: str) -> str:
         return format(row[key], fmt) if key in row else "-"
 
-    header = (f"{'method':<16} {'params':>10} {'x params':>8} {'s/frame':>9} {'speed-up':>8} {'train MiB':>10} "
-              f"{'mem -%':>7} {'PSNR amp':>9} {'SSIM amp':>9}")
+    header = (f"{'method':<16} {'params':>10} {'x params':>8} {'s/frame':>9} {'speed-up':>8} {'CPU s':>9} "
+              f"{'CPU x':>6} {'train MiB':>10} {'mem -%':>7} {'PSNR amp':>9} {'SSIM amp':>9}")
     lines = [header]
     for r in rows:
         lines.append(f"{r['method']:<16} {r['parameters']:>10,} {num(r, 'parameters_ratio', '.2f'):>8} "
                      f"{r['inference_seconds']:>9.4f} {num(r, 'speedup', '.2f'):>8} "
+                     f"{num(r, 'inference_cpu_seconds', '.4f'):>9} {num(r, 'cpu_speedup', '.2f'):>6} "
                      f"{num(r, 'train_step_peak_mib', '.0f'):>10} {num(r, 'memory_reduction_pct', '.1f'):>7} "
                      f"{num(r, 'psnr_amplitude_db', '.2f'):>9} {num(r, 'ssim_amplitude', '.3f'):>9}")
     return lines
