@@ -34,12 +34,12 @@ from benchctl.cgh.sgd import DEFAULT_ITERATIONS, PHASE_LR
 from benchctl.errors import BadValueError
 from benchctl.files import ensure_dir, write_csv
 from benchctl.holograms.checkpoints import read_checkpoint
-from benchctl.optics.focal_stack import FocalStackTarget, focal_stack_loss, focal_stack_scores
+from benchctl.optics.focal_stack import FocalStackTarget, focal_stack_loss
 from benchctl.profiles import Profile
 from benchctl.scenes import list_scenes, load_scene, prepare_scene
 from benchctl.targets import target_plane
 from benchctl.training.data import scene_planes
-from benchctl.training.training import peak_normalised
+from benchctl.training.training import peak_normalised, phase_stack_scores
 
 DPAC_LABEL = "dpac (middle plane)"
 SGD_LABEL = "multi-plane sgd"
@@ -104,15 +104,6 @@ def multi_plane_sgd(start: torch.Tensor, setup: OpticalSetup, target: FocalStack
     return best_phase
 
 
-def _scores(phase: torch.Tensor, setup: OpticalSetup, target: FocalStackTarget) -> tuple[list[dict[str, float] | None],
-                                                                                          dict[str, float]]:
-    rows, cols = setup.roi_slices
-    with torch.no_grad():
-        recon = setup.reconstruct_planes_roi(phase, target.planes_m)
-    scores = focal_stack_scores(recon, target.amplitude[rows, cols], target.masks[:, rows, cols], target.planes_m)
-    return scores.per_plane, scores.mean
-
-
 def run_learned_depth_bench(profile: Profile, checkpoints: Sequence[Path], *, scenes: Sequence[str] | None = None,
                             colour: str | None = None, planes: int = 5, sgd_iterations: int = DEFAULT_ITERATIONS,
                             out_dir: Path | None = None, out: Callable[[str], None] = print) -> list[dict[str, Any]]:
@@ -155,8 +146,9 @@ def run_learned_depth_bench(profile: Profile, checkpoints: Sequence[Path], *, sc
                 phase = network.model(amplitude[None, None], depth[None, None])[0, 0].clone()
             results.append((network.method, network.seed, phase, time.perf_counter() - start))
         for label, seed, phase, seconds in results:
-            per_plane, mean = _scores(phase, setup, target)
-            for k, (z, scores) in enumerate(zip(focal, per_plane)):
+            scored = phase_stack_scores(phase, setup, amplitude, depth, focal)[1]
+            mean = scored.mean
+            for k, (z, scores) in enumerate(zip(focal, scored.per_plane)):
                 rows.append({"scene": spec, "method": label, "seed": "" if seed is None else seed, "plane": k,
                              "plane_mm": round(z * 1e3, 5), "seconds": round(seconds, 4),
                              "psnr_amplitude_db": None if scores is None else round(scores["psnr_amplitude_db"], 3),

@@ -54,7 +54,7 @@ from benchctl.errors import BadValueError, BenchctlError
 from benchctl.files import ensure_dir
 from benchctl.holograms.checkpoints import RESUME_SUFFIX, WEIGHT_DTYPES, Checkpoint, read_checkpoint
 from benchctl.memory import Estimate, check_training_memory, size_text, training_estimate
-from benchctl.optics.focal_stack import focal_stack_loss, focal_stack_scores, in_focus_masks
+from benchctl.optics.focal_stack import FocalStackScores, focal_stack_loss, focal_stack_scores, in_focus_masks
 from benchctl.optics.metrics import amplitude_scores, centred_slices, crop_roi, lsq_scale, psnr, psnr_of_mse
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import Profile
@@ -393,17 +393,24 @@ Score = Callable[[str, torch.Tensor, "SceneDepth | None"], dict[str, float]]
 """score(colour, peak-normalised target plane (1, 1, H, W), its scene's depth or None) -> scores."""
 
 
+def phase_stack_scores(phase: torch.Tensor, setup: OpticalSetup, amplitude: torch.Tensor, depth_m: torch.Tensor,
+                       planes: Sequence[float]) -> tuple[float, FocalStackScores]:
+    """The focal-stack loss and scores (`focal_stack_scores`: per plane in focus, and their mean) of one SLM phase
+    (H, W) against a scene: its amplitude and depth (H, W) on the grid, and its planes."""
+    rows, cols = setup.roi_slices
+    with torch.no_grad():
+        recon = setup.reconstruct_planes_roi(setup.without_wavefront(phase), planes).cpu()
+    target = amplitude[rows, cols].cpu()
+    masks = in_focus_masks(depth_m[rows, cols].cpu(), planes)
+    return float(focal_stack_loss(recon, target, masks)), focal_stack_scores(recon, target, masks, planes)
+
+
 def stack_scores(phase: torch.Tensor, setup: OpticalSetup, amplitude: torch.Tensor,
                  scenes: SceneDepth) -> dict[str, float]:
-    """The focal-stack loss and the mean in-focus amplitude PSNR / SSIM over the planes (`focal_stack_scores`) of
-    one SLM phase (1, 1, H, W) against its scene."""
-    rows, cols = setup.roi_slices
-    planes = scenes.planes_m[0]
-    recon = setup.reconstruct_planes_roi(setup.without_wavefront(phase[0, 0]), planes).cpu()
-    target = amplitude[0, 0, rows, cols].cpu()
-    masks = in_focus_masks(scenes.depth_m[0, 0, rows, cols].cpu(), planes)
-    return {"loss": float(focal_stack_loss(recon, target, masks))} | focal_stack_scores(recon, target, masks,
-                                                                                          planes).mean
+    """The focal-stack loss and the mean in-focus amplitude PSNR / SSIM over the planes of one SLM phase
+    (1, 1, H, W) against its scene (`phase_stack_scores`)."""
+    loss, scores = phase_stack_scores(phase[0, 0], setup, amplitude[0, 0], scenes.depth_m[0, 0], scenes.planes_m[0])
+    return {"loss": loss} | scores.mean
 
 
 def evaluate(models: Mapping[str, nn.Module], setups: Mapping[str, OpticalSetup], planes: Mapping[str, int],
