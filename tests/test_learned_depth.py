@@ -343,4 +343,8 @@ def test_the_device_table_measures_every_network_in_one_process_with_ratios(smal
                             out=lambda _: None)
     assert [r["method"] for r in rows] == list(DEPTH_METHODS)
     assert [r["parameters"] for r in rows] == [model_info(m, (32, 64))["parameters"] for m in DEPTH_METHODS]
-    assert rows[0]["speedup"] == 1.0 and all(r["inference_seconds"] > 0 and "speedup" in r for r in rows)
+    assert rows[0]["speedup"] == rows[0]["cpu_speedup"] == 1.0
+    for row in rows:
+        assert row["inference_seconds"] > 0 and row["inference_cpu_seconds"] > 0
+        assert row["speedup"] == pytest.approx(rows[0]["inference_seconds"] / row["inference_seconds"])
+        assert row["cpu_speedup"] == pytest.approx(rows[0]["inference_cpu_seconds"] / row["inference_cpu_seconds"])
