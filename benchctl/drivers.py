@@ -11,13 +11,15 @@ from __future__ import annotations
 import importlib
 from typing import Literal
 
-Kind = Literal["laser", "slm", "camera"]
+Kind = Literal["laser", "slm", "camera", "focus"]
 
 DRIVERS: dict[str, dict[str, str]] = {
     "laser": {
         "template": "benchctl.devices.laser.template:TemplateLaser",
         "cobolt": "benchctl.devices.laser.cobolt:CoboltLaser",
         "obis": "benchctl.devices.laser.obis:ObisLaser",
+        "sapphire": "benchctl.devices.laser.sapphire:SapphireLaser",
+        "deepstar": "benchctl.devices.laser.deepstar:DeepstarLaser",
     },
     "slm": {
         "sim": "benchctl.devices.sim.slm:SimSLM",
@@ -29,6 +31,10 @@ DRIVERS: dict[str, dict[str, str]] = {
         "ptp": "benchctl.devices.camera.ptp_camera:PtpCamera",
         "gphoto2": "benchctl.devices.camera.gphoto2:Gphoto2Camera",
         "genicam": "benchctl.devices.camera.genicam:GenicamCamera",
+    },
+    "focus": {
+        "zaber": "benchctl.devices.focus.zaber:ZaberFocus",
+        "eos": "benchctl.devices.focus.eos:EosFocus",
     },
 }
 

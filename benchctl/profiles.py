@@ -22,7 +22,8 @@ from msgspec import Meta
 from benchctl import SOURCE_ROOT
 from benchctl.dng import CFA_LAYOUTS
 from benchctl.drivers import driver_names
-from benchctl.errors import BenchctlError
+from benchctl.errors import BenchctlError, did_you_mean
+from benchctl.files import read_capped
 from benchctl.limits import check_pixels
 from benchctl.optics.geometry import Geometry
 from benchctl.schema import Model, decode, fail
@@ -36,10 +37,13 @@ PROFILE_ENV = "BENCHCTL_PROFILE"
 PROFILE_DIR = "hardware_profiles"
 DEFAULT_PROFILE = "simulated"
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
-SECTIONS = ("optics", "slm", "laser", "camera")
+SECTIONS = ("optics", "slm", "laser", "camera", "focus")
 
 Positive = Annotated[float, Meta(gt=0)]
 NonNegative = Annotated[float, Meta(ge=0)]
+# A liquid crystal settles within a second; a minute or more is a unit slip (seconds or microseconds as ms) that would
+# leave a run waiting for days after every frame.
+SettleMs = Annotated[float, Meta(ge=0, le=60_000)]
 Fraction = Annotated[float, Meta(ge=0, le=1)]
 PositiveInt = Annotated[int, Meta(gt=0)]
 NonNegativeInt = Annotated[int, Meta(ge=0)]
@@ -49,12 +53,14 @@ if TYPE_CHECKING:  # choices listed at run time, in the modules named below: pla
     LaserDriver = str
     SLMDriver = str
     CameraDriver = str
+    FocusDriver = str
 else:
     CFALayout = Literal[tuple(CFA_LAYOUTS)]  # the layouts benchctl.dng writes
     # The drivers of each kind (benchctl.drivers lists them once).
     LaserDriver = Literal[driver_names("laser")]
     SLMDriver = Literal[driver_names("slm")]
     CameraDriver = Literal[driver_names("camera")]
+    FocusDriver = Literal[driver_names("focus")]
 # The Zernike terms of optics.aberration.ZERNIKE_TERMS (not imported: it imports torch; a test keeps them equal).
 ZernikeTerm = Literal["tilt_vertical", "tilt_horizontal", "astigmatism_oblique", "defocus", "astigmatism_vertical",
                       "coma_vertical", "coma_horizontal", "spherical"]
@@ -96,7 +102,7 @@ class SLMConfig(Model, kw_only=True):
     height: PositiveInt
     pitch_um: Annotated[float, Meta(ge=0.1, le=1000)]  # the pitches optics.setup accepts (0.1 um .. 1 mm)
     bit_depth: Annotated[int, Meta(ge=1, le=16)]
-    settle_ms: NonNegative = 100.0  # wait after showing a frame before the image is trusted
+    settle_ms: SettleMs = 100.0  # wait after showing a frame before the image is trusted
     flip_x: bool = False
     flip_y: bool = False
     phase_offset_rad: float = 0.0
@@ -201,6 +207,24 @@ class CameraConfig(Model, kw_only=True):
     frame_retries: NonNegativeInt = 2  # incomplete frames (lost packets) re-triggered before the capture fails
 
 
+class FocusConfig(Model, kw_only=True):
+    """The camera's focus ([focus]; docs/focus.md): which driver moves it and how it is reached. A step is the
+    driver's own unit (a stage's microstep, a lens's smallest DriveLens step); the focus calibration relates steps to
+    depth."""
+
+    driver: FocusDriver = "zaber"
+    port: str | None = None  # zaber: serial port (pyserial URL or device path)
+    baudrate: PositiveInt = 115200
+    timeout_s: Positive = 1.0
+    device: Annotated[int, Meta(ge=1, le=99)] = 1  # zaber: device number in the daisy chain
+    axis: Annotated[int, Meta(ge=1, le=9)] = 1  # zaber: axis of that device
+    microstep_um: Positive = 0.047625  # zaber: stage travel per microstep (the stage's datasheet)
+    drive_size: Literal[1, 2, 3] = 1  # eos: DriveLens step size (Near/Far 1, 2 or 3) that one step drives
+    home_drives: PositiveInt = 60  # eos: DriveLens Near 3 commands that surely reach the near end stop
+    settle_ms: NonNegative = 100.0  # wait after a move before a frame is trusted
+    move_timeout_s: Positive = 30.0  # longest wait for one move or homing to end
+
+
 # The simulated bench's physics ([sim]; docs/simulated_bench.md). Every key is optional; the [sim] block of
 # hardware_profiles/simulated.toml lists the defaults.
 
@@ -215,6 +239,20 @@ class SimSLMConfig(Model, kw_only=True):
     zero_order: Fraction = 0.02
     # Fringing fields: the driven phase is blurred by a Gaussian of this many pixels (sigma) before it modulates.
     crosstalk_px: NonNegative = 0.0
+
+
+# A Gaussian beam narrower than this many SLM pixels (1/e^2 radius) lights a few hundred pixels at most: no hologram
+# can use it, and far below it the beam's profile underflows to no light at all (a unit slip: metres written as mm).
+MIN_WAIST_PX = 10.0
+
+
+def waist_problem(waist_mm: float, slm: SLMConfig) -> str | None:
+    """Why a Gaussian beam of `waist_mm` (0: uniform light) cannot light the panel of `slm`; None if it can."""
+    least = MIN_WAIST_PX * slm.pitch_um * 1e-3
+    if 0 < waist_mm < least:
+        return (f"must be 0 (uniform light) or at least {least:g} mm ({MIN_WAIST_PX:g} SLM pixels), got {waist_mm!r}: "
+                "a narrower beam lights almost none of the panel")
+    return None
 
 
 class SimBeamConfig(Model, kw_only=True):
@@ -269,6 +307,20 @@ class SimSensorConfig(Model, kw_only=True):
         return self.margin[0], self.margin[1], self.shape[0], self.shape[1]
 
 
+class SimFocusConfig(Model, kw_only=True):
+    """The simulated focus mechanism (a Zaber stage on sim://, or the simulated EOS body's lens): its hidden mechanics
+    and where it focuses the camera, which focus calibration has to recover (docs/focus.md)."""
+
+    # Depth (from the SLM) of the camera's focus plane with the mechanism at start_steps; None: optics.distance_mm.
+    plane_mm: Positive | None = None
+    mm_per_step: float = 4.7625e-5  # focus-plane shift per step the mechanism truly makes (signed)
+    range_steps: PositiveInt = 84000  # travel between the end stops, in steps
+    start_steps: NonNegative = 42000  # where the mechanism is at power-on (state never saved yet)
+    backlash_steps: NonNegative = 630.0  # lost motion on each reversal of direction
+    step_spread: Fraction = 0.0  # relative standard deviation of each step's true size
+    seed: NonNegativeInt = 0  # the step-size spread's random stream
+
+
 class SimConfig(Model, kw_only=True):
     """The simulated bench's physics ([sim]; docs/simulated_bench.md). Every profile has one: the defaults
     when the section is absent, so any profile can be rendered by the simulated camera."""
@@ -280,6 +332,7 @@ class SimConfig(Model, kw_only=True):
     # Laser channel -> Zernike term -> waves of wavefront error at the SLM (none: a perfect wavefront).
     aberration: dict[str, dict[ZernikeTerm, float]] = msgspec.field(default_factory=dict)
     sensor: SimSensorConfig = msgspec.field(default_factory=SimSensorConfig)
+    focus: SimFocusConfig = msgspec.field(default_factory=SimFocusConfig)
 
 
 class ProfileFile(Model, kw_only=True):
@@ -291,6 +344,7 @@ class ProfileFile(Model, kw_only=True):
     slm: SLMConfig | None = None
     laser: LaserConfig | None = None
     camera: CameraConfig | None = None
+    focus: FocusConfig | None = None
     sim: SimConfig = msgspec.field(default_factory=SimConfig)
 
 
@@ -320,6 +374,8 @@ class Profile(ProfileFile, kw_only=True):
     def section(self, name: Literal["laser"]) -> LaserConfig: ...
     @overload
     def section(self, name: Literal["camera"]) -> CameraConfig: ...
+    @overload
+    def section(self, name: Literal["focus"]) -> FocusConfig: ...
 
     def section(self, name: str) -> Model:
         """Device section `name` of this profile, or the BenchctlError of `require` if the profile lacks it."""
@@ -389,6 +445,9 @@ class Profile(ProfileFile, kw_only=True):
                 sensor = f"ISO {cam.iso or body}"
             lines.append(f"  Camera        {cam.driver} {cam.model}".rstrip() + f": exposure {exposure}, {sensor}, "
                          f"{cam.frames} frame(s) per capture")
+        if self.focus:
+            where = f" on {self.focus.port}" if self.focus.port else " (the camera's lens)"
+            lines.append(f"  Focus         {self.focus.driver}{where}, settle {self.focus.settle_ms:g} ms")
         return "\n".join(lines)
 
 
@@ -415,19 +474,20 @@ def resolve_profile_path(path_or_name: str | Path | None = None) -> Path:
     if Path(text).is_file():  # -p README.md: read, to be told what it is not
         return Path(text)
     searched = ", ".join(str(c) for c in candidates)
-    raise BenchctlError(f"hardware profile {text!r}{origin} not found (looked for {searched})")
+    known = {p.stem for folder in {c.parent for c in candidates} if folder.is_dir() for p in folder.glob("*.toml")}
+    raise BenchctlError(f"hardware profile {text!r}{origin} not found{did_you_mean(text, known)} (looked for "
+                        f"{searched})")
 
 
 def load_profile(path_or_name: str | Path | None = None) -> Profile:
     """Read, decode and check a hardware profile (see resolve_profile_path for how it is found)."""
     path = resolve_profile_path(path_or_name)
     try:
-        with path.open("rb") as f:
-            raw = tomllib.load(f)
+        raw = tomllib.loads(read_capped(path, "hardware profile").decode("utf-8"))
     except FileNotFoundError:
-        raise BenchctlError(f"{path}: hardware profile not found") from None
-    except OSError as exc:
-        raise BenchctlError(f"{path}: cannot read hardware profile: {exc.strerror or exc}") from None
+        known = [str(p) for p in path.parent.glob("*.toml")] if path.parent.is_dir() else []
+        hint = did_you_mean(str(path), known, key=lambda name: Path(name).name)
+        raise BenchctlError(f"{path}: hardware profile not found{hint}") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         if path.suffix.lower() != ".toml":
             raise BenchctlError(f"{path}: not a hardware profile (a TOML file such as "
@@ -447,6 +507,8 @@ def _checked(path: Path, file: ProfileFile) -> Profile:
     slm, optics = file.slm, file.optics
     if file.camera and file.camera.driver == "genicam" and file.camera.iso is not None:
         raise fail(path, "camera.iso", "a GenICam camera has gain, not ISO: set camera.gain instead")
+    if file.camera and file.camera.region is not None:
+        check_pixels(f"{path}: camera.region height x width", file.camera.region[3], file.camera.region[2])
     if slm:
         check_pixels(f"{path}: slm.height x slm.width", slm.height, slm.width)
         if slm.driver == "framebuffer" and not slm.device:
@@ -459,6 +521,7 @@ def _checked(path: Path, file: ProfileFile) -> Profile:
             path, "optics.roi",
             f"{list(optics.roi)} is larger than the SLM grid {slm.height} x {slm.width} (slm.height x slm.width)",
         )
+    _check_focus(path, file)
     if optics and optics.depth_range_mm is not None and not optics.depth_range_mm[0] < optics.depth_range_mm[1]:
         raise fail(path, "optics.depth_range_mm", f"{list(optics.depth_range_mm)} must be [near, far] with near < far")
     laser = _checked_laser(path, file.laser) if file.laser else None
@@ -470,13 +533,32 @@ def _checked(path: Path, file: ProfileFile) -> Profile:
             if channel not in names:
                 raise fail(path, f"{section}.{channel}", f"no laser channel {channel!r} (known: {known})")
     _check_sensor(path, file.sim.sensor)
+    beam = waist_problem(file.sim.beam.waist_mm, slm) if slm else None
+    if beam:
+        raise fail(path, "sim.beam.waist_mm", beam)
     fields = {key: getattr(file, key) for key in file.__struct_fields__}
     return Profile(**{**fields, "name": name, "laser": laser, "path": path})
 
 
+def _check_focus(path: Path, file: ProfileFile) -> None:
+    """A focus driver has what reaches it: the zaber stage a port, the EOS lens a ptp camera to drive it through."""
+    focus = file.focus
+    if focus is None:
+        return
+    if focus.driver == "zaber" and not focus.port:
+        raise fail(path, "focus.port", "the zaber driver needs a serial port, e.g. port = \"/dev/ttyUSB1\"")
+    if focus.driver == "eos" and (file.camera is None or file.camera.driver != "ptp"):
+        raise fail(path, "focus.driver", "the eos driver drives the lens through the camera: it needs "
+                                         "[camera] driver = \"ptp\"")
+    sim = file.sim.focus
+    if sim.start_steps > sim.range_steps:
+        raise fail(path, "sim.focus.start_steps", f"{sim.start_steps:g} is beyond the range of {sim.range_steps} steps")
+
+
 def _check_sensor(path: Path, sensor: SimSensorConfig) -> None:
-    """Masked margins inside the frame and even (the Bayer pattern starts on the exposed area as on the frame),
-    black below white."""
+    """Within the pixel limit (the simulator renders every pixel), masked margins inside the frame and even (the
+    Bayer pattern starts on the exposed area as on the frame), black below white."""
+    check_pixels(f"{path}: sim.sensor.shape", *sensor.shape)
     for axis, name in enumerate(("rows", "cols")):
         margin, size = sensor.margin[axis], sensor.shape[axis]
         if margin % 2 or margin + 2 > size:

@@ -6,8 +6,10 @@ import copy
 import itertools
 import json
 import numbers
+import os
 import re
 import sys
+import threading
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
@@ -15,6 +17,8 @@ from typing import Any
 import msgspec
 import numpy as np
 import pytest
+
+from device_skips import pytest_configure, pytest_runtest_makereport  # noqa: F401 - the plugin's hooks, for pytest
 
 from benchctl.capture.raw import RawImage, decode_raw
 from benchctl.cli import main
@@ -304,3 +308,44 @@ def lock_dir(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.Monke
     folder = tmp_path_factory.mktemp("locks")
     monkeypatch.setenv("BENCHCTL_LOCK_DIR", str(folder))
     return folder
+
+
+# -- the quick loop stays quick -----------------------------------------------------------------------------------
+# `pytest -m "not slow"` is the loop a developer runs after each change: a test that takes longer than SLOW_S of
+# wall time belongs to the slow set. With BENCHCTL_TEST_TIMES=strict (what `make test` sets) an unmarked test over
+# it fails the session; a test still running after STILL_RUNNING_S is named on the terminal as it runs.
+SLOW_S = 5.0
+STILL_RUNNING_S = 30.0
+_unmarked_slow: list[tuple[str, float]] = []
+_still_running: dict[str, threading.Timer] = {}
+
+
+def pytest_runtest_logstart(nodeid: str, location: tuple[str, int | None, str]) -> None:
+    def say() -> None:
+        sys.__stderr__.write(f"\n[still running after {STILL_RUNNING_S:.0f} s: {nodeid}]\n")
+        sys.__stderr__.flush()
+
+    timer = threading.Timer(STILL_RUNNING_S, say)
+    timer.daemon = True
+    timer.start()
+    _still_running[nodeid] = timer
+
+
+def pytest_runtest_logfinish(nodeid: str, location: tuple[str, int | None, str]) -> None:
+    timer = _still_running.pop(nodeid, None)
+    if timer is not None:
+        timer.cancel()
+
+
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    if report.when == "call" and report.duration > SLOW_S and "slow" not in report.keywords:
+        _unmarked_slow.append((report.nodeid, report.duration))
+
+
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    if not _unmarked_slow or os.environ.get("BENCHCTL_TEST_TIMES") != "strict":
+        return
+    lines = "\n".join(f"  {seconds:5.1f} s  {nodeid}" for nodeid, seconds in sorted(_unmarked_slow))
+    sys.__stderr__.write(f"\n{len(_unmarked_slow)} test(s) not marked slow took over {SLOW_S:g} s (mark them "
+                         f"@pytest.mark.slow, or make them quicker):\n{lines}\n")
+    session.exitstatus = pytest.ExitCode.TESTS_FAILED

@@ -44,7 +44,8 @@ def _loaded(command: list[str]) -> list[str]:
 @pytest.mark.parametrize("command", [
     ["laser", "off"], ["laser", "status"], ["laser", "set", "green", "1mW"], ["camera", "info"],
     ["sim", "status"], ["sim", "fault", "sim-camera", "unplug_at=5"], ["devices"], ["--help"], ["laser", "--help"],
-    ["slm", "info"], ["profile", "check"], ["profile", "check", "simulated-aberrated"],
+    ["slm", "info"], ["profile", "check"], ["profile", "check", "simulated-aberrated"], ["focus", "status"],
+    ["focus", "home"], ["focus", "move", "0"],
 ])
 def test_device_commands_never_import_torch(command: list[str]) -> None:
     assert _loaded(command) == [], command

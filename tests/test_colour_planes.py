@@ -14,6 +14,7 @@ import pytest
 import torch
 from conftest import SMALL_BENCH, mono_exposure, sim_exposure
 
+from benchctl.calibration.calibrated import Calibrated
 from benchctl.capture.colour_planes import (
     LOW_SIGNAL,
     merge_capture,
@@ -169,7 +170,7 @@ def test_a_captured_colour_chart_scores_like_the_simulated_reconstruction(profil
     Bayer within 0.01 dB of each other, docs/genicam.md)."""
     shape, roi = profile.slm.shape, profile.optics.roi
     target = prepare_target(load_target("chart:bars", roi), shape, roi)
-    scene = compute_scene(target, profile, "dpac")
+    scene = compute_scene(target, Calibrated(profile), "dpac")
     homography = physics.camera_homography(profile)
     planes, saturation = {}, {}
     for colour, channel in enumerate(profile.channels):
@@ -203,10 +204,10 @@ def test_a_scene_of_some_colours_is_scored_on_their_planes(profile: Profile) -> 
     before: 8.4 dB for every method)."""
     shape, roi = profile.slm.shape, profile.optics.roi
     target = prepare_target(load_target("chart:bars", roi), shape, roi)
-    green = compute_scene(target, profile, "dpac", colours=["green"])
+    green = compute_scene(target, Calibrated(profile), "dpac", colours=["green"])
     only_green = crop_roi(target, roi) * torch.tensor([0.0, 1.0, 0.0]).view(3, 1, 1)
     assert green.merged_scores == colour_scores(green.merged_linear, only_green)
     assert green.merged_scores["psnr_srgb_db"] > colour_scores(green.merged_linear, crop_roi(target, roi))[
         "psnr_srgb_db"] + 3
-    full = compute_scene(target, profile, "dpac")
+    full = compute_scene(target, Calibrated(profile), "dpac")
     assert full.merged_scores == colour_scores(full.merged_linear, crop_roi(target, roi))

@@ -4,8 +4,8 @@ and its errors keep the file / key path / value / "did you mean" form."""
 from __future__ import annotations
 
 import importlib
-import json
 import importlib.util
+import json
 import sys
 import typing
 from pathlib import Path
@@ -167,7 +167,8 @@ def edited_profile(tmp_path: Path, small_profile_path: Path, old: str, new: str)
 @pytest.mark.parametrize("old, new, message", [
     # sections are suggested for sections: a misspelt [sim.aberration.<channel>] table names its section
     ("[laser]", "[sim.aberation.green]\ndefocus = 0.1\n\n[laser]",
-     "sim.aberation: unknown section (did you mean 'aberration'? known: seed, slm, beam, imaging, aberration, sensor)"),
+     "sim.aberation: unknown section (did you mean 'aberration'? known: seed, slm, beam, imaging, aberration, sensor, "
+     "focus)"),
     ("[laser]", "[sim.aberration.green]\nfocus = 0.1\n\n[laser]",
      "sim.aberration.green.focus: unknown key (did you mean 'defocus'? known: tilt_vertical, tilt_horizontal"),
     ("roi = [48, 80]", 'roi = [48, 80]\nmodel = 3', "optics.model: expected a file path (a string), got 3 (int)"),

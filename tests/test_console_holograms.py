@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from benchctl.calibration.calibrated import Calibrated
 from benchctl.console.holograms import WORKER_NICE, HologramWorker, Request
 from benchctl.errors import BenchctlError
 from benchctl.holograms.cache import hologram
@@ -34,7 +35,7 @@ def test_the_worker_computes_what_a_run_computes_in_its_own_process(bench_profil
         pid = worker._process.pid
         assert pid != os.getpid() and os.getpriority(os.PRIO_PROCESS, pid) == os.nice(0) + WORKER_NICE
         assert [(done, total) for _, done, total in progress][-1] == (4, 4)  # the SGD's own steps
-        run = hologram(job.profile, job.amplitude, "green", "sgd", iterations=4, seed=0, checkpoint=None)
+        run = hologram(Calibrated(job.profile), job.amplitude, "green", "sgd", iterations=4, seed=0, checkpoint=None)
         assert run.cached and np.array_equal(result.gray, run.gray) and result.cached is False
         with pytest.raises(BenchctlError, match="no-such-method"):
             worker.compute(request(bench_profile_path, 4, "no-such-method"))

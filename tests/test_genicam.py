@@ -6,6 +6,9 @@ from __future__ import annotations
 
 import io
 import math
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import msgspec
@@ -26,10 +29,52 @@ from benchctl.profiles import CameraConfig, load_profile
 
 WIDE = (0, 0, 256, 24)  # every ramp index (x + y + frame id) mod 255 appears in one frame (LibRaw: >= 22 rows)
 
+pytestmark = pytest.mark.third_party
+
 
 def config(**changes: object) -> CameraConfig:
     base = CameraConfig(driver="genicam", serial="1", region=(0, 0, 64, 48), image_timeout_s=5.0)
     return msgspec.structs.replace(base, **changes)  # type: ignore[arg-type]
+
+
+REGION_CRASH = """
+from benchctl.devices.camera.genicam import GenicamCamera
+from benchctl.devices.errors import DeviceError
+from benchctl.errors import BadValueError
+from benchctl.profiles import CameraConfig
+
+config = CameraConfig(driver="genicam", serial="1", region=(0, 0, 100000, 100000), image_timeout_s=5.0)
+try:
+    with GenicamCamera(config) as camera:
+        camera.capture()
+except (BadValueError, DeviceError) as exc:
+    print(exc)
+"""
+
+
+def test_a_region_beyond_the_sensor_is_refused_before_it_is_written() -> None:
+    """Aravis's fake camera takes a 100000 x 100000 region as written, and the process then died (SIGSEGV) in the
+    buffer pop: in a subprocess, so that a crash fails this test instead of ending the suite."""
+    done = subprocess.run([sys.executable, "-c", REGION_CRASH], capture_output=True, text=True, timeout=120,
+                          env={**os.environ, "BENCHCTL_ARAVIS_INTERFACES": "Fake"})
+    assert done.returncode == 0, (done.returncode, done.stderr[-2000:])
+    assert done.stdout == ("Aravis Fake (serial 1): camera.region [0, 0, 100000, 100000] reaches column 100000 and "
+                           "row 100000, beyond the camera's 2048 x 2048 (WidthMax x HeightMax): give a region inside "
+                           "it\n")
+
+
+@pytest.mark.parametrize("region, refused", [
+    ((1024, 0, 1025, 64), "reaches column 2049 and row 64, beyond the camera's 2048 x 2048"),
+    ((0, 2000, 64, 49), "reaches column 64 and row 2049, beyond the camera's 2048 x 2048"),
+    ((0, 0, 2048, 2048), "2048 x 2048 = 4,194,304 pixels is above the limit of 1,000,000 (set $BENCHCTL_MAX_PIXELS"),
+])
+def test_a_region_outside_the_sensor_or_above_the_pixel_limit_is_one_line(
+        region: tuple[int, int, int, int], refused: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("BENCHCTL_MAX_PIXELS", "1000000")
+    with pytest.raises(BadValueError) as caught:
+        GenicamCamera(config(region=region)).open()
+    assert str(caught.value).startswith(f"Aravis Fake (serial 1): camera.region {list(region)}")
+    assert refused in str(caught.value) and "\n" not in str(caught.value)
 
 
 def fake_frame(fmt: str, region: tuple[int, int, int, int]) -> tuple[np.ndarray, int]:

@@ -14,12 +14,12 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-
 from conftest import SMALL_PROFILE
 
 SCENARIOS = Path(__file__).with_name("gigevision.py")
-pytestmark = pytest.mark.skipif(shutil.which("arv-fake-gv-camera-0.8") is None,
-                                reason="needs Debian's aravis-tools-cli (.ci/run installs it)")
+pytestmark = [pytest.mark.third_party,
+              pytest.mark.skipif(shutil.which("arv-fake-gv-camera-0.8") is None,
+                                 reason="needs Debian's aravis-tools (.ci/run installs it)")]
 
 
 def scenario(name: str, **args: Any) -> dict[str, Any]:

@@ -5,11 +5,14 @@ from __future__ import annotations
 from collections.abc import Iterator
 from contextlib import contextmanager
 
+import msgspec
 import pytest
 from expected_protocol import ExpectedProtocol, Stalls
 
 from benchctl.devices.errors import DeviceError, SafetyError
 from benchctl.devices.laser import CoboltLaser, Laser, ObisLaser, TemplateLaser, open_laser
+from benchctl.devices.laser.deepstar import DeepstarLaser
+from benchctl.devices.laser.sapphire import SapphireLaser
 from benchctl.errors import BenchctlError
 from benchctl.profiles import LaserChannel, LaserConfig, TemplateProtocol
 
@@ -144,13 +147,14 @@ COBOLT_CLOSE = [ok("l0"), ok("l?", "0")]
 
 def test_cobolt_session_bytes() -> None:
     red = cobolt_open() + [
-        ok("gsn?", "21853"),
+        ok("sn?", "21853"),
         ok("p 0.020000"), ok("p?", "0.0200"),
         ok("pa?", "0.0199"),
         ok("ilk?", "0"), ok("f?", "0"), ok("l1"), ok("l?", "1"),
         ok("ilk?", "0"), ok("f?", "4"), ok("p?", "0.0200"), ok("pa?", "0.0199"), ok("l?", "1"),
     ] + COBOLT_CLOSE
-    green = cobolt_open() + [ok("gsn?", "30001")] + COBOLT_CLOSE
+    # a firmware that refuses sn? is asked gsn?
+    green = cobolt_open() + [ok("sn?", "Syntax error: illegal command"), ok("gsn?", "30001")] + COBOLT_CLOSE
     with scripted(CoboltLaser, per_head_config("cobolt"), heads("cobolt", red, green)) as laser:
         assert laser.identity() == "red: Cobolt laser, serial number 21853; green: Cobolt laser, serial number 30001"
         assert laser.set_power("red", "50%") == pytest.approx(0.02)
@@ -200,6 +204,124 @@ def test_cobolt_refuses_channels_sharing_a_port() -> None:
     config = LaserConfig(channels=channels(), driver="cobolt", port="script://one")
     with pytest.raises(BenchctlError, match="share port script://one"):
         CoboltLaser(config)
+
+
+# -- sapphire ----------------------------------------------------------------------------------------------------
+
+PROMPT = "Sapphire:0-> "
+
+
+def sapphire(command: str, *answer: str) -> tuple[bytes, bytes | None]:
+    """A Sapphire exchange with echo off and the prompt on: the returned line ending, the answer, the prompt."""
+    return f"{command}\r\n".encode(), "".join(f"{line}\r\n" for line in ("", *answer)).encode() + PROMPT.encode()
+
+
+def sapphire_open(echo: bool = False) -> Pairs:
+    """Connecting: the prompt on and echo off (a head that echoes echoes these two), then made safe as every laser."""
+    line = [
+        (b">=1\r\n", (b">=1" if echo else b"") + f"\r\n{PROMPT}".encode()),
+        (b"E=0\r\n", (b"E=0" if echo else b"") + f"\r\n{PROMPT}".encode()),
+    ]
+    return line + [sapphire("?L", "0"), sapphire("L=0"), sapphire("?L", "0"), sapphire("?MAXLP", "220.000")]
+
+
+SAPPHIRE_CLOSE = [sapphire("L=0"), sapphire("?L", "0")]
+
+
+def test_sapphire_session_bytes() -> None:
+    red = sapphire_open(echo=True) + [
+        sapphire("?HID", "505925.000"),
+        sapphire("P=20.000", "Note: Laser_Output is OFF (L=0)"), sapphire("?SP", "20.000"),
+        sapphire("?K", "1"), sapphire("?FF", "0"), sapphire("L=1"), sapphire("?L", "1"),
+        sapphire("?P", "19.990"),
+        sapphire("?K", "1"), sapphire("?FF", str(1 << 13 | 1 << 4)), sapphire("?SP", "20.000"),
+        sapphire("?P", "19.990"), sapphire("?L", "1"),
+    ] + SAPPHIRE_CLOSE
+    green = sapphire_open() + [sapphire("?HID", "600001.000"), sapphire("P=5.000", "value must be between 20.000 "
+                                                                                   "and 220.000")] + SAPPHIRE_CLOSE
+    with scripted(SapphireLaser, per_head_config("sapphire"), heads("sapphire", red, green)) as laser:
+        assert laser.identity() == "red: Coherent Sapphire, head 505925.000; green: Coherent Sapphire, head 600001.000"
+        assert laser.set_power("red", "20mW") == pytest.approx(0.02)
+        laser.set_emission("red", True)
+        assert laser.measured_w("red") == pytest.approx(0.01999)
+        status = laser.status("red")
+        assert (status.emission, status.interlock_ok, status.faults) == (True, True, ("diode current fault",))
+        with pytest.raises(DeviceError, match=r"'P=5\.000' refused: value must be between 20\.000 and 220\.000"):
+            laser.set_power("green", "5mW")
+
+
+def test_sapphire_interlock_and_key_refuse_before_l1() -> None:
+    red = sapphire_open() + [sapphire("?K", "1"), sapphire("?FF", "1")] + SAPPHIRE_CLOSE
+    green = sapphire_open() + [sapphire("?K", "0"), sapphire("?FF", "0")] + SAPPHIRE_CLOSE
+    with scripted(SapphireLaser, per_head_config("sapphire"), heads("sapphire", red, green)) as laser:
+        with pytest.raises(SafetyError, match="interlock open"):
+            laser.set_emission("red", True)
+        with pytest.raises(SafetyError, match=r"fault active \(key switch at standby\)"):
+            laser.set_emission("green", True)
+
+
+# -- deepstar ----------------------------------------------------------------------------------------------------
+
+def deepstar(command: str, reply: str) -> tuple[bytes, bytes | None]:
+    """A Deepstar exchange: the command padded to 14 characters, CR LF."""
+    return f"{command:<14}\r\n".encode(), f"{reply}\r\n".encode()
+
+
+def deepstar_open(emitting_at: str | None = None) -> Pairs:
+    """Connecting: the state, LF (UK: it was not on), the state again, the model code (the head's maximum); a head
+    found in S2 is asked its setpoint to report it."""
+    if emitting_at is None:
+        return [deepstar("S?", "S1"), deepstar("LF", "UK"), deepstar("S?", "S1"), deepstar("STAT0", "MC 488  200 TA")]
+    return [deepstar("S?", "S2"), deepstar("LF", "LOFFOK"), deepstar("S?", "S1"), deepstar("PP?", emitting_at),
+            deepstar("STAT0", "MC 488  200 TA")]
+
+
+DEEPSTAR_CLOSE = [deepstar("LF", "UK"), deepstar("S?", "S1")]
+
+
+def test_deepstar_session_bytes() -> None:
+    red = deepstar_open(emitting_at="PP800") + [
+        deepstar("STAT2", "R111 N02 SNP131056 SNC131056 WH 04667 SLS B9C 500"),
+        deepstar("PP400", "PP400"), deepstar("PP?", "PP400"),  # 50 mW of 200: 1023.75 steps of 0xFFF
+        deepstar("S?", "S1"), deepstar("LON", "LONOK"), deepstar("L2", ">"), deepstar("IPO", "IPO"),
+        deepstar("S?", "S2"),
+        deepstar("P?", "P0147"),
+        deepstar("LF", "LOFFOK"), deepstar("S?", "S1"),
+    ] + DEEPSTAR_CLOSE
+    green = deepstar_open() + [deepstar("STAT2", "R111 N02"), deepstar("S?", "S0")] + DEEPSTAR_CLOSE
+    config = LaserConfig(channels=tuple(msgspec.structs.replace(ch, max_power_mw=150) for ch in channels(
+        "script://deepstar")), driver="deepstar", timeout_s=0.2)
+    with scripted(DeepstarLaser, config, heads("deepstar", red, green)) as laser:
+        assert laser.connect_report() == ["red was emitting at 100.024 mW; switched off"]  # 0x800 of 0xFFF
+        assert laser.identity() == ("red: Omicron Deepstar 488 nm 200 mW, head serial 131056; green: Omicron Deepstar "
+                                    "488 nm 200 mW, head serial ?")
+        assert laser.set_power("red", "50mW") == pytest.approx(1024 / 4095 * 0.2)
+        laser.set_emission("red", True)
+        assert laser.measured_w("red") == pytest.approx(327 / 0xCCC * 0.2)
+        laser.set_emission("red", False)
+        with pytest.raises(SafetyError, match=r"fault active \(error or interlock open \(state S0\)\)"):
+            laser.set_emission("green", True)
+
+
+def test_deepstar_interlocked_at_lon_is_switched_off_again() -> None:
+    """The state said S1, then LON answers INT (the interlock opened meanwhile): a SafetyError, and LF is sent."""
+    red = deepstar_open() + [deepstar("S?", "S1"), deepstar("LON", "INT"), deepstar("LF", "UK"),
+                             deepstar("S?", "S0")] + [deepstar("LF", "UK"), deepstar("S?", "S0")]
+    green = deepstar_open() + DEEPSTAR_CLOSE
+    config = LaserConfig(channels=channels("script://deepstar"), driver="deepstar", timeout_s=0.2)
+    with scripted(DeepstarLaser, config, heads("deepstar", red, green)) as laser:
+        with pytest.raises(SafetyError, match=r"interlock open \(LON answered INT\): emission not enabled"):
+            laser.set_emission("red", True)
+
+
+def test_deepstar_head_limit_refuses_before_sending() -> None:
+    red = deepstar_open() + DEEPSTAR_CLOSE
+    green = deepstar_open() + DEEPSTAR_CLOSE
+    config = LaserConfig(channels=tuple(msgspec.structs.replace(ch, max_power_mw=500) for ch in channels(
+        "script://deepstar")), driver="deepstar", timeout_s=0.2)
+    with scripted(DeepstarLaser, config, heads("deepstar", red, green)) as laser:
+        with pytest.raises(DeviceError, match="above the head's own limit 200 mW; nothing was sent"):
+            laser.set_power("red", "300mW")
 
 
 # -- obis --------------------------------------------------------------------------------------------------------

@@ -30,8 +30,9 @@ def template_on(script: Pairs, **options: object) -> tuple[TemplateLaser, Expect
 
 
 def leave_emitting(dialect: str) -> None:
-    """Saved state as if an earlier program had left every channel emitting at 10 mW."""
-    on = {"setpoint_w": 0.01, "emission": True}
+    """Saved state as if an earlier program had left every channel emitting at 10 mW (a Deepstar at the step of its
+    40 mW / 0xFFF nearest to it, 10.0024 mW)."""
+    on = {"setpoint_w": round(0.01 / 0.04 * 0xFFF) / 0xFFF * 0.04 if dialect == "deepstar" else 0.01, "emission": True}
     if dialect == "template":
         save_state("rgb-laser", {"channels": {str(index): on for _, index, _ in RGB}})
     for name, _, _ in RGB if dialect != "template" else ():
@@ -45,7 +46,7 @@ def test_connecting_turns_emission_off_on_every_channel(dialect: str) -> None:
     with open_laser(sim_config(dialect)) as laser:
         assert not any(saved_channel(dialect, name)["emission"] for name, _, _ in RGB)
         assert not any(laser.emission(name) for name in laser.channel_names)
-        assert laser.setpoint_w("red") == pytest.approx(0.01)  # setpoints are kept
+        assert laser.setpoint_w("red") == pytest.approx(0.01, rel=1e-3)  # setpoints are kept
 
 
 @pytest.mark.parametrize("power", ["41mW", "0.05W", "101%", 0.0401, 1, "1e9 W"])
@@ -220,7 +221,8 @@ def test_cobolt_fault_codes(code: int, ilk: str) -> None:
 def test_a_channel_found_emitting_at_connect_is_reported(dialect: str) -> None:
     leave_emitting(dialect)
     with open_laser(sim_config(dialect)) as laser:
-        assert laser.connect_report() == [f"{name} was emitting at 10 mW; switched off" for name, _, _ in RGB]
+        power = "10.0024 mW" if dialect == "deepstar" else "10 mW"
+        assert laser.connect_report() == [f"{name} was emitting at {power}; switched off" for name, _, _ in RGB]
     with open_laser(sim_config(dialect)) as laser:
         assert laser.connect_report() == []
 

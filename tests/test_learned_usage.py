@@ -13,6 +13,7 @@ import pytest
 import torch
 from conftest import SMALL_PROFILE
 
+from benchctl.calibration.calibrated import Calibrated
 from benchctl.calibration.setups import optical_setup
 from benchctl.cgh import OpticalSetup
 from benchctl.cgh.learned import model_info
@@ -123,7 +124,7 @@ def test_shipped_checkpoint_is_found_listed_and_used_by_default(capsys, tmp_path
     assert f"{model_info('ccnn-dcm4', (64, 96))['parameters']:,}" in rows["ccnn-dcm4"]
 
     target = prepare_target(load_target("chart:siemens", profile.optics.roi), profile.slm.shape, profile.optics.roi)
-    scene = compute_scene(target, profile, "ccnn-dcm4", colours=["blue"])
+    scene = compute_scene(target, Calibrated(profile), "ccnn-dcm4", colours=["blue"])
     assert scene.checkpoint == shipped and not scene.colours[0].skipped
 
     out = tmp_path / "bench"

@@ -11,6 +11,8 @@ from pathlib import Path
 import pytest
 
 from benchctl.cli import main
+from benchctl.memory import exposure_estimate
+from benchctl.profiles import load_profile
 from benchctl.runner import estimates
 from benchctl.runner.engine import run_procedure
 
@@ -32,6 +34,30 @@ def test_the_dry_run_of_a_first_colour_capture_says_its_time_and_disk(tmp_path: 
     expected = f"disk: about 2.95 GB in {tmp_path / 'runs'} (72 RAW frame(s) of 37.3 MB kept"
     assert disk_line.startswith(expected), disk_line
     assert not (tmp_path / "runs").exists()
+
+
+def test_the_dry_run_estimates_a_genicam_camera_by_its_region_and_pixel_format(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The example GenICam profile with its region line filled in (2048 x 2048 BayerRG12): time, disk and memory
+    rest on that region (8.39 MB a DNG, 12-bit samples over GigE Vision), not on the simulated EOS M10's 37.3 MB
+    (2.95 GB for this run: refused on a disk with 1 GB free)."""
+    text = (REPO / "hardware_profiles" / "genicam_hdmi.toml").read_text()
+    assert "# region = [0, 0, 2048, 2048] " in text
+    profile = tmp_path / "lab.toml"
+    profile.write_text(text.replace("# region = [0, 0, 2048, 2048] ", "region = [0, 0, 2048, 2048]   "))
+    assert main(["run", str(REPO / "procedures" / "colour_capture.toml"), "--profile", str(profile), "--dry-run",
+                 "--out", str(tmp_path / "runs")]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    time_line, disk_line, memory_line = (next(line for line in lines if line.startswith(start))
+                                         for start in ("time: about ", "disk: about ", "memory: about "))
+    # 72 frames of 10 ms exposure + 4.19 Mpx x 2 bytes over 100 MB/s, a 150 ms settle per exposure, 14 one-second steps
+    assert time_line.startswith("time: about 30 s (72 frame(s) at about 0.1 s each with camera genicam's 4.19 Mpx "
+                                "region (2048 x 2048 BayerRG12), 14 other step(s)"), time_line
+    assert disk_line.startswith(f"disk: about 664 MB in {tmp_path / 'runs'} (72 RAW frame(s) of 8.39 MB kept, "), \
+        disk_line
+    assert memory_line.startswith("memory: about "), memory_line  # its peak is the hologram step's here
+    exposure = exposure_estimate(load_profile(profile), 2, 1)
+    assert exposure.what == "an exposure of RAW frames of 2048 x 2048 px (9.23 MB held per frame)", exposure.what
 
 
 def test_a_run_refuses_to_start_on_a_disk_without_room(tmp_path: Path, bench_profile_path: Path,

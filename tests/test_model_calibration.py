@@ -185,12 +185,13 @@ def test_the_procedure_fits_stores_and_hands_the_model_to_generation(tmp_path: P
     assert fitted["waist_mm"] == pytest.approx(0.5, rel=0.02)
     assert fitted["offset_mm"] == pytest.approx([0.05, -0.08], abs=0.005)
     assert fitted["zero_order"] == pytest.approx(0, abs=0.005)  # the panel here has no pixel gaps
-    # three point patterns and a flat one (the beam itself), each displayed and captured
-    assert fitted["patterns"] == 3 and fitted["flat"] is True
+    # three point patterns, one held out (judged on, never fitted) and a flat one (the beam itself), each captured
+    assert fitted["patterns"] == 3 and fitted["flat"] is True and fitted["held_out"] == 1
+    assert fitted["held_out_residual"] < 0.5 * fitted["initial_residual"]
     flat = read_image(folder / "holograms" / "model-green-flat.png")
     assert flat.shape == (64, 96) and len(np.unique(flat)) == 1
     assert sorted(path.name for path in (folder / "raw" / "model" / "capture" / "green").iterdir()) == ["0", "1", "2",
-                                                                                                  "3"]
+                                                                                                  "3", "4"]
     assert fitted["residual"] < 0.5 * fitted["initial_residual"]
     assert fitted["zernike_waves"]["tilt_vertical"] == pytest.approx(0, abs=0.01)  # a true registration, no tilt
     assert fitted["zernike_waves"]["tilt_horizontal"] == pytest.approx(0, abs=0.01)

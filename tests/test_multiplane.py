@@ -178,3 +178,29 @@ def test_multiplane_bench_compares_one_stack_with_independent_planes(small_profi
     assert rows[0]["multiplane_rel_l2_shared_grid"] < 1e-5 and rows[0]["independent_rel_l2"] < 1e-5
     assert rows[0]["multiplane_rel_l2"] < 1e-2
     assert any("multi/indep" in line for line in lines)
+
+
+def test_a_setup_and_its_display_twin_each_move_to_another_distance_with_their_own_display():
+    plain = OpticalSetup(520e-9, 6.4e-6, 5e-3, (32, 48), (16, 24))
+    assert plain.at_distance(6e-3).display is None  # fills the cache the twin shares
+
+    def display(phase: torch.Tensor) -> torch.Tensor:
+        return torch.round(phase)
+
+    shown = plain.with_display(display)
+    assert shown.at_distance(6e-3).display is display and plain.at_distance(6e-3).display is None
+    assert shown.at_distance(6e-3).distance_m == 6e-3
+
+
+def test_reused_work_buffers_never_alias_results():
+    shape, distances = (24, 32), (3e-3, 5e-3)
+    propagator = MultiPlanePropagator(shape, distances, 520e-9, 6.4e-6)
+    first_field, second_field = (torch.from_numpy(_random_phase(shape, seed)).to(torch.complex64) for seed in (4, 5))
+    first = propagator(first_field)
+    kept = first.clone()
+    with torch.inference_mode():
+        second = propagator(second_field)
+    torch.testing.assert_close(first, kept, rtol=0, atol=0)  # the second call left the first result alone
+    fresh = MultiPlanePropagator(shape, distances, 520e-9, 6.4e-6)(second_field)
+    torch.testing.assert_close(second, fresh, rtol=0, atol=0)
+    assert second.shape == (2, *shape)

@@ -118,7 +118,7 @@ def test_toml_syntax_error_names_the_line(small_profile_path: Path) -> None:
          "laser.channels[1].wavelenght_nm: unknown key (did you mean 'wavelength_nm'?"),
         ("pitch_um = 8.0\n", "", "slm.pitch_um: missing required key"),
         ('driver = "template"', 'driver = "coherent"',
-         "laser.driver: unknown value 'coherent' (choose from template, cobolt, obis)"),
+         "laser.driver: unknown value 'coherent' (choose from template, cobolt, obis, sapphire, deepstar)"),
         ("[slm]", "[slm]\nflip_x = 1", "slm.flip_x: expected true or false, got 1 (int)"),
         ("[slm]", "[slm]\ngrating_period_px = [8]", "slm.grating_period_px: expected two numbers [rows, cols]"),
         ("[slm]", '[slm]\ndriver = "framebuffer"', "slm.device: the framebuffer driver needs a device"),
@@ -153,6 +153,11 @@ def test_toml_syntax_error_names_the_line(small_profile_path: Path) -> None:
         ('name = "green"', 'name = " "',
          "laser.channels[1].name: channel name must not be empty, got ' '"),
         ("[[laser.channels]]", "[[lasers.channels]]", "lasers: unknown section (did you mean 'laser'?"),
+        ("[slm]", "[sim.sensor]\nshape = [30000, 30000]\n\n[slm]",  # was a traceback when the camera rendered it
+         "sim.sensor.shape: 30000 x 30000 = 900,000,000 pixels is above the limit of 67,108,864 (set "
+         "$BENCHCTL_MAX_PIXELS to raise it)"),
+        ("[slm]", '[camera]\ndriver = "genicam"\nregion = [0, 0, 20000, 20000]\n\n[slm]',  # an 800 MB DNG a frame
+         "camera.region height x width: 20000 x 20000 = 400,000,000 pixels is above the limit of 67,108,864"),
     ],
 )
 def test_errors_name_file_key_and_value(small_profile_path: Path, old: str, new: str, expected: str) -> None:
@@ -211,7 +216,7 @@ def test_camera_section_defaults(small_profile_path: Path) -> None:
 
 
 def test_a_scaled_bench_scales_depth_offsets_with_the_grid_side_and_the_distance_with_its_area():
-    from benchctl.runner.geometry import grid_profile
+    from benchctl.calibration.geometry import grid_profile
 
     profile = load_profile("simulated")
     assert profile.section("optics").depth_range_mm == (65.0, 75.0)

@@ -166,13 +166,13 @@ def data_container(payload_size: int) -> bytes:
 @pytest.mark.parametrize("payload, zlp", [(500, True), (1012, True), (501, False), (0, False), (20, False)])
 def test_zero_length_packet_when_data_phase_fills_whole_packets(payload: int, zlp: bool) -> None:
     out = FakeEndpoint(max_packet=512)
-    UsbTransport(out, FakeEndpoint()).send(data_container(payload))
+    UsbTransport(out, FakeEndpoint(), usb_vendor=0x04A9).send(data_container(payload))
     assert out.writes == [data_container(payload)] + ([b""] if zlp else [])
 
 
 def test_zero_length_packet_follows_full_speed_packet_size() -> None:
     out = FakeEndpoint(max_packet=64)
-    UsbTransport(out, FakeEndpoint()).send(data_container(52))  # 64 bytes
+    UsbTransport(out, FakeEndpoint(), usb_vendor=0x04A9).send(data_container(52))  # 64 bytes
     assert out.writes[-1] == b""
 
 
@@ -180,7 +180,7 @@ def test_receive_reads_a_long_container_in_chunks() -> None:
     whole = data_container(3000)  # 3012 bytes
     chunks = [whole[:1024], whole[1024:2048], whole[2048:]]
     bulk_in = FakeEndpoint(max_packet=512, transfers=chunks)
-    assert UsbTransport(FakeEndpoint(), bulk_in, chunk_size=1024).receive() == whole
+    assert UsbTransport(FakeEndpoint(), bulk_in, chunk_size=1024, usb_vendor=0x04A9).receive() == whole
     assert bulk_in.reads == [1024, 1024, 1024]  # the last asks for 964 rounded up to whole packets
 
 
@@ -188,24 +188,27 @@ def test_receive_skips_the_zero_length_packet_of_the_previous_container() -> Non
     first = data_container(500)  # 512 bytes: the camera ends it with a zero-length packet
     response = Container(ContainerType.RESPONSE, 0x2001, 5).pack()
     bulk_in = FakeEndpoint(transfers=[first, b"", response])
-    transport = UsbTransport(FakeEndpoint(), bulk_in)
+    transport = UsbTransport(FakeEndpoint(), bulk_in, usb_vendor=0x04A9)
     assert transport.receive() == first
     assert transport.receive() == response
 
 
 def test_receive_of_a_cut_off_transfer_is_reported_by_the_parser() -> None:
     whole = data_container(2000)
-    transport = UsbTransport(FakeEndpoint(), FakeEndpoint(transfers=[whole[:1024], b""]), chunk_size=1024)
+    transport = UsbTransport(FakeEndpoint(), FakeEndpoint(transfers=[whole[:1024], b""]), chunk_size=1024,
+                             usb_vendor=0x04A9)
     with pytest.raises(MalformedContainer, match="length field says 2012 bytes, received 1024"):
         Container.unpack(transport.receive())
 
 
 def test_events_from_the_interrupt_endpoint() -> None:
     event = Container(ContainerType.EVENT, 0x4002, 3, (0x1234,)).pack()
-    transport = UsbTransport(FakeEndpoint(), FakeEndpoint(), FakeEndpoint(max_packet=64, transfers=[event]))
+    transport = UsbTransport(FakeEndpoint(), FakeEndpoint(), FakeEndpoint(max_packet=64, transfers=[event]),
+                             usb_vendor=0x04A9)
     assert transport.receive_event(0.01) == event
     assert transport.receive_event(0.01) is None  # timed out: no event
-    assert UsbTransport(FakeEndpoint(), FakeEndpoint()).receive_event(0.01) is None  # no interrupt endpoint
+    no_interrupt = UsbTransport(FakeEndpoint(), FakeEndpoint(), usb_vendor=0x04A9)
+    assert no_interrupt.receive_event(0.01) is None
 
 
 def test_close_runs_once_and_ignores_a_vanished_device() -> None:
@@ -215,7 +218,7 @@ def test_close_runs_once_and_ignores_a_vanished_device() -> None:
         calls.append(1)
         raise usb.core.USBError("No such device (it may have been disconnected)", -4, errno.ENODEV)
 
-    transport = UsbTransport(FakeEndpoint(), FakeEndpoint(), on_close=release)
+    transport = UsbTransport(FakeEndpoint(), FakeEndpoint(), on_close=release, usb_vendor=0x04A9)
     transport.close()
     transport.close()
     assert calls == [1]

@@ -37,7 +37,7 @@ from benchctl.devices.camera.ptp.eos import (
     shutter_code,
 )
 from benchctl.devices.camera.ptp.session import PtpSession, ResponseBusy, ResponseError
-from benchctl.devices.camera.ptp.transport import NO_BACKEND, Transport
+from benchctl.devices.camera.ptp.transport import NO_BACKEND, Transport, UsbTransport
 from benchctl.devices.camera.ptp_camera import EosTiming, PtpCamera, open_ptp_camera
 from benchctl.devices.errors import DeviceBusy, DeviceError, DeviceTimeout
 from benchctl.devices.sim.eos_usb import FIRST_HANDLE, SimEosTransport
@@ -162,6 +162,37 @@ def test_an_eos_body_reporting_the_mtp_vendor_extension_is_a_canon() -> None:
         frame = cam.capture()[0]
     assert sim.operations[:len(OPEN_SEQUENCE)] == OPEN_SEQUENCE
     assert frame.data == images.produced[0][0]
+
+
+class BodyOnUsb:
+    """The simulated body behind bulk endpoints, as pyusb gives them: containers written whole, read back in the
+    sizes the host asks for."""
+
+    wMaxPacketSize = 512
+
+    def __init__(self, body: SimEosTransport) -> None:
+        self.body, self.pending = body, b""
+
+    def write(self, data: bytes, timeout: int | None = None) -> int:
+        if data:  # a zero-length packet only ends a transfer
+            self.body.send(bytes(data))
+        return len(data)
+
+    def read(self, size: int, timeout: int | None = None) -> bytes:
+        self.pending = self.pending or self.body.receive()
+        data, self.pending = self.pending[:size], self.pending[size:]
+        return data
+
+
+def test_a_canon_reporting_the_mtp_extension_through_a_usb_transport_built_by_its_constructor() -> None:
+    """UsbTransport(...) had no USB vendor unless UsbTransport.open made it, so a Canon answering VendorExtensionID 6
+    through one built directly was refused: the vendor is now the constructor's."""
+    images = Images()
+    body = SimEosTransport(images, vendor_extension_id=MTP_VENDOR_ID)
+    endpoints = BodyOnUsb(body)
+    with open_ptp_camera(config(), UsbTransport(endpoints, endpoints, usb_vendor=0x04A9), FAST) as cam:
+        frame = cam.capture()[0]
+    assert frame.data == images.produced[0][0] and body.operations[:len(OPEN_SEQUENCE)] == OPEN_SEQUENCE
 
 
 def test_the_mtp_vendor_extension_from_another_usb_vendor_is_not_a_canon() -> None:

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from test_dng import without_tag
 
-from benchctl.dng import CFA_LAYOUTS, dng_bytes, write_dng
 from benchctl.capture.raw import MONO, RawImage, average_frames, decode_raw, linear_rgb, subtract_dark
 from benchctl.capture.registration import cfa_positions
+from benchctl.dng import CFA_LAYOUTS, dng_bytes, write_dng
 from benchctl.errors import BadValueError, BenchctlError
 
 SHAPE = (64, 96)

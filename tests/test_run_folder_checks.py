@@ -17,7 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import SMALL_BENCH, truly_registered
-from test_citl import ABERRATED, PROCEDURE as CITL
+from test_citl import ABERRATED
+from test_citl import PROCEDURE as CITL
 from test_procedures import CAPTURE as CAPTURE_TEST
 
 from benchctl.cli import main
@@ -226,7 +227,8 @@ def test_a_run_folder_has_one_writer(captured: Path, capsys: pytest.CaptureFixtu
         assert line.startswith(f"benchctl: error: {captured}: this run is being written already, held by `benchctl "
                                f"run` (pid {holder.pid}) since "), line
         assert (captured / "steps.jsonl").read_bytes() == log
-        assert main(["runs", "remove", str(captured), "--yes", "--force"]) == 2  # nor removed under its writer
+        # nor removed under its writer
+        assert main(["runs", "remove", str(captured), "--yes", "--force", "--out", str(captured.parent)]) == 2
         assert "this run is being written already" in capsys.readouterr().err and captured.is_dir()
     finally:
         holder.communicate("\n", timeout=30)

@@ -19,6 +19,7 @@ import torch
 from conftest import SMALL_BENCH, bench_profile_text
 
 import benchctl.runner.builtin
+from benchctl.calibration.calibrated import Calibrated
 from benchctl.calibration.setups import optical_setup
 from benchctl.capture.raw import RawImage, decode_raw
 from benchctl.cgh import get_method
@@ -532,8 +533,8 @@ def test_generation_never_reads_the_hidden_optics(make_bench_profile: Callable[.
                       "slm": {"crosstalk_px": 0.7}, "imaging": {"stray_light": 0.02}}}
     target = torch.zeros(3, 64, 96)
     target[1, 20:44, 30:66] = 1.0
-    results = [compute_scene(target, make_bench_profile(SMALL_BENCH, SIM_SMALL, *extra), "sgd", iterations=5,
-                             colours=["green"]) for extra in ((), (hidden,))]
+    benches = [Calibrated(make_bench_profile(SMALL_BENCH, SIM_SMALL, *extra)) for extra in ((), (hidden,))]
+    results = [compute_scene(target, bench, "sgd", iterations=5, colours=["green"]) for bench in benches]
     plain, aberrated = (next(c for c in result.colours if c.channel == "green") for result in results)
     assert plain.gray is not None and np.array_equal(plain.gray, aberrated.gray)
     assert results[0].merged_scores == results[1].merged_scores

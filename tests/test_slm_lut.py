@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 
+from benchctl.calibration.calibrated import Calibrated
 from benchctl.calibration.setups import optical_setup
 from benchctl.cgh import SGD
 from benchctl.devices.sim.slm import SimSLM
@@ -166,7 +167,7 @@ def test_generated_sgd_optimises_what_a_short_stroke_panel_shows(tmp_path: Path,
     # a flat field: SGD gets close enough that the missing stroke is most of what is left (charts' sharp edges
     # keep this 64 x 96 grid near 20 dB, where the gap costs only 0.1-0.5 dB)
     target = prepare_target(load_target("chart:white", profile.slm.shape), profile.slm.shape, profile.optics.roi)
-    scored = compute_scene(target, profile, "sgd", iterations=40, colours=["red"]).colours[0].scores
+    scored = compute_scene(target, Calibrated(profile), "sgd", iterations=40, colours=["red"]).colours[0].scores
     # the same SGD blind to the table, displayed and scored the same way
     slm, setup = slm_for(profile), optical_setup(profile, "red")
     recon = setup.reconstruct_roi(torch.from_numpy(slm.decode(slm.encode(SGD(target[0], setup, iterations=40), "red"),

@@ -12,8 +12,16 @@ import torch
 from benchctl.errors import BenchctlError
 from benchctl.images import write_png
 from benchctl.optics.colour import srgb_to_linear
-from benchctl.targets import (BLACK_INTENSITY, PHOTO_PREFIX, active_channels, list_targets, load_target, photo_path,
-                              photo_specs, prepare_target)
+from benchctl.targets import (
+    BLACK_INTENSITY,
+    PHOTO_PREFIX,
+    active_channels,
+    list_targets,
+    load_target,
+    photo_path,
+    photo_specs,
+    prepare_target,
+)
 
 SIZE = (96, 160)
 
@@ -83,7 +91,7 @@ def test_missing_or_unreadable_file(tmp_path: Path) -> None:
     with pytest.raises(BenchctlError, match="missing.png: cannot read image"):
         load_target(str(tmp_path / "missing.png"), SIZE)
     (tmp_path / "bad.jpg").write_text("text")
-    with pytest.raises(BenchctlError, match="bad.jpg: not an image"):
+    with pytest.raises(BenchctlError, match="bad.jpg: not a PNG, JPEG, BMP, TIFF or WebP image"):
         load_target(str(tmp_path / "bad.jpg"), SIZE)
 
 

@@ -37,6 +37,7 @@ from typing import Any
 
 import torch
 
+from benchctl.calibration.calibrated import Calibrated
 from benchctl.calibration.geometry import grid_profile
 from benchctl.calibration.setups import optical_setup
 from benchctl.cgh import OpticalSetup
@@ -56,6 +57,7 @@ from benchctl.holograms.scene import compute_scene, resolve_method, usable_metho
 from benchctl.optics.geometry import Geometry
 from benchctl.profiles import Profile
 from benchctl.targets import load_target, prepare_target, target_plane
+from benchctl.training.training import ReconstructionLoss, SceneDepth, peak_normalised, training_step
 
 DEFAULT_TARGETS = ("chart:siemens", "chart:bars", "chart:text")
 BASELINES = {"holonet": "holonet", "ccnn": "ccnn", "holonet3d": "holonet3d"}
@@ -126,25 +128,22 @@ def _reset_peak() -> bool:
 
 
 def depth_step_scene(depth_range_m: tuple[float, float], shape: tuple[int, int], planes: int,
-                     device: torch.device) -> Any:
-    """The scene a depth network's measured training step trains on (`training.SceneDepth`): depth at random over
-    `depth_range_m` on an (H, W) grid, focal stack at `planes` planes spread evenly over the range (bin centres)."""
-    from benchctl.training.training import SceneDepth
-
+                     device: torch.device) -> SceneDepth:
+    """The scene a depth network's measured training step trains on: depth at random over `depth_range_m` on an
+    (H, W) grid, focal stack at `planes` planes spread evenly over the range (bin centres)."""
     near, far = depth_range_m
     depth = near + (far - near) * torch.rand(1, 1, *shape, dtype=torch.float64, device=device)
     return SceneDepth(depth, (tuple(near + (k + 0.5) * (far - near) / planes for k in range(planes)),))
 
 
-def training_step_memory(method: str, geometry: dict[str, Any], device: str,
+def training_step_memory(method: str, geometry: dict[str, Any], device: str, memory_cap: int | None = None,
                          depth_range_m: tuple[float, float] | None = None, planes: int = 5) -> dict[str, Any]:
     """In this process: set up `method` for `geometry`, run one training step, return its peak memory. A network
     for scenes with depth trains on a scene over `depth_range_m` with a focal stack of `planes` planes.
 
-    Meant to run in a fresh subprocess (see `measure_training_step`), one per model.
+    Meant to run in a fresh subprocess (see `measure_training_step`), one per model. `memory_cap` (bytes) caps the
+    address space once the set-up is done, so libraries that load lazily while it runs are not refused.
     """
-    from benchctl.training.training import ReconstructionLoss, peak_normalised, training_step
-
     dev = torch.device(device)
     setup = OpticalSetup.of(Geometry.from_dict(geometry))
     torch.manual_seed(0)
@@ -165,15 +164,23 @@ def training_step_memory(method: str, geometry: dict[str, Any], device: str,
     for propagator in propagators:
         propagator.kernel(torch.complex64, dev)
     loss_fn = ReconstructionLoss().to(dev)
+    if memory_cap:
+        _limit_memory(memory_cap)
     if dev.type == "cuda":
         torch.cuda.synchronize(dev)
         before = torch.cuda.memory_allocated(dev)
         torch.cuda.reset_peak_memory_stats(dev)
         start, start_cpu = time.perf_counter(), time.process_time()
-        training_step(model, optimiser, setup, amplitude, loss_fn, scenes)
+        try:
+            training_step(model, optimiser, setup, amplitude, loss_fn, scenes)
+        except torch.cuda.OutOfMemoryError:
+            return {"out_of_memory": True, "total_bytes": torch.cuda.get_device_properties(dev).total_memory}
         torch.cuda.synchronize(dev)
         seconds, cpu_seconds = time.perf_counter() - start, time.process_time() - start_cpu
         peak = torch.cuda.max_memory_allocated(dev) - before
+        extra = {"reserved_bytes": torch.cuda.max_memory_reserved(dev),
+                 "allocated_total_bytes": torch.cuda.max_memory_allocated(dev),
+                 "total_bytes": torch.cuda.get_device_properties(dev).total_memory}
         how = "torch.cuda.max_memory_allocated during the step minus memory allocated before it"
     else:
         if not _reset_peak():
@@ -183,17 +190,18 @@ def training_step_memory(method: str, geometry: dict[str, Any], device: str,
         training_step(model, optimiser, setup, amplitude, loss_fn, scenes)
         seconds, cpu_seconds = time.perf_counter() - start, time.process_time() - start_cpu
         peak = _proc_status()["VmHWM"] - before
+        extra = {}
         how = "peak resident set (VmHWM, reset before the step) minus resident set before the step"
     return {"peak_bytes": int(peak), "baseline_bytes": int(before), "step_seconds": seconds,
-            "step_cpu_seconds": cpu_seconds, "measure": how}
+            "step_cpu_seconds": cpu_seconds, "measure": how} | extra
 
 
 OUT_OF_MEMORY = "out of memory"
 
 
 def measure_training_step(method: str, setup: OpticalSetup, device: torch.device,
-                          memory_cap: int | None = None, depth_range_m: tuple[float, float] | None = None,
-                          planes: int = 5) -> dict[str, Any]:
+                          memory_cap: int | None = None, env: dict[str, str] | None = None,
+                          depth_range_m: tuple[float, float] | None = None, planes: int = 5) -> dict[str, Any]:
     """`training_step_memory` for `method` in a fresh Python subprocess; its JSON result.
 
     `memory_cap` (bytes) limits the subprocess's address space (CPU; the kernel's out-of-memory killer is told to
@@ -202,7 +210,7 @@ def measure_training_step(method: str, setup: OpticalSetup, device: torch.device
     request = json.dumps({"method": method, "geometry": setup.geometry.to_dict(), "device": str(device),
                           "memory_cap": memory_cap, "depth_range_m": depth_range_m, "planes": planes})
     proc = subprocess.run([sys.executable, "-m", "benchctl.benchmarks.learned", request], capture_output=True,
-                          text=True, env=os.environ.copy(), check=False)
+                          text=True, env=env or os.environ.copy(), check=False)
     if memory_cap and proc.returncode in (-9, 137):  # killed by the kernel's out-of-memory killer
         return {"out_of_memory": True, "cap_bytes": memory_cap}
     if proc.returncode != 0:
@@ -255,7 +263,7 @@ def run_memory_table(profile: Profile, *, grids: Sequence[tuple[int, int]] = MEM
             else:
                 bench = grid_profile(profile.require("slm", "optics", "laser"), grid)
                 setup = optical_setup(bench, bench.channels[0].name)
-                measured = measure_training_step(method, setup, device, cap, _depth_range(method, bench))
+                measured = measure_training_step(method, setup, device, cap, depth_range_m=_depth_range(method, bench))
                 if measured.get("out_of_memory"):
                     too_big = label
                     row |= {"result": f"{OUT_OF_MEMORY} above {memory_cap_gib:g} GiB"}
@@ -308,7 +316,10 @@ def run_device_table(profile: Profile, *, grids: Sequence[tuple[int, int]], meth
             row: dict[str, Any] = {"method": method, "family": VARIANTS[method].family, "grid": f"{grid[0]}x{grid[1]}",
                                    "device": str(device)}
             try:
-                memory = training_step_memory(method, setup.geometry.to_dict(), str(device), depth_range)
+                memory = training_step_memory(method, setup.geometry.to_dict(), str(device),
+                                              depth_range_m=depth_range)
+                if memory.get("out_of_memory"):  # the step's own refusal, said by training_step_memory
+                    raise torch.OutOfMemoryError(f"one training step of {method}")
                 torch.manual_seed(0)
                 model = build_model(method, setup, depth_range).to(device)
                 amplitude = torch.rand(1, 1, *grid, device=device)
@@ -365,7 +376,7 @@ def _scores(bench: Profile, method: str, checkpoint: Path, targets: Sequence[str
     grid, roi = bench.section("slm").shape, bench.section("optics").roi
     psnrs, ssims = [], []
     for target in targets:
-        scene = compute_scene(prepare_target(load_target(target, size=roi), grid, roi), bench, method,
+        scene = compute_scene(prepare_target(load_target(target, size=roi), grid, roi), Calibrated(bench), method,
                               checkpoint=checkpoint)
         for colour in scene.colours:
             if not colour.skipped:
@@ -489,20 +500,23 @@ def _limit_memory(cap: int) -> None:
         pass
 
 
+# how torch's CPU allocators and oneDNN (which cannot map its workspace) word a refused allocation
+_ALLOCATION_FAILED = ("memory", "allocate", "could not create a primitive")
+
+
 def _child(argv: Sequence[str]) -> int:
     request = json.loads(argv[0])
-    if request.get("memory_cap"):
-        _limit_memory(int(request["memory_cap"]))
     try:
         depth_range = request.get("depth_range_m")
         result = training_step_memory(request["method"], request["geometry"], request["device"],
-                                      tuple(depth_range) if depth_range else None, request.get("planes", 5))
+                                      request.get("memory_cap"), tuple(depth_range) if depth_range else None,
+                                      request.get("planes", 5))
     except MemoryError:
         result = {"out_of_memory": True}
-    except RuntimeError as exc:  # torch's allocators say so in their message
-        if "memory" not in str(exc).lower() and "allocate" not in str(exc).lower():
+    except RuntimeError as exc:
+        if not any(words in str(exc).lower() for words in _ALLOCATION_FAILED):
             raise
-        result = {"out_of_memory": True}
+        result = {"out_of_memory": True, "detail": str(exc).splitlines()[0]}
     print(json.dumps(result))
     return 0
 

@@ -5,11 +5,16 @@ and SGD at each budget, each learned method whose checkpoint fits the benchmark'
 that network refined by SGD (`<name>+sgd`, at each budget). Learned methods without a fitting checkpoint are
 skipped with the reason printed. The per-target table is followed by the front: one row per method and
 budget, means over targets, and whether the row is on the Pareto front of time per frame against PSNR.
+
+A scene with depth (`rgbd:...`) is run by the methods that make focal stacks, at the planes it needs
+(`compute_depth_scene`), and scored by its focal stack's in-focus amplitude PSNR / SSIM (means over the planes);
+run one scene at a time for its own front.
 """
 
 from __future__ import annotations
 
 import io
+import math
 import statistics
 import time
 from collections.abc import Sequence
@@ -18,14 +23,17 @@ from typing import Any, Callable
 
 import torch
 
+from benchctl.calibration.calibrated import Calibrated
 from benchctl.calibration.geometry import grid_profile
 from benchctl.calibration.setups import optical_setup
 from benchctl.cgh import get_method, method_names
 from benchctl.errors import BenchctlError
 from benchctl.files import atomic_write_bytes, ensure_dir, write_csv
+from benchctl.holograms.depth import compute_depth_scene
 from benchctl.holograms.scene import checkpoint_status, compute_scene, usable_methods
 from benchctl.optics.metrics import pareto_front
 from benchctl.profiles import Profile
+from benchctl.scenes import is_scene, load_scene, prepare_scene
 from benchctl.targets import load_target, photo_specs, prepare_target
 
 CHART_TARGETS = ("chart:siemens", "chart:bars", "chart:text")
@@ -76,7 +84,7 @@ def front_rows(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     front = []
     for (method, iterations), group in groups.items():
         charts = [r["psnr_amplitude_db"] for r in group if r["target"].startswith("chart:")]
-        photos = [r["psnr_amplitude_db"] for r in group if not r["target"].startswith("chart:")]
+        photos = [r["psnr_amplitude_db"] for r in group if not r["target"].startswith(("chart:", "rgbd:"))]
         front.append({
             "method": method,
             "iterations": iterations,
@@ -96,14 +104,23 @@ def front_rows(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     return front
 
 
-def _load_targets(targets: Sequence[str], profile: Profile, out: Callable[[str], None]) -> dict[str, torch.Tensor]:
-    """Each target as (3, H, W) amplitude on the grid; one that cannot be loaded is skipped with the reason, and
-    when none can, the first reason is the error."""
-    grid, roi = profile.section("slm").shape, profile.section("optics").roi
-    amplitudes, errors = {}, []
+Target = torch.Tensor | tuple[torch.Tensor, torch.Tensor]
+"""A 2D target's amplitude (3, H, W), or a scene's amplitude and depth (H, W)."""
+
+
+def _load_targets(targets: Sequence[str], profile: Profile, out: Callable[[str], None]) -> dict[str, Target]:
+    """Each target as (3, H, W) amplitude on the grid (a scene with depth: and its depth map); one that cannot be
+    loaded is skipped with the reason, and when none can, the first reason is the error."""
+    grid, optics = profile.section("slm").shape, profile.section("optics")
+    roi = optics.roi
+    amplitudes: dict[str, Target] = {}
+    errors = []
     for spec in targets:
         try:
-            amplitudes[spec] = prepare_target(load_target(spec, size=roi), grid, roi)
+            if is_scene(spec):
+                amplitudes[spec] = prepare_scene(load_scene(spec, roi, optics.depth_range_m), grid, roi)
+            else:
+                amplitudes[spec] = prepare_target(load_target(spec, size=roi), grid, roi)
         except BenchctlError as error:
             out(f"not running target {spec}: {error}")
             errors.append(error)
@@ -146,8 +163,18 @@ def run_speed_vs_error(
     slm, optics = profile.section("slm"), profile.section("optics")
     grid, roi = slm.shape, optics.roi
     unit = _propagation_seconds(profile, colours[0] if colours else profile.channels[0].name)
-    # Warm-up: every colour's transfer functions are built here once, outside the timed frames.
-    compute_scene(next(iter(amplitudes.values())), profile, "dpac", colours=colours)
+    bench = Calibrated(profile)  # the profile as configured: nothing measured applies to a scaled grid
+    # Warm-up, outside the timed frames: every colour's transfer functions, and each method's first call (the first
+    # Adam step alone took 8 s: lazy imports), once on each kind of target.
+    for first in {isinstance(a, tuple): a for a in amplitudes.values()}.values():
+        for method in dict.fromkeys(("dpac", *methods)):
+            if isinstance(first, tuple) and get_method(method).focal_stack is None:
+                continue
+            shortest = budgets_for(method, (1,))[0]
+            if isinstance(first, tuple):
+                compute_depth_scene(*first, bench, method, iterations=shortest, colours=colours, perceptual=False)
+            else:
+                compute_scene(first, bench, method, iterations=shortest, colours=colours)
     out(f"grid {grid[0]}x{grid[1]}, ROI {roi[0]}x{roi[1]}, distance {optics.distance_mm:g} mm, "
         f"pitch {slm.pitch_um:g} um, targets: {', '.join(amplitudes)}")
     out(f"one propagation ({colours[0] if colours else profile.channels[0].name}, measured in this run): "
@@ -160,21 +187,31 @@ def run_speed_vs_error(
         for iterations in budgets_for(method, budgets):
             for target, amplitude in amplitudes.items():
                 last: dict[str, int] = {}
-                scene = compute_scene(amplitude, profile, method, iterations=iterations, colours=colours, seed=seed,
-                                      progress=_recording(progress, last))
-                done = [c for c in scene.colours if not c.skipped]
+                if isinstance(amplitude, tuple) and get_method(method).focal_stack is None:
+                    out(f"not running {method} on {target}: it makes holograms of one plane")
+                    continue
+                if isinstance(amplitude, tuple):  # focal-stack scores: means over the planes; no merged sRGB image
+                    stack = compute_depth_scene(*amplitude, bench, method, iterations=iterations, colours=colours,
+                                                seed=seed, progress=_recording(progress, last), perceptual=False)
+                    done = [c for c in stack.colours if not c.skipped]
+                    planes, srgb = len(stack.planes.planes_m), {"psnr_srgb_db": math.nan, "ssim_srgb": math.nan}
+                else:
+                    scene = compute_scene(amplitude, bench, method, iterations=iterations, colours=colours,
+                                          seed=seed, progress=_recording(progress, last))
+                    done = [c for c in scene.colours if not c.skipped]
+                    planes, srgb = 1, {key: scene.merged_scores[key] for key in ("psnr_srgb_db", "ssim_srgb")}
                 row: dict[str, Any] = {  # a CSV row: numbers, and "" where a method has no budget
                     "method": method,
                     "iterations": iterations if iterations is not None else "",
                     "iterations_run": _mean(list(last.values())) if iterations is not None else "",
                     "target": target,
+                    "planes": planes,
                     "frames": len(done),
                     "seconds_per_frame": _mean([c.seconds for c in done]),
                     "propagation_seconds": unit,
                     "psnr_amplitude_db": _mean([c.scores["psnr_amplitude_db"] for c in done]),
                     "ssim_amplitude": _mean([c.scores["ssim_amplitude"] for c in done]),
-                    "psnr_srgb_db": scene.merged_scores["psnr_srgb_db"],
-                    "ssim_srgb": scene.merged_scores["ssim_srgb"],
+                    **srgb,
                 }
                 rows.append(row)
                 run = f"{row['iterations_run']:.0f}" if iterations is not None else ""

@@ -21,8 +21,8 @@ from typing import TYPE_CHECKING, Annotated, Any
 from msgspec import Meta
 
 from benchctl.errors import BenchctlError
-from benchctl.files import file_sha256
-from benchctl.profiles import NonNegative, NonNegativeInt, ZernikeTerm
+from benchctl.files import file_sha256, read_capped
+from benchctl.profiles import NonNegative, NonNegativeInt, ZernikeTerm, waist_problem
 from benchctl.schema import Model, decode, fail
 
 if TYPE_CHECKING:
@@ -61,7 +61,9 @@ class FittedColour(Entry, kw_only=True):
     # written by model calibration, shown in reports
     residual: NonNegative | None = None
     initial_residual: NonNegative | None = None
+    held_out_residual: NonNegative | None = None  # on captures the fit did not see
     patterns: NonNegativeInt | None = None
+    held_out: NonNegativeInt | None = None
     flat: bool = False
     camera_blur_px: NonNegative = 0.0
     crosstalk_fitted_px: NonNegative | None = None
@@ -104,16 +106,37 @@ class LutIndexEntry(Entry, kw_only=True):
 LutIndex = dict[str, LutIndexEntry]  # lut.json: colour -> its table
 
 
+class FocusColour(Entry, kw_only=True):
+    """One colour of focus.json (benchctl.capture.focus.FocusMap.to_dict, and which focus device it was made with)."""
+
+    focus: str  # the [focus] driver and port it holds for
+    coefficients: Annotated[list[float], Meta(min_length=2, max_length=3)]  # depth mm = c0 + c1 s + c2 s^2
+    approach: Annotated[int, Meta(ge=-1, le=1)]
+    backlash_steps: float
+    overshoot_steps: NonNegativeInt
+    repeatability_steps: NonNegative | None = None
+    range_steps: tuple[float, float]
+    residual_mm: NonNegative
+    points: list[dict[str, float]] = []
+    run: str | None = None
+
+
+class FocusFile(Model, kw_only=True):
+    """focus.json: the focus calibration per laser colour."""
+
+    profile: str | None = None
+    unit: str = "step"
+    colours: dict[str, FocusColour]
+
+
 def checked_json(path: Path, model: Any) -> dict[str, Any] | None:
     """The JSON object in the file at `path` as parsed, after checking it against `model` (one of the models
     above; None if there is no file). A BenchctlError names the file, the key and what is wrong."""
     path = Path(path)
     try:
-        data = json.loads(path.read_bytes())
+        data = json.loads(read_capped(path, "calibration"))
     except FileNotFoundError:
         return None
-    except OSError as exc:
-        raise BenchctlError(f"{path}: cannot read calibration: {exc.strerror or exc}") from None
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise BenchctlError(f"{path}: not a JSON calibration file: {exc}") from None
     if not isinstance(data, dict):
@@ -142,8 +165,12 @@ def fitted_model_entry(profile: Profile, channel: str) -> dict[str, Any] | None:
 
 
 def _check_beam(path: Path, channel: str, entry: dict[str, Any], slm: SLMConfig) -> None:
-    """A Gaussian beam must light the panel: its centre within MAX_BEAM_MISS_WAISTS waists of it."""
+    """A Gaussian beam must light the panel: at least MIN_WAIST_PX pixels wide, its centre within
+    MAX_BEAM_MISS_WAISTS waists of it."""
     waist = float(entry.get("waist_mm", 0.0))
+    problem = waist_problem(waist, slm)
+    if problem:
+        raise fail(path, f"colours.{channel}.waist_mm", problem)
     if not waist:
         return
     half = (slm.height * slm.pitch_um * 5e-4, slm.width * slm.pitch_um * 5e-4)  # mm
@@ -156,10 +183,11 @@ def _check_beam(path: Path, channel: str, entry: dict[str, Any], slm: SLMConfig)
                    "waists): no light would reach it")
 
 
-def check_calibration(profile: Profile, registration: Path | None = None) -> list[str]:
+def check_calibration(profile: Profile, registration: Path | None = None, focus: Path | None = None) -> list[str]:
     """Check every calibration file a run on `profile` will use: the profile as calibration applies it (its
-    `optics.model` and `slm.lut` files, stored ones included) and `registration` (a registration.json, if given).
-    The first bad file is a BenchctlError naming it, the key and the value; otherwise one line per file checked."""
+    `optics.model` and `slm.lut` files, stored ones included), `registration` (a registration.json) and `focus` (a
+    focus.json, where the profile has a [focus] device), if given. The first bad file is a BenchctlError naming it,
+    the key and the value; otherwise one line per file checked."""
     from benchctl.devices.slm.lut import load_lut  # numpy only
 
     lines = []
@@ -175,6 +203,10 @@ def check_calibration(profile: Profile, registration: Path | None = None) -> lis
         data = checked_json(registration, RegistrationFile)
         if data is not None:
             lines.append(f"registration {registration}: {', '.join(data['colours']) or 'no colours'}")
+    if focus is not None and profile.focus is not None:
+        data = checked_json(focus, FocusFile)
+        if data is not None:
+            lines.append(f"focus {focus}: {', '.join(data['colours']) or 'no colours'}")
     return [f"calibration: {line}: OK" for line in lines]
 
 

@@ -6,6 +6,8 @@
     calibration/<profile name>/lut.json            when and for which geometry each table was measured
     calibration/<profile name>/optical-model.json  per colour: fitted wavefront error (Zernike waves) and beam,
                                                     residual, when, for which geometry (model calibration)
+    calibration/<profile name>/focus.json          per colour: focus steps <-> depth, backlash, repeatability (focus
+                                                    calibration), for which focus device
     calibration/<profile name>/rejected/           calibrations that failed their acceptance test
                                                     (calibration.acceptance), `<run>-<file>`, kept for inspection only
 
@@ -25,7 +27,7 @@ from typing import Any
 
 import msgspec
 
-from benchctl.calibration.files import LutIndex, OpticalModelFile, RegistrationFile, checked_json
+from benchctl.calibration.files import FocusFile, LutIndex, OpticalModelFile, RegistrationFile, checked_json
 from benchctl.errors import BenchctlError
 from benchctl.files import ensure_dir, file_sha256, write_json
 from benchctl.profiles import Profile
@@ -34,6 +36,7 @@ CALIBRATION_ENV = "BENCHCTL_CALIBRATION_DIR"
 REGISTRATION_FILE = "registration.json"
 LUT_INDEX = "lut.json"
 MODEL_FILE = "optical-model.json"
+FOCUS_FILE = "focus.json"
 REJECTED = "rejected"
 STALE_DAYS = 30
 
@@ -129,6 +132,29 @@ class Calibration:
         path = ensure_dir(self.folder) / MODEL_FILE
         data: dict[str, Any] = {"profile": self.profile.name, "colours": self.models()}
         data["colours"][colour] = {**entry, "geometry": self._for(colour), "created": _now()}
+        return write_json(path, data)
+
+    # -- focus ------------------------------------------------------------------------------------------------------
+
+    def focus_device(self) -> str:
+        """The focus device a focus calibration holds for: the [focus] driver and where it is reached."""
+        focus = self.profile.section("focus")
+        return f"{focus.driver} {focus.port or 'camera lens'}"
+
+    def focus_maps(self) -> dict[str, dict[str, Any]]:
+        """Colour -> stored focus calibration entry valid for this geometry and focus device."""
+        data = checked_json(self.folder / FOCUS_FILE, FocusFile) or {}
+        device = self.focus_device() if self.profile.focus else None
+        return {colour: entry for colour, entry in data.get("colours", {}).items()
+                if self._valid(colour, entry) and entry.get("focus") == device}
+
+    def save_focus(self, colour: str, entry: dict[str, Any]) -> Path:
+        """Store one colour's focus calibration (other colours' valid entries stay)."""
+        path = ensure_dir(self.folder) / FOCUS_FILE
+        data: dict[str, Any] = {"profile": self.profile.name, "unit": entry.pop("unit", "step"),
+                                "colours": self.focus_maps()}
+        data["colours"][colour] = {**entry, "focus": self.focus_device(), "geometry": self._for(colour),
+                                   "created": _now()}
         return write_json(path, data)
 
     def rejected_path(self, run: str, name: str) -> Path:

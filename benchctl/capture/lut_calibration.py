@@ -35,6 +35,7 @@ interpolates them to every level with a monotone cubic (PCHIP), phase(0) = 0.
 from __future__ import annotations
 
 import math
+
 import numpy as np
 from numpy.typing import ArrayLike
 

@@ -5,6 +5,7 @@ there is: DPAC ("dpac"), Gerchberg-Saxton ("gs"), SGD ("sgd") and the learned ne
 refinements (`benchctl.cgh.learned`). Imports only `benchctl.optics` from the rest of benchctl.
 """
 
+from benchctl.cgh import learned  # registers the learned methods: last, as it builds on the above
 from benchctl.cgh.dpac import DPAC, double_phase
 from benchctl.cgh.gerchberg_saxton import GERCHBERG_SAXTON
 from benchctl.cgh.method import (
@@ -24,8 +25,6 @@ from benchctl.cgh.method import (
 )
 from benchctl.cgh.sgd import SGD, roi_loss, sgd_method
 from benchctl.optics.setup import OpticalSetup
-
-from benchctl.cgh import learned  # registers the learned methods: last, as it builds on the above
 
 __all__ = [
     "DEFAULT_METHOD",

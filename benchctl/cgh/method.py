@@ -4,6 +4,11 @@ A method is called as `method(target_amplitude, setup, *, iterations=None, seed=
 float32 phase (H, W) in [-pi, pi). `Method` does what all methods share (input checks, iteration count, phase
 wrapping) and hands the algorithm a clean target, so an algorithm (classical or learned) is only its maths.
 
+The target may also be a scene with depth (`FocalStackTarget`: amplitude, depth and the planes it is shown at). A
+method with a `focal_stack` algorithm makes its hologram for all the planes at once; a scene on one plane is a flat
+scene, and every method makes it as its 2D algorithm makes a 2D target at that plane's distance (the same
+hologram, at the same cost).
+
 The registry holds every method: classical ones, learned ones (a method that needs trained networks, from a
 checkpoint: `needs_checkpoint`) and learned ones refined by SGD (`<learned>+sgd`, composed from the learned
 one). A method that needs a checkpoint runs once `trained` gives it its networks; where those come from
@@ -21,6 +26,7 @@ from typing import Callable, Optional
 import torch
 
 from benchctl.errors import BadValueError, did_you_mean
+from benchctl.optics.focal_stack import FocalStackTarget
 from benchctl.optics.setup import OpticalSetup
 
 Progress = Callable[[int, int], None]
@@ -31,6 +37,13 @@ Algorithm = Callable[[torch.Tensor, OpticalSetup, Optional[int], int, Optional[P
 
 `target` is float32 (H, W), finite, >= 0, zero outside the ROI, scaled to max 1 (or all zero);
 `iterations` is None for a one-shot method, else a resolved count >= 0.
+"""
+
+FocalStackAlgorithm = Callable[[FocalStackTarget, OpticalSetup, Optional[int], int, Optional[Progress]],
+                               torch.Tensor]
+"""focal_stack(target, setup, iterations, seed, progress) -> phase, for a scene with depth on two planes or more.
+
+`target.amplitude` is checked and scaled as `Algorithm`'s target is; `target.planes_m` are the planes' distances.
 """
 
 Networks = Callable[[OpticalSetup, torch.device], Callable[[torch.Tensor], torch.Tensor]]
@@ -93,7 +106,7 @@ class Method:
     `default_iterations` is None for one-shot methods (DPAC, a trained network's forward pass); those refuse an
     explicit `iterations` rather than silently ignoring it. `family` is "classical" or the learned network's
     family; a learned method has no algorithm until `trained` binds its networks, and a refined one names the
-    learned method it starts from in `refines`.
+    learned method it starts from in `refines`. `focal_stack`, where given, makes holograms of scenes with depth.
     """
 
     name: str
@@ -102,6 +115,7 @@ class Method:
     algorithm: Algorithm | None
     family: str = "classical"
     refines: str | None = None
+    focal_stack: FocalStackAlgorithm | None = None
 
     @property
     def needs_checkpoint(self) -> bool:
@@ -141,17 +155,20 @@ class Method:
 
     def __call__(
         self,
-        target_amplitude: torch.Tensor,
+        target_amplitude: torch.Tensor | FocalStackTarget,
         setup: OpticalSetup,
         *,
         iterations: int | None = None,
         seed: int = 0,
         progress: Progress | None = None,
     ) -> torch.Tensor:
-        """A phase-only hologram (H, W) float32 in [-pi, pi) whose reconstruction shows `target_amplitude`.
+        """A phase-only hologram (H, W) float32 in [-pi, pi) whose reconstruction shows `target_amplitude`: an
+        amplitude (H, W) at the setup's distance, or a scene with depth at its planes (`FocalStackTarget`).
 
         Deterministic for a given seed; torch's global random state is left untouched.
         """
+        if isinstance(target_amplitude, FocalStackTarget):
+            return self._focal_stack(target_amplitude, setup, iterations, seed, progress)
         if self.algorithm is None:
             raise BadValueError(f"method {self.name!r} needs trained networks: a checkpoint (`benchctl train`)")
         target = check_target(target_amplitude, setup)
@@ -159,6 +176,21 @@ class Method:
             raise BadValueError(f"seed must be an integer, got {seed!r}")
         phase = self.algorithm(target, setup, self._iterations(iterations), int(seed), progress)
         return wrap_phase(phase)
+
+    def _focal_stack(self, target: FocalStackTarget, setup: OpticalSetup, iterations: int | None, seed: int,
+                     progress: Progress | None) -> torch.Tensor:
+        """The hologram of a scene with depth: one plane is 2D at that plane's distance; more need `focal_stack`."""
+        if len(target.planes_m) == 1:
+            return self(target.amplitude, setup.at_distance(target.planes_m[0]), iterations=iterations, seed=seed,
+                        progress=progress)
+        if self.focal_stack is None:
+            able = [name for name in method_names() if METHODS[name].focal_stack is not None]
+            raise BadValueError(f"method {self.name!r} makes holograms of one plane; a scene on "
+                                f"{len(target.planes_m)} planes needs one of: {', '.join(able)}")
+        if isinstance(seed, bool) or not isinstance(seed, Integral):
+            raise BadValueError(f"seed must be an integer, got {seed!r}")
+        checked = target.with_amplitude(check_target(target.amplitude, setup))
+        return wrap_phase(self.focal_stack(checked, setup, self._iterations(iterations), int(seed), progress))
 
     def _iterations(self, iterations: int | None) -> int | None:
         if self.default_iterations is None:

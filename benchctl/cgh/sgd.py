@@ -18,15 +18,23 @@ Choices (docs/benchmarks.md and docs/model_calibration.md measure them):
 - Early stop: once the best loss fell by less than `tolerance` (relative) over the last `STOP_WINDOW`
   iterations, further iterations would change the result by less than that: stop and report the
   iterations done as the total (an all-black target stops after STOP_WINDOW iterations: its loss is zero).
+
+A scene with depth (`FocalStackTarget`, two planes or more) is optimised the same way, on the focal-stack loss
+(`stack_loss`: every plane scored where the scene is in focus there, Neural 3D Holography's masked loss) through
+the same setup, so the fitted model and the lookup table apply as in 2D; it starts from the method DPAC makes of
+the scene (layered, anti-aliased).
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import torch
 
 from benchctl.cgh.dpac import DPAC
 from benchctl.cgh.method import TOLERANCE, Method, Progress, register, stopped_improving
 from benchctl.errors import BadValueError
+from benchctl.optics.focal_stack import FocalStackTarget, focal_stack_loss
 from benchctl.optics.metrics import lsq_scale
 from benchctl.optics.setup import OpticalSetup
 
@@ -51,13 +59,51 @@ def roi_loss(phase: torch.Tensor, target: torch.Tensor, setup: OpticalSetup) -> 
     return torch.nn.functional.mse_loss(scale * recon, wanted)
 
 
-def _initial_phase(init: Init, target: torch.Tensor, setup: OpticalSetup, seed: int) -> torch.Tensor:
+def stack_loss(phase: torch.Tensor, target: FocalStackTarget, setup: OpticalSetup) -> torch.Tensor:
+    """The focal-stack loss (`focal_stack_loss`) over the ROI of the planes of `target`, reconstructed from `phase`
+    as the SLM shows it (`setup.displayed`) through one multi-plane propagation."""
+    rows, cols = setup.roi_slices
+    recon = setup.reconstruct_planes_roi(setup.displayed(phase), target.planes_m)
+    return focal_stack_loss(recon, target.amplitude[rows, cols], target.masks[:, rows, cols].to(recon.device))
+
+
+def _initial_phase(init: Init, target: torch.Tensor | FocalStackTarget, setup: OpticalSetup,
+                   seed: int) -> torch.Tensor:
     if isinstance(init, Method):
         return init(target, setup, seed=seed)
     if init == "dpac":
         return DPAC(target, setup)
-    generator = torch.Generator(device=target.device).manual_seed(seed)
-    return (torch.rand(target.shape, generator=generator, device=target.device) * 2 - 1) * RANDOM_RANGE
+    amplitude = target.amplitude if isinstance(target, FocalStackTarget) else target
+    generator = torch.Generator(device=amplitude.device).manual_seed(seed)
+    return (torch.rand(amplitude.shape, generator=generator, device=amplitude.device) * 2 - 1) * RANDOM_RANGE
+
+
+def _descend(loss_of: Callable[[torch.Tensor], torch.Tensor], start: torch.Tensor, setup: OpticalSetup,
+             iterations: int, lr: float, tolerance: float | None, progress: Progress | None) -> torch.Tensor:
+    """Adam on the phase from `start`, minimising `loss_of(phase)`: the best phase seen (module docstring)."""
+    phase = start.detach().clone().requires_grad_()
+    optimiser = torch.optim.Adam([phase], lr=lr)
+    losses: list[float] = []
+    best_loss, best_phase = float("inf"), phase.detach().clone()
+    for done in range(iterations + 1):
+        optimiser.zero_grad(set_to_none=True)
+        loss = loss_of(phase)
+        losses.append(float(loss.detach()))
+        if losses[-1] < best_loss:
+            best_loss, best_phase = losses[-1], phase.detach().clone()
+        if done == iterations:
+            break  # the loss of the last step's phase is known: no further step
+        if tolerance is not None and stopped_improving(losses, tolerance):
+            if progress is not None:
+                progress(done, done)
+            break
+        loss.backward()
+        optimiser.step()
+        with torch.no_grad():
+            phase.copy_(setup.within_reach(phase))
+        if progress is not None:
+            progress(done + 1, iterations)
+    return best_phase
 
 
 def sgd_method(name: str = "sgd", *, init: Init = "dpac", lr: float = PHASE_LR,
@@ -78,33 +124,23 @@ def sgd_method(name: str = "sgd", *, init: Init = "dpac", lr: float = PHASE_LR,
         # Optimise even when called under no_grad or inference_mode; the clone makes the target a normal tensor.
         with torch.inference_mode(False), torch.enable_grad():
             target = target.clone()
-            phase = _initial_phase(init, target, setup, seed).detach().clone().requires_grad_()
-            optimiser = torch.optim.Adam([phase], lr=lr)
-            losses: list[float] = []
-            best_loss, best_phase = float("inf"), phase.detach().clone()
-            for done in range(iterations + 1):
-                optimiser.zero_grad(set_to_none=True)
-                loss = roi_loss(phase, target, setup)
-                losses.append(float(loss.detach()))
-                if losses[-1] < best_loss:
-                    best_loss, best_phase = losses[-1], phase.detach().clone()
-                if done == iterations:
-                    break  # the loss of the last step's phase is known: no further step
-                if tolerance is not None and stopped_improving(losses, tolerance):
-                    if progress is not None:
-                        progress(done, done)
-                    break
-                loss.backward()
-                optimiser.step()
-                with torch.no_grad():
-                    phase.copy_(setup.within_reach(phase))
-                if progress is not None:
-                    progress(done + 1, iterations)
-        return best_phase
+            start = _initial_phase(init, target, setup, seed)
+            return _descend(lambda phase: roi_loss(phase, target, setup), start, setup, iterations, lr, tolerance,
+                            progress)
 
-    return Method(name=name, default_iterations=DEFAULT_ITERATIONS, algorithm=algorithm,
+    def focal_stack(target: FocalStackTarget, setup: OpticalSetup, iterations: int | None, seed: int,
+                    progress: Progress | None) -> torch.Tensor:
+        assert iterations is not None
+        with torch.inference_mode(False), torch.enable_grad():
+            target = target.with_amplitude(target.amplitude.clone())
+            start = _initial_phase(init, target, setup, seed)
+            return _descend(lambda phase: stack_loss(phase, target, setup), start, setup, iterations, lr, tolerance,
+                            progress)
+
+    return Method(name=name, default_iterations=DEFAULT_ITERATIONS, algorithm=algorithm, focal_stack=focal_stack,
                   description=description or f"Adam on the SLM phase from a {start} start, minimising the simulated "
-                                             "ROI error, stopping once it stops improving")
+                                             "ROI error (of a scene with depth: its focal stack's in-focus error), "
+                                             "stopping once it stops improving")
 
 
 SGD = register(sgd_method())

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import math
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import benchctl
@@ -73,9 +73,38 @@ def seconds(text: str) -> float:
     return value
 
 
+def device_name(text: str) -> str:
+    """The argument type of --device: auto, cpu, cuda or cuda:N (whether it is here is checked where it is used)."""
+    from benchctl.errors import BadValueError
+    from benchctl.training.device import check_device_text
+
+    try:
+        return check_device_text(text)
+    except BadValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc).split(": ", 1)[1]) from None
+
+
+def add_device(parser: argparse.ArgumentParser) -> None:
+    """The --device option of the commands that train."""
+    parser.add_argument("--device", type=device_name, default="cpu", metavar="DEVICE",
+                        help="auto (the first GPU where there is one, else the CPU), cpu, cuda or cuda:N "
+                             "(default: cpu)")
+
+
 count = whole_number(0)
+seed_number = whole_number(0, 2**32 - 1)  # numpy's generators take seeds in this range
 positive_int = whole_number(1)
 port = whole_number(0, 65535)
+
+
+def plane_count(text: str) -> int | str:
+    """The argument type of --planes: "auto" (the planes a scene's depth needs) or a whole number >= 1."""
+    if text == "auto":
+        return text
+    try:
+        return positive_int(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"expected 'auto' or a whole number of planes >= 1, got {text!r}") from None
 
 
 class Parser(argparse.ArgumentParser):
@@ -101,8 +130,8 @@ def add_profile(parser: argparse.ArgumentParser) -> None:
                         help="hardware profile: TOML path or name in hardware_profiles/ (default: simulated)")
 
 
-def print_lines(lines: list[str]) -> int:
-    """Print `lines` one per line; exit code 0 (what a listing command returns)."""
+def print_lines(lines: Iterable[str]) -> int:
+    """Print `lines` one per line, each as it comes (a command may yield them as it works); exit code 0."""
     for line in lines:
-        print(line)
+        print(line, flush=True)
     return 0

@@ -1,5 +1,5 @@
-"""`benchctl laser | slm | camera | sim | devices`: each action maps to one function of
-`benchctl.runner.device_commands`."""
+"""`benchctl laser | slm | camera | focus | sim | devices`: each action maps to one function of
+`benchctl.runner.device_commands` (focus: `benchctl.runner.focus_commands`)."""
 
 from __future__ import annotations
 
@@ -27,6 +27,16 @@ def _cmd_device(args: argparse.Namespace) -> int:
 
         return print_lines(show_frame(Path(args.frame), args.output))
     profile = load_profile(args.profile)
+    if args.command == "focus":
+        from benchctl.runner import focus_commands as fc
+
+        if args.focus_command == "status":
+            return print_lines(fc.focus_status(profile))
+        if args.focus_command == "home":
+            return print_lines(fc.focus_home(profile))
+        if args.focus_command == "move":
+            return print_lines(fc.focus_move(profile, args.steps))
+        return print_lines(fc.focus_go(profile, " ".join(args.depth), args.channel))
     if args.command == "camera":
         if args.camera_command == "info":
             return print_lines(dc.camera_info(profile))
@@ -105,6 +115,30 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     show.add_argument("--output", "-o", type=Path, metavar="PNG",
                       help="where to write the preview (default: FRAME's name + .preview.png, in this folder)")
     show.set_defaults(func=_cmd_device)
+    focus = sub.add_parser("focus", help="camera focus: status, home, move by steps, go to a depth",
+                           description="The camera's focus the profile's [focus] section describes (a Zaber stage "
+                                       "carrying the camera, or the EOS body's own lens). Steps are the driver's own "
+                                       "(microsteps, DriveLens steps); `go` turns a depth into steps with the focus "
+                                       "calibration (procedures/focus_calibration.toml) and arrives from its side, "
+                                       "past the backlash.").add_subparsers(
+        dest="focus_command", metavar="ACTION", required=True)
+    fstatus = focus.add_parser("status", help="what the device is, where the focus is (steps, and depth where "
+                                              "calibrated)")
+    fhome = focus.add_parser("home", help="drive to the home end stop: position 0 from then on")
+    fmove = focus.add_parser("move", help="move by STEPS (signed) from where it is")
+    fmove.add_argument("steps", type=int, metavar="STEPS", help="steps to move, e.g. 200 or -50")
+    fgo = focus.add_parser("go", help="focus at a depth from the SLM: 70.2mm or 14.3D (diopters: 1 / metres)",
+                           description="Focus at a depth from the SLM, in millimetres (70.2mm) or diopters (14.3D = "
+                                       "1 / 0.0702 m), through the colour's focus calibration: the position is "
+                                       "approached from the side it was calibrated from, going past it by twice the "
+                                       "measured backlash first when it has to come back. Homes first when the "
+                                       "position is not known.")
+    fgo.add_argument("depth", nargs="+", metavar="DEPTH", help="e.g. 70.2mm, 70.2 mm, 14.3D")
+    fgo.add_argument("--channel", "-c", help="laser colour whose calibration to use (default: green, or the only one)")
+    for parser in (fstatus, fhome, fmove, fgo):
+        add_profile(parser)
+        parser.set_defaults(func=_cmd_device)
+
     devices = sub.add_parser("devices", help="serial ports, PTP and GenICam cameras, framebuffers and desktop outputs "
                                                      "(EDID name, serial, mode) on this machine")
     devices.set_defaults(func=_cmd_device)
@@ -114,10 +148,11 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     sim.add_parser("status", help="where the state is kept and what each simulated device holds")
     sim.add_parser("reset", help="forget all simulated device state (like a power cycle)")
     fault = sim.add_parser("fault", help="make a simulated device misbehave from its next connection on")
-    fault.add_argument("device", help="simulated device name, e.g. rgb-laser (from sim://rgb-laser), or sim-camera")
+    fault.add_argument("device", help="simulated device name, e.g. rgb-laser (from sim://rgb-laser), focus-stage, or "
+                                      "sim-camera")
     fault.add_argument("faults", nargs="*", help="lasers: no_reply, garbled, echo, slow, interlock_open, device_fault, "
-                                                 "clamp, drop_after=N; sim-camera: unplug_at=N (cable pulled before "
-                                                 "frame N)")
+                                                 "clamp, drop_after=N; focus stage: no_reply, garbled, slow, stall, "
+                                                 "drop_after=N; sim-camera: unplug_at=N (cable pulled before frame N)")
     fault.add_argument("--clear", action="store_true", help="remove every fault")
     add_profile(fault)  # whose sim:// lasers are known devices
     for parser in sim.choices.values():

@@ -6,19 +6,19 @@ import argparse
 
 
 def _cmd_profile_check(args: argparse.Namespace) -> int:
+    from benchctl.calibration.calibrated import Calibrated
     from benchctl.calibration.files import check_calibration
     from benchctl.calibration.geometry import describe_plans
-    from benchctl.calibration.store import REGISTRATION_FILE, Calibration
+    from benchctl.calibration.store import FOCUS_FILE, REGISTRATION_FILE, Calibration
     from benchctl.profiles import load_profile
 
     profile = load_profile(args.path)
     print(profile.describe())
     print(describe_plans(profile))
-    registration = None
+    registration, store = None, Calibration.store(profile)
     if profile.slm is not None and profile.optics is not None:  # what calibration/<profile>/ holds for its geometry
-        store = Calibration.store(profile)
-        profile, registration = store.applied(profile), store.folder / REGISTRATION_FILE
-    for line in check_calibration(profile, registration):
+        profile, registration = Calibrated(profile, store).profile, store.folder / REGISTRATION_FILE
+    for line in check_calibration(profile, registration, store.folder / FOCUS_FILE):
         print(line)
     print(f"{profile.path}: OK")
     return 0

@@ -144,12 +144,13 @@ def _receive(connection: Connection) -> Any:
 
 
 def _compute(request: Request, connection: Connection) -> Result:
+    from benchctl.calibration.calibrated import Calibrated
     from benchctl.holograms.cache import hologram
 
     def progress(label: str) -> Callable[[int, int], None]:
         return lambda done, total: _send(connection, ("progress", label, done, total))
 
-    result = hologram(request.profile, request.amplitude, request.channel, request.method,
+    result = hologram(Calibrated(request.profile), request.amplitude, request.channel, request.method,
                       iterations=request.iterations, seed=request.seed, checkpoint=request.checkpoint,
                       progress=progress)
     return Result(result.gray, result.scores, result.seconds, result.cached)

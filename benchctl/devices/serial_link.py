@@ -129,6 +129,21 @@ class SerialLink:
             return lines
         return self._exchange(command, read)
 
+    def query_prompted(self, command: str, prompt: str) -> list[str]:
+        """Send `command` and return its reply lines up to `prompt`, which a device that prompts for its next command
+        sends (without a line ending) once it has answered: the exchange ends there, not at a timeout."""
+        marker = prompt.encode("ascii")
+
+        def read() -> list[str]:
+            lines: list[str] = []
+            while (line := self._next_line(command, marker)) is not None:
+                lines.append(line)
+                if len(lines) > MAX_REPLY_LINES:
+                    raise DeviceError(f"{self.where}: no prompt {prompt!r} after {MAX_REPLY_LINES} reply lines to "
+                                      f"{command!r}")
+            return lines
+        return self._exchange(command, read)
+
     def command(self, command: str, ok_reply: str = "OK") -> None:
         """Send a command that answers `ok_reply`; anything else (an error reply included) is a DeviceError."""
         def read() -> None:
@@ -215,10 +230,19 @@ class SerialLink:
 
     def _line(self, command: str) -> str:
         """Read one line framed by the line ending; DeviceTimeout if nothing comes, DeviceError if garbled."""
+        line = self._next_line(command, b"")
+        assert line is not None  # no prompt to stop at
+        return line
+
+    def _next_line(self, command: str, prompt: bytes) -> str | None:
+        """`_line`, or None (consumed) when what has arrived is `prompt` (when not empty) rather than a line."""
         port = self._port
         assert port is not None
         deadline = time.monotonic() + self.timeout_s
         while (end := self._rx.find(self._terminator)) < 0:
+            if prompt and self._rx.startswith(prompt):
+                del self._rx[:len(prompt)]
+                return None
             try:
                 chunk = port.read(max(1, port.in_waiting))
             except serial.SerialException as exc:

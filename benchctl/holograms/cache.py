@@ -21,7 +21,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from benchctl.calibration.setups import optical_setup
+from benchctl.calibration.calibrated import Calibrated
 from benchctl.cgh import get_method
 from benchctl.files import atomic_write_bytes, ensure_dir
 from benchctl.holograms.checkpoints import find_checkpoint
@@ -69,27 +69,35 @@ def _key(profile: Profile, setup: OpticalSetup, channel: str, plane: torch.Tenso
     return digest.hexdigest()[:32]
 
 
-def hologram(profile: Profile, target: torch.Tensor, channel: str, method: str, *, iterations: int | None,
-             seed: int, checkpoint: str | None, progress: Callable[[str], Callable[[int, int], None]] | None = None,
-             setup: OpticalSetup | None = None) -> Hologram:
-    """The hologram of `channel` for `target` (3, H, W amplitude on the SLM grid), computed for `setup` (default:
-    the channel's setup on `profile`): from the cache when this exact computation was done before, else computed
-    (compute_scene, one colour) and cached."""
-    setup = setup or optical_setup(profile, channel)
-    network = get_method(method).network  # "ccnn-dcm4+sgd" runs ccnn-dcm4's checkpoint
+def cache_entry(bench: Calibrated, target: torch.Tensor, channel: str, method: str, *, iterations: int | None,
+                seed: int, checkpoint: str | None) -> tuple[Path, str | None]:
+    """Where the hologram of `channel` for `target` with these options is cached, and the checkpoint it is computed
+    with: the one given, else the one found for a learned method (or for a refined one's network: "ccnn-dcm4+sgd"
+    runs ccnn-dcm4's). That checkpoint's bytes are part of the key, as are the code, the bench and the target."""
+    network = get_method(method).network
     if checkpoint is None and network is not None:
-        found = find_checkpoint(network, profile)  # what compute_scene will use: its bytes belong in the key
+        found = find_checkpoint(network, bench.profile)  # what compute_scene will use
         checkpoint = str(found) if found else None
     options = {"method": method, "iterations": iterations, "seed": seed, "checkpoint": checkpoint}
-    plane = target[target_plane(profile.channel(channel))]
-    path = cache_dir() / "holograms" / f"{_key(profile, setup, channel, plane, options)}.npz"
+    plane = target[target_plane(bench.profile.channel(channel))]
+    key = _key(bench.profile, bench.setup(channel), channel, plane, options)
+    return cache_dir() / "holograms" / f"{key}.npz", checkpoint
+
+
+def hologram(bench: Calibrated, target: torch.Tensor, channel: str, method: str, *, iterations: int | None,
+             seed: int, checkpoint: str | None,
+             progress: Callable[[str], Callable[[int, int], None]] | None = None) -> Hologram:
+    """The hologram of `channel` for `target` (3, H, W amplitude on the SLM grid) on `bench`: from the cache when
+    this exact computation was done before (`cache_entry`), else computed (compute_scene, one colour) and cached."""
+    path, checkpoint = cache_entry(bench, target, channel, method, iterations=iterations, seed=seed,
+                                   checkpoint=checkpoint)
     if path.is_file():
         with np.load(path, allow_pickle=False) as data:
             return Hologram(data["gray"], data["reconstruction"], json.loads(str(data["scores"])),
                             float(data["seconds"]), cached=True)
     extra = {"checkpoint": Path(checkpoint)} if checkpoint else {}
-    scene = compute_scene(target, profile, method, iterations=iterations, colours=[channel], seed=seed,
-                          progress=progress, setups={channel: setup}, **extra)
+    scene = compute_scene(target, bench, method, iterations=iterations, colours=[channel], seed=seed,
+                          progress=progress, **extra)
     result = scene.colours[0]
     assert not result.skipped and result.gray is not None and result.reconstruction is not None
     entry = Hologram(result.gray, result.reconstruction.numpy(), result.scores, result.seconds, cached=False)

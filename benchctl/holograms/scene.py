@@ -6,18 +6,17 @@ This is the in-memory core shared by `benchctl generate` and `benchctl bench spe
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from benchctl.calibration.setups import optical_setups, optimised_setup
+from benchctl.calibration.calibrated import Calibrated
 from benchctl.capture.colour_planes import merge_colours
 from benchctl.cgh import Method, get_method, method_names
 from benchctl.cgh.learned import LEARNED_METHODS, model_info
-from benchctl.devices.slm import slm_for
 from benchctl.errors import BadValueError, BenchctlError
 from benchctl.holograms.checkpoint_notes import checkpoint_notes
 from benchctl.holograms.checkpoints import (
@@ -28,7 +27,6 @@ from benchctl.holograms.checkpoints import (
     profile_geometries,
 )
 from benchctl.optics import amplitude_scores, colour_scores, crop_roi
-from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import LaserChannel, Profile
 from benchctl.targets import active_channels, target_plane
 
@@ -42,8 +40,9 @@ class ColourResult:
     skipped: bool
     seconds: float = 0.0
     gray: np.ndarray | None = None  # the SLM frame exactly as displayed (lookup table, offset, carrier, flips)
-    reconstruction: torch.Tensor | None = None  # ROI amplitude, least-squares scaled to the target
-    scores: dict[str, float] = field(default_factory=dict)
+    reconstruction: torch.Tensor | None = None  # ROI amplitude (h, w) or focal stack (K, h, w), least-squares scaled
+    scores: dict[str, float] = field(default_factory=dict)  # a scene with depth: the means over its planes
+    plane_scores: list[dict[str, float] | None] = field(default_factory=list)  # a scene with depth: per plane
 
 
 @dataclass
@@ -139,7 +138,7 @@ def select_channels(profile: Profile, names: list[str] | None) -> list[LaserChan
 
 def compute_scene(
     target_amplitude: torch.Tensor,
-    profile: Profile,
+    bench: Calibrated,
     method: str,
     *,
     iterations: int | None = None,
@@ -147,7 +146,6 @@ def compute_scene(
     seed: int = 0,
     progress: Callable[[str], Callable[[int, int], None]] | None = None,
     checkpoint: Path | None = None,
-    setups: Mapping[str, OpticalSetup] | None = None,
 ) -> SceneResult:
     """Generate, quantise, display (in simulation) and score a hologram for each requested, non-black colour.
 
@@ -155,8 +153,10 @@ def compute_scene(
     given, is called with a label per colour and returns that colour's `(done, total)` callback. A learned
     method uses `checkpoint`, else the checkpoint shipped for the profile (`find_checkpoint`); it is refused
     (BenchctlError) when there is none or when it was trained for another geometry; a classical method given
-    a checkpoint is an error too. `setups`: the colours' optical setups (default: the profile's, `optical_setups`).
+    a checkpoint is an error too. Each colour is computed and simulated on `bench`'s optical setup, through its
+    SLM's lookup tables.
     """
+    profile = bench.profile
     grid, roi = profile.section("slm").shape, profile.section("optics").roi
     if tuple(target_amplitude.shape) != (3, *grid):
         raise BenchctlError(f"target is {tuple(target_amplitude.shape)}, the SLM grid needs (3, {grid[0]}, {grid[1]})")
@@ -164,13 +164,12 @@ def compute_scene(
     channels = select_channels(profile, colours)
     generate, used_checkpoint = resolve_method(method, profile, checkpoint,
                                                [c.name for c in channels if present[target_plane(c)]])
-    slm = slm_for(profile)
+    slm = bench.slm
     target_roi = crop_roi(target_amplitude, roi)
     lit = [channel for channel in channels if present[target_plane(channel)]]
-    setups = setups or optical_setups(profile, [channel.name for channel in lit])
     computed: dict[str, tuple[float, np.ndarray, torch.Tensor]] = {}
     for channel in lit:
-        setup = optimised_setup(setups[channel.name], slm, channel.name)
+        setup = bench.setup(channel.name, as_displayed=True)
         start = time.perf_counter()
         phase = generate(target_amplitude[target_plane(channel)], setup, iterations=iterations, seed=seed,
                          progress=progress(f"{method} {channel.name}") if progress else None)

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from benchctl.optics.metrics import lsq_scale, psnr_of_mse, ssim_map
+from benchctl.optics.metrics import lsq_scale, perceptual_scores, psnr_of_mse, ssim_map
 
 
 def in_focus_masks(depth_m: torch.Tensor, planes_m: Sequence[float], softness_m: float = 0.0) -> torch.Tensor:
@@ -79,18 +79,26 @@ def focal_stack_loss(recon: torch.Tensor, target: torch.Tensor, masks: torch.Ten
     of one plane; `recon` (..., K, h, w), `target` (h, w), `masks` (K, h, w). s is the least-squares scale of the
     whole stack, held constant for autograd (exact at the optimum, as for `sgd.roi_loss`). With one plane and a
     mask of ones it is that plane's MSE after `lsq_scale`."""
-    weighted = masks * recon.detach()
-    numerator = (weighted * target).sum(dim=(-3, -2, -1), keepdim=True)
-    denominator = (weighted * recon.detach()).sum(dim=(-3, -2, -1), keepdim=True)
-    scale = torch.where(denominator > 0, numerator / torch.where(denominator > 0, denominator, 1.0), 1.0)
+    scale = stack_scale(recon.detach(), target, masks)
     error = (masks * (scale * recon - target).square()).sum(dim=(-3, -2, -1))
     return (error / (target.shape[-2] * target.shape[-1])).mean()
 
 
-def masked_scores(recon: torch.Tensor, target: torch.Tensor, region: torch.Tensor) -> dict[str, float] | None:
+def stack_scale(recon: torch.Tensor, target: torch.Tensor, masks: torch.Tensor) -> torch.Tensor:
+    """The least-squares scale of a focal stack (..., K, h, w) against `target` (h, w) over the in-focus `masks`
+    (K, h, w): sum(m r t) / sum(m r^2), shaped (..., 1, 1, 1); 1 where the stack is dark."""
+    weighted = masks * recon
+    numerator = (weighted * target).sum(dim=(-3, -2, -1), keepdim=True)
+    denominator = (weighted * recon).sum(dim=(-3, -2, -1), keepdim=True)
+    return torch.where(denominator > 0, numerator / torch.where(denominator > 0, denominator, 1.0), 1.0)
+
+
+def masked_scores(recon: torch.Tensor, target: torch.Tensor, region: torch.Tensor, *,
+                  perceptual: bool = False) -> dict[str, float] | None:
     """Amplitude PSNR and SSIM of `recon` against `target` (h, w) inside `region` (h, w, bool), after the
     least-squares scale over the region; None for an empty region. SSIM: the mean over the windows that lie wholly
-    inside the region, or where the region holds no whole window, over those centred inside it."""
+    inside the region, or where the region holds no whole window, over those centred inside it. `perceptual` adds
+    FLIP and speckle contrast inside the region (`perceptual_scores`)."""
     if not bool(region.any()):
         return None
     inside = region.to(recon.dtype)
@@ -105,6 +113,8 @@ def masked_scores(recon: torch.Tensor, target: torch.Tensor, region: torch.Tenso
     centred = region[top:top + local.shape[-2], left:left + local.shape[-1]]
     windows = whole if bool(whole.any()) else centred
     scores["ssim_amplitude"] = float(local[windows].mean() if bool(windows.any()) else local.mean())
+    if perceptual:
+        scores |= perceptual_scores(scaled, target, region)
     return scores
 
 
@@ -119,14 +129,20 @@ class FocalStackScores:
 
 
 def focal_stack_scores(recon: torch.Tensor, target: torch.Tensor, masks: torch.Tensor,
-                       planes_m: Sequence[float]) -> FocalStackScores:
+                       planes_m: Sequence[float], *, perceptual: bool = False) -> FocalStackScores:
     """Each plane of `recon` (K, h, w) scored inside its in-focus region (where its mask is the largest of the
-    pixel's weights) against `target` (h, w), by `masked_scores`; the mean over the planes with a region."""
+    pixel's weights) against `target` (h, w), by `masked_scores`; the mean over the planes with a region (a score
+    that only some planes have, such as speckle contrast, over those)."""
     if recon.dim() != 3 or masks.shape != recon.shape or target.shape != recon.shape[-2:]:
         raise ValueError(f"focal stack {tuple(recon.shape)}, masks {tuple(masks.shape)} and target "
                          f"{tuple(target.shape)} must be (K, h, w), (K, h, w) and (h, w)")
     owner = masks.argmax(dim=0)
-    per_plane = [masked_scores(recon[k], target, owner == k) for k in range(len(recon))]
-    present = [scores for scores in per_plane if scores is not None]
-    mean = {key: sum(s[key] for s in present) / len(present) for key in present[0]} if present else {}
-    return FocalStackScores(tuple(float(z) for z in planes_m), per_plane, mean)
+    per_plane = [masked_scores(recon[k], target, owner == k, perceptual=perceptual) for k in range(len(recon))]
+    return FocalStackScores(tuple(float(z) for z in planes_m), per_plane, mean_scores(per_plane))
+
+
+def mean_scores(scores: Sequence[dict[str, float] | None]) -> dict[str, float]:
+    """Key by key, the mean over the score dicts that have the key (None entries left out); {} for none."""
+    present = [s for s in scores if s is not None]
+    keys = dict.fromkeys(key for s in present for key in s)
+    return {key: sum(s[key] for s in present if key in s) / sum(key in s for s in present) for key in keys}

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -117,24 +118,42 @@ def ssim_map(pred: torch.Tensor, target: torch.Tensor, data_range: float) -> tor
     return values.reshape(*lead, *values.shape[-2:])
 
 
-def amplitude_scores(recon: torch.Tensor, target: torch.Tensor) -> dict[str, float]:
+def amplitude_scores(recon: torch.Tensor, target: torch.Tensor, *, perceptual: bool = False) -> dict[str, float]:
     """PSNR / SSIM of an amplitude image against the target amplitude (same shape, already scaled), in amplitude,
-    linear intensity and sRGB: the one scoring of a colour, for simulated reconstructions and captures alike."""
+    linear intensity and sRGB: the one scoring of a colour, for simulated reconstructions and captures alike.
+    `perceptual` adds the mean FLIP error (`flip_map`) and, where the target holds flat regions, the speckle
+    contrast there (`speckle_contrast`)."""
     lin_r, lin_t = recon.square().clamp(0, 1), target.square().clamp(0, 1)
     srgb_r, srgb_t = linear_to_srgb(lin_r), linear_to_srgb(lin_t)
-    return {
+    scores = {
         "psnr_amplitude_db": float(psnr(recon, target, data_range=1.0).mean()),
         "ssim_amplitude": float(ssim(recon, target, data_range=1.0).mean()),
         "psnr_linear_db": float(psnr(lin_r, lin_t, data_range=1.0).mean()),
         "psnr_srgb_db": float(psnr(srgb_r, srgb_t, data_range=1.0).mean()),
         "ssim_srgb": float(ssim(srgb_r, srgb_t, data_range=1.0).mean()),
     }
+    if perceptual:
+        scores |= perceptual_scores(recon, target)
+    return scores
+
+
+def perceptual_scores(recon: torch.Tensor, target: torch.Tensor,
+                      region: torch.Tensor | None = None) -> dict[str, float]:
+    """Mean FLIP error of an amplitude image (h, w) against its target (already scaled), over `region` (bool (h, w);
+    all pixels if None), and the speckle contrast on the flat part of the region, where it has one."""
+    region = torch.ones(recon.shape[-2:], dtype=torch.bool) if region is None else region.cpu()
+    scores = {"flip": float(flip_map(recon, target)[region].mean())}
+    contrast = speckle_contrast(recon, target, region)
+    if contrast is not None:
+        scores["speckle_contrast"] = contrast
+    return scores
 
 
 def colour_scores(merged_linear: torch.Tensor, target_roi: torch.Tensor, *,
-                  with_ssim: bool = True) -> dict[str, float]:
+                  with_ssim: bool = True, perceptual: bool = False) -> dict[str, float]:
     """Scores of a merged colour image (3, h, w) in linear intensity against the target amplitude (3, h, w): PSNR
-    over all planes at once, in linear and sRGB, and (`with_ssim`) SSIM in sRGB averaged over planes."""
+    over all planes at once, in linear and sRGB, (`with_ssim`) SSIM in sRGB averaged over planes and (`perceptual`)
+    the mean FLIP error of the colour image."""
     h, w = merged_linear.shape[-2:]
     lin_t = target_roi.square().clamp(0, 1)
     srgb_r, srgb_t = linear_to_srgb(merged_linear), linear_to_srgb(lin_t)
@@ -144,7 +163,62 @@ def colour_scores(merged_linear: torch.Tensor, target_roi: torch.Tensor, *,
     }
     if with_ssim:
         scores["ssim_srgb"] = float(ssim(srgb_r, srgb_t, data_range=1.0).mean())
+    if perceptual:
+        scores["flip"] = float(_flip(srgb_r, srgb_t).mean())
     return scores
+
+
+def _flip(srgb: torch.Tensor, reference_srgb: torch.Tensor) -> torch.Tensor:
+    """LDR-FLIP error map (h, w) of an sRGB image (3, h, w) against a reference one, 67 pixels per degree."""
+    import flip_evaluator  # a compiled extension: loaded only where perceptual scores are asked for
+
+    def hwc(image: torch.Tensor) -> np.ndarray:
+        return np.ascontiguousarray(image.detach().float().clamp(0, 1).permute(1, 2, 0).cpu().numpy())
+
+    error, _, _ = flip_evaluator.evaluate(hwc(reference_srgb), hwc(srgb), "LDR", inputsRGB=True, applyMagma=False,
+                                          computeMeanError=False)
+    return torch.from_numpy(np.asarray(error, dtype=np.float32).reshape(srgb.shape[-2:]))
+
+
+def flip_map(recon: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """The FLIP error map (h, w), in [0, 1], of an amplitude image (h, w) against its target amplitude: NVIDIA's
+    LDR-FLIP (Andersson et al. 2020, PyPI flip-evaluator) on the intensities in sRGB, gray as three equal channels,
+    at its default viewing condition (67 pixels per degree). Not differentiable."""
+    srgb_r, srgb_t = (linear_to_srgb(x.detach().square().clamp(0, 1)).expand(3, *x.shape[-2:]) for x in (recon, target))
+    return _flip(srgb_r, srgb_t)
+
+
+FLAT_WINDOW = 7
+"""Side (pixels) of the neighbourhood in which a target must hold flat for its speckle to be measured."""
+FLAT_TOLERANCE = 0.02
+"""Largest amplitude spread (of a peak of 1) within that neighbourhood that counts as flat."""
+FLAT_FLOOR = 0.1
+"""Smallest target amplitude where speckle is measured: dark regions hold no light whose spread could be told."""
+MIN_FLAT_PIXELS = 64
+
+
+def flat_regions(target: torch.Tensor) -> torch.Tensor:
+    """Where the target amplitude (h, w) is lit (>= FLAT_FLOOR) and varies by at most FLAT_TOLERANCE over the
+    FLAT_WINDOW x FLAT_WINDOW pixels around: bool (h, w)."""
+    image = target.detach().float()[None, None]
+    pad = FLAT_WINDOW // 2
+    highest = F.max_pool2d(F.pad(image, (pad,) * 4, mode="replicate"), FLAT_WINDOW, stride=1)
+    lowest = -F.max_pool2d(F.pad(-image, (pad,) * 4, mode="replicate"), FLAT_WINDOW, stride=1)
+    return ((highest - lowest <= FLAT_TOLERANCE) & (image >= FLAT_FLOOR))[0, 0]
+
+
+def speckle_contrast(recon: torch.Tensor, target: torch.Tensor, region: torch.Tensor | None = None) -> float | None:
+    """Speckle contrast std / mean of the reconstructed intensity over the target's intensity, on the pixels of
+    `region` (default all) where the target holds flat (`flat_regions`): 0 for a reconstruction without speckle,
+    whatever the level of each flat region. None where fewer than MIN_FLAT_PIXELS such pixels exist."""
+    flat = flat_regions(target)
+    if region is not None:
+        flat &= region.to(flat.device)
+    if int(flat.sum()) < MIN_FLAT_PIXELS:
+        return None
+    ratio = (recon.detach().double().square()[flat] / target.detach().double().square()[flat])
+    mean = ratio.mean()
+    return float(ratio.std(unbiased=False) / mean) if float(mean) > 0 else None
 
 
 def pareto_front(points: Sequence[tuple[float, float]]) -> list[bool]:

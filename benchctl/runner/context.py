@@ -8,7 +8,6 @@ did not declare is stopped before the laser is touched.
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,10 +17,10 @@ import numpy as np
 import torch
 
 from benchctl.calibration.acceptance import Verdict, rejection_line
-from benchctl.calibration.setups import optical_setups, optimised_setup
+from benchctl.calibration.calibrated import Calibrated
 from benchctl.calibration.store import Calibration
 from benchctl.devices.power import format_power
-from benchctl.devices.slm import SLM, slm_for
+from benchctl.devices.slm import SLM
 from benchctl.errors import BenchctlError
 from benchctl.files import file_sha256
 from benchctl.optics.setup import OpticalSetup
@@ -50,20 +49,23 @@ P = TypeVar("P", bound=Parameters)
 @dataclass(frozen=True)
 class Expose:
     """An exposure a step declares: show a frame, light `channel` alone at `power_w` (None: a power the step
-    decides when it runs, never above the channel's max_power_mw), capture `frames` RAW frames and then
+    decides when it runs, never above `max_w`, else the channel's max_power_mw), capture `frames` RAW frames and then
     `dark_frames` with emission off; `keep`: the RAW files are kept in the run folder (its disk estimate counts
-    them)."""
+    them); `times`: how many such exposures the step makes (its time estimate counts each)."""
 
     channel: str
     power_w: float | None
     frames: int
     dark_frames: int
     keep: bool = True
+    times: int = 1  # how many such exposures the step makes (a sweep makes one per position)
+    max_w: float | None = None
 
     def describe(self) -> str:
-        power = "a power chosen when the step runs" if self.power_w is None else format_power(self.power_w)
-        return (f"{self.channel} alone at {power}, {self.frames} frame(s) + {self.dark_frames} dark"
-                + ("" if self.keep else ", RAW not kept"))
+        power = (format_power(self.power_w) if self.power_w is not None else "a power chosen when the step runs"
+                 + (f" (at most {format_power(self.max_w)})" if self.max_w is not None else ""))
+        return (f"{f'{self.times} x ' if self.times > 1 else ''}{self.channel} alone at {power}, {self.frames} "
+                f"frame(s) + {self.dark_frames} dark" + ("" if self.keep else ", RAW not kept"))
 
 
 @dataclass(frozen=True)
@@ -113,26 +115,33 @@ def _limit_w(max_power_mw: float) -> float:
 
 @dataclass
 class Context:
-    """What a step sees: the profile in effect (the bench's, with this run's calibration and parameters applied),
-    the parameters, the calibration, the instruments, the run record, and the step running now."""
+    """What a step sees: the bench as calibrated for this run (the profile with this run's calibration and
+    parameters applied, its optical setups and SLM encoder), the parameters, the instruments, the run record, and
+    the step running now."""
 
-    profile: Profile
+    bench: Calibrated
     params: Parameters
-    calibration: Calibration
     instruments: Instruments
     record: RunRecord | None = None  # None during a dry run
     say: Callable[[str], None] = print
     step: Step | None = None  # set by the engine while a step runs
-    _setups: dict[str, OpticalSetup] = field(default_factory=dict, repr=False)
     # files the running step wrote: run-relative path -> SHA-256, for later steps to read / as a record only
     written: dict[str, dict[str, str]] = field(default_factory=lambda: {"checksums": {}, "archived": {}}, repr=False)
 
+    @property
+    def profile(self) -> Profile:
+        """The profile in effect: the bench's, with this run's calibration and parameters applied."""
+        return self.bench.profile
+
+    @property
+    def calibration(self) -> Calibration:
+        """The calibration this run uses (the store during a dry run, the run's own copy once it runs)."""
+        assert self.bench.calibration is not None
+        return self.bench.calibration
+
     def recalibrated(self) -> None:
-        """Apply what a step of this run measured (lookup tables, optical model) to the profile and the optical
-        setups later steps use."""
-        self.profile = self.params.applied_to(self.calibration.applied(self.calibration.profile))
-        self._setups.clear()
-        self.__dict__.pop("slm", None)
+        """Apply what a step of this run measured (lookup tables, optical model) to the bench later steps use."""
+        self.bench = self.bench.recalibrated()
 
     def save_calibration(self, save: Callable[[Calibration], object]) -> None:
         """Store what a step measured, with `save`, in this run's calibration and in the profile's store (where later
@@ -180,25 +189,21 @@ class Context:
         return self.params
 
     def setup(self, channel: str, *, as_displayed: bool = False) -> OpticalSetup:
-        """`channel`'s optical setup for this run (geometry and fitted model), built once; `as_displayed`: as
-        optimisers see it, through what the SLM shows of a phase (`setups.optimised_setup`)."""
-        if channel not in self._setups:
-            self._setups.update(optical_setups(self.profile, [channel]))
-        setup = self._setups[channel]
-        return optimised_setup(setup, self.slm, channel) if as_displayed else setup
+        """`channel`'s optical setup for this run (`Calibrated.setup`)."""
+        return self.bench.setup(channel, as_displayed=as_displayed)
 
-    @functools.cached_property
+    @property
     def slm(self) -> SLM:
         """The profile's SLM as an encoder (phase <-> gray levels as displayed): the panel itself is not opened."""
-        return slm_for(self.profile)
+        return self.bench.slm
 
     def encode(self, phase: np.ndarray | torch.Tensor, channel: str) -> np.ndarray:
         """The SLM frame (gray levels) that shows `phase` for `channel`."""
-        return self.slm.encode(phase, channel)
+        return self.bench.encode(phase, channel)
 
     def decode(self, gray: np.ndarray, channel: str) -> np.ndarray:
         """The phase an SLM frame shows for `channel` (the inverse of `encode`, to its gray-level step)."""
-        return self.slm.decode(gray, channel)
+        return self.bench.decode(gray, channel)
 
     def divergences(self, key: str) -> int:
         """How often a later step found that step `key`'s work diverged and sent the run back to it (StepRedo with
@@ -259,14 +264,14 @@ class Context:
         folder = None
         if keep:
             folder = self.path(layout.raw_folder(step.key))
-            attempt = self.record.attempts.get(step.key, 1) if self.record else 1
-            if attempt > 1:
-                set_aside(folder, attempt - 1)
+            set_aside(folder)
         return self.instruments.expose(folder, channel, power_w, frame, frames=frames, dark_frames=dark_frames)
 
 
 def _allows(expose: Expose, channel: str, power_w: float, frames: int, dark_frames: int) -> bool:
-    """Whether `expose` declared this exposure (a power chosen at run time: any, within the channel's limit)."""
-    limit = expose.power_w * (1 + POWER_TOLERANCE) if expose.power_w is not None else float("inf")
+    """Whether `expose` declared this exposure (a power chosen at run time: within its max_w, else the channel's
+    limit, which `Context.expose` checks too)."""
+    bound = expose.power_w if expose.power_w is not None else expose.max_w
+    limit = bound * (1 + POWER_TOLERANCE) if bound is not None else float("inf")
     return (expose.channel == channel and 0 <= power_w <= limit and expose.frames == frames
             and expose.dark_frames == dark_frames)

@@ -12,6 +12,7 @@ import math
 import os
 import re
 import signal
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
 from urllib.parse import urlsplit
@@ -108,20 +109,27 @@ def _emitted(setpoint_w: float, measured_w: float | None, profile_w: float) -> s
 
 def sim_fault(device: str, faults: list[str], clear: bool, profile: Profile) -> list[str]:
     """Set (or clear) the faults a simulated device shows from its next connection on. The device is the
-    simulated camera, a sim:// laser of `profile` or one with saved state; unknown faults are refused."""
+    simulated camera, a sim:// laser or focus stage of `profile` or one with saved state; unknown faults are
+    refused."""
     ports = [urlsplit(profile.laser.port_of(ch)) for ch in profile.laser.channels] if profile.laser else []
     lasers = {port.netloc for port in ports if port.scheme == "sim"}
     lasers |= {name for name, saved in list_states().items() if "channels" in saved}  # connected before
-    if device != CAMERA and device not in lasers:
-        raise BenchctlError(f"no simulated device {device!r} (known: {', '.join(sorted(lasers | {CAMERA}))})")
+    focus_port = urlsplit(profile.focus.port or "") if profile.focus else None
+    stages = {focus_port.netloc} if focus_port is not None and focus_port.scheme == "sim" else set()
+    stages |= {name for name, saved in list_states().items() if saved.get("dialect") == "zaber"}
+    if device != CAMERA and device not in lasers | stages:
+        known = ", ".join(sorted(lasers | stages | {CAMERA}))
+        raise BenchctlError(f"no simulated device {device!r} (known: {known})")
     if device == CAMERA:
         from benchctl.devices.sim.camera import unplug_frame
 
         for fault in faults:
             unplug_frame(fault)
     else:
+        from benchctl.devices.sim.zaber_stage import parse_faults as stage_faults
+
         try:
-            parse_faults(faults)
+            (stage_faults if device in stages else parse_faults)(faults)
         except ValueError as exc:
             raise BenchctlError(f"{device}: {exc}") from None
     state = load_state(device)
@@ -177,11 +185,11 @@ def _open_camera(profile: Profile) -> Camera:
 def _open_slm(profile: Profile) -> SLM:
     """The profile's SLM with the lookup tables measured for it (calibration/<profile>/, where the profile names
     none), imported here so that laser and camera commands do not load the SLM drivers."""
-    from benchctl.calibration.store import Calibration
+    from benchctl.calibration.calibrated import Calibrated
     from benchctl.devices.slm import open_slm
 
     if profile.slm is not None and profile.optics is not None:  # a calibration is stored for an SLM and optics
-        profile = Calibration.store(profile).applied(profile)
+        profile = Calibrated.stored(profile).profile
     return open_slm(profile.require("slm"))
 
 
@@ -263,32 +271,45 @@ def camera_info(profile: Profile) -> list[str]:
                     f"frames per capture: {config.frames}", f"property writes: {writes}"]
 
 
-def camera_capture(profile: Profile, output: Path, frames: int | None) -> list[str]:
-    """Capture RAW frames: one frame to `output`, several to `output`'s stem numbered -000, -001, ...
-    Each file is saved under its numbered name the moment it arrives and never modified; an existing file is
-    never replaced (refused before the shutter when it exists already)."""
+def camera_capture(profile: Profile, output: Path, frames: int | None) -> Iterator[str]:
+    """Capture RAW frames: one frame to `output`, several to `output`'s stem numbered -000, -001, ..., one line per
+    frame as it arrives. Each file is saved under its numbered name the moment it arrives, never modified, and
+    dropped from memory (one frame is held however many are taken); an existing file is never replaced, and the
+    disk must have room for every frame (both refused before the first shutter)."""
     output = Path(output)
     numbered = sorted(output.parent.glob(f"{glob.escape(output.stem)}-[0-9][0-9][0-9].*"))
     taken = [output] if output.exists() else numbered or sorted(output.parent.glob(f"{glob.escape(output.name)}.*"))
     if taken:
         raise BenchctlError(f"{taken[0]} exists; captured files never replace one (choose another --output)")
+    count = frames or profile.section("camera").frames
+    _check_capture_disk(profile, output.parent, count)
     with _open_camera(profile) as camera:
-        captured = camera.capture(output.parent, frames=frames, stem=output.stem)
-    targets: list[Path] = []
-    for frame in captured:
-        assert frame.path is not None  # capture saves every frame to the folder it is given
-        targets.append(frame.path)
-    if len(captured) == 1:
-        single = output if output.suffix else output.with_suffix(captured[0].suffix)
-        try:
-            os.link(targets[0], single)  # never replaces, unlike a rename
-        except FileExistsError:
-            raise BenchctlError(f"{single} appeared during the capture and is kept; the frame is "
-                                f"{targets[0]}") from None
-        targets[0].unlink()
-        targets = [single]
-    return [f"captured {target} ({frame.format}, {len(frame.data)} bytes, camera name {frame.file_name})"
-            for target, frame in zip(targets, captured)]
+        for frame in camera.captures(output.parent, frames=count, stem=output.stem):
+            assert frame.path is not None  # captures saves every frame to the folder it is given
+            target = frame.path
+            if count == 1:
+                target = output if output.suffix else output.with_suffix(frame.suffix)
+                try:
+                    os.link(frame.path, target)  # never replaces, unlike a rename
+                except FileExistsError:
+                    raise BenchctlError(f"{target} appeared during the capture and is kept; the frame is "
+                                        f"{frame.path}") from None
+                frame.path.unlink()
+            yield f"captured {target} ({frame.format}, {len(frame.data)} bytes, camera name {frame.file_name})"
+
+
+def _check_capture_disk(profile: Profile, folder: Path, count: int) -> None:
+    """BenchctlError (one line, with the largest count that fits) when `count` frames of the profile's camera, as its
+    driver expects them, would not fit on the disk that holds `folder`."""
+    from benchctl.devices.camera import frame_size
+    from benchctl.memory import size_text
+    from benchctl.runner.estimates import free_bytes
+
+    each, free = frame_size(profile).file_bytes, free_bytes(folder)
+    if count * each > free:
+        raise BenchctlError(f"{folder}: {size_text(free)} free, and {count} frame(s) of about {size_text(each)} need "
+                            f"{size_text(count * each)}: at most --frames {free // each} fits here; free some space or "
+                            f"capture elsewhere (-o)")
 
 
 def devices_found() -> list[str]:
@@ -308,6 +329,11 @@ def devices_found() -> list[str]:
         *_section("framebuffers", [f"{f.device}  {f.name or '?'}  {f.width}x{f.height}  {f.bits_per_pixel} bpp"
                                    for f in found.framebuffers], None),
         *_section("desktop outputs (X11)", [output.describe() for output in found.outputs], found.outputs_error),
+        *_section("focus (a [focus] driver for each)",
+                  [f"{p.device}  {p.description}  (driver zaber)" for p in found.serial_ports
+                   if "zaber" in f"{p.description} {p.hwid}".lower()]
+                  + [f"the lens of {c.product or 'the camera'} {c.usb_id}  (driver eos, with camera driver ptp)"
+                     for c in found.cameras if c.usb_id.startswith("04a9:")], None),
     ]
 
 

@@ -1,11 +1,11 @@
 """How long a run will take and how much disk it fills, estimated from its plan before it starts: the dry run prints
 both, a run refuses to start where the disk lacks the space, and each step's line says how long the rest will take.
 
-Time: every exposure a step declares costs its frames' capture time (the simulated camera renders its sensor at
-SIM_SECONDS_PER_MPX; a real camera takes its exposure, READOUT_S and the RAW file's transfer), plus the SLM's settle
-time; a step that exposes nothing (a hologram, a fit, processing) STEP_SECONDS. Once steps of a kind have run, their
-measured mean replaces the estimate for the rest of that kind. Disk: each RAW frame a step keeps is its sensor's
-pixels at 2 bytes (uncompressed 16-bit DNG), and DISK_MARGIN more for holograms, images and records.
+Time: every exposure a step declares costs its frames' capture time, plus the SLM's settle time; a step that exposes
+nothing (a hologram, a fit, processing) STEP_SECONDS. Once steps of a kind have run, their measured mean replaces
+the estimate for the rest of that kind. Disk: each RAW frame a step keeps, and DISK_MARGIN more for holograms, images
+and records. A frame's size and capture time are the camera driver's (`frame_size`: a GenICam camera's region and
+pixel format, the simulated camera's rendering of [sim.sensor], a body's sensor).
 """
 
 from __future__ import annotations
@@ -16,33 +16,19 @@ from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path
 
+from benchctl.devices.camera import frame_size
 from benchctl.errors import BenchctlError
 from benchctl.memory import size_text
 from benchctl.profiles import Profile
 from benchctl.runner.context import Step
 
-SIM_SECONDS_PER_MPX = 0.16  # all in (render, DNG, file, laser): 3 s per 18.6 Mpx frame on the shared 2-core machine
-READOUT_S = 1.0  # a real camera, shutter to file ready (an EOS M10 takes about 1 s)
-TRANSFER_BYTES_PER_S = 30e6  # a RAW file over USB 2 or GigE
 STEP_SECONDS = 1.0  # a step that exposes nothing, until one of its kind has run
-RAW_BYTES_PER_PX = 2.0
 DISK_MARGIN = 1.1
 
 
 def frame_bytes(profile: Profile) -> float:
-    """Bytes of one RAW frame of the profile's camera (its [sim.sensor] shape: the simulated twin's)."""
-    rows, cols = profile.sim.sensor.shape
-    return RAW_BYTES_PER_PX * rows * cols
-
-
-def frame_seconds(profile: Profile) -> float:
-    """Seconds to capture one frame: the simulated camera's rendering, or a real camera's exposure, readout and
-    transfer."""
-    rows, cols = profile.sim.sensor.shape
-    if profile.camera is None or profile.camera.driver == "sim":
-        return SIM_SECONDS_PER_MPX * rows * cols / 1e6
-    exposure = profile.camera.exposure_s or profile.sim.sensor.exposure_s
-    return exposure + READOUT_S + frame_bytes(profile) / TRANSFER_BYTES_PER_S
+    """Bytes of one RAW frame of the profile's camera, as its driver expects it."""
+    return frame_size(profile).file_bytes
 
 
 def _kind(step: Step) -> tuple[str, bool]:
@@ -64,9 +50,11 @@ class RunEstimate:
 
     def __init__(self, steps: Sequence[Step], profile: Profile) -> None:
         self.profile = profile
-        self.frame_s = frame_seconds(profile)
+        self.frame = frame_size(profile)
+        self.frame_s = self.frame.seconds
         settle = (profile.slm.settle_ms if profile.slm else 0.0) / 1e3
-        self.planned = {step.key: sum((e.frames + e.dark_frames) * self.frame_s + settle for e in step.exposes)
+        self.planned = {step.key: sum(((e.frames + e.dark_frames) * self.frame_s + settle) * e.times
+                                      for e in step.exposes)
                         if step.exposes else STEP_SECONDS for step in steps}
         self.measured: dict[tuple[str, bool], list[float]] = {}
         self._count: Counter[tuple[str, bool]] = Counter()  # steps left, per kind
@@ -101,8 +89,8 @@ class RunEstimate:
 
     def frames(self, steps: Sequence[Step]) -> tuple[int, int]:
         """(frames exposed, RAW frames kept on disk) by `steps`."""
-        exposed = sum(e.frames + e.dark_frames for step in steps for e in step.exposes)
-        kept = sum(e.frames + e.dark_frames for step in steps for e in step.exposes if e.keep)
+        exposed = sum((e.frames + e.dark_frames) * e.times for step in steps for e in step.exposes)
+        kept = sum((e.frames + e.dark_frames) * e.times for step in steps for e in step.exposes if e.keep)
         return exposed, kept
 
     def disk_bytes(self, steps: Sequence[Step]) -> float:
@@ -112,12 +100,8 @@ class RunEstimate:
         """The dry run's lines: time and disk, with what they rest on."""
         exposed, kept = self.frames(steps)
         computing = sum(1 for step in steps if not step.exposes)
-        camera = ("the simulated camera" if self.profile.camera is None or self.profile.camera.driver == "sim"
-                  else f"camera {self.profile.camera.driver}")
-        rows, cols = self.profile.sim.sensor.shape
         return [f"time: about {duration_text(self.seconds(steps))} ({exposed} frame(s) at about {self.frame_s:.1f} s "
-                f"each with {camera}'s {rows * cols / 1e6:.3g} Mpx, {computing} other step(s) at about "
-                f"{STEP_SECONDS:g} s until measured)",
+                f"each with {self.frame.what}, {computing} other step(s) at about {STEP_SECONDS:g} s until measured)",
                 f"disk: about {size_text(self.disk_bytes(steps))} in {out} ({kept} RAW frame(s) of "
                 f"{size_text(frame_bytes(self.profile))} kept, {DISK_MARGIN - 1:.0%} more for holograms and images); "
                 f"{size_text(free_bytes(out))} free there"]

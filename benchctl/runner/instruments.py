@@ -1,4 +1,4 @@
-"""The instruments a run uses: the profile's laser, SLM and camera, each opened the first time a step needs it
+"""The instruments a run uses: the profile's laser, SLM, camera and focus, each opened the first time a step needs it
 and all closed together (emission off first, then the profile's setpoints back) however the run ends.
 
 `expose` is the one way a run puts light on the camera: frame on the SLM, only the wanted channel at its
@@ -19,11 +19,12 @@ import numpy as np
 
 from benchctl.devices.camera import Camera, RawFrame, open_camera
 from benchctl.devices.errors import DeviceError
+from benchctl.devices.focus import Focus
 from benchctl.devices.laser import Laser, open_laser
 from benchctl.devices.slm import SLM, open_slm
 from benchctl.profiles import Profile
 
-DEVICES = ("laser", "slm", "camera")
+DEVICES = ("laser", "slm", "camera", "focus")
 
 
 class Instruments:
@@ -89,6 +90,22 @@ class Instruments:
     @property
     def camera(self) -> Camera:
         return self._device("camera", lambda: open_camera(self.profile), lambda camera: camera.identity())
+
+    @property
+    def focus(self) -> Focus:
+        """The camera's focus; the EOS lens is driven through this run's camera (which it opens first)."""
+        def opener() -> Focus:
+            from benchctl.devices.camera.ptp_camera import PtpCamera
+            from benchctl.devices.focus import open_focus
+            from benchctl.devices.focus.eos import EosFocus
+
+            config = self.profile.section("focus")
+            camera = self.camera if config.driver == "eos" else None
+            if isinstance(camera, PtpCamera):
+                return EosFocus.on_camera(config, camera).open()
+            return open_focus(self.profile)
+
+        return self._device("focus", opener, lambda focus: focus.identity())
 
     def expose(self, folder: Path | None, channel: str, power_w: float, frame: np.ndarray, *, frames: int,
                dark_frames: int) -> Exposure:

@@ -28,7 +28,7 @@ from benchctl.holograms.cache import Hologram, hologram
 from benchctl.holograms.scene import resolve_method
 from benchctl.images import read_image, write_png
 from benchctl.optics import linear_to_srgb
-from benchctl.profiles import LaserChannel, NonNegative, NonNegativeInt, Profile
+from benchctl.profiles import LaserChannel, NonNegativeInt, Profile, SettleMs
 from benchctl.runner import layout
 from benchctl.runner.context import Context, Expose, P, Parameters, Step
 from benchctl.runner.instruments import Exposure
@@ -47,7 +47,7 @@ class ExposureParameters(Parameters, kw_only=True):
     setpoints: dict[str, str] = msgspec.field(default_factory=dict)  # colour -> "40mW" | "5%" (default: profile's)
     frames: Frames = 2
     dark_frames: DarkFrames = 1
-    settle_ms: NonNegative | None = None  # after a new SLM frame (default: the profile's slm.settle_ms)
+    settle_ms: SettleMs | None = None  # after a new SLM frame (default: the profile's slm.settle_ms)
     # a calibration the procedure measures (registration, lookup tables, optical model) replaces the stored one only
     # if it passes its acceptance test ("tested"), or always ("always": said, and in the report)
     accept: AcceptMode = "tested"
@@ -104,10 +104,21 @@ def power_w(context: Context, channel: LaserChannel) -> float:
     """The power a channel is exposed at: the procedure's setpoint for it, else the profile's; never above the
     channel's max_power_mw (checked here, at planning, and again by the laser driver)."""
     text = context.parameters(ExposureParameters).setpoints.get(channel.name)
-    watts = channel.setpoint_mw * 1e-3 if text is None else parse_power(text, channel.max_power_mw)
+    if text is None:
+        return channel.setpoint_mw * 1e-3
+    return checked_power(text, channel, f"setpoints.{channel.name}")
+
+
+def checked_power(text: str, channel: LaserChannel, key: str) -> float:
+    """A power the procedure's parameter `key` gives for `channel` ("20mW", "5%" of its max_power_mw), in watts,
+    never above the channel's max_power_mw; a BenchctlError naming the key otherwise."""
+    try:
+        watts = parse_power(text, channel.max_power_mw)
+    except BenchctlError as exc:
+        raise BenchctlError(f"parameters.{key}: {exc}") from None
     if watts > channel.max_power_mw * 1e-3 * (1 + 1e-9):
-        raise BenchctlError(f"parameters.setpoints.{channel.name}: {format_power(watts)} is above the channel's "
-                            f"max_power_mw {channel.max_power_mw:g} mW")
+        raise BenchctlError(f"parameters.{key}: {format_power(watts)} is above the channel's max_power_mw "
+                            f"{channel.max_power_mw:g} mW")
     return watts
 
 
@@ -155,12 +166,13 @@ def prepared_target(profile: Profile, spec: str, key: str | None = None) -> torc
 # -- holograms ------------------------------------------------------------------------------------------------------
 
 def compute_hologram(context: Context, target: torch.Tensor, channel: LaserChannel,
-                     options: HologramParameters) -> Hologram:
+                     options: HologramParameters, *, distance_m: float | None = None) -> Hologram:
     """`channel`'s hologram of `target` (3, H, W amplitude on the SLM grid) as `options` say: its frame as
-    displayed, simulated reconstruction and scores; from the hologram cache when it was computed before."""
-    return hologram(context.profile, target, channel.name, options.method, iterations=options.iterations,
-                    seed=options.seed, checkpoint=options.checkpoint, progress=context.progress,
-                    setup=context.setup(channel.name))
+    displayed, simulated reconstruction and scores; from the hologram cache when it was computed before.
+    `distance_m`: reconstructed at that depth instead of the profile's distance (the focus calibration's)."""
+    bench = context.bench if distance_m is None else context.bench.at_distance(distance_m)
+    return hologram(bench, target, channel.name, options.method, iterations=options.iterations,
+                    seed=options.seed, checkpoint=options.checkpoint, progress=context.progress)
 
 
 def hologram_step(key: str, label: str, target: torch.Tensor, channel: LaserChannel,
@@ -232,11 +244,12 @@ def measure(context: Context, channel: LaserChannel, power: float, frame: np.nda
 
 def exposure_step(context: Context, key: str, channel: LaserChannel, watts: float | Callable[[Context], float],
                   frame: Callable[[Context], np.ndarray], description: str, *, frames: int | None = None,
-                  dark_frames: int | None = None, read_later: bool = True) -> Step:
+                  dark_frames: int | None = None, read_later: bool = True, max_w: float | None = None) -> Step:
     """A step that shows `frame(context)` and exposes it with `channel` alone at `watts` (a number, or a function
-    of the context that decides when the step runs, as automatic exposure does), keeping the RAW frames and dark
-    frames (counts: as given, else the procedure's `frames` / `dark_frames`) for later steps (`load_exposure`).
-    A retried step first moves what its unfinished attempt left aside (kept, never deleted)."""
+    of the context that decides when the step runs, as automatic exposure does: `max_w` bounds what it may choose,
+    else the channel's max_power_mw), keeping the RAW frames and dark frames (counts: as given, else the procedure's
+    `frames` / `dark_frames`) for later steps (`load_exposure`). A retried step first moves what its unfinished
+    attempt left aside (kept, never deleted)."""
     params = context.parameters(ExposureParameters)
     count = params.frames if frames is None else frames
     darks = params.dark_frames if dark_frames is None else dark_frames
@@ -246,7 +259,8 @@ def exposure_step(context: Context, key: str, channel: LaserChannel, watts: floa
         return measure(context, channel, power, frame(context), frames=count, dark_frames=darks,
                        read_later=read_later).record
 
-    declared = Expose(channel.name, None if callable(watts) else watts, count, darks)
+    declared = Expose(channel.name, None if callable(watts) else watts, count, darks,
+                      max_w=max_w if callable(watts) else None)
     return Step(key, description, action, (declared,))
 
 

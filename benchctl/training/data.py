@@ -81,9 +81,24 @@ class ImageSource:
         return srgb, np.repeat(np.linspace(0.0, 1.0, rows)[:, None], cols, axis=1)
 
 
+def _procedural_range(spec: str, prefix: str, scene: bool) -> list[ImageSource]:
+    """`prefix`N (items 0 to N-1) or `prefix`A-B (items A to B)."""
+    text = spec[len(prefix):]
+    first, dash, last = text.partition("-")
+    if not dash:  # N: items 0 to N-1
+        first, last = "0", str(int(first) - 1) if first.isdigit() else ""
+    if not (first.isdigit() and last.isdigit() and int(first) <= int(last) < int(first) + MAX_PROCEDURAL):
+        items = "scenes" if scene else "images"
+        raise BadValueError(f"--data {spec!r}: expected {prefix}N with 1 <= N <= {MAX_PROCEDURAL:,} {items} ({items} "
+                            f"0 to N-1), or {prefix}A-B ({items} A to B, e.g. 200000-200031, {items} that a run on "
+                            f"{prefix}N with N <= 200000 never sees), e.g. {prefix}64")
+    stem = prefix[:-1]
+    return [ImageSource(f"{stem}-{i:05d}", index=i, scene=scene) for i in range(int(first), int(last) + 1)]
+
+
 def image_sources(spec: str) -> list[ImageSource]:
-    """The images `--data` names: `procedural:N`, `procedural-rgbd:N` (scenes with depth), `photos:train|eval`, a
-    folder of image files (sorted by name), or several of these joined with "+"."""
+    """The images `--data` names: `procedural:N` or `procedural:A-B`, `procedural-rgbd:N` or `procedural-rgbd:A-B`
+    (scenes with depth), `photos:train|eval`, a folder of image files (sorted by name), or several joined with "+"."""
     if JOIN in spec:
         parts = spec.split(JOIN)
         if not all(parts):
@@ -96,12 +111,7 @@ def image_sources(spec: str) -> list[ImageSource]:
         return [ImageSource(name, path=name) for name in photo_specs(split)]
     for prefix, scene in ((PROCEDURAL_PREFIX, False), (SCENES_PREFIX, True)):
         if spec.startswith(prefix):
-            count = spec[len(prefix):]
-            if not count.isdigit() or not 1 <= int(count) <= MAX_PROCEDURAL:
-                raise BadValueError(f"--data {spec!r}: expected {prefix}N with 1 <= N <= {MAX_PROCEDURAL:,} "
-                                    f"{'scenes' if scene else 'images'}, e.g. {prefix}64")
-            stem = prefix[:-1]
-            return [ImageSource(f"{stem}-{i:05d}", index=i, scene=scene) for i in range(int(count))]
+            return _procedural_range(spec, prefix, scene)
     folder = Path(spec)
     if not folder.is_dir():
         raise BenchctlError(f"--data {spec}: no such folder (give a folder of images, or procedural:N)")

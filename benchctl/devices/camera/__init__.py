@@ -8,11 +8,11 @@
 
 from __future__ import annotations
 
-from benchctl.devices.camera.base import RAW_FORMATS, Camera, RawFrame
+from benchctl.devices.camera.base import RAW_FORMATS, Camera, FrameSize, RawFrame
 from benchctl.drivers import driver_class
 from benchctl.profiles import Profile
 
-__all__ = ["RAW_FORMATS", "Camera", "RawFrame", "camera_for", "open_camera"]
+__all__ = ["RAW_FORMATS", "Camera", "FrameSize", "RawFrame", "camera_for", "frame_size", "open_camera"]
 
 
 def camera_for(profile: Profile) -> Camera:
@@ -24,3 +24,10 @@ def camera_for(profile: Profile) -> Camera:
 def open_camera(profile: Profile) -> Camera:
     """The profile's camera, opened (use it as a context manager so it is closed again)."""
     return camera_for(profile).open()
+
+
+def frame_size(profile: Profile) -> FrameSize:
+    """One RAW frame of the profile's camera (the simulated camera where it has no [camera] section) as its driver
+    expects it without the device: pixels, file bytes, seconds per capture (estimates of time, disk and memory)."""
+    driver: type[Camera] = driver_class("camera", profile.camera.driver if profile.camera else "sim")
+    return driver.frame_size(profile)

@@ -17,15 +17,17 @@ from datetime import datetime, timezone
 from typing import Any, Callable
 
 from benchctl.devices.camera.aravis import aravis
-from benchctl.devices.camera.base import Camera, RawFrame
+from benchctl.devices.camera.base import Camera, FrameSize, RawFrame, real_frame
 from benchctl.devices.camera.pixel_formats import PixelFormat, pixel_format
 from benchctl.devices.errors import DeviceError, DeviceTimeout
 from benchctl.devices.lock import DeviceLock
 from benchctl.dng import dng_bytes
 from benchctl.errors import BadValueError
-from benchctl.profiles import CameraConfig
+from benchctl.limits import check_pixels
+from benchctl.profiles import CameraConfig, Profile
 
 BUFFERS = 4  # pushed to the stream: a frame can arrive while the previous one is converted
+LINK_BYTES_PER_S = 100e6  # GigE Vision's 1 Gb/s link: the slower of the two (USB3 Vision carries about 400 MB/s)
 _RELATIVE = 0.01  # a read-back setting within 1 % (cameras round to their increments) is taken as written
 _ABSOLUTE = 0.05
 
@@ -43,6 +45,19 @@ class GenicamCamera(Camera):
         self._region: tuple[int, int, int, int] = (0, 0, 0, 0)
         self._settings: dict[str, Any] = {}
         self._identity_found: dict[str, str] = {}
+
+    @classmethod
+    def frame_size(cls, profile: Profile) -> FrameSize:
+        """The profile's camera.region in its pixel_format (16 bits a sample where none is given), read out over
+        GigE Vision after the exposure; without a region, Camera's default ([sim.sensor] shape), said so."""
+        config = profile.section("camera")
+        if config.region is None:
+            return super().frame_size(profile)
+        width, height = config.region[2], config.region[3]
+        sample_bytes = pixel_format(config.pixel_format).bytes_per_sample if config.pixel_format else 2
+        return real_frame(profile, height, width, 0.0, LINK_BYTES_PER_S / sample_bytes,
+                          f"camera genicam's {width * height / 1e6:.3g} Mpx region ({width} x {height} "
+                          f"{config.pixel_format or '16-bit'})")
 
     # -- finding the camera -------------------------------------------------------------------------------------
 
@@ -104,6 +119,7 @@ class GenicamCamera(Camera):
         camera, config = self._camera, self.config
         if config.region is not None:
             x, y, width, height = config.region
+            self._check_region(x, y, width, height)
             camera.set_region(x, y, width, height)
             got = camera.get_region()
             if (got.x, got.y, got.width, got.height) != (x, y, width, height):
@@ -137,6 +153,20 @@ class GenicamCamera(Camera):
                           "trigger": "Software"}
         if camera.is_black_level_available():
             self._settings["black_level"] = camera.get_black_level()
+
+    def _check_region(self, x: int, y: int, width: int, height: int) -> None:
+        """Refuse a region outside the sensor (WidthMax x HeightMax, else the sensor's size) or above benchctl's pixel
+        limit before it is written: a camera may take one and then fail in native code (Aravis's fake camera took
+        100000 x 100000 and the process died in the buffer pop), or fill the disk with one frame."""
+        camera = self._camera
+        sensor = camera.get_sensor_size()
+        columns, rows = (camera.get_integer(name) if camera.is_feature_available(name) else fallback
+                         for name, fallback in (("WidthMax", sensor.width), ("HeightMax", sensor.height)))
+        where = f"{self._label()}: camera.region {[x, y, width, height]}"
+        if x + width > columns or y + height > rows:
+            raise BadValueError(f"{where} reaches column {x + width} and row {y + height}, beyond the camera's "
+                                f"{columns} x {rows} (WidthMax x HeightMax): give a region inside it")
+        check_pixels(where, height, width)
 
     def _set(self, name: str, value: float, bounds: Any, write: Callable[[float], None],
              read: Callable[[], float]) -> None:

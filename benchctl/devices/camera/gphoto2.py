@@ -3,13 +3,16 @@ whose wheel bundles libgphoto2, so no system package is needed).
 
 Open: autodetect, take the camera the profile's `model` names (else the only one found), connect. Capture: set
 the capture target to the camera's RAM where it has that setting (the image goes to the computer, not the card),
-release, download the file the camera announces, delete it from the camera. The file must be RAW (DNG, CR2, CR3).
-libgphoto2's errors arrive as numbered results, each turned into the same one-line error the ptp driver gives.
-Exposure and ISO are not written (Camera's default): set them on the body.
+release, and download the file the camera announces, which must be a RAW file LibRaw reads (by its suffix:
+RAW_FORMATS, NEF, ARW, RAF, ORF, RW2, PEF ... included); the camera's copy is deleted only once the file is saved
+(`_saved`), and a file that is not RAW (a JPEG) is left on the camera. libgphoto2's errors arrive as numbered
+results, each turned into the same one-line error the ptp driver gives, with what libgphoto2 said about it (a card
+that ran full says so). Exposure and ISO are not written (Camera's default): set them on the body.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from datetime import datetime, timezone
 from pathlib import PurePath
 from types import ModuleType
@@ -35,9 +38,15 @@ def gphoto2() -> ModuleType:
     return module
 
 
-def gphoto2_error(code: int, doing: str) -> DeviceError:
-    """The DeviceError for libgphoto2's result `code` while `doing` (e.g. 'capture')."""
+def gphoto2_error(code: int, doing: str, said: Sequence[str] = ()) -> DeviceError:
+    """The DeviceError for libgphoto2's result `code` while `doing` (e.g. 'capture'); `said`: the error messages
+    libgphoto2 gave its context meanwhile (they tell a full card from a lack of memory here)."""
     gp = gphoto2()
+    told = f" (libgphoto2: {' '.join(said)})" if said else ""
+    if code in (gp.GP_ERROR_NO_SPACE, gp.GP_ERROR_NO_MEMORY) and (
+            code == gp.GP_ERROR_NO_SPACE or any("full" in text.lower() for text in said)):
+        return DeviceError(f"the camera's card is full{told}: free space on it (download and delete its files, or "
+                           f"format it) and capture again")
     known: dict[int, tuple[type[DeviceError], str]] = {
         gp.GP_ERROR_MODEL_NOT_FOUND: (DeviceError, f"libgphoto2 found no camera: {NOT_FOUND_HINT}"),
         gp.GP_ERROR_IO_USB_FIND: (DeviceError, f"libgphoto2 found no camera: {NOT_FOUND_HINT}"),
@@ -48,7 +57,7 @@ def gphoto2_error(code: int, doing: str) -> DeviceError:
                                              f"reconnect"),
     }
     cls, message = known.get(code, (DeviceError, f"libgphoto2 failed during {doing}: "
-                                                 f"{gp.gp_result_as_string(code)} ({code})"))
+                                                 f"{gp.gp_result_as_string(code)} ({code}){told}"))
     return cls(message)
 
 
@@ -61,14 +70,21 @@ class Gphoto2Camera(Camera):
         super().__init__(config)
         self._camera: Any = None
         self._found: dict[str, str] = {}
+        self._said: list[str] = []  # error messages libgphoto2 gave self._context since the last call
+        self._context: Any = None
+        self._context_hook: Any = None  # keeps the error callback registered
 
     def _call(self, doing: str, function: Any, *args: Any) -> Any:
-        """`function(*args)`, a libgphoto2 error becoming a one-line DeviceError."""
+        """`function(*args)`, a libgphoto2 error becoming a one-line DeviceError (with what libgphoto2 said)."""
         gp = gphoto2()
+        self._said.clear()
         try:
             return function(*args)
         except gp.GPhoto2Error as exc:
-            raise gphoto2_error(exc.code, doing) from None
+            raise gphoto2_error(exc.code, doing, list(self._said)) from None
+
+    def _hear(self, context: Any, text: Any, data: Any) -> None:
+        self._said.append(text.decode(errors="replace") if isinstance(text, bytes) else str(text))
 
     def _open(self) -> None:
         gp = gphoto2()
@@ -81,13 +97,15 @@ class Gphoto2Camera(Camera):
             hint = NOT_FOUND_HINT if not detected else "set camera.model to one of them"
             raise DeviceError(f"libgphoto2 found {len(chosen) or 'no'} camera(s) for {wanted} (found: {found}): {hint}")
         name, port = chosen[0]
+        self._context = gp.Context()
+        self._context_hook = self._context.set_error_func(self._hear, None)
         abilities, ports = gp.CameraAbilitiesList(), gp.PortInfoList()
         self._call("loading camera drivers", abilities.load)
         self._call("loading ports", ports.load)
         camera = gp.Camera()
         camera.set_abilities(abilities[self._call("looking up the model", abilities.lookup_model, name)])
         camera.set_port_info(ports[self._call("looking up the port", ports.lookup_path, port)])
-        self._call("connecting", camera.init)
+        self._call("connecting", camera.init, self._context)
         self._camera = camera
         self._found = {"detected_as": name, "port": port, **{key: self._setting(widget) or ""
                                                              for key, widget in _IDENTITY.items()}}
@@ -146,18 +164,22 @@ class Gphoto2Camera(Camera):
     def _capture_one(self) -> RawFrame:
         gp = gphoto2()
         self._to_computer()
-        where = self._call("capture", self._camera.capture, gp.GP_CAPTURE_IMAGE)
+        where = self._call("capture", self._camera.capture, gp.GP_CAPTURE_IMAGE, self._context)
         folder, name = str(where.folder), str(where.name)
-        data = self.download(folder, name)
-        try:
-            self._camera.file_delete(folder, name)
-        except gp.GPhoto2Error:
-            pass  # a body that keeps it (on the card) is fine: the file is here
         suffix = PurePath(name).suffix.lower().lstrip(".")
         if suffix not in RAW_FORMATS:
-            raise DeviceError(f"the camera delivered {name} ({len(data)} bytes), not a RAW file (.dng, .cr2, .cr3): "
-                              f"{RAW_HINT}")
+            raise DeviceError(f"the camera delivered {name}, not a RAW file (.dng, .nef, .arw, .cr2, ...: what LibRaw "
+                              f"reads); left on the camera as {folder}/{name}: {RAW_HINT}")
+        data = self.download(folder, name)
         metadata = {"captured_at": datetime.now(timezone.utc).isoformat(timespec="milliseconds"),
                     "camera": self._found.get("model") or self._found["detected_as"],
                     "serial": self._found.get("serial", ""), "camera_path": f"{folder}/{name}"}
         return RawFrame(data, suffix, name, metadata)
+
+    def _saved(self, frame: RawFrame) -> None:
+        """Delete the camera's copy (in its RAM, or on the card where it has no RAM target) now that it is saved."""
+        folder, _, name = frame.metadata["camera_path"].rpartition("/")
+        try:
+            self._camera.file_delete(folder, name)
+        except gphoto2().GPhoto2Error:
+            pass  # a body that keeps it (on the card) is fine: the file is saved

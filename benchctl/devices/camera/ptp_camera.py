@@ -12,6 +12,8 @@ The M10 has no InitiateCapture, so this follows the EOS M capture sequence of li
               GetPartialObject in 1 MiB chunks, TransferComplete(handle)
     preview:  SetDevicePropValueEx(0xD1B0 = 2) once, then GetViewFinderData(0x00100000) per frame (answered 0xA102
               or DeviceBusy while no frame is ready: GetEvent, retry); a capture or close sets 0xD1B0 back to 8 first
+    focus:    SetDevicePropValueEx(0xD1B0 = 2) if the live view is off, then DriveLens(0x9155, Near/Far 1-3) per step
+              (answered OK even when the lens ignored it: benchctl.devices.focus.eos counts from an end stop)
     close:    CloseSession
 
 Capture destination and EVF output are part of the capture set-up and always written; the exposure settings
@@ -28,7 +30,7 @@ from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import PurePath
 
-from benchctl.devices.camera.base import Camera, PreviewFrame, RawFrame, Window
+from benchctl.devices.camera.base import Camera, FrameSize, PreviewFrame, RawFrame, Window
 from benchctl.devices.camera.hints import BUSY_HINT, NO_FOCUS_HINT, RAW_HINT
 from benchctl.devices.camera.ptp.container import RAW_OBJECT_FORMATS, OperationCode, code_name
 from benchctl.devices.camera.ptp.datasets import DeviceInfo
@@ -101,6 +103,15 @@ class PtpCamera(Camera):
         from benchctl.devices.sim.camera import eos_transport
 
         return cls(config, eos_transport(profile))
+
+    @classmethod
+    def frame_size(cls, profile: Profile) -> FrameSize:
+        """The body's sensor as [sim.sensor] gives it (an EOS M10's by default); the simulated body renders it."""
+        if profile.section("camera").transport != "sim":
+            return super().frame_size(profile)
+        from benchctl.devices.sim.camera import simulated_frame
+
+        return simulated_frame(profile, "the simulated EOS body")
 
     # -- connection --------------------------------------------------------------------------------------------
 
@@ -215,6 +226,17 @@ class PtpCamera(Camera):
             wait(self.timing.poll_interval_s)
         return PreviewFrame(jpeg, "jpeg", metadata={"camera": self._info.model,
                                                     "waited_s": round(time.monotonic() - started, 6)})
+
+    def drive_lens(self, far: bool, size: int) -> None:
+        """One DriveLens step Near or Far of `size` (1-3), in live view (started here if it is off: the lens moves
+        only then). The body answers OK whether or not the lens moved (an end stop): the caller counts."""
+        if OperationCode.EosDriveLens not in self._info.operations_supported:
+            raise DeviceError(f"{self._describe()} does not offer DriveLens (0x9155): it cannot drive its lens's focus")
+        _, eos = self._require_session()
+        if not self._live:
+            eos.set_property(EosProperty.EVFOutputDevice, EVF_OUTPUT_LIVE_VIEW)
+            self._live = True
+        eos.drive_lens(far, size)
 
     def _end_live_view(self) -> None:
         """EVF output back to the capture set-up's value (the live view holds the sensor otherwise)."""

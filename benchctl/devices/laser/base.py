@@ -8,13 +8,17 @@ rules live in one place and cannot be skipped by a dialect:
 - every setting is read back; a device that silently clamps or ignores a setting is an error;
 - emission is enabled only after the interlock and fault status were checked;
 - leaving a `with` block, normally or by any exception (KeyboardInterrupt and lost replies included), turns
-  emission off on every channel, trying each one even when an earlier one fails.
+  emission off on every channel, trying each one even when an earlier one fails;
+- before emission first goes on, a watchdog process is started that switches it off through the same driver if
+  this process dies without closing the laser (SIGKILL, a native crash: benchctl.devices.watchdog).
 """
 
 from __future__ import annotations
 
 import contextlib
 import math
+
+import msgspec
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -25,6 +29,7 @@ from benchctl.devices.errors import DeviceError, EmissionNotOff, SafetyError
 from benchctl.devices.lock import DeviceLock
 from benchctl.devices.power import format_power, parse_power
 from benchctl.devices.serial_link import SerialLink, SerialPort
+from benchctl.devices.watchdog import Watchdog
 from benchctl.errors import BadValueError, BenchctlError
 from benchctl.profiles import LaserChannel, LaserConfig
 
@@ -64,6 +69,7 @@ class Laser(ABC):
     ok_reply: str = "OK"
     error_prefix: str | None = None
     echo: bool = False
+    one_head_per_port: bool = False  # single-wavelength heads: every channel needs a port of its own
 
     def __init__(self, config: LaserConfig, *, leave_on: bool = False, observe: bool = False,
                  port_factory: PortFactory | None = None) -> None:
@@ -79,11 +85,17 @@ class Laser(ABC):
         self._ports: dict[str, list[LaserChannel]] = {}
         for channel in config.channels:
             self._ports.setdefault(config.port_of(channel), []).append(channel)
+        for port, sharing in self._ports.items():
+            if self.one_head_per_port and len(sharing) > 1:
+                raise BenchctlError(f"{config.driver} laser: channels {', '.join(ch.name for ch in sharing)} share "
+                                    f"port {port}, but a {config.driver} head has one wavelength: give each channel "
+                                    "its own port")
         self._links: dict[str, SerialLink] = {}
         self._holds: dict[str, DeviceLock] = {}
         self._limits_w: dict[str, float] = {}
         self._emission_commanded: dict[str, bool] = {}
         self.found_emitting: dict[str, float] = {}  # channel -> setpoint (W) of channels emitting at connect
+        self._watchdog: Watchdog | None = None  # started before emission first goes on (real ports only)
 
     # -- connection ------------------------------------------------------------------------------------------
 
@@ -148,10 +160,26 @@ class Laser(ABC):
     def _close_links(self) -> None:
         links, self._links = self._links, {}
         holds, self._holds = self._holds, {}
+        watchdog, self._watchdog = self._watchdog, None
         try:
             try_each(SerialLink.close, links.values())
         finally:
-            try_each(DeviceLock.release, holds.values())
+            try:
+                try_each(DeviceLock.release, holds.values())
+            finally:
+                if watchdog is not None:  # an orderly close, which said what it knows of emission
+                    watchdog.disarm()
+
+    def _arm_watchdog(self) -> None:
+        """Start the watchdog unless one runs; ports made by a port_factory (tests' scripted ports) are not reachable
+        from another process, so they have none. DeviceError when it cannot start (emission then stays off)."""
+        if self._watchdog is not None or self._port_factory is not None:
+            return
+        try:
+            self._watchdog = Watchdog(msgspec.json.encode(self.config))
+        except OSError as exc:
+            raise DeviceError(f"{self.config.driver} laser: cannot start the watchdog that switches emission off if "
+                              f"this process dies ({exc}): emission not enabled") from None
 
     def _make_safe(self, channel: LaserChannel) -> None:
         try:
@@ -205,7 +233,8 @@ class Laser(ABC):
             )
         self._write_power(ch, watts)
         held = self._read_setpoint(ch)
-        tolerance = max(SETPOINT_RELATIVE_TOLERANCE * watts, SETPOINT_FULL_SCALE_TOLERANCE * limit_w)
+        tolerance = max(SETPOINT_RELATIVE_TOLERANCE * watts, SETPOINT_FULL_SCALE_TOLERANCE * limit_w,
+                        self._setpoint_step_w(ch) / 2 * (1 + 1e-9))
         if abs(held - watts) > tolerance:
             raise DeviceError(
                 f"{self._where(ch)}: asked for {format_power(watts)}, the device holds {format_power(held)} "
@@ -240,6 +269,7 @@ class Laser(ABC):
             raise SafetyError(f"{self._where(ch)}: interlock open: emission not enabled")
         if faults:
             raise SafetyError(f"{self._where(ch)}: fault active ({'; '.join(faults)}): emission not enabled")
+        self._arm_watchdog()
         try:
             self._write_emission(ch, True)
             self._emission_commanded[ch.name] = True
@@ -337,6 +367,11 @@ class Laser(ABC):
     def _read_limit_w(self, channel: LaserChannel) -> float | None:
         """The head's own maximum power (W), or None where the dialect cannot tell. Default: None."""
         return None
+
+    def _setpoint_step_w(self, channel: LaserChannel) -> float:
+        """The coarsest step the device sets power in (W): a read-back within half a step of the request is the
+        request. Default 0: the tolerances above cover the rounding of dialects that take watts or milliwatts."""
+        return 0.0
 
     @abstractmethod
     def _identify(self, channel: LaserChannel) -> str:

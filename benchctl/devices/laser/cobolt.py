@@ -3,16 +3,16 @@
 Commands: `@cobas 0` (autostart off, at connect), `p <W>` / `p?` (setpoint), `pa?` (measured, W), `l1` / `l0` /
 `l?` (emission), `f?` (fault code: 0 none, 1 temperature, 3 interlock open, 4 constant-power fault), `ilk?`
 (0 interlock closed, 1 open), `gmlp?` (the head's max power, mW; setpoints above it are refused before sending)
-and `gsn?` (serial number, the identity). Settings answer `OK`; bad commands `Syntax error: ...`.
+and the serial number, the identity: `sn?` (what python-microscope asks, and its mock of a Cobolt Jive answers),
+else `gsn?` where the firmware refuses `sn?` (Cobolt firmware families differ). Settings answer `OK`; bad commands
+`Syntax error: ...`.
 """
 
 from __future__ import annotations
 
-from typing import Any
-
 from benchctl.devices.laser.base import Laser
-from benchctl.errors import BenchctlError
-from benchctl.profiles import LaserChannel, LaserConfig
+from benchctl.devices.serial_link import ErrorReply
+from benchctl.profiles import LaserChannel
 
 FAULT_CODES = {1: "temperature error", 3: "interlock open", 4: "constant-power fault"}
 INTERLOCK_FAULT = 3
@@ -22,16 +22,7 @@ class CoboltLaser(Laser):
     """Cobolt heads, one per channel, each on its own port (channel.port, or laser.port for a single channel)."""
 
     error_prefix = "Syntax error"
-
-    def __init__(self, config: LaserConfig, **options: Any) -> None:
-        super().__init__(config, **options)
-        for port, channels in self._ports.items():
-            if len(channels) > 1:
-                names = ", ".join(ch.name for ch in channels)
-                raise BenchctlError(
-                    f"cobolt laser: channels {names} share port {port}, but a Cobolt head has one wavelength: "
-                    "give each channel its own port"
-                )
+    one_head_per_port = True
 
     def _prepare(self, channel: LaserChannel) -> None:
         self._command(channel, "@cobas 0")
@@ -40,7 +31,11 @@ class CoboltLaser(Laser):
         return self._query_number(channel, "gmlp?") * 1e-3
 
     def _identify(self, channel: LaserChannel) -> str:
-        return f"Cobolt laser, serial number {self._query(channel, 'gsn?')}"
+        try:
+            serial = self._query(channel, "sn?")
+        except ErrorReply:  # a firmware family that only knows gsn?
+            serial = self._query(channel, "gsn?")
+        return f"Cobolt laser, serial number {serial}"
 
     def _write_power(self, channel: LaserChannel, watts: float) -> None:
         self._command(channel, f"p {watts:.6f}")

@@ -9,17 +9,21 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from benchctl.devices.camera.base import Camera, PreviewFrame, RawFrame, Window
+from benchctl.devices.camera.base import DNG_BYTES_PER_PX, Camera, FrameSize, PreviewFrame, RawFrame, Window
 from benchctl.devices.errors import DeviceError
-from benchctl.devices.sim.eos_usb import SimEosTransport
 from benchctl.devices.lock import DeviceLock
 from benchctl.devices.safety import wait
+from benchctl.devices.sim.eos_usb import SimEosTransport
 from benchctl.devices.sim.state import CAMERA_STATE, load_state, sim_lock, state_dir
 from benchctl.files import ensure_dir
 from benchctl.profiles import CameraConfig, Profile
 
 if TYPE_CHECKING:
     from benchctl.devices.sim.physics import LiveView
+
+# The simulator's work per frame (render, DNG, file, laser): 3 s per 18.6 Mpx frame on the project's shared 2-core
+# machine.
+SIM_SECONDS_PER_MPX = 0.16
 
 
 def unplug_frame(fault: str) -> int:
@@ -47,6 +51,10 @@ class SimCamera(Camera):
         config = profile.require("camera").camera
         assert config is not None
         return cls(config, profile)
+
+    @classmethod
+    def frame_size(cls, profile: Profile) -> FrameSize:
+        return simulated_frame(profile, "the simulated camera")
 
     def _device_lock(self) -> DeviceLock:
         return sim_lock(CAMERA_STATE, "camera (sim)")
@@ -102,10 +110,21 @@ class SimCamera(Camera):
         metadata["render_s"] = round(time.perf_counter() - start, 6)
         return PreviewFrame(data, "dng", tuple(metadata["window"]), self._live_view.active_shape, metadata)
 
+def simulated_frame(profile: Profile, who: str) -> FrameSize:
+    """A frame the simulated bench renders for `profile` ([sim.sensor]): the rendering, the exposure and the body's
+    readout time, each waited as a real camera would."""
+    sensor = profile.sim.sensor
+    rows, cols = sensor.shape
+    exposure = (profile.camera.exposure_s if profile.camera else None) or sensor.exposure_s
+    return FrameSize(rows, cols, DNG_BYTES_PER_PX * rows * cols,
+                     SIM_SECONDS_PER_MPX * rows * cols / 1e6 + exposure + sensor.readout_s,
+                     f"{who}'s {rows * cols / 1e6:.3g} Mpx")
+
+
 def eos_transport(profile: Profile) -> SimEosTransport:
     """A simulated EOS body on `profile`'s simulated bench: each shutter release delivers the DNG the bench
     renders, and its live view the simulator's preview as JPEG, with the exposure and ISO of the profile's
-    [camera] section."""
+    [camera] section; with [focus] driver "eos" its lens is the bench's focus mechanism ([sim.focus])."""
     from benchctl.devices.camera.base import PREVIEW_WIDTH
     from benchctl.devices.sim.physics import LiveView, render_capture  # torch physics: only a capture needs it
 
@@ -117,5 +136,11 @@ def eos_transport(profile: Profile) -> SimEosTransport:
         return frame.data, frame.file_name
 
     view = LiveView(profile)
+    lens = None
+    if profile.focus is not None and profile.focus.driver == "eos":
+        from benchctl.devices.sim.focus_mechanics import Mechanism, bind
+
+        bind(profile.sim.focus)
+        lens = Mechanism(profile.sim.focus, profile.optics.distance_mm if profile.optics else None)
     return SimEosTransport(image_source, live_view=lambda: view.jpeg(PREVIEW_WIDTH, exposure_s=config.exposure_s,
-                                                                     iso=config.iso))
+                                                                     iso=config.iso), lens=lens)

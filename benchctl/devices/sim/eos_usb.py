@@ -8,6 +8,11 @@ camera's file name), so the simulated bench can plug in the DNG it rendered. Wit
 one JPEG) the body also has a live view: GetViewFinderData answers 0xA102 (not ready) while EVFOutputDevice 0xD1B0
 is not 2 and once more just after it is set to 2 (the sensor starts), then a type-1 record holding a new JPEG.
 
+With `lens` (the simulated bench's focus mechanism, benchctl.devices.sim.focus_mechanics) the body also drives its
+lens: DriveLens (0x9155) Near / Far 1-3 moves it DRIVE_STEPS[size] of the mechanism's steps, only in live view (EVF
+output 2); like a real body it answers OK to every valid drive, also one it ignored (not in live view, or the lens at
+an end stop); `lens_drives` counts the drives that moved it. An invalid parameter is InvalidParameter.
+
 What it does on a release: answered DeviceBusy unless the host declared capacity (PCHDDCapacity) for capture
 to the computer; otherwise it shoots, reports CameraStatus 1 (shooting), and on RemoteReleaseOff announces the
 image with RequestObjectTransfer (capture destination 4) or ObjectAddedEx (image kept on the card).
@@ -33,6 +38,7 @@ import struct
 from collections import deque
 from collections.abc import Callable
 from pathlib import PurePath
+from typing import TYPE_CHECKING
 
 import usb.core
 
@@ -60,13 +66,20 @@ from benchctl.devices.camera.ptp.eos import (
     pack_object_record,
     pack_property_change,
     pack_viewfinder,
+    parse_drive_lens,
 )
 from benchctl.devices.camera.ptp.transport import Transport
+
+if TYPE_CHECKING:
+    from benchctl.devices.sim.focus_mechanics import Mechanism
 
 ImageSource = Callable[[], tuple[bytes, str]]
 LiveViewSource = Callable[[], bytes]
 
 FIRST_HANDLE = 0x90000001
+# The mechanism steps one DriveLens moves, by size: a lens's small, medium and large steps (hidden from benchctl,
+# which counts drives of the profile's one size; the calibration measures what a drive does).
+DRIVE_STEPS = {1: 1.0, 2: 8.0, 3: 48.0}
 _WITH_HOST_DATA = {OperationCode.SetDevicePropValue, OperationCode.EosSetDevicePropValueEx}
 _OUTSIDE_SESSION = {OperationCode.GetDeviceInfo, OperationCode.OpenSession}
 _FORMATS_BY_SUFFIX = {f".{name}": code for code, name in RAW_OBJECT_FORMATS.items()} | {
@@ -96,13 +109,17 @@ class SimEosTransport(Transport):
                  busy_releases: int = 0, no_focus: bool = False, no_transfer: bool = False,
                  unplug_after_bytes: int | None = None, freeze_on_property_write: bool = False,
                  short_transfer_records: bool = False, live_view: LiveViewSource | None = None,
+                 lens: Mechanism | None = None,
                  vendor_extension_id: int = CANON_VENDOR_ID, usb_vendor: int = CANON_USB_VENDOR) -> None:
         """`vendor_extension_id`: what DeviceInfo reports (Canon's 0x0B, or 6 (MTP) as many EOS bodies do);
         `live_view`: what GetViewFinderData delivers (without one the body does not offer the operation)."""
         self.image_source = image_source
         self.live_view = live_view
+        self.lens = lens
+        self.lens_drives = 0
         self.usb_vendor = usb_vendor
-        operations = set(_HANDLERS) - (set() if live_view else {OperationCode.EosGetViewFinderData})
+        operations = set(_HANDLERS) - (set() if live_view else {OperationCode.EosGetViewFinderData}) \
+            - (set() if lens else {OperationCode.EosDriveLens})
         self.device_info = DeviceInfo(
             standard_version=100, vendor_extension_id=vendor_extension_id, vendor_extension_version=100,
             operations_supported=tuple(sorted(operations)),
@@ -310,6 +327,18 @@ class SimEosTransport(Transport):
         self.live_view_frames += 1
         return ResponseCode.OK, (), pack_viewfinder(self.live_view())
 
+    def _drive_lens(self, command: Container, data: bytes | None) -> Reply:
+        if self.lens is None:
+            return ResponseCode.OperationNotSupported, (), None
+        drive = parse_drive_lens(command.params[0]) if command.params else None
+        if drive is None:
+            return ResponseCode.InvalidParameter, (), None
+        far, size = drive
+        if self.properties[EosProperty.EVFOutputDevice] == (EVF_OUTPUT_LIVE_VIEW,):
+            moved = self.lens.drive(DRIVE_STEPS[size] * (1 if far else -1))
+            self.lens_drives += bool(moved)
+        return ResponseCode.OK, (), None  # also when ignored: Canon's body says OK either way
+
     def _transfer_complete(self, command: Container, data: bytes | None) -> Reply:
         if self._objects.pop(command.params[0], None) is None:
             return ResponseCode.InvalidObjectHandle, (), None
@@ -331,4 +360,5 @@ _HANDLERS: dict[int, Callable[[SimEosTransport, Container, bytes | None], Reply]
     OperationCode.EosRemoteReleaseOn: SimEosTransport._release_on,
     OperationCode.EosRemoteReleaseOff: SimEosTransport._release_off,
     OperationCode.EosGetViewFinderData: SimEosTransport._get_viewfinder_data,
+    OperationCode.EosDriveLens: SimEosTransport._drive_lens,
 }

@@ -6,8 +6,8 @@ autostart), persisted with state.save_state after every change and loaded when t
 made by one benchctl process is seen by the next, as with hardware.
 
 Dialects (sim:// `dialect=`): `template` (the default: the command set of hardware_profiles/simulated.toml,
-three channels), `cobolt` (one head per port) and `obis` (one head per port; `channels=N` makes a multi-head
-box addressed as `SOURce2:...`).
+three channels), `cobolt`, `sapphire` and `deepstar` (one head per port) and `obis` (one head per port;
+`channels=N` makes a multi-head box addressed as `SOURce2:...`).
 
 Faults, from the URL (`fault=a,b`) and from the saved state's "faults" list (so the CLI can set them):
   no_reply        the unit is deaf: commands are neither executed nor answered
@@ -38,8 +38,9 @@ DEFAULT_MAX_MW = 40.0
 _OPTIONS = ("fault", "reply_delay_s", "max_mw", "channels")
 
 
-def parse_faults(items: list[str]) -> tuple[frozenset[str], int | None]:
-    """Fault names (see the module docstring) as a set, plus N of drop_after=N; ValueError names a bad one."""
+def parse_faults(items: list[str], known: tuple[str, ...] = FAULTS) -> tuple[frozenset[str], int | None]:
+    """Fault names (see the module docstring; `known`: another simulator's) as a set, plus N of drop_after=N;
+    ValueError names a bad one."""
     names: set[str] = set()
     drop_after = None
     for item in (raw.strip() for raw in items):
@@ -50,10 +51,10 @@ def parse_faults(items: list[str]) -> tuple[frozenset[str], int | None]:
                 drop_after = int(item.split("=", 1)[1])
             except ValueError:
                 raise ValueError(f"fault {item!r}: N in drop_after=N must be an integer") from None
-        elif item in FAULTS:
+        elif item in known:
             names.add(item)
         else:
-            raise ValueError(f"unknown fault {item!r} (known: {', '.join(FAULTS)})")
+            raise ValueError(f"unknown fault {item!r} (known: {', '.join(known)})")
     return frozenset(names), drop_after
 
 
@@ -63,6 +64,7 @@ class LaserEmulator(ABC):
     dialect: ClassVar[str]
     default_channels: ClassVar[int] = 1
     terminator: ClassVar[bytes] = b"\r\n"
+    settings: ClassVar[dict[str, Any]] = {}  # what else the unit remembers (name: factory default)
 
     def __init__(self, name: str, params: Mapping[str, str]) -> None:
         unknown = sorted(set(params) - set(_OPTIONS))
@@ -83,6 +85,7 @@ class LaserEmulator(ABC):
             "dialect": self.dialect,
             "autostart": saved.get("autostart", True),  # factory default, which is why drivers turn it off
             "faults": list(saved.get("faults", [])),
+            **{key: saved.get(key, default) for key, default in self.settings.items()},
             "channels": {
                 str(i): {"setpoint_w": 0.0, "emission": False, **saved_channels.get(str(i), {})}
                 for i in range(1, count + 1)
@@ -111,10 +114,14 @@ class LaserEmulator(ABC):
         lines = ([line] if "echo" in self.faults else []) + self.handle(line)
         if self.drop_after is not None and self.commands > self.drop_after:
             return b""
-        encoded = [text.encode("ascii", "replace") for text in lines]
+        reply = b"".join(text.encode("ascii", "replace") + self.terminator for text in lines) + self.trailer()
         if "garbled" in self.faults:
-            encoded = [bytes(b | 0x80 for b in text) for text in encoded]
-        return b"".join(text + self.terminator for text in encoded)
+            reply = bytes(b | 0x80 if b not in self.terminator else b for b in reply)
+        return reply
+
+    def trailer(self) -> bytes:
+        """What the unit sends after each reply's lines (a prompt, with no line ending). Default: nothing."""
+        return b""
 
     @abstractmethod
     def handle(self, line: str) -> list[str]:
@@ -274,6 +281,110 @@ class CoboltEmulator(LaserEmulator):
         return ["Syntax error: illegal command"]
 
 
+class SapphireEmulator(LaserEmulator):
+    """A Coherent Sapphire head, powers in mW: `P=<mW>`, `?SP`, `?P`, `?MAXLP`, `?MINLP` (0 here), `L=1` / `L=0`, `?L`,
+    `?K` (key on: 1), `?FF` (bit 0 interlock, bit 1 diode temperature, bit 13 laser ready), `?HID`, `?STA`. Out of the
+    box it echoes each command and prompts with `Sapphire:0-> `; `E=0` / `E=1` and `>=0` / `>=1` switch them (kept,
+    like the other settings). With echo off it still returns each command's line ending (an empty line). A setting
+    made with the light off answers a note; `L=1` with the interlock open or a fault leaves the light off."""
+
+    dialect = "sapphire"
+    settings: ClassVar[dict[str, Any]] = {"echo": True, "prompt": True}
+    PROMPT = b"Sapphire:0-> "
+
+    def handle(self, line: str) -> list[str]:
+        echoed = line if self.state["echo"] else ""  # the head echoes as it receives, before it obeys
+        return [echoed, *self._answer(line.strip().upper())]
+
+    def trailer(self) -> bytes:
+        return self.PROMPT if self.state["prompt"] else b""
+
+    def _answer(self, command: str) -> list[str]:
+        channel = self.channel(1)
+        assert channel is not None
+        queries = {
+            "?HID": lambda: self.serial_number,
+            "?K": lambda: "1",
+            "?L": lambda: "1" if channel["emission"] else "0",
+            "?SP": lambda: f"{channel['setpoint_w'] * 1e3:.3f}",
+            "?P": lambda: f"{self.measured_w(1) * 1e3:.3f}",
+            "?MAXLP": lambda: f"{self.max_w * 1e3:.3f}",
+            "?MINLP": lambda: "0.000",
+            "?FF": lambda: str(self.interlock_open * 1 + self.fault_active * 2 + channel["emission"] * 8192),
+            "?STA": lambda: "5",
+        }
+        if command in queries:
+            return [queries[command]()]
+        switches = {"E=": "echo", ">=": "prompt", "L=": "light"}
+        if command[:2] in switches and command[2:] in ("0", "1"):
+            if switches[command[:2]] == "light":
+                self.set_emission(1, command[2:] == "1")  # refused: the light stays off, ?L and ?FF tell why
+            else:
+                self.state[switches[command[:2]]] = command[2:] == "1"
+                self.save()
+            return []
+        if command.startswith("P="):
+            milliwatts = _float_or_none(command[2:])
+            if milliwatts is None or not self.set_setpoint(1, milliwatts * 1e-3):
+                return [f"value must be between 0.000 and {self.max_w * 1e3:.3f}"]
+            return [] if channel["emission"] else ["Note: Laser_Output is OFF (L=0)"]
+        return ["Invalid command"]
+
+
+class DeepstarEmulator(LaserEmulator):
+    """An Omicron Deepstar head: fixed-length commands (14 characters, space padded, then CR LF; any other length is
+    refused with `UK`), states S0 (interlock open or a fault), S1 (standby), S2 (laser on: emission). `S?`, `LON`
+    (`LONOK`, `INT` in S0, `UK` in S2), `LF` (`LOFFOK`, `UK` unless in S2), modes `L0` / `BLK` / `LB` / `L1` / `L2`
+    (`>` in S2, else `UK`), `IPO` / `IPF`, `PP<3 hex>` (echoed) / `PP?` (0xFFF: the maximum), `P?` (0xCCC: the
+    maximum), `STAT0` (model code: 488 nm, the maximum in mW), `STAT2` (serial numbers)."""
+
+    dialect = "deepstar"
+    settings: ClassVar[dict[str, Any]] = {"mode": "L0", "internal_peak_power": False}
+    WIDTH = 14
+
+    def handle(self, line: str) -> list[str]:
+        if len(line) != self.WIDTH:
+            return ["UK"]
+        command = line.rstrip(" ")
+        channel = self.channel(1)
+        assert channel is not None
+        state = "S0" if self.interlock_open or self.fault_active else "S2" if channel["emission"] else "S1"
+        max_mw = self.max_w * 1e3
+        if command == "S?":
+            return [state]
+        if command == "STAT0":
+            return [f"MC 488  {max_mw:3.0f} TA   "]
+        if command == "STAT2":
+            return [f"R111 N02 SNP{self.serial_number} SNC{self.serial_number} WH 00000"]
+        if command == "LON":
+            if state == "S1":
+                self.set_emission(1, True)
+            return [{"S0": "INT", "S1": "LONOK", "S2": "UK"}[state]]
+        if command == "LF":
+            if state != "S2":
+                return ["UK"]
+            self.set_emission(1, False)
+            return ["LOFFOK"]
+        if command in ("L0", "BLK", "LB", "L1", "L2"):
+            if state != "S2":
+                return ["UK"]
+            self.state["mode"] = "L0" if command == "BLK" else command
+            self.save()
+            return [">"]
+        if command in ("IPO", "IPF"):
+            self.state["internal_peak_power"] = command == "IPO"
+            self.save()
+            return [command]
+        if command == "PP?":
+            return [f"PP{round(channel['setpoint_w'] / self.max_w * 0xFFF):03X}"]
+        if command == "P?":
+            return [f"P{round(self.measured_w(1) / self.max_w * 0xCCC):04X}"]
+        if re.fullmatch(r"PP[0-9A-F]{3}", command):
+            self.set_setpoint(1, int(command[2:], 16) / 0xFFF * self.max_w)
+            return [command]
+        return ["UK"]
+
+
 class _ParameterError(Exception):
     """An OBIS command with a parameter the head does not accept (answered ERR-220)."""
 
@@ -368,7 +479,7 @@ def _scpi(spec: str) -> re.Pattern[str]:
 
 
 DIALECTS: dict[str, type[LaserEmulator]] = {
-    cls.dialect: cls for cls in (TemplateEmulator, CoboltEmulator, ObisEmulator)
+    cls.dialect: cls for cls in (TemplateEmulator, CoboltEmulator, ObisEmulator, SapphireEmulator, DeepstarEmulator)
 }
 
 

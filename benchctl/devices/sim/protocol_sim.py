@@ -1,6 +1,7 @@
-"""pyserial's handler for `sim://` URLs: a serial port wired to one of benchctl's byte-level laser emulators.
+"""pyserial's handler for `sim://` URLs: a serial port wired to one of benchctl's byte-level emulators (the lasers,
+and the Zaber focus stage with `dialect=zaber`).
 
-    sim://<device-name>?dialect=template|cobolt|obis&fault=a,b&reply_delay_s=0.1&max_mw=40&channels=3
+    sim://<device-name>?dialect=template|cobolt|obis|zaber&fault=a,b&reply_delay_s=0.1&max_mw=40&channels=3
 
 pyserial imports this module (package benchctl.devices.sim, added to serial.protocol_handler_packages by
 serial_link) and uses its `Serial` class. Keep its imports light and safe: an ImportError raised here shows up
@@ -17,14 +18,14 @@ import errno
 import threading
 import time
 from collections import deque
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 from urllib.parse import parse_qsl, urlsplit
 
 from serial.serialutil import PortNotOpenError, SerialBase, SerialException
 
 from benchctl.devices.errors import DeviceBusy
-from benchctl.devices.sim.laser_emulators import LaserEmulator, make_emulator
 from benchctl.devices.lock import DeviceLock
+from benchctl.devices.sim.laser_emulators import make_emulator
 from benchctl.devices.sim.state import sim_lock
 
 if TYPE_CHECKING:
@@ -43,11 +44,28 @@ def parse_url(url: str) -> tuple[str, dict[str, str]]:
     return parts.netloc, params
 
 
+class Emulator(Protocol):
+    """What the port needs of a device at its other end: bytes in, reply bytes out, and the reply delay."""
+
+    reply_delay_s: float
+
+    def receive(self, data: bytes) -> bytes: ...
+
+
+def make_device(name: str, params: dict[str, str]) -> Emulator:
+    """The emulator a sim:// URL names; ValueError names a bad option."""
+    if params.get("dialect") == "zaber":
+        from benchctl.devices.sim.zaber_stage import ZaberStage
+
+        return ZaberStage(name, {k: v for k, v in params.items() if k != "dialect"})
+    return make_emulator(name, params)
+
+
 class Serial(SerialBase):
     """A serial port whose other end is a simulated laser unit (see the module docstring)."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:  # SerialBase's own arguments
-        self._device: LaserEmulator | None = None
+        self._device: Emulator | None = None
         self._hold: DeviceLock | None = None
         self._arrived = bytearray()
         self._in_flight: deque[tuple[float, bytes]] = deque()  # (time it arrives, bytes), in order
@@ -66,7 +84,7 @@ class Serial(SerialBase):
         except DeviceBusy as exc:
             raise SerialException(errno.EBUSY, str(exc)) from None
         try:
-            self._device = make_emulator(name, params)
+            self._device = make_device(name, params)
         except ValueError as exc:
             hold.release()
             raise SerialException(str(exc)) from None

@@ -1,7 +1,8 @@
 """The outputs (monitors) of an X11 desktop, read through RandR with python-xlib: name, mode, position, EDID.
 
 Every X screen of the display is read (a desktop usually has one screen with one output per connector; Xvfb's
-test servers have one output per screen). The EDID comes from the output's `EDID` property. python-xlib is an
+test servers have one output per screen). The EDID comes from the output's `EDID` property; one that cannot be
+parsed (bad checksum, truncated) leaves its output listed with the reason, never hides the others. python-xlib is an
 optional dependency (`pip install 'benchctl[display]'`): without it, or without a display to connect to, the
 functions here raise a one-line DeviceError saying so.
 """
@@ -32,10 +33,12 @@ class DesktopOutput:
     refresh_hz: float | None  # None where the mode has no timing (virtual outputs)
     crtc: int
     edid: Edid | None
+    edid_error: str | None = None  # why the output's EDID could not be read (then `edid` is None)
 
     def describe(self) -> str:
         rate = f" @ {self.refresh_hz:.2f} Hz" if self.refresh_hz else ""
-        monitor = f"{self.edid.name or '?'} serial {self.edid.serial or '?'}" if self.edid else "no EDID"
+        monitor = f"{self.edid.name or '?'} serial {self.edid.serial or '?'}" if self.edid else (
+            f"EDID unreadable ({self.edid_error})" if self.edid_error else "no EDID")
         return f"{self.name} (screen {self.screen}): {self.width}x{self.height}{rate} at +{self.x}+{self.y}, {monitor}"
 
 
@@ -43,6 +46,7 @@ def xlib() -> Any:
     """python-xlib's `Xlib` package; DeviceError saying what to install when it is missing."""
     try:
         import Xlib.display
+        import Xlib.error
         import Xlib.ext.randr  # noqa: F401 - registers the RandR requests on Display
     except ImportError:
         raise DeviceError(f"desktop displays need python-xlib: {INSTALL_HINT}") from None
@@ -57,9 +61,14 @@ def connect(name: str | None) -> Any:
         raise DeviceError("no X display: set $DISPLAY or slm.x_display (desktop displays need an X11 session; on "
                           "Wayland, XWayland outputs carry no EDID)")
     try:
-        return module.display.Display(display_name)
+        display = module.display.Display(display_name)
     except Exception as exc:  # python-xlib raises several unrelated classes for an unreachable display
         raise DeviceError(f"cannot connect to X display {display_name!r}: {exc}") from None
+    # python-xlib's RandR module registers its errors at codes 0-2 instead of above its error base, over the core
+    # BadRequest and BadValue, with classes it then fails to parse (AttributeError): this connection gets the core
+    # table back (RandR's own errors are then plain XErrors).
+    display.display.error_classes = dict(module.error.xerror_class)
+    return display
 
 
 def desktop_outputs(display: Any) -> list[DesktopOutput]:
@@ -81,7 +90,15 @@ def desktop_outputs(display: Any) -> list[DesktopOutput]:
             mode = modes.get(crtc.mode)
             rate = mode.dot_clock / (mode.h_total * mode.v_total) if mode and mode.h_total and mode.v_total else None
             value = display.xrandr_get_output_property(output, edid_atom, X.AnyPropertyType, 0, 256)._data["value"]
-            edid = parse_edid(bytes(value)) if value else None
+            edid, edid_error = _edid(bytes(value)) if value else (None, None)
             found.append(DesktopOutput(display.get_display_name(), screen, info.name, crtc.x, crtc.y, crtc.width,
-                                       crtc.height, rate, info.crtc, edid))
+                                       crtc.height, rate, info.crtc, edid, edid_error))
     return found
+
+
+def _edid(data: bytes) -> tuple[Edid | None, str | None]:
+    """(the parsed EDID, None), or (None, why it cannot be parsed)."""
+    try:
+        return parse_edid(data), None
+    except DeviceError as exc:
+        return None, str(exc)

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import select
 import time
+from collections.abc import Callable
 from typing import Any
 
 from Xlib.protocol import rq
@@ -78,10 +79,11 @@ class Presenter:
         _QueryVersion(display=display.display, opcode=info.major_opcode, major_version=1, minor_version=2)
         return cls(display, window, crtc, info.major_opcode)
 
-    def present(self, pixmap: Any, timeout_s: float) -> int:
+    def present(self, pixmap: Any, timeout_s: float, check_errors: Callable[[], None]) -> int:
         """Show `pixmap` (the window's size and depth) at the next vblank; that vblank's `ust` (microseconds) once
         the server says. DeviceError when none comes within `timeout_s` (an output switched off has no vblanks);
-        a late notification of that frame is then passed over."""
+        a late notification of that frame is then passed over. `check_errors` raises for an X error the server
+        reported meanwhile (a refused request never completes)."""
         self._serial = self._serial % 0xFFFFFFFF + 1
         _PresentPixmap(display=self._display.display, opcode=self._opcode, window=self._window, pixmap=pixmap,
                        serial=self._serial, valid=0, update=0, x_off=0, y_off=0, target_crtc=self._crtc,
@@ -90,11 +92,13 @@ class Presenter:
         deadline = time.monotonic() + timeout_s
         while True:
             while self._display.pending_events():
+                check_errors()
                 event = self._display.next_event()
                 if (event.type == _GENERIC_EVENT and event.extension == self._opcode
                         and event.evtype == _COMPLETE_NOTIFY and event.data.serial == self._serial):
                     ust: int = event.data.ust
                     return ust
+            check_errors()
             left = deadline - time.monotonic()
             if left <= 0:
                 raise DeviceError(f"the X server did not complete presenting frame {self._serial} within "

@@ -55,6 +55,7 @@ class OperationCode(IntEnum):
     EosRemoteReleaseOn = 0x9128
     EosRemoteReleaseOff = 0x9129
     EosGetViewFinderData = 0x9153
+    EosDriveLens = 0x9155
 
 
 class ResponseCode(IntEnum):

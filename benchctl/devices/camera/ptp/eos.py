@@ -12,6 +12,11 @@ Live view (libgphoto2's sequence): EVFOutputDevice 0xD1B0 = 2 sends the viewfind
 GetViewFinderData (0x9153, parameter 0x00100000, data to the host) returns records of the same `u32 size |
 u32 type | body` form, the image a type-1 record whose body is a JPEG; the body answers 0xA102 (not ready) or
 DeviceBusy until it has a frame. Setting 0xD1B0 back ends it.
+
+Focus (libgphoto2's `manualfocusdrive`, Canon's EDSDK DriveLens): operation 0x9155 with one parameter, 0x0001 /
+0x0002 / 0x0003 = Near 1 / 2 / 3 (small / medium / large step) and 0x8001 / 0x8002 / 0x8003 = Far 1 / 2 / 3. The lens
+moves only in live view (0xD1B0 = 2), and the body answers OK even when it ignored a drive (at an end stop, a busy
+lens): no drive says where the lens is.
 """
 
 from __future__ import annotations
@@ -50,6 +55,9 @@ VIEWFINDER_IMAGE = 1  # record type of the live-view JPEG
 JPEG_START = b"\xff\xd8"
 PC_HDD_CAPACITY = (0x0FFFFFFF, 0x1000, 1)  # (free clusters, bytes per cluster, 1): "plenty of room"
 RAW_ONLY = (1, 0x10, 6, 0, 4)  # image format value: one entry of 0x10 bytes, type RAW, size L, quality RAW
+DRIVE_NEAR = 0x0000  # DriveLens parameter: the direction bit clear is Near, set (0x8000) is Far; size 1-3 below it
+DRIVE_FAR = 0x8000
+DRIVE_SIZES = (1, 2, 3)
 FULL_PRESS = 3  # RemoteReleaseOn button: half + full press in one go
 AF_ON = 0  # RemoteReleaseOn second parameter
 
@@ -217,6 +225,19 @@ def pack_viewfinder(jpeg: bytes) -> bytes:
     return pack_record(VIEWFINDER_IMAGE, jpeg)
 
 
+def drive_lens_code(far: bool, size: int) -> int:
+    """DriveLens's parameter: Near / Far and the step size 1 (small), 2 or 3 (large)."""
+    if size not in DRIVE_SIZES:
+        raise BadValueError(f"DriveLens step size must be 1, 2 or 3, got {size!r}")
+    return (DRIVE_FAR if far else DRIVE_NEAR) | size
+
+
+def parse_drive_lens(code: int) -> tuple[bool, int] | None:
+    """(far, size) of a DriveLens parameter, or None if it is not one of the six codes."""
+    far, size = bool(code & DRIVE_FAR), code & ~DRIVE_FAR
+    return (far, size) if size in DRIVE_SIZES and code & 0xFFFF == code else None
+
+
 def _third_stop_code(stops: float, base: int) -> int:
     """Canon's 1/8-EV code for a value `stops` whole stops from the one coded `base`, rounded to 1/3 stop
     (thirds are coded +3 and +5 eighths)."""
@@ -298,6 +319,11 @@ class Eos:
         if response.code != ResponseCode.OK:
             raise response_error(OperationCode.EosGetViewFinderData, response.code, response.params)
         return viewfinder_jpeg(response.data)
+
+    def drive_lens(self, far: bool, size: int) -> None:
+        """One DriveLens: the lens moves Near or Far by one step of `size` (only in live view; OK says nothing about
+        whether it moved)."""
+        self.session.request(OperationCode.EosDriveLens, drive_lens_code(far, size))
 
     def transfer_complete(self, handle: int) -> None:
         """Tell the body the image arrived, so it frees its buffer."""

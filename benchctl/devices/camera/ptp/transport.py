@@ -99,11 +99,13 @@ def ptp_interface(device: Any) -> Any | None:
 
 
 class UsbTransport(Transport):
-    """PTP over a USB device's bulk and interrupt endpoints (pyusb)."""
+    """PTP over a USB device's bulk and interrupt endpoints (pyusb). `usb_vendor`: the device's USB vendor id, which
+    the protocol layer needs (a Canon body is known by it where it reports another PTP vendor extension)."""
 
     def __init__(self, bulk_out: Endpoint, bulk_in: Endpoint, interrupt_in: Endpoint | None = None, *,
-                 timeout_s: float = 10.0, chunk_size: int = CHUNK_SIZE,
+                 usb_vendor: int, timeout_s: float = 10.0, chunk_size: int = CHUNK_SIZE,
                  on_close: Callable[[], None] | None = None) -> None:
+        self.usb_vendor = usb_vendor
         self.bulk_out = bulk_out
         self.bulk_in = bulk_in
         self.interrupt_in = interrupt_in
@@ -154,10 +156,8 @@ class UsbTransport(Transport):
             usb.util.release_interface(device, interface)
             usb.util.dispose_resources(device)
 
-        transport = cls(bulk_out, bulk_in, endpoint(usb.util.ENDPOINT_IN, usb.util.ENDPOINT_TYPE_INTR),
-                        timeout_s=timeout_s, on_close=release)
-        transport.usb_vendor = vendor
-        return transport
+        return cls(bulk_out, bulk_in, endpoint(usb.util.ENDPOINT_IN, usb.util.ENDPOINT_TYPE_INTR), usb_vendor=vendor,
+                   timeout_s=timeout_s, on_close=release)
 
     @property
     def _timeout_ms(self) -> int:

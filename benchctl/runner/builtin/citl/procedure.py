@@ -61,6 +61,7 @@ from benchctl.runner.api import (
     Context,
     DarkFrames,
     Expose,
+    ExposureCap,
     ExposureMode,
     ExposureParameters,
     Frames,
@@ -71,6 +72,7 @@ from benchctl.runner.api import (
     StepRedo,
     channels,
     compute_hologram,
+    exposure_cap_w,
     load_image,
     measure,
     power_w,
@@ -83,6 +85,7 @@ from benchctl.runner.api import (
     shown,
     state_path,
     target_plane,
+    unknown_caps,
     unknown_setpoints,
 )
 from benchctl.runner.builtin import registration
@@ -112,6 +115,7 @@ class CitlParameters(ExposureParameters, kw_only=True):
     registration: RegistrationMode = "auto"
     exposure: ExposureMode = "auto"  # "auto": a probe frame of the start hologram sets the power for every capture
     peak_goal: PeakGoal = 0.7  # fraction of full scale
+    max_exposure_power: ExposureCap = None  # the most "auto" may set: "5mW", "10%" or per colour; default max_power_mw
     device: Literal["auto", "cpu", "cuda"] = "auto"  # where the gradient runs; "auto": a CUDA GPU if there is one
 
 
@@ -132,6 +136,7 @@ def plan(context: Context) -> list[Step]:
     params = context.parameters(CitlParameters)
     gradient_device(params.device)
     unknown_setpoints(context)
+    unknown_caps(context, params.max_exposure_power)
     target = prepared_target(context.profile, params.target, "parameters.target")
     present = active_channels(target)
     used = [c for c in channels(context) if present[target_plane(c)]]
@@ -144,20 +149,21 @@ def plan(context: Context) -> list[Step]:
         name = channel.name
         steps.append(Step(f"citl/{name}/start", f"start hologram {name} ({params.start})",
                           _starter(target, channel)))
+        cap = exposure_cap_w(context, channel, params.max_exposure_power)
         if params.exposure == "auto":
             steps.append(probe_step(context, f"citl/{name}/probe", channel, shown(f"citl/{name}/start"),
-                                    "probe exposure of the start hologram", params.peak_goal))
+                                    "probe exposure of the start hologram", params.peak_goal, cap))
         power = None if params.exposure == "auto" else power_w(context, channel)
         for k in range(count + 1):
             what = "capture the final phase" if k == count else "capture, register, step the phase"
             steps.append(Step(f"citl/{name}/{k:04d}", f"CITL {name} iteration {k}/{count}: {what}",
                               _iteration(target, channel, k),
                               (Expose(name, power, params.frames, params.dark_frames,
-                                      keeps_raw(k, count, params.keep_raw_every)),)))
+                                      keeps_raw(k, count, params.keep_raw_every), max_w=cap),)))
         if params.baseline:
             steps.append(Step(f"citl/{name}/baseline", f"model-only SGD {name} at {_budget(params)} iterations, "
                               "captured", _baseline(target, channel),
-                              (Expose(name, power, params.frames, params.dark_frames),)))
+                              (Expose(name, power, params.frames, params.dark_frames, max_w=cap),)))
     steps.append(Step("report", "metrics.json, metrics.csv and report.html", _reporter(target, used)))
     return steps
 

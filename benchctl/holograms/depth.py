@@ -1,0 +1,125 @@
+"""Holograms for a colour scene with depth: the planes it needs, one method per emitting colour, the displayed phase,
+the simulated focal stack and its per-plane scores.
+
+The depth twin of `holograms.scene.compute_scene`, shared by `benchctl generate rgbd:...` and `benchctl bench
+speed-vs-error`; it writes no files. A scene that needs one plane is computed and scored as 2D at that plane.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from benchctl.calibration.calibrated import Calibrated
+from benchctl.errors import BenchctlError
+from benchctl.holograms.scene import ColourResult, resolve_method, select_channels
+from benchctl.optics.focal_stack import FocalStackTarget, focal_stack_scores, mean_scores, stack_scale
+from benchctl.optics.metrics import centred_slices
+from benchctl.optics.planes import PlaneChoice, choose_planes, even_planes, finest_resolution_m
+from benchctl.optics.setup import OpticalSetup
+from benchctl.targets import active_channels, target_plane
+
+
+@dataclass
+class DepthSceneResult:
+    """All colours of one scene with depth: the planes and why, each colour's hologram, focal stack (`reconstruction`
+    (K, h, w), scaled by the stack's least-squares scale) and scores (`scores`: the mean over planes,
+    `plane_scores`: per plane), the merged colour focal stack and the per-plane scores averaged over colours."""
+
+    method: str
+    iterations: int | None
+    planes: PlaneChoice
+    colours: list[ColourResult]
+    target_roi: torch.Tensor  # (3, h, w) amplitude
+    depth_roi: torch.Tensor  # (h, w) metres
+    in_focus: list[float]  # per plane, the share of the ROI in focus there
+    stack_linear: torch.Tensor  # (K, 3, h, w) linear intensity
+    plane_scores: list[dict[str, float] | None]  # per plane, means over the colours
+    mean_scores: dict[str, float]  # means over the planes that have an in-focus region
+    checkpoint: Path | None = None
+
+
+def focal_stack_roi(setup: OpticalSetup, phase: torch.Tensor, planes_m: tuple[float, ...]) -> torch.Tensor:
+    """The focal stack (K, h, w) of `phase` on the ROI; one plane exactly as 2D reconstructs it at that distance."""
+    if len(planes_m) == 1:
+        return setup.at_distance(planes_m[0]).reconstruct_roi(phase)[None]
+    return setup.reconstruct_planes_roi(phase, planes_m)
+
+
+def scene_planes(depth_m: torch.Tensor, light: torch.Tensor, setups: Mapping[str, OpticalSetup],
+                 planes: int | None) -> PlaneChoice:
+    """`planes` evenly over the lit depth, or (None: auto) the planes the depth content and the finest axial
+    resolution of the colours' setups need (`choose_planes`)."""
+    if planes is not None:
+        return even_planes(depth_m, light, planes)
+    return choose_planes(depth_m, light, finest_resolution_m([s.geometry for s in setups.values()]))
+
+
+def compute_depth_scene(
+    target_amplitude: torch.Tensor,
+    depth_m: torch.Tensor,
+    bench: Calibrated,
+    method: str,
+    *,
+    planes: int | None = None,
+    iterations: int | None = None,
+    colours: list[str] | None = None,
+    seed: int = 0,
+    progress: Callable[[str], Callable[[int, int], None]] | None = None,
+    checkpoint: Path | None = None,
+    perceptual: bool = True,
+) -> DepthSceneResult:
+    """Choose the planes, then generate, quantise, display (in simulation) and score a hologram for each requested,
+    non-black colour of a scene with depth (`benchctl.scenes.prepare_scene`: amplitude (3, H, W), depth (H, W) in
+    metres). `planes`: a number of planes evenly over the scene's lit depth, or None (auto). The rest as
+    `compute_scene`; `perceptual` adds FLIP and speckle contrast to the scores."""
+    profile = bench.profile
+    grid, roi = profile.section("slm").shape, profile.section("optics").roi
+    if tuple(target_amplitude.shape) != (3, *grid) or tuple(depth_m.shape) != tuple(grid):
+        raise BenchctlError(f"scene is {tuple(target_amplitude.shape)} with depth {tuple(depth_m.shape)}, the SLM grid "
+                            f"needs (3, {grid[0]}, {grid[1]}) and ({grid[0]}, {grid[1]})")
+    present = active_channels(target_amplitude)
+    channels = select_channels(profile, colours)
+    lit = [channel for channel in channels if present[target_plane(channel)]]
+    generate, used_checkpoint = resolve_method(method, profile, checkpoint, [c.name for c in lit])
+    slm = bench.slm
+    rows, cols = centred_slices(grid, roi)
+    target_roi, depth_roi = target_amplitude[:, rows, cols], depth_m[rows, cols]
+    setups = bench.setups([channel.name for channel in lit] or None)
+    light = sum((target_roi[target_plane(c)].square() for c in lit), torch.zeros(roi))
+    choice = scene_planes(depth_roi, light, {c.name: setups[c.name] for c in lit} or setups, planes)
+    count = len(choice.planes_m)
+    stacks: dict[int, torch.Tensor] = {}
+    results = []
+    for channel in channels:
+        if channel not in lit:
+            results.append(ColourResult(channel.name, channel.wavelength_nm, skipped=True))
+            continue
+        setup = bench.setup(channel.name, as_displayed=True)
+        target = FocalStackTarget(target_amplitude[target_plane(channel)], depth_m, choice.planes_m)
+        start = time.perf_counter()
+        phase = generate(target, setup, iterations=iterations, seed=seed,
+                         progress=progress(f"{method} {channel.name}") if progress else None)
+        seconds = time.perf_counter() - start
+        gray = slm.encode(phase, channel.name)
+        stack = focal_stack_roi(setup, torch.from_numpy(slm.driven(gray, channel.name)), choice.planes_m)
+        masks, wanted = target.masks[:, rows, cols], target_roi[target_plane(channel)]
+        stack = stack * stack_scale(stack, wanted, masks)
+        stacks[target_plane(channel)] = stack
+        scores = focal_stack_scores(stack, wanted, masks, choice.planes_m, perceptual=perceptual)
+        results.append(ColourResult(channel.name, channel.wavelength_nm, skipped=False, seconds=seconds, gray=gray,
+                                    reconstruction=stack, scores=scores.mean, plane_scores=scores.per_plane))
+    linear = torch.zeros((count, *target_roi.shape), dtype=torch.float32)
+    for plane, stack in stacks.items():
+        linear[:, plane] = stack.square().clamp(0, 1)
+    owner = FocalStackTarget(target_amplitude[0], depth_m, choice.planes_m).masks[:, rows, cols].argmax(0)
+    done = [c for c in results if not c.skipped]
+    plane_scores = [mean_scores([c.plane_scores[k] for c in done]) or None for k in range(count)]
+    return DepthSceneResult(method, iterations, choice, results, target_roi, depth_roi,
+                            [float((owner == k).float().mean()) for k in range(count)], linear, plane_scores,
+                            mean_scores(plane_scores), checkpoint=used_checkpoint)
+

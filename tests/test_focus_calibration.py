@@ -1,0 +1,181 @@
+"""Focus calibration: the sharpness, peak and map arithmetic, then the procedure on a small simulated bench against the
+simulator's hidden mechanics (backlash, where each depth truly is), its acceptance test, and `benchctl focus go`."""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from benchctl.calibration.store import Calibration
+from benchctl.capture.focus import FocusMap, fit_peak, parse_depth, sharpness
+from benchctl.cli import main
+from benchctl.devices.sim import physics
+from benchctl.devices.sim.focus_mechanics import Mechanism
+from benchctl.errors import BadValueError, BenchctlError
+from benchctl.profiles import Profile
+from benchctl.runner.focus_commands import focus_go
+
+BACKLASH = 25.0
+SWEEP = """name = "focus-calibration"
+procedure = "focus-calibration"
+[parameters]
+colours = ["green"]
+sweep_steps = [0, 4000]
+fine_span_steps = 300
+round_trip_steps = 500
+dot_radius_px = 1.0
+iterations = 20
+coarse_points = 11
+fine_points = 7
+"""
+
+
+@pytest.mark.parametrize("text, metres", [("70mm", 0.07), ("70.5 mm", 0.0705), ("0.07m", 0.07), ("14.3D", 1 / 14.3),
+                                          ("20 dpt", 0.05)])
+def test_depths_in_millimetres_or_diopters(text: str, metres: float) -> None:
+    assert parse_depth(text) == pytest.approx(metres)
+
+
+@pytest.mark.parametrize("text", ["70", "seven mm", "-3mm", "0D"])
+def test_bad_depths_are_one_line_errors(text: str) -> None:
+    with pytest.raises(BadValueError, match="depth"):
+        parse_depth(text)
+
+
+def test_sharpness_is_exposure_free_and_falls_as_a_point_spreads() -> None:
+    image = np.zeros((64, 64))
+    image[28:32, 28:32] = 1.0
+    wide = np.zeros((64, 64))
+    wide[24:40, 24:40] = 1 / 16
+    assert sharpness(image) == pytest.approx(sharpness(7 * image)) == pytest.approx(256.0)  # one bin of 256
+    assert sharpness(wide) == pytest.approx(16.0)  # spread over 16 bins
+
+
+def test_fit_peak_finds_a_gaussian_vertex_between_samples_and_refuses_an_edge() -> None:
+    x = np.arange(0, 1100, 100.0)
+    assert fit_peak(x, 5 + np.exp(-((x - 437.0) / 300) ** 2)) == pytest.approx(437.0, abs=15)
+    assert fit_peak(x, np.exp(-((x - 437.0) / 300) ** 2)) == pytest.approx(437.0, abs=1e-6)
+    with pytest.raises(BenchctlError, match="outside the swept range"):
+        fit_peak(x, np.exp(-((x - 1500.0) / 300) ** 2))
+
+
+def test_focus_map_fits_inverts_and_round_trips_through_json() -> None:
+    points = [(1000.0, 19.0), (2000.0, 20.0), (3000.0, 21.0)]
+    found = FocusMap.fit(points, approach=1, backlash_steps=25.0, repeatability_steps=1.5, range_steps=(0.0, 4000.0))
+    assert found.residual_mm == pytest.approx(0.0, abs=1e-9) and found.depth_mm(2500) == pytest.approx(20.5)
+    assert found.steps_for(0.0205) == 2500 and found.overshoot_steps == 50
+    assert FocusMap.from_dict(json.loads(json.dumps(found.to_dict()))) == found
+    with pytest.raises(BenchctlError, match="outside what the focus calibration covers"):
+        found.steps_for(0.030)
+    with pytest.raises(BenchctlError, match="three depths"):
+        FocusMap.fit(points[:2], approach=1, backlash_steps=0, repeatability_steps=None, range_steps=(0, 1))
+
+
+@pytest.fixture
+def focus_bench(make_bench_profile: Callable[..., Profile]) -> Profile:
+    """The small simulated bench (20 mm, 8 um, no iris: depth of field about 0.5 mm at 520 nm) with its camera on a
+    simulated stage: 1 um per step, 4 mm of travel, focused on the target plane at power-on, 25 steps of backlash."""
+    return make_bench_profile(
+        optics={"iris_fraction": None},
+        focus={"driver": "zaber", "port": "sim://focus-stage?dialect=zaber", "settle_ms": 0},
+        sim={"focus": {"mm_per_step": 0.001, "range_steps": 4000, "start_steps": 2000, "backlash_steps": BACKLASH}})
+
+
+def run_calibration(tmp_path: Path, profile: Profile, extra: str = "") -> tuple[int, Path]:
+    procedure = tmp_path / "focus.toml"
+    procedure.write_text(SWEEP + extra)
+    runs = tmp_path / "runs"
+    code = main(["run", str(procedure), "--profile", str(profile.path), "--out", str(runs)])
+    return code, sorted(runs.iterdir())[-1]
+
+
+def results(run: Path) -> dict[str, dict]:
+    return {line["step"]: line["result"] for line in map(json.loads, (run / "steps.jsonl").read_text().splitlines())
+            if line.get("result") is not None and "step" in line}
+
+
+@pytest.mark.slow
+def test_calibration_recovers_the_mechanics_and_focus_go_lands_on_the_depth(
+        tmp_path: Path, focus_bench: Profile, capsys: pytest.CaptureFixture[str]) -> None:
+    code, run = run_calibration(tmp_path, focus_bench)
+    assert code == 0
+    steps = results(run)
+    fit = steps["focus/green/fit"]
+    assert fit["calibration"]["stored"] and fit["simulator"]["backlash_steps"] == BACKLASH
+    assert fit["map"]["backlash_steps"] == pytest.approx(BACKLASH, abs=6)
+    # each depth's up-sweep peak is where the counter stands when the carriage (counter - backlash) focuses there:
+    # within 40 um of the truth, a twelfth of the depth of field (lambda / NA^2 = 0.49 mm)
+    for depth, peak in zip((19.0, 20.0, 21.0), (p["steps"] for p in fit["map"]["points"])):
+        assert peak - BACKLASH == pytest.approx(2000 + (depth - 20.0) * 1000, abs=40)
+    repeat = steps["focus/green/repeat"]
+    assert len(repeat["read_steps"]) == 20 and repeat["true_repeatability_steps"] == 0.0
+    assert repeat["repeatability_steps"] < 5  # a stage without step spread comes back: what is left is noise
+    stored = Calibration.store(focus_bench).focus_maps()["green"]
+    assert stored["run"] == run.name and stored["focus"] == "zaber sim://focus-stage?dialect=zaber"
+    assert "Focus calibration" in (run / "report.html").read_text()
+
+    lines = focus_go(focus_bench, "20.5mm", None)
+    assert "green: 20.5 mm from the SLM" in lines[0]
+    assert physics.camera_focus_m(focus_bench) == pytest.approx(0.0205, abs=40e-6)  # the camera's true plane
+    assert main(["focus", "go", "19.2mm", "--profile", str(focus_bench.path)]) == 0
+    assert physics.camera_focus_m(focus_bench) == pytest.approx(0.0192, abs=40e-6)  # arrived from below
+    assert main(["focus", "status", "--profile", str(focus_bench.path)]) == 0
+    assert "green: focused at 19.2 mm from the SLM (calibrated)" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_a_map_that_fails_its_acceptance_test_is_kept_aside_and_the_run_fails(tmp_path: Path,
+                                                                               focus_bench: Profile) -> None:
+    code, run = run_calibration(tmp_path, focus_bench, "max_residual_mm = 1e-9\nround_trips = 2\n")
+    assert code == 2
+    fit = results(run)["focus/green/fit"]
+    assert not fit["calibration"]["stored"] and "above the bound" in fit["calibration"]["failures"][0]
+    assert Calibration.store(focus_bench).focus_maps() == {}
+    assert any(Path(kept).name.endswith("focus-green.json") and Path(kept).is_file()
+               for kept in fit["calibration"]["kept"])
+    with pytest.raises(BenchctlError, match="no focus calibration"):
+        focus_go(focus_bench, "20mm", None)
+
+
+def test_focus_go_uses_the_stored_map_from_its_side(focus_bench: Profile) -> None:
+    found = FocusMap.fit([(1000.0, 19.0), (2000.0, 20.0), (3000.0, 21.0)], approach=1, backlash_steps=BACKLASH,
+                         repeatability_steps=1.0, range_steps=(0.0, 4000.0))
+    Calibration.store(focus_bench).save_focus("green", {**found.to_dict(), "unit": "microstep"})
+    focus_go(focus_bench, "20.25mm", "green")  # homes first, then up from below: 2250 counted
+    assert Mechanism(focus_bench.sim.focus).true_steps == 2250 - BACKLASH
+    focus_go(focus_bench, "20mm", "green")  # coming down: past it by 2 x backlash, then up
+    assert Mechanism(focus_bench.sim.focus).true_steps == 2000 - BACKLASH
+    with pytest.raises(BenchctlError, match="'red' is not focus-calibrated"):
+        focus_go(focus_bench, "20mm", "red")
+    assert math.isclose(1 / parse_depth("50D"), 50)
+
+
+def test_the_dry_run_counts_every_sweep_capture(tmp_path: Path, focus_bench: Profile,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    procedure = tmp_path / "focus.toml"
+    procedure.write_text(SWEEP)
+    assert main(["run", str(procedure), "--profile", str(focus_bench.path), "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    captures = 11 * 3 + 3 * 2 * 7 + 20  # coarse x depths, up and down per depth, round trips
+    assert f"({captures} frame(s) at about" in out and "11 x green alone at 2 mW" not in out
+    assert "33 x green alone at 2 mW, 1 frame(s) + 0 dark, RAW not kept" in out
+    assert "disk: about 0 kB in runs (0 RAW frame(s)" in out
+
+
+@pytest.mark.parametrize("extra, message", [
+    ("depths_mm = [-30.0, 0.0, 1.0]\n", "parameters.depths_mm: -30 mm puts a depth behind the SLM"),
+    ("depths_mm = [0.0, 1.0]\n", "depths_mm"),
+    ("sweep_steps = [500, 100]\n", "parameters.sweep_steps: \\[500, 100\\] must be two positions"),
+])
+def test_bad_sweeps_are_refused_when_planning(tmp_path: Path, focus_bench: Profile, extra: str, message: str,
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    procedure = tmp_path / "focus.toml"
+    procedure.write_text(SWEEP.replace("sweep_steps = [0, 4000]\n", "") + extra)
+    assert main(["run", str(procedure), "--profile", str(focus_bench.path), "--dry-run"]) == 2
+    assert re.search(message, capsys.readouterr().err)
