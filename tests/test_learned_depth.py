@@ -348,3 +348,26 @@ def test_the_device_table_measures_every_network_in_one_process_with_ratios(smal
         assert row["inference_seconds"] > 0 and row["inference_cpu_seconds"] > 0
         assert row["speedup"] == pytest.approx(rows[0]["inference_seconds"] / row["inference_seconds"])
         assert row["cpu_speedup"] == pytest.approx(rows[0]["inference_cpu_seconds"] / row["inference_cpu_seconds"])
+
+
+def test_the_device_table_says_out_of_memory_when_the_step_reports_it(
+        small_profile_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """On CUDA, training_step_memory returns {"out_of_memory": True} (it no longer raises): the table's row says so
+    (it was a KeyError on 'peak_bytes')."""
+    from benchctl.benchmarks import learned
+    from benchctl.benchmarks.learned import OUT_OF_MEMORY, run_device_table
+
+    text = small_profile_path.read_text().replace("roi = [48, 80]\n", "roi = [48, 80]\n" + DEPTH_PROFILE_LINE)
+    small_profile_path.write_text(text)
+    measured = learned.training_step_memory
+
+    def refused_for_the_undivided(method: str, *args: object, **kwargs: object) -> dict[str, object]:
+        if method == "holonet3d":
+            return {"out_of_memory": True, "total_bytes": 1}
+        return measured(method, *args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(learned, "training_step_memory", refused_for_the_undivided)
+    rows = run_device_table(load_profile(small_profile_path), grids=[(32, 64)], methods=DEPTH_METHODS[:2],
+                            repeats=1, out=lambda _: None)
+    assert rows[0]["result"] == OUT_OF_MEMORY and "train_step_peak_mib" not in rows[0]
+    assert "result" not in rows[1] and rows[1]["train_step_peak_mib"] > 0
