@@ -7,10 +7,11 @@ held-out scene (the bundled `rgbd:` scenes, never drawn by the training data) an
   planes by `training.data.scene_planes` (a layered scene's own depths, else `planes` evenly over its depth span,
   bin centres, no jitter) and its in-focus masks;
 - each checkpoint's network: one forward pass on the image and its depth;
-- DPAC of the image at the middle of the depth range (one shot, depth ignored: what a 2D method makes of it);
-- multi-plane SGD: Adam on the SLM phase (SGD's learning rate) minimising the focal-stack loss
-  (`focal_stack_loss`, Neural 3D Holography's masked loss), from that DPAC phase, for `sgd_iterations`; the best
-  phase seen is kept;
+- layered DPAC (the registry's `dpac` of a scene with depth: the scene's field layer by layer with occlusion,
+  anti-aliased, double-phase coded; one shot);
+- multi-plane SGD (the registry's SGD of a scene with depth: Adam on the SLM phase minimising the focal-stack loss,
+  Neural 3D Holography's masked loss, from layered DPAC) for exactly `sgd_iterations` (no early stop, so every
+  scene gets the same budget); the best phase seen is kept;
 all scored by `focal_stack_scores` (each plane's amplitude PSNR / SSIM inside its in-focus region, unquantised
 phase, and the mean over the planes) and timed (wall seconds per hologram on this machine, after a warm-up that
 computes the propagation kernels). Several
@@ -28,20 +29,21 @@ from typing import Any
 
 import torch
 
-from benchctl.cgh import OpticalSetup, get_method
+from benchctl.cgh import OpticalSetup
+from benchctl.cgh.dpac import DPAC
 from benchctl.cgh.learned import DEPTH_METHODS, DepthHologramNet
-from benchctl.cgh.sgd import DEFAULT_ITERATIONS, PHASE_LR
+from benchctl.cgh.sgd import DEFAULT_ITERATIONS, sgd_method
 from benchctl.errors import BadValueError
 from benchctl.files import ensure_dir, write_csv
 from benchctl.holograms.checkpoints import read_checkpoint
-from benchctl.optics.focal_stack import FocalStackTarget, focal_stack_loss
+from benchctl.optics.focal_stack import FocalStackTarget
 from benchctl.profiles import Profile
 from benchctl.scenes import list_scenes, load_scene, prepare_scene
 from benchctl.targets import target_plane
 from benchctl.training.data import scene_planes
 from benchctl.training.training import peak_normalised, phase_stack_scores
 
-DPAC_LABEL = "dpac (middle plane)"
+DPAC_LABEL = "layered dpac"
 SGD_LABEL = "multi-plane sgd"
 
 
@@ -82,44 +84,20 @@ def _networks(paths: Sequence[Path], colour: str | None) -> tuple[list[Network],
     return networks, networks[0].model.setup, colour
 
 
-def multi_plane_sgd(start: torch.Tensor, setup: OpticalSetup, target: FocalStackTarget,
-                    iterations: int) -> torch.Tensor:
-    """Adam on the phase (H, W) from `start`, minimising the focal-stack loss of `target` on the ROI: the phase of
-    lowest loss seen."""
-    rows, cols = setup.roi_slices
-    amplitude, masks = target.amplitude[rows, cols], target.masks[:, rows, cols]
-    phase = start.detach().clone().requires_grad_()
-    optimiser = torch.optim.Adam([phase], lr=PHASE_LR)
-    best, best_phase = float("inf"), phase.detach().clone()
-    with torch.inference_mode(False), torch.enable_grad():
-        for done in range(iterations + 1):
-            optimiser.zero_grad(set_to_none=True)
-            loss = focal_stack_loss(setup.reconstruct_planes_roi(phase, target.planes_m), amplitude, masks)
-            if float(loss.detach()) < best:
-                best, best_phase = float(loss.detach()), phase.detach().clone()
-            if done == iterations:
-                break
-            loss.backward()
-            optimiser.step()
-    return best_phase
-
-
 def run_learned_depth_bench(profile: Profile, checkpoints: Sequence[Path], *, scenes: Sequence[str] | None = None,
                             colour: str | None = None, planes: int = 5, sgd_iterations: int = DEFAULT_ITERATIONS,
                             out_dir: Path | None = None, out: Callable[[str], None] = print) -> list[dict[str, Any]]:
-    """Score each checkpoint's network, DPAC at the middle plane and multi-plane SGD on held-out scenes (module
-    doc); print the table, write learned_depth.csv (one row per scene, method, seed and plane) and
-    learned_depth_summary.csv."""
+    """Score each checkpoint's network, layered DPAC and multi-plane SGD on held-out scenes (module doc); print the
+    table, write learned_depth.csv (one row per scene, method, seed and plane) and learned_depth_summary.csv."""
     networks, setup, colour = _networks(checkpoints, colour)
     depth_range = networks[0].model.depth_range_m
     specs = list(scenes or list_scenes())
     plane = target_plane(profile.channel(colour))
-    dpac = get_method("dpac")
-    middle = setup.at_distance(networks[0].model.middle_m)
+    sgd = sgd_method(SGD_LABEL, tolerance=None)
     out(f"bench of the checkpoints: {setup.shape[0]}x{setup.shape[1]} (ROI {setup.roi[0]}x{setup.roi[1]}), {colour} "
         f"{setup.wavelength_m * 1e9:g} nm, distance {setup.distance_m * 1e3:.4g} mm, depth range "
         f"{depth_range[0] * 1e3:.4g} .. {depth_range[1] * 1e3:.4g} mm; up to {planes} planes per scene; multi-plane "
-        f"SGD {sgd_iterations} iterations from DPAC at the middle plane; unquantised phase; {torch.get_num_threads()} "
+        f"SGD {sgd_iterations} iterations from layered DPAC; unquantised phase; {torch.get_num_threads()} "
         "torch thread(s)")
     rows: list[dict[str, Any]] = []
     for spec in specs:
@@ -130,16 +108,16 @@ def run_learned_depth_bench(profile: Profile, checkpoints: Sequence[Path], *, sc
         focal = scene_planes(depth[roi_rows, roi_cols].numpy(), planes)
         target = FocalStackTarget(amplitude, depth, focal)
         # untimed warm-up: every propagation kernel this scene needs is computed once, as for repeated holograms
-        dpac(amplitude, middle)
+        DPAC(target, setup)
         setup.planes_propagator(focal, roi=True).kernels(torch.complex64, amplitude.device)
         with torch.inference_mode():
             networks[0].model(amplitude[None, None], depth[None, None])
         results: list[tuple[str, int | None, torch.Tensor, float]] = []
         start = time.perf_counter()
-        dpac_phase = dpac(amplitude, middle)
-        results.append((DPAC_LABEL, None, dpac_phase, time.perf_counter() - start))
-        sgd_phase = multi_plane_sgd(dpac_phase, setup, target, sgd_iterations)
-        results.append((SGD_LABEL, None, sgd_phase, time.perf_counter() - start))  # DPAC's start included
+        results.append((DPAC_LABEL, None, DPAC(target, setup), time.perf_counter() - start))
+        start = time.perf_counter()
+        results.append((SGD_LABEL, None, sgd(target, setup, iterations=sgd_iterations),
+                        time.perf_counter() - start))  # its layered DPAC start included
         for network in networks:
             start = time.perf_counter()
             with torch.inference_mode():

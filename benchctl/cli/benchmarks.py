@@ -300,11 +300,11 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     learned.set_defaults(func=_cmd_bench_learned)
 
     depth = bench.add_parser(
-        "learned-depth", help="networks for scenes with depth (holonet3d*) against DPAC and multi-plane SGD on "
-                              "held-out scenes: per-plane in-focus PSNR / SSIM, over seeds",
+        "learned-depth", help="networks for scenes with depth (holonet3d*) against layered DPAC and multi-plane SGD "
+                              "on held-out scenes: per-plane in-focus PSNR / SSIM, over seeds",
         description="On the bench the checkpoints were trained for, per held-out scene (the bundled rgbd: scenes): "
-                    "each checkpoint's network, DPAC of the image at the middle of the depth range and multi-plane SGD "
-                    "(the focal-stack loss, from that DPAC phase), each plane scored inside its in-focus region "
+                    "each checkpoint's network, layered DPAC and multi-plane SGD (the focal-stack loss, from layered "
+                    "DPAC, exactly --sgd-iterations), each plane scored inside its in-focus region "
                     "(amplitude PSNR / SSIM, unquantised phase) and timed; several checkpoints of one method (seeds) "
                     "give mean +- standard deviation. Writes learned_depth.csv and learned_depth_summary.csv.")
     depth.add_argument("--checkpoint", type=Path, nargs="+", required=True, metavar="CKPT",
@@ -315,7 +315,7 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     depth.add_argument("--planes", type=positive_int, default=5, metavar="K",
                        help="planes of a scene with continuous depth (a layered scene: its own depths) (default: 5)")
     depth.add_argument("--sgd-iterations", type=whole_number(0), default=500, metavar="N",
-                       help="multi-plane SGD iterations (default: 500, SGD's)")
+                       help="multi-plane SGD iterations, no early stop (default: 500, SGD's)")
     depth.add_argument("--out", "-o", default="bench-out", type=Path, metavar="DIR",
                        help="output folder (default: bench-out)")
     add_profile(depth)
