@@ -3,7 +3,9 @@ focal planes, the focal-stack training step, checkpoints and resume."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -303,9 +305,22 @@ def _depth_checkpoint(path: Path, method: str, seed: int, depth_range: tuple[flo
 
 
 def test_the_held_out_bench_scores_networks_dpac_and_multi_plane_sgd_per_plane_over_seeds(
-        tmp_path: Path, small_profile_path: Path) -> None:
+        tmp_path: Path, small_profile_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from benchctl.benchmarks import learned_depth
     from benchctl.benchmarks.learned_depth import DPAC_LABEL, SGD_LABEL, run_learned_depth_bench
 
+    budgets: list[int | None] = []
+    made = learned_depth.sgd_method
+
+    def recorded(*args: Any, **kwargs: Any) -> Callable[..., torch.Tensor]:
+        sgd = made(*args, **kwargs)
+
+        def run(*args: Any, iterations: int | None = None, **kwargs: Any) -> torch.Tensor:
+            budgets.append(iterations)
+            return sgd(*args, iterations=iterations, **kwargs)
+        return run
+
+    monkeypatch.setattr(learned_depth, "sgd_method", recorded)
     paths = [_depth_checkpoint(tmp_path / f"{seed}.pt", "holonet3d-dcm4", seed) for seed in (1, 2)]
     lines: list[str] = []
     rows = run_learned_depth_bench(load_profile(small_profile_path), paths, scenes=["rgbd:two-planes", "rgbd:tilted"],
@@ -322,6 +337,8 @@ def test_the_held_out_bench_scores_networks_dpac_and_multi_plane_sgd_per_plane_o
 
     for scene in ("rgbd:two-planes", "rgbd:tilted"):
         assert mean(SGD_LABEL, scene) > mean(DPAC_LABEL, scene) + 1  # it starts from DPAC and keeps its best
+    # per scene one untimed iteration first (a process's first Adam step took seconds), then the budget
+    assert budgets == [1, 30, 1, 30]
     summary = (tmp_path / "out" / "learned_depth_summary.csv").read_text().splitlines()
     network_all = [line for line in summary if line.startswith("all scenes,holonet3d-dcm4,2,")]
     assert len(network_all) == 1

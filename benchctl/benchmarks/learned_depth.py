@@ -14,7 +14,7 @@ held-out scene (the bundled `rgbd:` scenes, never drawn by the training data) an
   scene gets the same budget); the best phase seen is kept;
 all scored by `focal_stack_scores` (each plane's amplitude PSNR / SSIM inside its in-focus region, unquantised
 phase, and the mean over the planes) and timed (wall seconds per hologram on this machine, after a warm-up that
-computes the propagation kernels). Several
+computes the propagation kernels and runs one SGD iteration). Several
 checkpoints of one method (seeds) give a mean and a standard deviation over the seeds.
 """
 
@@ -107,9 +107,10 @@ def run_learned_depth_bench(profile: Profile, checkpoints: Sequence[Path], *, sc
         roi_rows, roi_cols = setup.roi_slices
         focal = scene_planes(depth[roi_rows, roi_cols].numpy(), planes)
         target = FocalStackTarget(amplitude, depth, focal)
-        # untimed warm-up: every propagation kernel this scene needs is computed once, as for repeated holograms
+        # untimed warm-up: every propagation kernel this scene needs is computed once, as for repeated holograms,
+        # and one SGD iteration (a process's first Adam step takes seconds of lazy imports)
         DPAC(target, setup)
-        setup.planes_propagator(focal, roi=True).kernels(torch.complex64, amplitude.device)
+        sgd(target, setup, iterations=1)
         with torch.inference_mode():
             networks[0].model(amplitude[None, None], depth[None, None])
         results: list[tuple[str, int | None, torch.Tensor, float]] = []
