@@ -3,6 +3,7 @@ focal planes, the focal-stack training step, checkpoints and resume."""
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -388,3 +389,42 @@ def test_the_device_table_says_out_of_memory_when_the_step_reports_it(
                             repeats=1, out=lambda _: None)
     assert rows[0]["result"] == OUT_OF_MEMORY and "train_step_peak_mib" not in rows[0]
     assert "result" not in rows[1] and rows[1]["train_step_peak_mib"] > 0
+
+
+def test_generate_makes_a_scene_with_depth_with_a_trained_3d_network(capsys, tmp_path: Path,
+                                                                     small_profile_path: Path) -> None:
+    """`generate rgbd:` runs the network on the scene's image and depth map (it was refused: a learned method had no
+    focal-stack entry), on one plane too, and refuses a scene deeper than the network's range in one line."""
+    import cv2
+
+    from benchctl.calibration.setups import optical_setup
+    from benchctl.cgh.method import wrap_phase
+    from benchctl.devices.slm import slm_for
+    from benchctl.scenes import load_scene, prepare_scene
+
+    text = small_profile_path.read_text().replace("roi = [48, 80]\n", "roi = [48, 80]\n" + DEPTH_PROFILE_LINE)
+    small_profile_path.write_text(text)
+    profile = load_profile(small_profile_path)
+    setup = optical_setup(profile, "red")
+    torch.manual_seed(0)
+    model = build_model("holonet3d-dcm2", setup, (19e-3, 21e-3))
+    path = Checkpoint("holonet3d-dcm2", {"red": setup.geometry}, {"red": model.state_dict()}).save(tmp_path / "n.pt")
+    model.eval()
+    for scene, planes in (("rgbd:two-planes", "2"), ("rgbd:flat", "1")):
+        out = tmp_path / scene.split(":")[1]
+        code = main(["generate", scene, "-m", "holonet3d-dcm2", "--checkpoint", str(path), "--colours", "red",
+                     "--planes", planes, "-p", str(small_profile_path), "-o", str(out)])
+        assert code == 0, capsys.readouterr().err
+        assert len(json.loads((out / "metrics.json").read_text())["planes"]) == int(planes)
+        amplitude, depth = prepare_scene(load_scene(scene, setup.roi, (19e-3, 21e-3)), setup.shape, setup.roi)
+        with torch.no_grad():
+            phase = wrap_phase(model(amplitude[0][None, None] / amplitude[0].max(), depth[None, None])[0, 0])
+        written = cv2.imread(str(out / "phase_red.png"), cv2.IMREAD_UNCHANGED)
+        assert np.array_equal(written, slm_for(profile).encode(phase, "red"))
+    narrow = build_model("holonet3d", setup, (19.5e-3, 20.5e-3))
+    other = Checkpoint("holonet3d", {"red": setup.geometry}, {"red": narrow.state_dict()}).save(tmp_path / "m.pt")
+    code = main(["generate", "rgbd:two-planes", "-m", "holonet3d", "--checkpoint", str(other), "--colours", "red",
+                 "-p", str(small_profile_path), "-o", str(tmp_path / "deep")])
+    err = capsys.readouterr().err
+    assert code != 0 and "lies outside the 19.5 .. 20.5 mm holonet3d was trained for" in err
+    assert "Traceback" not in err

@@ -88,7 +88,8 @@ DEPTH_METHODS = tuple(name for name, variant in VARIANTS.items() if variant.fami
 def _register_methods() -> None:
     """Every network as a method that needs a checkpoint, then each 2D one refined by SGD (`<name>+sgd`)."""
     for name, variant in VARIANTS.items():
-        register(Method(name, f"trained {variant.family} network", None, None, variant.family))
+        register(Method(name, f"trained {variant.family} network", None, None, variant.family,
+                        reads_depth=name in DEPTH_METHODS))
     for name, variant in VARIANTS.items():
         if name in DEPTH_METHODS:
             continue
