@@ -388,7 +388,8 @@ def test_the_device_table_says_out_of_memory_when_the_step_reports_it(
     rows = run_device_table(load_profile(small_profile_path), grids=[(32, 64)], methods=DEPTH_METHODS[:2],
                             repeats=1, out=lambda _: None)
     assert rows[0]["result"] == OUT_OF_MEMORY and "train_step_peak_mib" not in rows[0]
-    assert "result" not in rows[1] and rows[1]["train_step_peak_mib"] > 0
+    # measured (in a process that freed more before, the step's peak over the resident set can be 0 MiB)
+    assert "result" not in rows[1] and rows[1]["train_step_peak_mib"] >= 0 and rows[1]["inference_seconds"] > 0
 
 
 def test_generate_makes_a_scene_with_depth_with_a_trained_3d_network(capsys, tmp_path: Path,
