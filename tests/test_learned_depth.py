@@ -96,6 +96,7 @@ def test_sub_networks_see_amplitude_then_depth_sub_images_and_one_full_definitio
     assert distances == [(pytest.approx(-20e-3), (1, 1, 64, 128))]
 
 
+@pytest.mark.slow
 def test_the_output_depends_on_depth_and_no_depth_is_a_flat_scene_at_the_setup_distance() -> None:
     setup = OpticalSetup(wavelength_m=520e-9, pitch_m=8e-6, distance_m=19.5e-3, shape=(32, 64), roi=(24, 48))
     torch.manual_seed(0)
@@ -212,6 +213,7 @@ def test_a_flat_scene_on_one_plane_has_the_2d_loss() -> None:
         assert float(psnr_db[b]) == pytest.approx(float(-10 * torch.log10(losses[b])), rel=1e-5)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", DEPTH_METHODS)
 def test_one_focal_stack_step_lowers_the_loss(name: str) -> None:
     setup = tiny_setup()
@@ -305,6 +307,7 @@ def _depth_checkpoint(path: Path, method: str, seed: int, depth_range: tuple[flo
                       training={"seed": seed}).save(path)
 
 
+@pytest.mark.slow
 def test_the_held_out_bench_scores_networks_dpac_and_multi_plane_sgd_per_plane_over_seeds(
         tmp_path: Path, small_profile_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     from benchctl.benchmarks import learned_depth
@@ -352,6 +355,7 @@ def test_the_held_out_bench_scores_networks_dpac_and_multi_plane_sgd_per_plane_o
         run_learned_depth_bench(load_profile(small_profile_path), [paths[0], other])
 
 
+@pytest.mark.slow
 def test_the_device_table_measures_every_network_in_one_process_with_ratios(small_profile_path: Path) -> None:
     from benchctl.benchmarks.learned import run_device_table
 
@@ -368,6 +372,7 @@ def test_the_device_table_measures_every_network_in_one_process_with_ratios(smal
         assert row["cpu_speedup"] == pytest.approx(rows[0]["inference_cpu_seconds"] / row["inference_cpu_seconds"])
 
 
+@pytest.mark.slow
 def test_the_device_table_says_out_of_memory_when_the_step_reports_it(
         small_profile_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """On CUDA, training_step_memory returns {"out_of_memory": True} (it no longer raises): the table's row says so
@@ -392,6 +397,7 @@ def test_the_device_table_says_out_of_memory_when_the_step_reports_it(
     assert "result" not in rows[1] and rows[1]["train_step_peak_mib"] >= 0 and rows[1]["inference_seconds"] > 0
 
 
+@pytest.mark.slow
 def test_generate_makes_a_scene_with_depth_with_a_trained_3d_network(capsys, tmp_path: Path,
                                                                      small_profile_path: Path) -> None:
     """`generate rgbd:` runs the network on the scene's image and depth map (it was refused: a learned method had no
