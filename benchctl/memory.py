@@ -240,9 +240,12 @@ def fit_estimate(profile: Profile, patterns: int, flat: bool, fit_steps: int, co
 # where fixed costs weigh most; docs/reproduction.md, "What fits in 24 GiB"). A method not measured takes the
 # measured network of its family and DCM factor.
 TRAINING_BYTES_PER_PX = {"holonet": 4323, "holonet-dcm2": 2511, "holonet-dcm4": 921, "holonet-pyramid": 2860,
-                         "ccnn": 526, "ccnn-dcm4": 490}
+                         "ccnn": 526, "ccnn-dcm4": 490,
+                         # a focal stack of 5 planes, measured at 1088 x 1920 only (docs/depth-learned.md)
+                         "holonet3d": 4339, "holonet3d-dcm2": 2578, "holonet3d-dcm4": 1205}
 MEASURED_AS = {("holonet", 1): "holonet", ("holonet", 2): "holonet-dcm2", ("holonet", 4): "holonet-dcm4",
-               ("ccnn", 1): "ccnn", ("ccnn", 4): "ccnn-dcm4"}
+               ("ccnn", 1): "ccnn", ("ccnn", 4): "ccnn-dcm4", ("holonet3d", 1): "holonet3d",
+               ("holonet3d", 2): "holonet3d-dcm2", ("holonet3d", 4): "holonet3d-dcm4"}
 
 
 def training_estimate(method: str, family: str, factor: int, grid: tuple[int, int], batch_size: int) -> Estimate:

@@ -36,7 +36,7 @@ from benchctl.cgh import (
     stopped_improving,
     wrap_phase,
 )
-from benchctl.cgh.learned import LEARNED_METHODS
+from benchctl.cgh.learned import DEPTH_METHODS, LEARNED_METHODS
 from benchctl.optics import propagate
 from benchctl.optics.phase_encoding import PhaseLUT, gray_to_phase, phase_to_gray
 from benchctl.optics.setup import REACH_TOLERANCE_RAD
@@ -141,7 +141,8 @@ def test_roi_is_centred(setup: OpticalSetup) -> None:
 # --- registry and interface -----------------------------------------------------------------------------------
 
 def test_one_registry_lists_classical_learned_and_refined_methods() -> None:
-    assert method_names() == ["dpac", "gs", "sgd", *LEARNED_METHODS, *(f"{n}{REFINED_SUFFIX}" for n in LEARNED_METHODS)]
+    refinable = [n for n in LEARNED_METHODS if n not in DEPTH_METHODS]  # networks for scenes with depth: none
+    assert method_names() == ["dpac", "gs", "sgd", *LEARNED_METHODS, *(f"{n}{REFINED_SUFFIX}" for n in refinable)]
     assert get_method("dpac") is DPAC and get_method("gs") is GERCHBERG_SAXTON and get_method("sgd") is SGD
     assert (DPAC.default_iterations, GERCHBERG_SAXTON.default_iterations, SGD.default_iterations) == (None, 50, 500)
     assert [n for n in method_names() if not get_method(n).needs_checkpoint] == ["dpac", "gs", "sgd"]

@@ -33,7 +33,8 @@ from benchctl.optics import Propagator
 
 FACTORS = {"holonet": 1, "holonet-dcm2": 2, "holonet-dcm4": 4, "holonet-pyramid": 4, "ccnn": 1, "ccnn-dcm4": 4,
            "holonet-ps2": 2, "holonet-ps4": 4, "holonet-lowdef2": 2, "holonet-dcm2-nolfm": 2,
-           "holonet-dcm2-noeccm": 2, "holonet-dcm2-nogrn": 2}
+           "holonet-dcm2-noeccm": 2, "holonet-dcm2-nogrn": 2, "holonet3d": 1, "holonet3d-dcm2": 2,
+           "holonet3d-dcm4": 4}
 MERGERS = {"holonet-pyramid": "pyramid", "holonet-ps2": "pixel-shuffle", "holonet-ps4": "pixel-shuffle"}
 
 
@@ -48,7 +49,8 @@ def amplitude(shape: tuple[int, int], batch: int = 2) -> torch.Tensor:
 def test_catalogue_names() -> None:
     assert LEARNED_METHODS == ("holonet", "holonet-dcm2", "holonet-dcm4", "holonet-pyramid", "ccnn", "ccnn-dcm4",
                                "holonet-ps2", "holonet-ps4", "holonet-lowdef2", "holonet-dcm2-nolfm",
-                               "holonet-dcm2-noeccm", "holonet-dcm2-nogrn")
+                               "holonet-dcm2-noeccm", "holonet-dcm2-nogrn", "holonet3d", "holonet3d-dcm2",
+                               "holonet3d-dcm4")
     with pytest.raises(ValueError, match="unknown learned method"):
         model_info("holonet-dcm3", (32, 64))
 
@@ -97,7 +99,8 @@ def test_subnetworks_run_on_sub_images_and_propagation_on_the_full_grid(name: st
     with torch.no_grad():
         model.eval()(amplitude(shape, batch=1))
     sub = (shape[0] // r, shape[1] // r)
-    assert seen["generator"] == (1, r * r, *sub)
+    inputs = 2 if name.startswith("holonet3d") else 1  # amplitude (and depth) sub-images
+    assert seen["generator"] == (1, inputs * r * r, *sub)
     assert seen["encoder"] == (1, r * r, *sub)  # complex SLM field, unshuffled (HoloNet splits it into 2 r^2)
     assert propagated == [(1, 1, *shape)]  # one propagation, at full definition
 

@@ -4,8 +4,9 @@ Per method, in one run, on one grid (the profile's, or --size with pitch and dis
 as for training):
 - trainable parameters;
 - inference seconds per frame: the full network (generator, full-definition propagation, encoder) on one
-  colour's target, median of `repeats` runs after one warm-up, under inference mode; on CUDA the device is
-  synchronised around every timed run;
+  colour's target (a depth network: and a depth map), median of `repeats` runs after one warm-up, under inference
+  mode; on CUDA the device is synchronised around every timed run; beside it the CPU seconds of the process (the
+  cost a loaded machine does not inflate, in a one-thread run: OMP_NUM_THREADS=1);
 - peak memory of one training step (forward, propagation to the target plane, ROI loss, backward, Adam step,
   batch 1), each model in its own fresh subprocess. CPU: the process's peak resident set (VmHWM) during the
   step minus its resident set just before it (after imports, model, propagation kernels and input were set
@@ -14,8 +15,12 @@ as for training):
   the memory allocated before it;
 - PSNR / SSIM (amplitude, mean over colours and targets, displayed 8-bit phase, as `benchctl generate`
   scores) where a trained checkpoint that fits the grid is given or shipped;
-- ratios against the family's baseline network (holonet, ccnn), measured in the same run:
-  speed-up = baseline seconds / seconds, memory reduction = 1 - peak / baseline peak.
+- ratios against the family's baseline network (holonet, ccnn, holonet3d), measured in the same run:
+  speed-up = baseline seconds / seconds (CPU x: the same of CPU seconds), memory reduction = 1 - peak / baseline
+  peak.
+
+The networks for scenes with depth (`holonet3d*`) are measured over the bench's depth range, their training step
+on a focal stack of 5 planes spread over it (`depth_step_scene`).
 """
 
 from __future__ import annotations
@@ -36,7 +41,14 @@ from benchctl.calibration.calibrated import Calibrated
 from benchctl.calibration.geometry import grid_profile
 from benchctl.calibration.setups import optical_setup
 from benchctl.cgh import OpticalSetup
-from benchctl.cgh.learned import LEARNED_METHODS, build_model, count_parameters, model_info
+from benchctl.cgh.learned import (
+    DEPTH_METHODS,
+    LEARNED_METHODS,
+    DepthHologramNet,
+    build_model,
+    count_parameters,
+    model_info,
+)
 from benchctl.cgh.learned.models import VARIANTS
 from benchctl.errors import BadValueError, BenchctlError
 from benchctl.files import ensure_dir, write_csv
@@ -45,10 +57,10 @@ from benchctl.holograms.scene import compute_scene, resolve_method, usable_metho
 from benchctl.optics.geometry import Geometry
 from benchctl.profiles import Profile
 from benchctl.targets import load_target, prepare_target, target_plane
-from benchctl.training.training import ReconstructionLoss, peak_normalised, training_step
+from benchctl.training.training import ReconstructionLoss, SceneDepth, peak_normalised, training_step
 
 DEFAULT_TARGETS = ("chart:siemens", "chart:bars", "chart:text")
-BASELINES = {"holonet": "holonet", "ccnn": "ccnn"}
+BASELINES = {"holonet": "holonet", "ccnn": "ccnn", "holonet3d": "holonet3d"}
 """The baseline network of each family, against which ratios are given."""
 
 
@@ -61,20 +73,31 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def inference_seconds(model: torch.nn.Module, amplitude: torch.Tensor, repeats: int) -> float:
-    """Median seconds of one forward pass (after a warm-up), synchronised on CUDA."""
+def inference_timing(model: torch.nn.Module, amplitude: torch.Tensor, repeats: int,
+                     depth_m: torch.Tensor | None = None) -> tuple[float, float]:
+    """Median wall seconds and median CPU seconds of this process (all its threads) of one forward pass, after a
+    warm-up, synchronised on CUDA; `depth_m` for a network that reads depth. On a CPU shared with other work the wall
+    time grows with the load; the CPU time of a one-thread run does not."""
     model.eval()
     device = amplitude.device
-    times = []
+    inputs = (amplitude,) if depth_m is None else (amplitude, depth_m)
+    times, cpu_times = [], []
     with torch.inference_mode():
-        model(amplitude)
+        model(*inputs)
         _sync(device)
         for _ in range(repeats):
-            start = time.perf_counter()
-            model(amplitude)
+            start, start_cpu = time.perf_counter(), time.process_time()
+            model(*inputs)
             _sync(device)
             times.append(time.perf_counter() - start)
-    return statistics.median(times)
+            cpu_times.append(time.process_time() - start_cpu)
+    return statistics.median(times), statistics.median(cpu_times)
+
+
+def inference_seconds(model: torch.nn.Module, amplitude: torch.Tensor, repeats: int,
+                      depth_m: torch.Tensor | None = None) -> float:
+    """Median wall seconds of one forward pass (`inference_timing`)."""
+    return inference_timing(model, amplitude, repeats, depth_m)[0]
 
 
 _PEAK_NEEDS = "peak resident memory needs Linux's /proc/self/status and /proc/self/clear_refs"
@@ -104,9 +127,19 @@ def _reset_peak() -> bool:
         return False
 
 
-def training_step_memory(method: str, geometry: dict[str, Any], device: str,
-                         memory_cap: int | None = None) -> dict[str, Any]:
-    """In this process: set up `method` for `geometry`, run one training step, return its peak memory.
+def depth_step_scene(depth_range_m: tuple[float, float], shape: tuple[int, int], planes: int,
+                     device: torch.device) -> SceneDepth:
+    """The scene a depth network's measured training step trains on: depth at random over `depth_range_m` on an
+    (H, W) grid, focal stack at `planes` planes spread evenly over the range (bin centres)."""
+    near, far = depth_range_m
+    depth = near + (far - near) * torch.rand(1, 1, *shape, dtype=torch.float64, device=device)
+    return SceneDepth(depth, (tuple(near + (k + 0.5) * (far - near) / planes for k in range(planes)),))
+
+
+def training_step_memory(method: str, geometry: dict[str, Any], device: str, memory_cap: int | None = None,
+                         depth_range_m: tuple[float, float] | None = None, planes: int = 5) -> dict[str, Any]:
+    """In this process: set up `method` for `geometry`, run one training step, return its peak memory. A network
+    for scenes with depth trains on a scene over `depth_range_m` with a focal stack of `planes` planes.
 
     Meant to run in a fresh subprocess (see `measure_training_step`), one per model. `memory_cap` (bytes) caps the
     address space once the set-up is done, so libraries that load lazily while it runs are not refused.
@@ -114,13 +147,21 @@ def training_step_memory(method: str, geometry: dict[str, Any], device: str,
     dev = torch.device(device)
     setup = OpticalSetup.of(Geometry.from_dict(geometry))
     torch.manual_seed(0)
-    model = build_model(method, setup).to(dev)
+    if method in DEPTH_METHODS and depth_range_m is None:
+        raise BadValueError(f"{method} trains on scenes with depth: give the depth range")
+    model = build_model(method, setup, depth_range_m).to(dev)
     optimiser = torch.optim.Adam(model.parameters(), lr=5e-4)
     amplitude = torch.zeros(1, 1, *setup.shape, device=dev)
     rows, cols = setup.roi_slices
     amplitude[..., rows, cols] = torch.rand(setup.roi, device=dev)  # content does not change memory
     amplitude = peak_normalised(amplitude)
-    for propagator in (setup.slm_propagator(), setup.target_propagator()):
+    scenes = None
+    propagators = [setup.slm_propagator(), setup.target_propagator()]
+    if isinstance(model, DepthHologramNet):
+        scenes = depth_step_scene(model.depth_range_m, setup.shape, planes, dev)
+        propagators = [setup.at_distance(model.middle_m).slm_propagator()]
+        setup.planes_propagator(scenes.planes_m[0], roi=True).kernels(torch.complex64, dev)
+    for propagator in propagators:
         propagator.kernel(torch.complex64, dev)
     loss_fn = ReconstructionLoss().to(dev)
     if memory_cap:
@@ -131,7 +172,7 @@ def training_step_memory(method: str, geometry: dict[str, Any], device: str,
         torch.cuda.reset_peak_memory_stats(dev)
         start, start_cpu = time.perf_counter(), time.process_time()
         try:
-            training_step(model, optimiser, setup, amplitude, loss_fn)
+            training_step(model, optimiser, setup, amplitude, loss_fn, scenes)
         except torch.cuda.OutOfMemoryError:
             return {"out_of_memory": True, "total_bytes": torch.cuda.get_device_properties(dev).total_memory}
         torch.cuda.synchronize(dev)
@@ -146,7 +187,7 @@ def training_step_memory(method: str, geometry: dict[str, Any], device: str,
             raise BenchctlError(_PEAK_NEEDS)
         before = _proc_status()["VmRSS"]
         start, start_cpu = time.perf_counter(), time.process_time()
-        training_step(model, optimiser, setup, amplitude, loss_fn)
+        training_step(model, optimiser, setup, amplitude, loss_fn, scenes)
         seconds, cpu_seconds = time.perf_counter() - start, time.process_time() - start_cpu
         peak = _proc_status()["VmHWM"] - before
         extra = {}
@@ -159,14 +200,15 @@ OUT_OF_MEMORY = "out of memory"
 
 
 def measure_training_step(method: str, setup: OpticalSetup, device: torch.device,
-                          memory_cap: int | None = None, env: dict[str, str] | None = None) -> dict[str, Any]:
+                          memory_cap: int | None = None, env: dict[str, str] | None = None,
+                          depth_range_m: tuple[float, float] | None = None, planes: int = 5) -> dict[str, Any]:
     """`training_step_memory` for `method` in a fresh Python subprocess; its JSON result.
 
     `memory_cap` (bytes) limits the subprocess's address space (CPU; the kernel's out-of-memory killer is told to
     pick it first): a step that would need more gives {"out_of_memory": True} instead of a traceback or a machine
     that swaps or kills its neighbours."""
     request = json.dumps({"method": method, "geometry": setup.geometry.to_dict(), "device": str(device),
-                          "memory_cap": memory_cap})
+                          "memory_cap": memory_cap, "depth_range_m": depth_range_m, "planes": planes})
     proc = subprocess.run([sys.executable, "-m", "benchctl.benchmarks.learned", request], capture_output=True,
                           text=True, env=env or os.environ.copy(), check=False)
     if memory_cap and proc.returncode in (-9, 137):  # killed by the kernel's out-of-memory killer
@@ -221,7 +263,7 @@ def run_memory_table(profile: Profile, *, grids: Sequence[tuple[int, int]] = MEM
             else:
                 bench = grid_profile(profile.require("slm", "optics", "laser"), grid)
                 setup = optical_setup(bench, bench.channels[0].name)
-                measured = measure_training_step(method, setup, device, cap)
+                measured = measure_training_step(method, setup, device, cap, depth_range_m=_depth_range(method, bench))
                 if measured.get("out_of_memory"):
                     too_big = label
                     row |= {"result": f"{OUT_OF_MEMORY} above {memory_cap_gib:g} GiB"}
@@ -236,6 +278,79 @@ def run_memory_table(profile: Profile, *, grids: Sequence[tuple[int, int]] = MEM
                                                    if row["result"] == "ok" else row["result"]))
     if out_dir is not None:
         out(f"wrote {write_csv(ensure_dir(Path(out_dir)) / 'learned_memory.csv', rows)}")
+    return rows
+
+
+def _depth_range(method: str, bench: Profile) -> tuple[float, float] | None:
+    """The depth range a network for scenes with depth is measured over: the bench's (None for a 2D network)."""
+    if method not in DEPTH_METHODS:
+        return None
+    depth_range = bench.section("optics").depth_range_m
+    if depth_range is None:
+        raise BadValueError(f"{method} is a network for scenes with depth: profile {bench.name!r} has no "
+                            "optics.depth_range_mm")
+    return depth_range
+
+
+def run_device_table(profile: Profile, *, grids: Sequence[tuple[int, int]], methods: Sequence[str], repeats: int = 5,
+                     out_dir: Path | None = None, out: Callable[[str], None] = print) -> list[dict[str, Any]]:
+    """Per grid and method, in this one process (for a GPU, where the allocator measures each step by itself): the
+    peak memory of one training step (`training_step_memory`) and the inference seconds (`inference_seconds`), with
+    the ratios against the family's baseline on the same grid; a step that runs out of memory is said so. Writes
+    learned_device.csv."""
+    unknown = [m for m in methods if m not in LEARNED_METHODS]
+    if unknown:
+        raise BadValueError(f"unknown learned method(s) {', '.join(unknown)}; known: {', '.join(LEARNED_METHODS)}")
+    device = _device()
+    out(f"one training step and inference (median of {repeats} after a warm-up) per method and grid, on {device}"
+        + (f" ({torch.cuda.get_device_name(device)})" if device.type == "cuda" else
+           f" ({torch.get_num_threads()} threads)"))
+    rows: list[dict[str, Any]] = []
+    for grid in grids:
+        bench = grid_profile(profile.require("slm", "optics", "laser"), grid)
+        channel = bench.channels[0]
+        setup = optical_setup(bench, channel.name)
+        grid_rows = []
+        for method in methods:
+            depth_range = _depth_range(method, bench)
+            row: dict[str, Any] = {"method": method, "family": VARIANTS[method].family, "grid": f"{grid[0]}x{grid[1]}",
+                                   "device": str(device)}
+            try:
+                memory = training_step_memory(method, setup.geometry.to_dict(), str(device),
+                                              depth_range_m=depth_range)
+                if memory.get("out_of_memory"):  # the step's own refusal, said by training_step_memory
+                    raise torch.OutOfMemoryError(f"one training step of {method}")
+                torch.manual_seed(0)
+                model = build_model(method, setup, depth_range).to(device)
+                amplitude = torch.rand(1, 1, *grid, device=device)
+                depth = (None if depth_range is None else
+                         depth_step_scene(depth_range, grid, 1, device).depth_m.to(torch.float32))
+                seconds, cpu_seconds = inference_timing(model, amplitude, repeats, depth)
+                row |= {"parameters": count_parameters(model), "train_step_peak_mib": memory["peak_bytes"] / 2**20,
+                        "train_step_seconds": memory["step_seconds"], "inference_seconds": seconds,
+                        "inference_cpu_seconds": cpu_seconds}
+                del model, amplitude, depth
+            except torch.OutOfMemoryError:
+                row["result"] = OUT_OF_MEMORY
+            if device.type == "cuda":
+                torch.cuda.empty_cache()
+            grid_rows.append(row)
+            out(f"  {method:<16} {row['grid']:>10}: " + (
+                f"{row['train_step_peak_mib']:>9,.0f} MiB per training step ({row['train_step_seconds']:.3f} s), "
+                f"inference {row['inference_seconds']:.4f} s" if "result" not in row else row["result"]))
+        measured = [r for r in grid_rows if "result" not in r]
+        _add_ratios(measured)
+        rows += grid_rows
+    lines = [f"{'method':<16} {'grid':>10} {'train MiB':>10} {'mem -%':>7} {'s/frame':>9} {'speed-up':>8}"]
+    for r in rows:
+        lines.append(f"{r['method']:<16} {r['grid']:>10} " + (
+            f"{r['train_step_peak_mib']:>10,.0f} {r.get('memory_reduction_pct', float('nan')):>7.1f} "
+            f"{r['inference_seconds']:>9.4f} {r.get('speedup', float('nan')):>8.2f}" if "result" not in r
+            else r["result"]))
+    for line in lines:
+        out(line)
+    if out_dir is not None:
+        out(f"wrote {write_csv(ensure_dir(Path(out_dir)) / 'learned_device.csv', rows)}")
     return rows
 
 
@@ -307,15 +422,19 @@ def run_learned_bench(
     for name in names:
         torch.manual_seed(0)
         path = chosen.get(name)
+        depth_range = _depth_range(name, bench)
         model = (read_checkpoint(path).model(channel.name, device) if path is not None
-                 else build_model(name, setup).to(device))
+                 else build_model(name, setup, depth_range).to(device))
+        depth = (None if depth_range is None else
+                 depth_step_scene(depth_range, grid, 1, device).depth_m.to(torch.float32))
+        seconds, cpu_seconds = inference_timing(model, amplitude, repeats, depth)
         row: dict[str, Any] = {"method": name, "family": VARIANTS[name].family, "tier": model_info(name, grid)["tier"],
                                "grid": f"{grid[0]}x{grid[1]}", "device": str(device),
-                               "parameters": count_parameters(model),
-                               "inference_seconds": inference_seconds(model, amplitude, repeats)}
+                               "parameters": count_parameters(model), "inference_seconds": seconds,
+                               "inference_cpu_seconds": cpu_seconds}
         del model
         if training_memory:
-            memory = measure_training_step(name, setup, device)
+            memory = measure_training_step(name, setup, device, depth_range_m=depth_range)
             row |= {"train_step_peak_mib": memory["peak_bytes"] / 2**20, "train_step_seconds": memory["step_seconds"],
                     "memory_measure": memory["measure"]}
         if path is not None:
@@ -347,6 +466,8 @@ def _add_ratios(rows: list[dict[str, Any]]) -> None:
     for row, base in with_baselines(rows):
         row["parameters_ratio"] = row["parameters"] / base["parameters"]
         row["speedup"] = base["inference_seconds"] / row["inference_seconds"]
+        if row.get("inference_cpu_seconds") and base.get("inference_cpu_seconds"):
+            row["cpu_speedup"] = base["inference_cpu_seconds"] / row["inference_cpu_seconds"]
         if "train_step_peak_mib" in row and base.get("train_step_peak_mib"):
             row["memory_reduction_pct"] = 100.0 * (1.0 - row["train_step_peak_mib"] / base["train_step_peak_mib"])
 
@@ -356,12 +477,13 @@ def format_table(rows: Sequence[dict[str, Any]]) -> list[str]:
     def num(row: dict[str, Any], key: str, fmt: str) -> str:
         return format(row[key], fmt) if key in row else "-"
 
-    header = (f"{'method':<16} {'params':>10} {'x params':>8} {'s/frame':>9} {'speed-up':>8} {'train MiB':>10} "
-              f"{'mem -%':>7} {'PSNR amp':>9} {'SSIM amp':>9}")
+    header = (f"{'method':<16} {'params':>10} {'x params':>8} {'s/frame':>9} {'speed-up':>8} {'CPU s':>9} "
+              f"{'CPU x':>6} {'train MiB':>10} {'mem -%':>7} {'PSNR amp':>9} {'SSIM amp':>9}")
     lines = [header]
     for r in rows:
         lines.append(f"{r['method']:<16} {r['parameters']:>10,} {num(r, 'parameters_ratio', '.2f'):>8} "
                      f"{r['inference_seconds']:>9.4f} {num(r, 'speedup', '.2f'):>8} "
+                     f"{num(r, 'inference_cpu_seconds', '.4f'):>9} {num(r, 'cpu_speedup', '.2f'):>6} "
                      f"{num(r, 'train_step_peak_mib', '.0f'):>10} {num(r, 'memory_reduction_pct', '.1f'):>7} "
                      f"{num(r, 'psnr_amplitude_db', '.2f'):>9} {num(r, 'ssim_amplitude', '.3f'):>9}")
     return lines
@@ -385,8 +507,10 @@ _ALLOCATION_FAILED = ("memory", "allocate", "could not create a primitive")
 def _child(argv: Sequence[str]) -> int:
     request = json.loads(argv[0])
     try:
+        depth_range = request.get("depth_range_m")
         result = training_step_memory(request["method"], request["geometry"], request["device"],
-                                      request.get("memory_cap"))
+                                      request.get("memory_cap"), tuple(depth_range) if depth_range else None,
+                                      request.get("planes", 5))
     except MemoryError:
         result = {"out_of_memory": True}
     except RuntimeError as exc:

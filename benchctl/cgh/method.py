@@ -41,13 +41,15 @@ Algorithm = Callable[[torch.Tensor, OpticalSetup, Optional[int], int, Optional[P
 
 FocalStackAlgorithm = Callable[[FocalStackTarget, OpticalSetup, Optional[int], int, Optional[Progress]],
                                torch.Tensor]
-"""focal_stack(target, setup, iterations, seed, progress) -> phase, for a scene with depth on two planes or more.
+"""focal_stack(target, setup, iterations, seed, progress) -> phase, for a scene with depth on two planes or more (a
+method that `reads_depth`: on any number of planes).
 
 `target.amplitude` is checked and scaled as `Algorithm`'s target is; `target.planes_m` are the planes' distances.
 """
 
-Networks = Callable[[OpticalSetup, torch.device], Callable[[torch.Tensor], torch.Tensor]]
-"""networks(setup, device) -> the trained network for `setup` on `device`: amplitude (B, 1, H, W) -> phase."""
+Networks = Callable[[OpticalSetup, torch.device], Callable[..., torch.Tensor]]
+"""networks(setup, device) -> the trained network for `setup` on `device`: amplitude (B, 1, H, W) (and, for a
+network that reads depth, the depth (B, 1, H, W) metres) -> phase."""
 
 DEFAULT_METHOD = "dpac"
 """The method used wherever none is named (generate, procedures): one-shot, no checkpoint needed."""
@@ -107,6 +109,8 @@ class Method:
     explicit `iterations` rather than silently ignoring it. `family` is "classical" or the learned network's
     family; a learned method has no algorithm until `trained` binds its networks, and a refined one names the
     learned method it starts from in `refines`. `focal_stack`, where given, makes holograms of scenes with depth.
+    A learned method that `reads_depth` (a network for scenes with depth) makes them from the image and its depth
+    map in one forward pass, on one plane too (its network knows the depth range, not one plane's distance).
     """
 
     name: str
@@ -116,6 +120,7 @@ class Method:
     family: str = "classical"
     refines: str | None = None
     focal_stack: FocalStackAlgorithm | None = None
+    reads_depth: bool = False
 
     @property
     def needs_checkpoint(self) -> bool:
@@ -151,7 +156,22 @@ class Method:
             # a normal tensor, not an inference tensor, for callers that go on with autograd
             return setup.without_wavefront(phase.clone())
 
-        return Method(self.name, f"{self.description} ({source})", None, forward, self.family)
+        def forward_in_depth(target: FocalStackTarget, setup: OpticalSetup, iterations: int | None, seed: int,
+                             progress: Progress | None) -> torch.Tensor:
+            model = networks(setup, target.amplitude.device)
+            near, far = getattr(model, "depth_range_m", (0.0, math.inf))
+            low, high = float(target.depth_m.min()), float(target.depth_m.max())
+            if low < near * (1 - 1e-6) or high > far * (1 + 1e-6):
+                raise BadValueError(f"the scene's depth {low * 1e3:.4g} .. {high * 1e3:.4g} mm lies outside the "
+                                    f"{near * 1e3:.4g} .. {far * 1e3:.4g} mm {self.name} was trained for ({source})")
+            with torch.inference_mode():
+                phase = model(target.amplitude[None, None], target.depth_m[None, None])[0, 0]
+            if progress is not None:
+                progress(1, 1)
+            return setup.without_wavefront(phase.clone())
+
+        return Method(self.name, f"{self.description} ({source})", None, forward, self.family,
+                      focal_stack=forward_in_depth if self.reads_depth else None, reads_depth=self.reads_depth)
 
     def __call__(
         self,
@@ -179,12 +199,16 @@ class Method:
 
     def _focal_stack(self, target: FocalStackTarget, setup: OpticalSetup, iterations: int | None, seed: int,
                      progress: Progress | None) -> torch.Tensor:
-        """The hologram of a scene with depth: one plane is 2D at that plane's distance; more need `focal_stack`."""
-        if len(target.planes_m) == 1:
+        """The hologram of a scene with depth: one plane is 2D at that plane's distance (unless the method reads
+        depth); more need `focal_stack`."""
+        if len(target.planes_m) == 1 and not self.reads_depth:
             return self(target.amplitude, setup.at_distance(target.planes_m[0]), iterations=iterations, seed=seed,
                         progress=progress)
         if self.focal_stack is None:
-            able = [name for name in method_names() if METHODS[name].focal_stack is not None]
+            if self.reads_depth:
+                raise BadValueError(f"method {self.name!r} needs trained networks: a checkpoint (`benchctl train`)")
+            able = [name for name in method_names()
+                    if METHODS[name].focal_stack is not None or METHODS[name].reads_depth]
             raise BadValueError(f"method {self.name!r} makes holograms of one plane; a scene on "
                                 f"{len(target.planes_m)} planes needs one of: {', '.join(able)}")
         if isinstance(seed, bool) or not isinstance(seed, Integral):

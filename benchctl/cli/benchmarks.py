@@ -96,6 +96,15 @@ def _cmd_bench_learned(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_learned_depth(args: argparse.Namespace) -> int:
+    from benchctl.benchmarks.learned_depth import run_learned_depth_bench
+    from benchctl.profiles import load_profile
+
+    run_learned_depth_bench(load_profile(args.profile), args.checkpoint, scenes=args.scenes, colour=args.colour,
+                            planes=args.planes, sgd_iterations=args.sgd_iterations, out_dir=args.out)
+    return 0
+
+
 def _cmd_bench_genicam(args: argparse.Namespace) -> int:
     from benchctl.benchmarks.genicam import run_genicam_bench
 
@@ -289,6 +298,28 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                          help="output folder (default: bench-out)")
     add_profile(learned)
     learned.set_defaults(func=_cmd_bench_learned)
+
+    depth = bench.add_parser(
+        "learned-depth", help="networks for scenes with depth (holonet3d*) against layered DPAC and multi-plane SGD "
+                              "on held-out scenes: per-plane in-focus PSNR / SSIM, over seeds",
+        description="On the bench the checkpoints were trained for, per held-out scene (the bundled rgbd: scenes): "
+                    "each checkpoint's network, layered DPAC and multi-plane SGD (the focal-stack loss, from layered "
+                    "DPAC, exactly --sgd-iterations), each plane scored inside its in-focus region "
+                    "(amplitude PSNR / SSIM, unquantised phase) and timed; several checkpoints of one method (seeds) "
+                    "give mean +- standard deviation. Writes learned_depth.csv and learned_depth_summary.csv.")
+    depth.add_argument("--checkpoint", type=Path, nargs="+", required=True, metavar="CKPT",
+                       help="trained holonet3d* checkpoints (one bench and depth range), e.g. one per method and seed")
+    depth.add_argument("--scenes", type=name_list, metavar="LIST",
+                       help="comma-separated rgbd: scenes (default: every bundled one)")
+    depth.add_argument("--colour", "--color", metavar="NAME", help="laser colour (default: the checkpoints' first)")
+    depth.add_argument("--planes", type=positive_int, default=5, metavar="K",
+                       help="planes of a scene with continuous depth (a layered scene: its own depths) (default: 5)")
+    depth.add_argument("--sgd-iterations", type=whole_number(0), default=500, metavar="N",
+                       help="multi-plane SGD iterations, no early stop (default: 500, SGD's)")
+    depth.add_argument("--out", "-o", default="bench-out", type=Path, metavar="DIR",
+                       help="output folder (default: bench-out)")
+    add_profile(depth)
+    depth.set_defaults(func=_cmd_bench_learned_depth)
 
     genicam = bench.add_parser("genicam", help="frames per second into numpy from Aravis's fake camera, and the "
                                                "genicam driver's overhead per frame",

@@ -17,7 +17,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
                              loss=args.loss, vgg_weights=args.vgg_weights, batch_size=args.batch_size, seed=args.seed,
                              val_fraction=args.val_fraction, max_steps=args.max_steps,
                              weights_dtype=args.weights_dtype, model_calibration=args.model_calibration,
-                             ema=args.ema, warmup=args.warmup, decay=args.decay, device=args.device)
+                             ema=args.ema, warmup=args.warmup, decay=args.decay, device=args.device,
+                             planes=args.planes, fresnel_scaled=args.fresnel_scaled)
     run_train(load_profile(args.profile), settings, args.out, resume=args.resume)
     return 0
 
@@ -36,10 +37,14 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                        help="learned method to train (`benchctl models` lists them)")
     train.add_argument("--data", required=True, metavar="DIR",
                        help="folder of training images (e.g. DIV2K), procedural:N for N generated images, "
-                            "photos:train for the bundled training photographs; join with '+'")
+                            "procedural-rgbd:N for N generated scenes with depth (holonet3d*), photos:train for the "
+                            "bundled training photographs; join with '+'")
     add_profile(train)
     train.add_argument("--size", type=grid_size, metavar="HxW",
                        help="train on this grid instead of the profile's (pitch and distance kept, ROI scaled)")
+    train.add_argument("--fresnel-scaled", action="store_true",
+                       help="with --size: scale the distance (and the depth range) so that the Fresnel number is the "
+                            "profile's, as `bench reproduce` does (default: the distance kept, as the paper trains)")
     train.add_argument("--colours", "--colors", type=name_list, metavar="LIST",
                        help="comma-separated laser channels (default: all in the profile)")
     train.add_argument("--epochs", type=positive_int, default=10, help="passes over the training images (default: 10)")
@@ -60,6 +65,10 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                             "--vgg-weights) (default: mse)")
     train.add_argument("--vgg-weights", type=Path, metavar="FILE",
                        help="local torchvision-format VGG19 state dict for --loss l2-perceptual (never downloaded)")
+    train.add_argument("--planes", type=positive_int, default=5, metavar="K",
+                       help="networks for scenes with depth (holonet3d*): at most K focal planes per scene in the "
+                            "focal-stack loss: a layered scene's own depths, else K planes spread over its depth "
+                            "(default: 5)")
     train.add_argument("--batch-size", type=positive_int, default=1, help="images per step and process (default: 1)")
     train.add_argument("--seed", type=seed_number, default=42,
                        help="random seed, 0 to 2^32-1 (default: 42, the paper's)")

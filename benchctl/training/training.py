@@ -9,6 +9,16 @@ MSE, or MSE + 0.025 x the VGG19 perceptual term (`--loss l2-perceptual`, the pap
 Images are flipped horizontally and vertically at random (seeded per epoch and position, so a resumed run
 sees the same flips). All colours' models train side by side on the same images.
 
+A network for scenes with depth (`DEPTH_METHODS`) trains the same way on scenes (`procedural-rgbd:N`, or pictures
+on a ground plane; `training.data`), the depth map prepared like `benchctl generate` prepares a scene's
+(`scenes.prepare_scene`) over the bench's depth range, flipped with its image; its loss is the focal-stack loss
+(`optics.focal_stack`: the reconstruction at each scene's focal planes, `data.scene_planes`, at most `--planes`,
+moved at random within their bins while training, one multi-plane propagation each, every plane scored where the
+scene is in focus there) and its validation scores are the mean in-focus PSNR / SSIM over the planes, beside 2D
+DPAC of the image at the middle of the depth range (the one-shot hologram that ignores depth).
+`--fresnel-scaled` trains on a smaller `--size` with the distance and depth range scaled so that the Fresnel number
+is the full bench's (as `bench reproduce` does); without it the distance is kept, as the paper trains.
+
 Under `torchrun` (WORLD_SIZE > 1 in the environment) every process trains on its share of each batch and
 the models are wrapped in DistributedDataParallel (gloo on CPU, nccl on CUDA), so the gradients and hence
 the weights stay identical; only rank 0 validates, prints and writes checkpoints.
@@ -37,26 +47,29 @@ from benchctl.calibration.files import fitted_model_entry
 from benchctl.calibration.geometry import grid_profile
 from benchctl.calibration.setups import optical_setups
 from benchctl.calibration.store import Calibration, validity
-from benchctl.cgh.learned.models import LEARNED_METHODS, VARIANTS, build_model
+from benchctl.cgh.learned.models import DEPTH_METHODS, LEARNED_METHODS, VARIANTS, build_model
 from benchctl.cgh.learned.vgg import PERCEPTUAL_WEIGHT, PerceptualLoss, load_vgg19
 from benchctl.cgh.method import get_method
 from benchctl.errors import BadValueError, BenchctlError
 from benchctl.files import ensure_dir
 from benchctl.holograms.checkpoints import RESUME_SUFFIX, WEIGHT_DTYPES, Checkpoint, read_checkpoint
 from benchctl.memory import Estimate, check_training_memory, size_text, training_estimate
-from benchctl.optics.metrics import amplitude_scores, crop_roi, lsq_scale, psnr
+from benchctl.optics.focal_stack import FocalStackScores, focal_stack_loss, focal_stack_scores, in_focus_masks
+from benchctl.optics.metrics import amplitude_scores, centred_slices, crop_roi, lsq_scale, psnr, psnr_of_mse
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import Profile
+from benchctl.scenes import Scene, prepare_scene
 from benchctl.targets import prepare_target, target_plane
 from benchctl.terminal import ProgressLine
 from benchctl.training.averaging import WeightAverage
-from benchctl.training.data import ImageSource, describe_sources, image_sources, split_sources
+from benchctl.training.data import ImageSource, describe_sources, image_sources, scene_planes, split_sources
 from benchctl.training.device import check_device_text, resolve_device
 from benchctl.training.health import StepStats, TrainingHealth, clamped_fraction, gradient_norm
 from benchctl.training.schedule import Schedule
 
 LOSSES = ("mse", "l2-perceptual")
 MAX_LR = 0.1  # Adam on these networks diverges far below this; above it a value is a typo
+MAX_PLANES = 16
 BACKEND_ENV = "BENCHCTL_DDP_BACKEND"
 
 
@@ -82,6 +95,13 @@ class TrainSettings:
     warmup: int = 0  # steps of linear learning-rate warm-up (schedule.py)
     decay: str = "none"  # learning-rate decay after the warm-up: none or cosine (to zero at the last step)
     device: str = "cpu"  # --device: auto, cpu, cuda or cuda:N (device.py)
+    planes: int = 5  # scenes with depth: at most this many focal planes per scene in the loss
+    fresnel_scaled: bool = False  # with `size`: distance and depth range scaled to keep the Fresnel number
+
+    @property
+    def depth(self) -> bool:
+        """Whether the method reads depth (a scene's focal stack is its loss)."""
+        return self.method in DEPTH_METHODS
 
     def validate(self) -> None:
         """BadValueError naming the flag for every setting a user can get wrong."""
@@ -90,6 +110,13 @@ class TrainSettings:
                                 f"known: {', '.join(LEARNED_METHODS)}")
         if self.loss not in LOSSES:
             raise BadValueError(f"--loss {self.loss!r}: expected one of {', '.join(LOSSES)}")
+        if self.depth and self.loss != "mse":
+            raise BadValueError(f"--loss {self.loss}: {self.method} trains on the focal-stack loss (the in-focus MSE "
+                                "of every plane); use --loss mse")
+        if not 1 <= self.planes <= MAX_PLANES:
+            raise BadValueError(f"--planes must lie between 1 and {MAX_PLANES}, got {self.planes}")
+        if self.fresnel_scaled and self.size is None:
+            raise BadValueError("--fresnel-scaled scales the bench to a smaller grid: give the grid with --size HxW")
         if self.loss == "l2-perceptual" and self.vgg_weights is None:
             raise BadValueError("--loss l2-perceptual needs VGG19 weights: pass --vgg-weights FILE (a torchvision "
                                 "vgg19 state dict saved with torch.save); benchctl never downloads them")
@@ -135,6 +162,10 @@ class TrainSettings:
             words += ["--decay", self.decay]
         if self.device != "cpu":
             words += ["--device", self.device]
+        if self.depth:
+            words += ["--planes", str(self.planes)]
+        if self.fresnel_scaled:
+            words += ["--fresnel-scaled"]
         return shlex.join(words + ["--out", str(out_dir)])
 
 
@@ -256,20 +287,53 @@ def _scaled(phase: torch.Tensor, setup: OpticalSetup, amplitude: torch.Tensor) -
     return recon * lsq_scale(recon, target), target
 
 
+@dataclass(frozen=True)
+class SceneDepth:
+    """The depth of a batch of scenes: the depth maps (B, 1, H, W) in metres from the SLM on the grid, and each
+    scene's focal planes (metres, ascending)."""
+
+    depth_m: torch.Tensor
+    planes_m: tuple[tuple[float, ...], ...]
+
+    def to(self, device: torch.device) -> SceneDepth:
+        return SceneDepth(self.depth_m.to(device), self.planes_m)
+
+
+def focal_stack_error(phase: torch.Tensor, setup: OpticalSetup, amplitude: torch.Tensor,
+                      scenes: SceneDepth) -> tuple[torch.Tensor, torch.Tensor]:
+    """The focal-stack loss (`focal_stack_loss` on the ROI) of each SLM phase of a batch (B, 1, H, W) against its
+    scene, and its PSNR (each scene's loss is its in-focus MSE: the masks of a pixel sum to one); both (B,). With
+    a fitted optical model the phase is displayed without the model's wavefront, as at inference."""
+    rows, cols = setup.roi_slices
+    losses = []
+    for b, planes in enumerate(scenes.planes_m):
+        recon = setup.reconstruct_planes_roi(setup.without_wavefront(phase[b, 0]), planes)
+        masks = in_focus_masks(scenes.depth_m[b, 0, rows, cols], planes).to(recon.device)
+        losses.append(focal_stack_loss(recon, amplitude[b, 0, rows, cols], masks))
+    loss = torch.stack(losses)
+    return loss, psnr_of_mse(loss.detach(), data_range=1.0)
+
+
 def training_step(model: nn.Module, optimiser: torch.optim.Optimizer, setup: OpticalSetup,
-                  amplitude: torch.Tensor, loss_fn: nn.Module) -> StepStats:
-    """One Adam step on a batch of targets (B, 1, H, W), with what it measured (`health.StepStats`).
+                  amplitude: torch.Tensor, loss_fn: nn.Module, scenes: SceneDepth | None = None) -> StepStats:
+    """One Adam step on a batch of targets (B, 1, H, W), with what it measured (`health.StepStats`); with
+    `scenes`, on the focal stacks of scenes with depth (`loss_fn` unused).
 
     A step whose gradient is not finite changes no weight (the optimiser is not stepped), so the
     state before it stays the one to resume from."""
     model.train()
     optimiser.zero_grad(set_to_none=True)
-    phase = model(amplitude)
-    recon, target = _scaled(phase, setup, amplitude)
-    loss = loss_fn(recon, target)
+    if scenes is None:
+        phase = model(amplitude)
+        recon, target = _scaled(phase, setup, amplitude)
+        loss = loss_fn(recon, target)
+        psnr_db = psnr(recon.detach(), target, data_range=1.0)
+    else:
+        phase = model(amplitude, scenes.depth_m)
+        losses, psnr_db = focal_stack_error(phase, setup, amplitude, scenes)
+        loss = losses.mean()
     loss.backward()
-    stats = StepStats(float(loss.detach()), float(psnr(recon.detach(), target, data_range=1.0).mean()),
-                      gradient_norm(model), clamped_fraction(phase))
+    stats = StepStats(float(loss.detach()), float(psnr_db.mean()), gradient_norm(model), clamped_fraction(phase))
     if math.isfinite(stats.grad_norm):  # the same on every rank of a DDP job: all step or none
         optimiser.step()
     return stats
@@ -295,6 +359,44 @@ def load_targets(sources: Sequence[ImageSource], grid: tuple[int, int], roi: tup
     return torch.stack(targets)
 
 
+@dataclass(frozen=True)
+class TargetLoader:
+    """Training images as targets on the grid (`load_targets`); for a network that reads depth (`depth_range_m`
+    given), as scenes with their depth over that range and at most `planes` focal planes each."""
+
+    grid: tuple[int, int]
+    roi: tuple[int, int]
+    depth_range_m: tuple[float, float] | None = None
+    planes: int = 1
+
+    def __call__(self, sources: Sequence[ImageSource], flips: Sequence[tuple[bool, bool]] | None = None,
+                 jitters: Sequence[float] | None = None) -> tuple[torch.Tensor, SceneDepth | None]:
+        """Targets (B, 3, H, W) and, for scenes, their depth; flips as `load_targets`; `jitters` (-0.5 .. 0.5 per
+        image) move the focal planes within their bins (`scene_planes`)."""
+        if self.depth_range_m is None:
+            return load_targets(sources, self.grid, self.roi, flips), None
+        near, far = self.depth_range_m
+        targets, depths, planes = [], [], []
+        rows, cols = centred_slices(self.grid, self.roi)
+        for i, source in enumerate(sources):
+            srgb, relative = source.load_scene(self.roi)
+            if flips is not None:
+                axes = [axis for axis, flip in zip((1, 0), flips[i]) if flip]
+                srgb, relative = np.flip(srgb, tuple(axes)), np.flip(relative, tuple(axes))
+            amplitude, depth = prepare_scene(Scene(source.name, np.ascontiguousarray(srgb),
+                                                   near + (far - near) * np.ascontiguousarray(relative)),
+                                             self.grid, self.roi)
+            targets.append(amplitude)
+            depths.append(depth)
+            planes.append(scene_planes(depth[rows, cols].numpy(), self.planes, jitters[i] if jitters else 0.0))
+        return torch.stack(targets), SceneDepth(torch.stack(depths)[:, None], tuple(planes))
+
+
+def epoch_jitters(seed: int, epoch: int, positions: Sequence[int]) -> list[float]:
+    """Random moves of the focal planes within their bins (-0.5 .. 0.5), fixed by (seed, epoch, position)."""
+    return [float(np.random.default_rng([seed, epoch, p, 3]).uniform(-0.5, 0.5)) for p in positions]
+
+
 def epoch_flips(seed: int, epoch: int, positions: Sequence[int]) -> list[tuple[bool, bool]]:
     """Random (horizontal, vertical) flips, fixed by (seed, epoch, position in the epoch)."""
     flips = (np.random.default_rng([seed, epoch, p]).random(2) < 0.5 for p in positions)
@@ -308,61 +410,117 @@ def epoch_order(n: int, seed: int, epoch: int, length: int) -> np.ndarray:
     return np.resize(order, length)
 
 
+Score = Callable[[str, torch.Tensor, "SceneDepth | None"], dict[str, float]]
+"""score(colour, peak-normalised target plane (1, 1, H, W), its scene's depth or None) -> scores."""
+
+
+def phase_stack_scores(phase: torch.Tensor, setup: OpticalSetup, amplitude: torch.Tensor, depth_m: torch.Tensor,
+                       planes: Sequence[float]) -> tuple[float, FocalStackScores]:
+    """The focal-stack loss and scores (`focal_stack_scores`: per plane in focus, and their mean) of one SLM phase
+    (H, W) against a scene: its amplitude and depth (H, W) on the grid, and its planes."""
+    rows, cols = setup.roi_slices
+    with torch.no_grad():
+        recon = setup.reconstruct_planes_roi(setup.without_wavefront(phase), planes).cpu()
+    target = amplitude[rows, cols].cpu()
+    masks = in_focus_masks(depth_m[rows, cols].cpu(), planes)
+    return float(focal_stack_loss(recon, target, masks)), focal_stack_scores(recon, target, masks, planes)
+
+
+def stack_scores(phase: torch.Tensor, setup: OpticalSetup, amplitude: torch.Tensor,
+                 scenes: SceneDepth) -> dict[str, float]:
+    """The focal-stack loss and the mean in-focus amplitude PSNR / SSIM over the planes of one SLM phase
+    (1, 1, H, W) against its scene (`phase_stack_scores`)."""
+    loss, scores = phase_stack_scores(phase[0, 0], setup, amplitude[0, 0], scenes.depth_m[0, 0], scenes.planes_m[0])
+    return {"loss": loss} | scores.mean
+
+
 def evaluate(models: Mapping[str, nn.Module], setups: Mapping[str, OpticalSetup], planes: Mapping[str, int],
-             sources: Sequence[ImageSource], loss_fn: nn.Module, device: torch.device) -> dict[str, dict[str, float]]:
-    """Per colour, the mean loss and amplitude scores (`amplitude_scores`) over `sources` (unquantised phase)."""
-    def score(colour: str, amplitude: torch.Tensor) -> dict[str, float]:
+             sources: Sequence[ImageSource], loss_fn: nn.Module, device: torch.device,
+             loader: TargetLoader | None = None) -> dict[str, dict[str, float]]:
+    """Per colour, the mean loss and amplitude scores (`amplitude_scores`; for scenes with depth `stack_scores`)
+    over `sources` (unquantised phase); `loader` makes the targets (default: 2D targets on the setups' grid)."""
+    def score(colour: str, amplitude: torch.Tensor, scenes: SceneDepth | None) -> dict[str, float]:
         model = models[colour]
         model.eval()
         with torch.no_grad():
+            if scenes is not None:
+                return stack_scores(model(amplitude.to(device), scenes.depth_m.to(device)), setups[colour],
+                                    amplitude.to(device), scenes)
             recon, target = scaled_reconstruction(model, setups[colour], amplitude.to(device))
             return {"loss": float(loss_fn(recon, target))} | amplitude_scores(recon[0, 0].cpu(), target[0, 0].cpu())
 
-    return _mean_scores(setups, planes, sources, score)
+    return _mean_scores(setups, planes, sources, score, loader)
 
 
-def dpac_reference(setups: Mapping[str, OpticalSetup], planes: Mapping[str, int],
-                   sources: Sequence[ImageSource]) -> dict[str, dict[str, float]]:
+def dpac_reference(setups: Mapping[str, OpticalSetup], planes: Mapping[str, int], sources: Sequence[ImageSource],
+                   loader: TargetLoader | None = None) -> dict[str, dict[str, float]]:
     """Per colour, DPAC's mean amplitude scores over `sources`, scored as `evaluate` scores a network: the one-shot
-    classical hologram a trained model has to beat to be worth its training."""
+    classical hologram a trained model has to beat to be worth its training. Scenes with depth: DPAC of the image
+    at the middle of the depth range, scored on the scene's focal stack."""
     dpac = get_method("dpac")
 
-    def score(colour: str, amplitude: torch.Tensor) -> dict[str, float]:
+    def score(colour: str, amplitude: torch.Tensor, scenes: SceneDepth | None) -> dict[str, float]:
         setup = setups[colour]
+        if scenes is not None:
+            assert loader is not None and loader.depth_range_m is not None
+            middle = sum(loader.depth_range_m) / 2
+            phase = dpac(amplitude[0, 0], setup.at_distance(middle))[None, None]
+            return {k: v for k, v in stack_scores(phase, setup, amplitude, scenes).items() if k != "loss"}
         recon = setup.reconstruct_roi(dpac(amplitude[0, 0], setup))
         target = crop_roi(amplitude[0, 0], setup.roi)
         return amplitude_scores(recon * lsq_scale(recon, target), target)
 
-    return _mean_scores(setups, planes, sources, score)
+    return _mean_scores(setups, planes, sources, score, loader)
 
 
 def _mean_scores(setups: Mapping[str, OpticalSetup], planes: Mapping[str, int], sources: Sequence[ImageSource],
-                 score: Callable[[str, torch.Tensor], dict[str, float]]) -> dict[str, dict[str, float]]:
-    """Per colour, the mean over `sources` of `score(colour, peak-normalised target plane (1, 1, H, W))`."""
+                 score: Score, loader: TargetLoader | None = None) -> dict[str, dict[str, float]]:
+    """Per colour, the mean over `sources` of `score(colour, peak-normalised target plane (1, 1, H, W), depth)`."""
     if not sources:
         return {}
     some = next(iter(setups.values()))
+    load = loader or TargetLoader(some.shape, some.roi)
     sums: dict[str, dict[str, float]] = {c: {} for c in setups}
     for source in sources:
-        targets = load_targets([source], some.shape, some.roi)
+        targets, scenes = load([source])
         for colour in setups:
             amplitude = peak_normalised(targets[:, planes[colour]:planes[colour] + 1])
-            for key, value in score(colour, amplitude).items():
+            for key, value in score(colour, amplitude, scenes).items():
                 sums[colour][key] = sums[colour].get(key, 0.0) + value
     return {c: {k: round(v / len(sources), 5) for k, v in s.items()} for c, s in sums.items()}
 
 
-def training_setups(profile: Profile, size: tuple[int, int] | None,
-                    colours: Sequence[str] | None) -> dict[str, OpticalSetup]:
-    """The setup per trained colour: the profile's geometry, on grid `size` if given (pitch and distance kept,
-    ROI scaled with the grid, as the paper trains at 1080p, 4K and 8K)."""
-    bench = grid_profile(profile, size) if size else profile.require("slm", "optics")
+def training_bench(profile: Profile, size: tuple[int, int] | None, fresnel_scaled: bool = False) -> Profile:
+    """The bench trained for: the profile, on grid `size` if given (pitch kept, ROI scaled with the grid; the
+    distance kept, as the paper trains at 1080p, 4K and 8K, or with `fresnel_scaled` scaled with the depth range so
+    that the Fresnel number is the profile's: `calibration.geometry.grid_profile`)."""
+    return (grid_profile(profile, size, scale_distance=fresnel_scaled) if size
+            else profile.require("slm", "optics"))
+
+
+def training_setups(profile: Profile, size: tuple[int, int] | None, colours: Sequence[str] | None,
+                    fresnel_scaled: bool = False) -> dict[str, OpticalSetup]:
+    """The setup per trained colour on the bench `training_bench` gives."""
+    bench = training_bench(profile, size, fresnel_scaled)
     names = list(colours) if colours else [c.name for c in profile.require("laser").channels]
     return optical_setups(bench, [profile.channel(name).name for name in names])
 
 
-def _geometry_note(profile: Profile, size: tuple[int, int] | None) -> str:
-    return f"profile {profile.name!r}" + (f" at --size {size[0]}x{size[1]}" if size else "")
+def training_depth_range(profile: Profile, settings: TrainSettings) -> tuple[float, float] | None:
+    """The depth range (near, far) metres a network for scenes with depth trains over: the profile's
+    `optics.depth_range_mm` on the training bench; None for a 2D network."""
+    if not settings.depth:
+        return None
+    depth_range = training_bench(profile, settings.size, settings.fresnel_scaled).section("optics").depth_range_m
+    if depth_range is None:
+        raise BenchctlError(f"--method {settings.method} trains on scenes with depth: profile {profile.name!r} shows "
+                            "one plane only; set optics.depth_range_mm = [near, far] in it")
+    return depth_range
+
+
+def _geometry_note(profile: Profile, size: tuple[int, int] | None, fresnel_scaled: bool = False) -> str:
+    return f"profile {profile.name!r}" + (f" at --size {size[0]}x{size[1]}" if size else "") + \
+        (" --fresnel-scaled" if fresnel_scaled else "")
 
 
 def train(profile: Profile, settings: TrainSettings, out_dir: Path, planes: Mapping[str, int], *,
@@ -374,17 +532,19 @@ def train(profile: Profile, settings: TrainSettings, out_dir: Path, planes: Mapp
     """
     settings.validate()
     loss_fn = make_loss(settings.loss, settings.vgg_weights)
-    setups = training_setups(profile, settings.size, settings.colours)
+    setups = training_setups(profile, settings.size, settings.colours, settings.fresnel_scaled)
+    geometry = next(iter(setups.values()))
+    loader = TargetLoader(geometry.shape, geometry.roi, training_depth_range(profile, settings), settings.planes)
     train_set, val_set = split_sources(image_sources(settings.data), settings.val_fraction, settings.seed)
     job = Distributed.from_env(settings.device)
     if job.device.type == "cpu":  # the estimate is of CPU memory; on a GPU its allocator's refusal is caught below
-        check_training_memory(step_estimate(settings, next(iter(setups.values())).shape))
+        check_training_memory(step_estimate(settings, geometry.shape))
     try:
-        return _train(profile, settings, Path(out_dir), planes, setups, train_set, val_set, loss_fn, job, resume,
-                      out if job.main else (lambda _: None), progress_stream)
+        return _train(profile, settings, Path(out_dir), planes, setups, loader, train_set, val_set, loss_fn, job,
+                      resume, out if job.main else (lambda _: None), progress_stream)
     except torch.cuda.OutOfMemoryError:
         free, total = torch.cuda.mem_get_info(job.device)
-        grid = next(iter(setups.values())).shape
+        grid = geometry.shape
         raise BenchctlError(f"one training step of {settings.method} on {grid[0]} x {grid[1]} with --batch-size "
                             f"{settings.batch_size} does not fit in {job.device}'s memory ({size_text(total)}, "
                             f"{size_text(free)} free now): use a smaller --size or --batch-size, or a DCM "
@@ -394,9 +554,9 @@ def train(profile: Profile, settings: TrainSettings, out_dir: Path, planes: Mapp
 
 
 def _train(profile: Profile, settings: TrainSettings, out_dir: Path, planes: Mapping[str, int],
-           setups: dict[str, OpticalSetup], train_set: list[ImageSource], val_set: list[ImageSource],
-           loss_fn: ReconstructionLoss, job: Distributed, resume: Path | None, out: Callable[[str], None],
-           progress_stream: TextIO | None) -> TrainResult:
+           setups: dict[str, OpticalSetup], loader: TargetLoader, train_set: list[ImageSource],
+           val_set: list[ImageSource], loss_fn: ReconstructionLoss, job: Distributed, resume: Path | None,
+           out: Callable[[str], None], progress_stream: TextIO | None) -> TrainResult:
     device = job.device
     loss_fn = loss_fn.to(device)
     if job.main:
@@ -404,7 +564,7 @@ def _train(profile: Profile, settings: TrainSettings, out_dir: Path, planes: Map
     models: dict[str, nn.Module] = {}
     for colour, setup in setups.items():
         torch.manual_seed(settings.seed)  # every colour, and every process, starts from the same weights
-        models[colour] = build_model(settings.method, setup).to(device)
+        models[colour] = build_model(settings.method, setup, loader.depth_range_m).to(device)
     optimisers = {c: torch.optim.Adam(m.parameters(), lr=settings.lr, betas=(0.9, 0.999)) for c, m in models.items()}
     averages = {c: WeightAverage(m, settings.ema) for c, m in models.items()} if settings.ema else {}
     position = {"epoch": 0, "batch": 0, "step": 0}
@@ -438,9 +598,14 @@ def _train(profile: Profile, settings: TrainSettings, out_dir: Path, planes: Map
         "loss_region": "ROI, least-squares scaled", "perceptual_weight": PERCEPTUAL_WEIGHT
         if settings.loss == "l2-perceptual" else None,
         "optical_model": {c: s.field_model.to_dict() for c, s in setups.items() if s.field_model is not None} or None,
+        "fresnel_scaled": settings.fresnel_scaled,
+        **({"planes": settings.planes, "depth_range_mm": [z * 1e3 for z in loader.depth_range_m],
+            "loss_region": "ROI, focal stack at each scene's planes (at most --planes, moved within their bins at "
+                           "random), in-focus masks, one least-squares scale per stack"}
+           if loader.depth_range_m is not None else {}),
         "weight_average": {"decay": settings.ema, "kind": "exponential, bias-corrected"} if settings.ema else None,
     }
-    reference = dpac_reference(setups, planes, val_set) if job.main else {}
+    reference = dpac_reference(setups, planes, val_set, loader) if job.main else {}
     progress = ProgressLine(settings.method, stream=progress_stream) if job.main else None
     health = {c: TrainingHealth() for c in setups}
     started = time.perf_counter()
@@ -456,12 +621,14 @@ def _train(profile: Profile, settings: TrainSettings, out_dir: Path, planes: Map
         while batch < steps_per_epoch and step < total:
             first = batch * per_step + job.rank * settings.batch_size
             positions = list(range(first, first + settings.batch_size))
-            targets = load_targets([train_set[order[p]] for p in positions], geometry.shape, geometry.roi,
-                                   epoch_flips(settings.seed, epoch, positions)).to(device)
+            targets, scenes = loader([train_set[order[p]] for p in positions],
+                                     epoch_flips(settings.seed, epoch, positions),
+                                     epoch_jitters(settings.seed, epoch, positions))
+            targets, scenes = targets.to(device), scenes.to(device) if scenes is not None else None
             for colour, model in wrapped.items():
                 amplitude = peak_normalised(targets[:, planes[colour]:planes[colour] + 1])
                 schedule.apply(optimisers[colour], step)
-                stats = training_step(model, optimisers[colour], setups[colour], amplitude, loss_fn)
+                stats = training_step(model, optimisers[colour], setups[colour], amplitude, loss_fn, scenes)
                 verdict = health[colour].update(StepStats(*job.mean(
                     [stats.loss, stats.psnr_db, stats.grad_norm, stats.clamped])))
                 if verdict is not None:
@@ -487,7 +654,7 @@ def _train(profile: Profile, settings: TrainSettings, out_dir: Path, planes: Map
         position = {"epoch": epoch + 1 if epoch_done else epoch, "batch": 0 if epoch_done else batch, "step": step}
         if job.main:
             kept = {c: averages[c].averaged(m) for c, m in models.items()} if averages else models
-            scores = evaluate(kept, setups, planes, val_set, loss_fn, device)
+            scores = evaluate(kept, setups, planes, val_set, loss_fn, device, loader)
             metrics = {c: train_stats[c] | {f"val_{k}": v for k, v in scores.get(c, {}).items()}
                        | {f"val_dpac_{k}": v for k, v in reference.get(c, {}).items()} for c in setups}
             history.append({"epoch": epoch + 1, "step": step, "complete": epoch_done,
@@ -546,7 +713,7 @@ def _resume(path: Path, settings: TrainSettings, profile: Profile, setups: Mappi
     checkpoint = read_checkpoint(path)
     if checkpoint.method != settings.method:
         raise BadValueError(f"--resume {path} holds a {checkpoint.method} model, not --method {settings.method}")
-    checkpoint.check(setups, _geometry_note(profile, settings.size))
+    checkpoint.check(setups, _geometry_note(profile, settings.size, settings.fresnel_scaled))
     extra = [c for c in checkpoint.colours if c not in setups]
     if extra:
         raise BenchctlError(f"--resume {path} also holds {', '.join(extra)}; train the same colours "
@@ -578,14 +745,17 @@ def _resume(path: Path, settings: TrainSettings, profile: Profile, setups: Mappi
 
 def _refuse_changes(path: Path, recorded: Mapping[str, Any], settings: TrainSettings,
                     setups: Mapping[str, OpticalSetup]) -> None:
-    """An exact resume continues the same run: refuse (naming both values) data, seed, batch size, loss or fitted
-    optical model that differ from the recorded ones (start from the weights alone, a .pt file, to change them)."""
+    """An exact resume continues the same run: refuse (naming both values) data, seed, batch size, loss, fitted
+    optical model or (scenes with depth) planes that differ from the recorded ones (start from the weights alone, a
+    .pt file, to change them)."""
     model = {c: s.field_model.to_dict() for c, s in setups.items() if s.field_model is not None} or None
     asked = {"--data": settings.data, "--seed": settings.seed, "--batch-size": settings.batch_size,
              "--loss": settings.loss, "--model-calibration (the fitted optical model)": model}
     recorded_values = {"--data": (recorded.get("data") or {}).get("spec"), "--seed": recorded.get("seed"),
                        "--batch-size": recorded.get("batch_size"), "--loss": recorded.get("loss"),
                        "--model-calibration (the fitted optical model)": recorded.get("optical_model")}
+    if settings.depth:
+        asked["--planes"], recorded_values["--planes"] = settings.planes, recorded.get("planes")
     changed = [f"{flag} {_shown(asked[flag])} (the run used {_shown(recorded_values[flag])})"
                for flag in asked if recorded_values[flag] != asked[flag]]
     if changed:

@@ -1,7 +1,8 @@
 """Learned hologram networks: HoloNet, CCNN-CGH and their divide-conquer-and-merge (DCM) variants.
 
 `build_model(name, setup)` returns a module mapping the target amplitude (B, 1, H, W) on the SLM grid to the
-SLM phase in [-pi, pi]; the networks propagate with the setup's propagator, always at full definition.
+SLM phase in [-pi, pi] (a network for scenes with depth, `DEPTH_METHODS`, reads the depth map too); the
+networks propagate with the setup's propagator, always at full definition.
 `model_info(name, shape)` describes a method and counts its parameters without an optical setup. Importing
 this package registers every learned method (and `<name>+sgd`) in the method registry; the perceptual loss is
 in `vgg`. Training and its data are workflows on disk (`benchctl.training`), checkpoint files too
@@ -11,9 +12,11 @@ in `vgg`. Training and its data are workflows on disk (`benchctl.training`), che
 from benchctl.cgh.learned.ccnn import ComplexUNet, ccnn
 from benchctl.cgh.learned.complex_layers import ComplexConv2d, ComplexConvTranspose2d, ComplexReLU
 from benchctl.cgh.learned.dcm import Divided, PhaseHologramNet, divided_pair, pad_to_multiple
+from benchctl.cgh.learned.depth import DepthHologramNet
 from benchctl.cgh.learned.holonet import AmplitudePhase, holonet
 from benchctl.cgh.learned.lfmn import ECCM, GRN, LFM, LFMM, LFMN, PYRAMID_GROUPS, PyramidMerger, sublattice_groups
 from benchctl.cgh.learned.models import (
+    DEPTH_METHODS,
     LEARNED_METHODS,
     PAPER_PARAMETERS,
     build_model,
@@ -30,6 +33,8 @@ __all__ = [
     "ComplexConvTranspose2d",
     "ComplexReLU",
     "ComplexUNet",
+    "DEPTH_METHODS",
+    "DepthHologramNet",
     "Divided",
     "ECCM",
     "GRN",

@@ -25,11 +25,13 @@ class AmplitudePhase(nn.Module):
         return torch.cat([field.abs(), field.angle()], dim=1)
 
 
-def holonet(factor: int = 1, merge: nn.Module | None = None) -> tuple[Divided, Divided]:
+def holonet(factor: int = 1, merge: nn.Module | None = None, inputs: int = 1) -> tuple[Divided, Divided]:
     """HoloNet's phase generator and phase encoder, divided by `factor` (1: the original HoloNet).
 
     `merge` merges the encoder's r^2 sub-holograms (an `LFMN` or `PyramidMerger`; PixelShuffle by default).
+    `inputs`: maps the generator reads per pixel (1: the amplitude; 2: amplitude and depth, `depth.holonet3d`),
+    each divided into r^2 sub-images.
     """
     channels = factor * factor
     encoder = UNet(2 * channels, channels, clamp=merge is None)
-    return divided_pair(UNet(channels, channels), nn.Sequential(AmplitudePhase(), encoder), factor, merge)
+    return divided_pair(UNet(inputs * channels, channels), nn.Sequential(AmplitudePhase(), encoder), factor, merge)

@@ -10,6 +10,10 @@ sub-holograms with a plain PixelShuffle ("SR -> None"); `holonet-lowdef2` propag
 definition ("ASM at low definition", `dcm.LowDefinitionNet`); `holonet-dcm2-nolfm` / `-noeccm` / `-nogrn`
 drop one part of LFMN.
 
+For scenes with depth (`depth.DepthHologramNet`, the paper's future work): `holonet3d`, `holonet3d-dcm2`,
+`holonet3d-dcm4`: HoloNet's networks with the depth map as a second generator input, divided and merged as
+`holonet`, `holonet-dcm2`, `holonet-dcm4` (the same LFMN settings per tier). They are not refined by 2D SGD.
+
 Every learned method, and each refined by SGD (`<name>+sgd`), is registered in the one method registry
 (`benchctl.cgh.METHODS`) as a method that needs a checkpoint.
 
@@ -19,12 +23,15 @@ no propagation kernel (at 8K with 2x padding one kernel takes about 1 GiB).
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from torch import nn
 
 from benchctl.cgh.learned.ccnn import ccnn
 from benchctl.cgh.learned.dcm import Divided, LowDefinitionNet, PhaseHologramNet
+from benchctl.cgh.learned.depth import DepthHologramNet
 from benchctl.cgh.learned.holonet import holonet
 from benchctl.cgh.learned.lfmn import LFMN, PyramidMerger
 from benchctl.cgh.method import REFINED_SUFFIX, Method, register
@@ -33,7 +40,10 @@ from benchctl.optics.setup import OpticalSetup
 
 TIERS = (("1080p", 1088 * 1920), ("4k", 2176 * 3840), ("8k", None))
 BLOCKS = {"1080p": 4, "4k": 2, "8k": 2}
-FAMILIES = {"holonet": holonet, "ccnn": ccnn}
+FAMILIES: dict[str, Callable[[int, nn.Module | None], tuple[Divided, Divided]]] = {
+    "holonet": holonet, "ccnn": ccnn, "holonet3d": functools.partial(holonet, inputs=2)}
+DEPTH_FAMILIES = ("holonet3d",)
+"""Families whose networks read a depth map beside the amplitude (`DepthHologramNet`)."""
 
 
 @dataclass(frozen=True)
@@ -51,10 +61,11 @@ class Variant:
 
 
 _X2_DIMS: dict[str, tuple[int, ...]] = {"1080p": (32,), "4k": (24,), "8k": (24,)}
+_X4_DIMS: dict[str, tuple[int, ...]] = {"1080p": (40,), "4k": (32,), "8k": (32,)}
 VARIANTS: dict[str, Variant] = {
     "holonet": Variant("holonet"),
     "holonet-dcm2": Variant("holonet", 2, "lfmn", _X2_DIMS),
-    "holonet-dcm4": Variant("holonet", 4, "lfmn", {"1080p": (40,), "4k": (32,), "8k": (32,)}),
+    "holonet-dcm4": Variant("holonet", 4, "lfmn", _X4_DIMS),
     "holonet-pyramid": Variant("holonet", 4, "pyramid", {"1080p": (32, 32), "4k": (24, 24), "8k": (24, 24)}),
     "ccnn": Variant("ccnn"),
     "ccnn-dcm4": Variant("ccnn", 4, "lfmn", {"1080p": (24,), "4k": (24,), "8k": (28,)}, blocks=2),
@@ -64,17 +75,24 @@ VARIANTS: dict[str, Variant] = {
     "holonet-dcm2-nolfm": Variant("holonet", 2, "lfmn", _X2_DIMS, without=("lfm",)),
     "holonet-dcm2-noeccm": Variant("holonet", 2, "lfmn", _X2_DIMS, without=("eccm",)),
     "holonet-dcm2-nogrn": Variant("holonet", 2, "lfmn", _X2_DIMS, without=("grn",)),
+    "holonet3d": Variant("holonet3d"),
+    "holonet3d-dcm2": Variant("holonet3d", 2, "lfmn", _X2_DIMS),
+    "holonet3d-dcm4": Variant("holonet3d", 4, "lfmn", _X4_DIMS),
 }
 LEARNED_METHODS = tuple(VARIANTS)
 """The networks: the registered methods that need a checkpoint and refine no other method."""
-
+DEPTH_METHODS = tuple(name for name, variant in VARIANTS.items() if variant.family in DEPTH_FAMILIES)
+"""The networks for scenes with depth (amplitude and depth in; trained on a focal stack)."""
 
 
 def _register_methods() -> None:
-    """Every network as a method that needs a checkpoint, then each refined by SGD (`<name>+sgd`)."""
+    """Every network as a method that needs a checkpoint, then each 2D one refined by SGD (`<name>+sgd`)."""
     for name, variant in VARIANTS.items():
-        register(Method(name, f"trained {variant.family} network", None, None, variant.family))
+        register(Method(name, f"trained {variant.family} network", None, None, variant.family,
+                        reads_depth=name in DEPTH_METHODS))
     for name, variant in VARIANTS.items():
+        if name in DEPTH_METHODS:
+            continue
         register(Method(f"{name}{REFINED_SUFFIX}", f"{name}'s hologram refined by SGD", SGD.default_iterations, None,
                         variant.family, refines=name))
 
@@ -124,9 +142,14 @@ def build_networks(name: str, shape: tuple[int, int]) -> tuple[Divided, Divided]
     return FAMILIES[variant.family](variant.factor, _merger(variant, tier(shape)))
 
 
-def build_model(name: str, setup: OpticalSetup) -> PhaseHologramNet:
-    """Method `name` for `setup`: target amplitude (B, 1, H, W) -> SLM phase (B, 1, H, W) in [-pi, pi]."""
-    net = LowDefinitionNet if _variant(name).low_definition else PhaseHologramNet
+def build_model(name: str, setup: OpticalSetup,
+                depth_range_m: tuple[float, float] | None = None) -> PhaseHologramNet:
+    """Method `name` for `setup`: target amplitude (B, 1, H, W) -> SLM phase (B, 1, H, W) in [-pi, pi]; a network
+    for scenes with depth also reads the depth (`DepthHologramNet`), over `depth_range_m` (near, far) metres."""
+    variant = _variant(name)
+    if variant.family in DEPTH_FAMILIES:
+        return DepthHologramNet(*build_networks(name, setup.shape), setup, depth_range_m)
+    net = LowDefinitionNet if variant.low_definition else PhaseHologramNet
     return net(*build_networks(name, setup.shape), setup)
 
 
