@@ -68,6 +68,7 @@ def test_parameter_counts_are_the_2d_networks_plus_the_depth_input_of_the_genera
     assert info["encoder_parameters"] == flat["encoder_parameters"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", DEPTH_METHODS)
 def test_sub_networks_see_amplitude_then_depth_sub_images_and_one_full_definition_propagation_from_the_middle(
         name: str, monkeypatch) -> None:
@@ -116,6 +117,7 @@ def test_the_output_depends_on_depth_and_no_depth_is_a_flat_scene_at_the_setup_d
     assert build_model("holonet3d", setup).depth_range_m == (19.5e-3, 19.5e-3)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dtype", ["float32", "float16"])
 def test_a_checkpoint_carries_the_depth_range_exactly(tmp_path: Path, dtype: str) -> None:
     setup = tiny_setup()
@@ -427,7 +429,9 @@ def test_generate_makes_a_scene_with_depth_with_a_trained_3d_network(capsys, tmp
         with torch.no_grad():
             phase = wrap_phase(model(amplitude[0][None, None] / amplitude[0].max(), depth[None, None])[0, 0])
         written = cv2.imread(str(out / "phase_red.png"), cv2.IMREAD_UNCHANGED)
-        assert np.array_equal(written, slm_for(profile).encode(phase, "red"))
+        # inference runs on channels-last weights (another summation order): a gray level may round the other way
+        steps = (written.astype(int) - slm_for(profile).encode(phase, "red").astype(int)) % 256
+        assert np.all((steps <= 1) | (steps == 255)) and np.mean(steps == 0) > 0.99
     narrow = build_model("holonet3d", setup, (19.5e-3, 20.5e-3))
     other = Checkpoint("holonet3d", {"red": setup.geometry}, {"red": narrow.state_dict()}).save(tmp_path / "m.pt")
     code = main(["generate", "rgbd:two-planes", "-m", "holonet3d", "--checkpoint", str(other), "--colours", "red",
