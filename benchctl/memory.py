@@ -89,17 +89,18 @@ def exposure_estimate(profile: Profile, frames: int, dark_frames: int) -> Estima
                     {"frames": frames, "dark_frames": dark_frames})
 
 
-def fit_estimate(profile: Profile, patterns: int, flat: bool, fit_steps: int) -> Estimate:
+def fit_estimate(profile: Profile, patterns: int, flat: bool, fit_steps: int, planes: int = 1) -> Estimate:
     """Model calibration's fit of `patterns` captured patterns (and the `flat` one) over `fit_steps` steps, on the
-    largest padded grid of the profile's channels."""
+    largest padded grid of the profile's channels; captured at `planes` focus depths, each pattern's fields and
+    gradients are propagated to every one of them (the per-pattern bytes times the planes, not measured apart)."""
     profile.require("slm", "optics", "laser")
     slm, optics = profile.section("slm"), profile.section("optics")
     padded = max(math.prod(plan_propagation(slm.shape, optics.distance_m, channel.wavelength_m, slm.pitch_m,
                                             aperture=optics.iris_fraction).padded_shape)
                  for channel in profile.channels)
     return Estimate(f"the model fit on a padded grid of {padded / 1e6:.3g} Mpx",
-                    (FIT_BYTES_PER_PADDED_PX + FIT_BYTES_PER_PATTERN_PX * flat) * padded,
-                    {"patterns": FIT_BYTES_PER_PATTERN_PX * padded, "fit_steps": FIT_BYTES_PER_STEP},
+                    (FIT_BYTES_PER_PADDED_PX + FIT_BYTES_PER_PATTERN_PX * planes * flat) * padded,
+                    {"patterns": FIT_BYTES_PER_PATTERN_PX * planes * padded, "fit_steps": FIT_BYTES_PER_STEP},
                     {"patterns": patterns, "fit_steps": fit_steps})
 
 
@@ -135,7 +136,8 @@ def check_training_memory(estimate: Estimate) -> None:
 ESTIMATES: dict[str, Callable[[Profile, Any], Estimate]] = {
     "frames": lambda profile, params: exposure_estimate(profile, params.frames, getattr(params, "dark_frames", 0)),
     "patterns": lambda profile, params: fit_estimate(profile, params.patterns, getattr(params, "flat", False),
-                                                     getattr(params, "fit_steps", 0)),
+                                                     getattr(params, "fit_steps", 0),
+                                                     max(1, len(getattr(params, "focus_depths_mm", ())))),
 }
 
 

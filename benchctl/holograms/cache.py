@@ -57,7 +57,7 @@ def cache_dir() -> Path:
 
 
 def _key(profile: Profile, setup: OpticalSetup, channel: str, plane: torch.Tensor, options: dict[str, Any],
-         depth_m: torch.Tensor | None) -> str:
+         depth_m: torch.Tensor | None = None) -> str:
     slm = profile.slm
     assert slm is not None
     digest = hashlib.sha256()

@@ -277,10 +277,11 @@ class Context:
                 "position": move.position, "reported": move.reported}
 
     def expose(self, channel: str, power_w: float, frame: np.ndarray, *, frames: int, dark_frames: int,
-               keep: bool = True) -> Exposure:
+               keep: bool = True, within: str | None = None) -> Exposure:
         """One exposure the running step declared (see `Instruments.expose`); with `keep`, its RAW frames are
-        saved in the step's raw folder (what an unfinished earlier attempt left there is set aside first), else
-        they stay in memory. An exposure the step did not declare is refused before any device is touched."""
+        saved in the step's raw folder, or its sub-folder `within` for a step that keeps several exposures (what an
+        unfinished earlier attempt left there is set aside first), else they stay in memory. An exposure the step
+        did not declare is refused before any device is touched."""
         step = self.step
         if step is None:
             raise BenchctlError("an exposure outside a running step")
@@ -294,7 +295,7 @@ class Context:
                                 + ("; ".join(e.describe() for e in step.exposes) or "no exposure") + ")")
         folder = None
         if keep:
-            folder = self.path(layout.raw_folder(step.key))
+            folder = self.path(layout.raw_folder(step.key, within))
             attempt = self.record.attempts.get(step.key, 1) if self.record else 1
             if attempt > 1:
                 set_aside(folder, attempt - 1)

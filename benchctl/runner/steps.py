@@ -221,17 +221,18 @@ class Measurement:
 
 
 def measure(context: Context, channel: LaserChannel, power: float, frame: np.ndarray, *, frames: int,
-            dark_frames: int, keep: bool = True, read_later: bool = True) -> Measurement:
+            dark_frames: int, keep: bool = True, read_later: bool = True, within: str | None = None) -> Measurement:
     """Show `frame`, expose it with `channel` alone at `power`, capture `frames` RAW frames and `dark_frames`
     dark ones: an exposure the running step declared. With `keep` the RAW files are kept in the step's raw folder
-    and the record holds each file's checksum, which a resumed run verifies: under "checksums" for files later
-    steps read (a changed one is captured again), under "archived" with `read_later=False` for a record no later
-    step reads (a changed one is reported)."""
-    exposure = context.expose(channel.name, power, frame, frames=frames, dark_frames=dark_frames, keep=keep)
+    (its sub-folder `within`, for one of several exposures of the step) and the record holds each file's checksum,
+    which a resumed run verifies: under "checksums" for files later steps read (a changed one is captured again),
+    under "archived" with `read_later=False` for a record no later step reads (a changed one is reported)."""
+    exposure = context.expose(channel.name, power, frame, frames=frames, dark_frames=dark_frames, keep=keep,
+                              within=within)
     record = dict(exposure.result)
     if keep:
         assert context.step is not None
-        folder = layout.raw_folder(context.step.key)
+        folder = layout.raw_folder(context.step.key, within)
         names = [*exposure.result["frames"], *exposure.result["darks"]]
         record["folder"] = folder
         record["checksums" if read_later else "archived"] = {

@@ -18,6 +18,7 @@ each plane, focused there, and captured at every plane at the lowest of the powe
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Annotated, Any, Literal
 
@@ -179,11 +180,10 @@ def stack_steps(context: Context, scene: StackScene, options: HologramParameters
     powers: dict[str, Any] = {c.name: power_w(context, c) for c in scene.lit}
     if exposure == "auto":
         for channel in scene.lit:
-            keys = [f"probe/{label}/{channel.name}/plane-{k + 1}" for k in range(len(planes))]
-            steps += [probe_step(context, key, channel, shown(f"hologram/{label}/{channel.name}"),
-                                 f"probe exposure {label} at plane {k + 1}", peak_goal, depth_m=depth)
-                      for k, (key, depth) in enumerate(zip(keys, planes))]
-            powers[channel.name] = _lowest(keys)
+            probes, powers[channel.name] = plane_probes(context, f"probe/{label}/{channel.name}", channel,
+                                                        shown(f"hologram/{label}/{channel.name}"), planes, peak_goal,
+                                                        f"probe exposure {label}")
+            steps += probes
     for k, depth in enumerate(planes):
         where = f"plane {k + 1}/{len(planes)} ({depth * 1e3:.2f} mm)"
         for channel in scene.lit:
@@ -202,9 +202,16 @@ def scene_label(spec: str, taken: set[str]) -> str:
     return target_label(spec.removeprefix("rgbd:"), taken)
 
 
-def _lowest(probes: list[str]) -> Any:
-    """The power of a colour's captures: the lowest its probes (one per plane) chose, read when the capture runs."""
-    return lambda context: min(probed_power(key)(context) for key in probes)
+def plane_probes(context: Context, key: str, channel: LaserChannel, frame: Callable[[Context], np.ndarray],
+                 planes_m: Sequence[float], peak_goal: float,
+                 what: str) -> tuple[list[Step], Callable[[Context], float]]:
+    """Automatic exposure of a focal stack: one probe of `frame` per plane, focused there (steps `<key>/plane-<k>`),
+    and the power of every capture of the stack: the lowest the probes chose (read when a capture runs), so that
+    the planes compare and none saturates."""
+    keys = [f"{key}/plane-{k + 1}" for k in range(len(planes_m))]
+    steps = [probe_step(context, probe, channel, frame, f"{what} at plane {k + 1}", peak_goal, depth_m=depth)
+             for k, (probe, depth) in enumerate(zip(keys, planes_m))]
+    return steps, lambda context: min(probed_power(probe)(context) for probe in keys)
 
 
 def _capture_key(label: str, k: int, channel: LaserChannel) -> str:
