@@ -1,8 +1,8 @@
 """Size limits on what users hand in, so a bad file or value gets one line instead of exhausting memory.
 
-One pixel limit covers decoded images (PNG, JPEG and BMP are checked from their header, before decoding; other
-formats after decoding, within OpenCV's own limit of 2^30 pixels) and the SLM grid: 64 Mpx by default (an 8K
-grid, 4352 x 7680, is 33 Mpx). $BENCHCTL_MAX_PIXELS raises (or lowers) it.
+One pixel limit covers decoded images (checked from the file's header before anything is decoded: benchctl.images
+reads only formats whose header gives the size) and the SLM grid: 64 Mpx by default (an 8K grid, 4352 x 7680, is
+33 Mpx). $BENCHCTL_MAX_PIXELS raises (or lowers) it.
 """
 
 from __future__ import annotations

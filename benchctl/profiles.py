@@ -22,7 +22,8 @@ from msgspec import Meta
 from benchctl import SOURCE_ROOT
 from benchctl.dng import CFA_LAYOUTS
 from benchctl.drivers import driver_names
-from benchctl.errors import BenchctlError
+from benchctl.errors import BenchctlError, did_you_mean
+from benchctl.files import read_capped
 from benchctl.limits import check_pixels
 from benchctl.optics.geometry import Geometry
 from benchctl.schema import Model, decode, fail
@@ -40,6 +41,9 @@ SECTIONS = ("optics", "slm", "laser", "camera", "focus")
 
 Positive = Annotated[float, Meta(gt=0)]
 NonNegative = Annotated[float, Meta(ge=0)]
+# A liquid crystal settles within a second; a minute or more is a unit slip (seconds or microseconds as ms) that would
+# leave a run waiting for days after every frame.
+SettleMs = Annotated[float, Meta(ge=0, le=60_000)]
 Fraction = Annotated[float, Meta(ge=0, le=1)]
 PositiveInt = Annotated[int, Meta(gt=0)]
 NonNegativeInt = Annotated[int, Meta(ge=0)]
@@ -98,7 +102,7 @@ class SLMConfig(Model, kw_only=True):
     height: PositiveInt
     pitch_um: Annotated[float, Meta(ge=0.1, le=1000)]  # the pitches optics.setup accepts (0.1 um .. 1 mm)
     bit_depth: Annotated[int, Meta(ge=1, le=16)]
-    settle_ms: NonNegative = 100.0  # wait after showing a frame before the image is trusted
+    settle_ms: SettleMs = 100.0  # wait after showing a frame before the image is trusted
     flip_x: bool = False
     flip_y: bool = False
     phase_offset_rad: float = 0.0
@@ -235,6 +239,20 @@ class SimSLMConfig(Model, kw_only=True):
     zero_order: Fraction = 0.02
     # Fringing fields: the driven phase is blurred by a Gaussian of this many pixels (sigma) before it modulates.
     crosstalk_px: NonNegative = 0.0
+
+
+# A Gaussian beam narrower than this many SLM pixels (1/e^2 radius) lights a few hundred pixels at most: no hologram
+# can use it, and far below it the beam's profile underflows to no light at all (a unit slip: metres written as mm).
+MIN_WAIST_PX = 10.0
+
+
+def waist_problem(waist_mm: float, slm: SLMConfig) -> str | None:
+    """Why a Gaussian beam of `waist_mm` (0: uniform light) cannot light the panel of `slm`; None if it can."""
+    least = MIN_WAIST_PX * slm.pitch_um * 1e-3
+    if 0 < waist_mm < least:
+        return (f"must be 0 (uniform light) or at least {least:g} mm ({MIN_WAIST_PX:g} SLM pixels), got {waist_mm!r}: "
+                "a narrower beam lights almost none of the panel")
+    return None
 
 
 class SimBeamConfig(Model, kw_only=True):
@@ -456,19 +474,20 @@ def resolve_profile_path(path_or_name: str | Path | None = None) -> Path:
     if Path(text).is_file():  # -p README.md: read, to be told what it is not
         return Path(text)
     searched = ", ".join(str(c) for c in candidates)
-    raise BenchctlError(f"hardware profile {text!r}{origin} not found (looked for {searched})")
+    known = {p.stem for folder in {c.parent for c in candidates} if folder.is_dir() for p in folder.glob("*.toml")}
+    raise BenchctlError(f"hardware profile {text!r}{origin} not found{did_you_mean(text, known)} (looked for "
+                        f"{searched})")
 
 
 def load_profile(path_or_name: str | Path | None = None) -> Profile:
     """Read, decode and check a hardware profile (see resolve_profile_path for how it is found)."""
     path = resolve_profile_path(path_or_name)
     try:
-        with path.open("rb") as f:
-            raw = tomllib.load(f)
+        raw = tomllib.loads(read_capped(path, "hardware profile").decode("utf-8"))
     except FileNotFoundError:
-        raise BenchctlError(f"{path}: hardware profile not found") from None
-    except OSError as exc:
-        raise BenchctlError(f"{path}: cannot read hardware profile: {exc.strerror or exc}") from None
+        known = [str(p) for p in path.parent.glob("*.toml")] if path.parent.is_dir() else []
+        hint = did_you_mean(str(path), known, key=lambda name: Path(name).name)
+        raise BenchctlError(f"{path}: hardware profile not found{hint}") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         if path.suffix.lower() != ".toml":
             raise BenchctlError(f"{path}: not a hardware profile (a TOML file such as "
@@ -514,6 +533,9 @@ def _checked(path: Path, file: ProfileFile) -> Profile:
             if channel not in names:
                 raise fail(path, f"{section}.{channel}", f"no laser channel {channel!r} (known: {known})")
     _check_sensor(path, file.sim.sensor)
+    beam = waist_problem(file.sim.beam.waist_mm, slm) if slm else None
+    if beam:
+        raise fail(path, "sim.beam.waist_mm", beam)
     fields = {key: getattr(file, key) for key in file.__struct_fields__}
     return Profile(**{**fields, "name": name, "laser": laser, "path": path})
 

@@ -34,7 +34,7 @@ if sys.version_info >= (3, 11):
 else:
     from typing_extensions import dataclass_transform
 
-T = TypeVar("T", bound="Model")
+T = TypeVar("T", bound=msgspec.Struct)
 
 
 # msgspec's subclasses inherit frozen=True, but a type checker reads each subclass by PEP 681, where frozen is a
@@ -293,4 +293,7 @@ def _problem(kind: Any, value: Any, key: str) -> str | None:
                 return f"must be {sign} {limit:g}, got {shown!r}"
         if meta.min_length is not None and len(value) < meta.min_length:
             return f"at least {meta.min_length} entry required, got {len(value)}"
+        if meta.max_length is not None and len(value) > meta.max_length:
+            unit = "characters" if isinstance(value, str) else "entries"
+            return f"at most {meta.max_length} {unit}, got {len(value)}"
     return None

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import itertools
+import os
 import struct
 import zlib
 from pathlib import Path
@@ -142,6 +144,106 @@ def test_partial_profiles(tmp_path: Path, small_profile_path: Path, capsys: pyte
     assert not (tmp_path / "g").exists()
     line = one_error_line(capsys, ["bench", "speed-vs-error", "-p", str(laser_only), "-o", str(tmp_path / "b")])
     assert line == f"benchctl: error: {laser_only}: this needs a [slm] section, which the profile lacks"
+
+
+def test_an_endless_file_named_as_profile_procedure_calibration_or_image_is_refused_without_reading_it_all(
+        tmp_path: Path, small_profile_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """/dev/zero behind every name a user gives was read until memory ran out: a device is now refused unread, a
+    file larger than the cap unread too (calibration files named by a profile are found through their real path: a
+    sparse file stands in), and an endless pipe once the cap is read."""
+    import threading
+
+    zero = {suffix: tmp_path / f"zero{suffix}" for suffix in (".toml", ".png")}
+    for link in zero.values():
+        link.symlink_to("/dev/zero")
+    for suffix in (".json", ".csv", ".npy"):
+        zero[suffix] = tmp_path / f"large{suffix}"
+        with open(zero[suffix], "wb") as sparse:
+            sparse.truncate(17 * 2**20)
+    cap = "read no further ({} files are smaller: is it the file you meant?)"
+    text = small_profile_path.read_text()
+    with_model = tmp_path / "with_model.toml"
+    with_model.write_text(text.replace("[optics]\n", f'[optics]\nmodel = "{zero[".json"]}"\n'))
+    for suffix in (".csv", ".npy"):
+        with_lut = tmp_path / f"with_lut{suffix}.toml"
+        with_lut.write_text(text + f'\n[slm.lut]\ngreen = "{zero[suffix]}"\n')
+        line = one_error_line(capsys, ["profile", "check", str(with_lut)])
+        assert line == f"benchctl: error: {zero[suffix]}: over 16 MiB, {cap.format('lookup table')}"
+    assert one_error_line(capsys, ["profile", "check", str(with_model)]) == (
+        f"benchctl: error: {zero['.json']}: over 16 MiB, {cap.format('calibration')}")
+    for argv, path, what in (
+            (["profile", "check", str(zero[".toml"])], zero[".toml"], "hardware profile"),
+            (["run", str(zero[".toml"]), "-p", str(small_profile_path), "--dry-run"], zero[".toml"], "procedure"),
+            (["generate", str(zero[".png"]), "-o", str(tmp_path / "g"), "-p", str(small_profile_path)], zero[".png"],
+             "image")):
+        assert one_error_line(capsys, argv) == f"benchctl: error: {path}: is a device, not a file ({what} expected)"
+    pipe = tmp_path / "endless.toml"
+    os.mkfifo(pipe)
+
+    def endless() -> None:
+        with contextlib.suppress(BrokenPipeError), open(pipe, "wb") as writer:
+            while True:
+                writer.write(b"# " * 2**15)
+
+    writer = threading.Thread(target=endless, daemon=True)
+    writer.start()
+    assert one_error_line(capsys, ["profile", "check", str(pipe)]) == (
+        f"benchctl: error: {pipe}: over 16 MiB, {cap.format('hardware profile')}")
+    writer.join(timeout=10)
+    assert not writer.is_alive()
+
+
+def test_a_run_name_too_long_for_a_folder_and_a_settle_time_of_days_are_named(
+        tmp_path: Path, bench_profile_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A 300-character procedure name was an OSError traceback (file name too long) once the run started, and
+    settle_ms = 1e9 (a unit slip) was accepted: a run would have waited 11 days after every SLM frame."""
+    procedure = tmp_path / "p.toml"
+    procedure.write_text(f'name = "{"x" * 300}"\nprocedure = "power-sweep"\n')
+    line = one_error_line(capsys, ["run", str(procedure), "-p", str(bench_profile_path), "--dry-run"])
+    assert line == f"benchctl: error: {procedure}: name: at most 100 characters, got 300"
+    procedure.write_text('procedure = "power-sweep"\n[parameters]\nsettle_ms = 1e9\n')
+    line = one_error_line(capsys, ["run", str(procedure), "-p", str(bench_profile_path), "--dry-run"])
+    assert line == f"benchctl: error: {procedure}: parameters.settle_ms: must be <= 60000, got 1000000000.0"
+    profile = tmp_path / "slow.toml"
+    profile.write_text(bench_profile_path.read_text().replace("settle_ms = 0", "settle_ms = 1e12"))
+    line = one_error_line(capsys, ["profile", "check", str(profile)])
+    assert line == f"benchctl: error: {profile}: slm.settle_ms: must be <= 60000, got 1000000000000.0"
+
+
+def test_out_that_cannot_hold_run_folders_is_named_by_the_dry_run(tmp_path: Path, bench_profile_path: Path,
+                                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    """`--out` naming a file was accepted by the dry run, and `--out /proc/x` was refused as out of disk space."""
+    procedure = tmp_path / "p.toml"
+    procedure.write_text('procedure = "power-sweep"\n[parameters]\ncolours = ["green"]\n')
+    run = ["run", str(procedure), "-p", str(bench_profile_path)]
+    for out, problem in ((procedure, f"{procedure} is a file, not a folder"),
+                         (procedure / "runs", f"{procedure} is a file, not a folder"),
+                         (Path("/proc/x"), "/proc is on a file system without a disk (such as /proc or /sys)")):
+        for dry in (["--dry-run"], []):
+            line = one_error_line(capsys, [*run, "--out", str(out), *dry])
+            assert line == f"benchctl: error: --out {out}: {problem}: a run folder cannot be created there", line
+
+
+def test_misspelt_names_get_a_did_you_mean_and_an_empty_sgd_says_so(
+        tmp_path: Path, small_profile_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    monkeypatch.chdir(tmp_path)
+    procedure = tmp_path / "colour.toml"
+    procedure.write_text('procedure = "colour-captur"\n')
+    assert one_error_line(capsys, ["profile", "check", "simulatd"]).startswith(
+        "benchctl: error: hardware profile 'simulatd' not found (did you mean 'simulated'?) (looked for ")
+    assert one_error_line(capsys, ["profile", "check", str(tmp_path / "smal.toml")]) == (
+        f"benchctl: error: {tmp_path / 'smal.toml'}: hardware profile not found (did you mean "
+        f"'{small_profile_path}'?)")
+    line = one_error_line(capsys, ["run", str(tmp_path / "colur.toml"), "--dry-run"])
+    assert line == f"benchctl: error: {tmp_path / 'colur.toml'}: procedure file not found (did you mean '{procedure}'?)"
+    line = one_error_line(capsys, ["run", str(procedure), "-p", str(small_profile_path), "--dry-run"])
+    assert line.startswith(f"benchctl: error: {procedure}: procedure: unknown procedure 'colour-captur' (did you mean "
+                           "'colour-capture'?) (built-ins: ")
+    assert main(["generate", "chart:bars", "--method", "sgd", "--iterations", "0", "--colours", "green", "-o", "g",
+                 "-p", str(small_profile_path)]) == 0
+    assert capsys.readouterr().out.splitlines()[0] == ("sgd: --iterations 0 runs no iteration: the holograms are "
+                                                       "sgd's starting phase alone")
 
 
 # -- procedures -------------------------------------------------------------------------------------------------------

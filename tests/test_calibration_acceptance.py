@@ -91,7 +91,50 @@ def test_a_fit_no_better_than_no_model_is_not_stored(tmp_path: Path, profile: Pr
     assert "the fit did not improve on the ideal model: " in line or "the fit diverged at step " in line
     assert not (Calibration.store(profile).folder / "optical-model.json").exists()
     refused = fit_results(tmp_path / "refused")["model/fit/green"]
-    assert refused["calibration"]["stored"] is False and refused["calibration"]["old"] is None
+    assert refused["calibration"]["stored"] is False and refused["calibration"]["replaces"] == "ideal model"
+
+
+def test_patterns_without_points_are_refused_before_anything_runs(tmp_path: Path, profile: Profile,
+                                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """The red team's first calibration with patterns that held no points fitted defocus -0.19 waves (truth +0.30)
+    and was stored; a spacing that leaves under MIN_POINTS points per pattern is refused by the dry run."""
+    procedure = tmp_path / "model.toml"
+    procedure.write_text(PROCEDURE % "0.4mW" + "spacing_px = 1000\n")
+    code = main(["run", str(procedure), "--profile", str(profile.path), "--dry-run"])
+    line = capsys.readouterr().err.splitlines()[-1]
+    assert code == 2 and line == (f"benchctl: error: {procedure}: parameters.spacing_px: 1000 leaves about 0.00384 "
+                                  "point(s) per pattern on the 48 x 80 ROI, too few to measure the wavefront (at least "
+                                  "20): at most 13"), line
+
+
+def test_a_fit_that_explains_only_its_own_captures_is_not_stored(tmp_path: Path, profile: Profile,
+                                                                 capsys: pytest.CaptureFixture[str],
+                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    """A fit claiming residual 0.60 -> 0.10 on its own captures with the defocus the red team's no-point patterns gave
+    (-0.25 waves, truth +0.30) is judged on the held-out pattern: there it explains no more than the ideal model,
+    so it is not stored (before, its own residual was all acceptance looked at). A pattern that focuses no point
+    fails the verdict too."""
+    from benchctl.optics.fitted import FitResult
+
+    wrong = FittedOptics((("defocus", -0.25),))
+    monkeypatch.setattr(model_calibration, "fit_optics", lambda *args, **kwargs: FitResult(wrong, 0.1, 0.6, [0.6, 0.1]))
+    patterns = model_calibration.calibration_patterns
+
+    def first_without_points(*args, **kwargs):  # the first fitted pattern (seed 0) focuses no point
+        phases = patterns(*args, **kwargs)
+        return torch.cat([torch.zeros_like(phases[:1]), phases[1:]]) if kwargs["seed"] == 0 else phases
+
+    monkeypatch.setattr(model_calibration, "calibration_patterns", first_without_points)
+    procedure = tmp_path / "model.toml"
+    procedure.write_text(PROCEDURE % "0.4mW")
+    code, line = run_cli(capsys, procedure, profile, tmp_path / "runs")
+    assert code == 2 and line.startswith("benchctl: error: green: new optical model not stored (no information: "
+                                         "calibration pattern(s) 1 focus no point (spacing_px 6); on the held-out "
+                                         "capture(s) the fit explains no more than the ideal model: residual "), line
+    record = fit_results(tmp_path / "runs")["model/fit/green"]["calibration"]
+    assert record["measure"] == "held-out residual" and record["replaces"] == "ideal model" and record["held_out"] == 1
+    assert record["new"] > model_calibration.MIN_IMPROVEMENT * record["old"] and record["fit_residual"] == 0.1
+    assert not (Calibration.store(profile).folder / "optical-model.json").exists()
 
 
 def test_accept_always_stores_a_calibration_that_fails_and_says_so(tmp_path: Path, profile: Profile,
@@ -122,9 +165,9 @@ def test_a_better_fit_replaces_the_stored_model_with_both_residuals_reported(
     code, _ = run_cli(capsys, procedure, profile, tmp_path / "runs")
     assert code == 0
     record = fit_results(tmp_path / "runs")["model/fit/green"]["calibration"]
-    assert record["stored"] is True and record["new"] < 0.5 * record["old"], record
+    assert record["stored"] is True and record["new"] < 0.5 * record["old"], record  # on the held-out pattern
     stored = json.loads((store.folder / "optical-model.json").read_text())["colours"]["green"]
-    assert stored["residual"] == record["new"]
+    assert stored["held_out_residual"] == record["new"] and stored["residual"] == record["fit_residual"]
     (folder,) = (tmp_path / "runs").iterdir()
     assert "stored only if it passes its acceptance test" in (folder / "report.html").read_text()
 
@@ -194,20 +237,22 @@ procedure = "lut-calibration"
 [parameters]
 colours = ["green"]
 setpoints = { green = "%s" }
-gray_step = 32
+gray_step = 16
 """
 
 
-def test_a_lookup_table_measured_without_light_keeps_the_stored_one(tmp_path: Path, profile: Profile,
-                                                                    capsys: pytest.CaptureFixture[str]) -> None:
-    """A first table is measured and stored (it beats the linear one on its own signals); gratings without light
-    then give no table: the stored one stays, the run says why in one line."""
+def test_a_lookup_table_measured_without_light_keeps_the_stored_one(
+        tmp_path: Path, make_bench_profile: Callable[..., Profile], capsys: pytest.CaptureFixture[str]) -> None:
+    """A first table is measured and stored (on the gray levels it was not read from it beats the linear one: this
+    bench's response is not linear); gratings without light then give no table: the stored one stays, the run says
+    why in one line."""
+    profile = truly_registered(make_bench_profile(SMALL_BENCH))
     procedure = tmp_path / "lut.toml"
     procedure.write_text(LUT % "2mW")
     code, _ = run_cli(capsys, procedure, profile, tmp_path / "first")
     assert code == 0
     first = fit_results(tmp_path / "first")["lut/green/fit"]["calibration"]
-    assert first["stored"] and first["new"] < first["old"] and first["replaces"] == "linear", first
+    assert first["stored"] and first["new"] < 0.1 * first["old"] and first["replaces"] == "linear table", first
     store = Calibration.store(profile)
     table = (store.folder / "lut-green.csv").read_bytes()
 
@@ -220,6 +265,36 @@ def test_a_lookup_table_measured_without_light_keeps_the_stored_one(tmp_path: Pa
     (folder,) = (tmp_path / "dark").iterdir()
     report = (folder / "report.html").read_text()
     assert "stored only if it passes its acceptance test" in report and "no table could be read" in report
+
+
+def test_a_lookup_table_is_judged_on_gray_levels_it_was_not_read_from(tmp_path: Path, profile: Profile,
+                                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """On this bench green's true response is the linear table. A table read from every signal follows them by
+    construction (misfit 0), so "no worse than before" could not fail and it replaced the linear table, said as
+    "0.2942 (stored) -> 0 (new)" with nothing stored. Judged on the gray levels it was not read from, it is no better
+    than the linear table, which stays; the line says what it was compared with."""
+    procedure = tmp_path / "lut.toml"
+    procedure.write_text(LUT % "2mW")
+    code, line = run_cli(capsys, procedure, profile, tmp_path / "runs")
+    assert code == 2 and line.startswith("benchctl: error: green: new lookup table not stored (held-out signal misfit "
+                                         ), line
+    assert "is above the linear table's " in line and "on the same captures); the linear table stays; " in line, line
+    record = fit_results(tmp_path / "runs")["lut/green/fit"]["calibration"]
+    assert record["replaces"] == "linear table" and 0 < record["old"] < record["new"] < 0.01, record
+    assert not (Calibration.store(profile).folder / "lut-green.csv").exists()
+
+
+def test_verdicts_say_what_they_compare_with() -> None:
+    from benchctl.calibration.acceptance import Verdict, rejection_line
+
+    first = Verdict("registration", "green", "median error px", 0.31, None)
+    assert first.residuals() == "median error px 0.31 (new); nothing to compare with"
+    table = Verdict("lookup table", "green", "held-out signal misfit", 0.004, 0.2942, replaces="linear table")
+    assert table.residuals() == ("held-out signal misfit 0.004 (new) against 0.2942 (linear table), on the same "
+                                 "captures")
+    table.check(False, "a failure")
+    assert rejection_line(table.record(False, [])) == ("green: new lookup table not stored (a failure); the linear "
+                                                       "table stays")
 
 
 REGISTRATION = """\

@@ -73,6 +73,8 @@ MALFORMED = [
     (lambda data: "{not json", "not a JSON calibration file: Expecting property name"),
     (green("waist_mm", float("nan")), "colours.green.waist_mm: expected a finite number, got nan (float)"),
     (green("waist_mm", -3), "colours.green.waist_mm: must be >= 0, got -3.0"),
+    (green("waist_mm", 1e-9), "colours.green.waist_mm: must be 0 (uniform light) or at least 0.08 mm (10 SLM pixels), "
+                              "got 1e-09: a narrower beam lights almost none of the panel"),
     (green("crosstalk_px", -0.5), "colours.green.crosstalk_px: must be >= 0, got -0.5"),
     (green("zero_order", 1.0), "colours.green.zero_order: must be < 1, got 1.0"),
     (waves("defocus", 1e6), "colours.green.zernike_waves.defocus: must be <= 10, got 1000000.0"),
@@ -103,9 +105,9 @@ def test_a_good_optical_model_is_used_as_stored(small_profile_path: Path) -> Non
 
 def test_a_beam_that_misses_the_panel_is_refused(small_profile_path: Path) -> None:
     path = stored_model(small_profile_path)
-    edit(path, lambda data: data["colours"]["green"].update(waist_mm=0.001, offset_mm=[50.0, 0.0]))
+    edit(path, lambda data: data["colours"]["green"].update(waist_mm=0.1, offset_mm=[50.0, 0.0]))
     profile = Calibration.store(load_profile(small_profile_path)).applied(load_profile(small_profile_path))
-    with pytest.raises(BenchctlError, match=r"colours\.green\.offset_mm: a beam of waist 0.001 mm centred at "
+    with pytest.raises(BenchctlError, match=r"colours\.green\.offset_mm: a beam of waist 0.1 mm centred at "
                                             r"\[50.0, 0.0\] mm misses the 0.512 x 0.768 mm panel by 49.744 mm"):
         optical_setup(profile, "green")
     assert optical_setup(profile, "red").field_model is not None  # the other colours are fine
@@ -194,8 +196,7 @@ def plan(context):
 """
 
 
-def test_a_resumed_run_with_a_damaged_calibration_copy_says_how_to_repair_it(
-        tmp_path: Path, small_profile_path: Path) -> None:
+def test_a_resumed_run_refuses_an_edited_calibration_copy(tmp_path: Path, small_profile_path: Path) -> None:
     stored_model(small_profile_path)
     procedure = tmp_path / "nothing.py"
     procedure.write_text(NOTHING)
@@ -204,19 +205,49 @@ def test_a_resumed_run_with_a_damaged_calibration_copy_says_how_to_repair_it(
     copied = outcome.folder / "calibration" / "optical-model.json"
     edit(copied, green("crosstalk_px", -1))
     with pytest.raises(BenchctlError) as error:
-        run_procedure(None, resume=outcome.folder, say=lambda _: None)
+        run_procedure(None, resume=outcome.folder, allow_code=True, say=lambda _: None)
     assert str(error.value).startswith(f"{copied} changed since the run wrote it (SHA-256 ")
     assert str(error.value).endswith("put that file back, or start a new run")
-    # A run folder written before its calibration copy had checksums: the copy is still validated on resume.
-    info_file = outcome.folder / "run.json"
-    info = json.loads(info_file.read_text())
-    del info["calibration_sha256"]
-    info_file.write_text(json.dumps(info))
-    store = Calibration.store(load_profile(small_profile_path)).folder
+
+
+def test_a_meaningless_beam_is_refused_where_it_is_read_and_a_resume_takes_the_fixed_file(
+        tmp_path: Path, bench_profile_path: Path, capsys: pytest.CaptureFixture[str],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """`waist_mm = 1e-9` passed `profile check` and the dry run; a run then failed naming no file, and its resume
+    failed the same way after the stored file was fixed (it kept using the run's copy)."""
+    from benchctl.calibration import files
+
+    path = stored_model(bench_profile_path)
+    edit(path, green("waist_mm", 1e-9))
+    message = (f"{path}: colours.green.waist_mm: must be 0 (uniform light) or at least 0.08 mm (10 SLM pixels), got "
+               "1e-09: a narrower beam lights almost none of the panel")
+    procedure = tmp_path / "nothing.py"
+    procedure.write_text(NOTHING)
+    p = str(bench_profile_path)
+    for argv in (["profile", "check", p], ["run", str(procedure), "-p", p, "--dry-run"]):
+        assert one_error_line(capsys, argv) == f"benchctl: error: {message}"
+    # A run that started with it (as before this check: let through once), then resumed.
+    with monkeypatch.context() as patch:
+        patch.setattr(files, "waist_problem", lambda waist, slm: None)
+        outcome = run_procedure(procedure, profile=p, out=tmp_path / "runs", say=lambda _: None)
+    assert outcome.folder is not None
+    copied = outcome.folder / "calibration" / "optical-model.json"
     with pytest.raises(BenchctlError) as error:
-        run_procedure(None, resume=outcome.folder, say=lambda _: None)
-    assert str(error.value) == (f"{copied}: colours.green.crosstalk_px: must be >= 0, got -1.0 (a resumed run uses "
-                                f"its own copy of the calibration: repair it, or copy the file from {store} over it)")
+        run_procedure(None, resume=outcome.folder, allow_code=True, say=lambda _: None)
+    assert str(error.value) == (f"{message.replace(str(path), str(copied))}; the store it came from fails too "
+                                f"({message}): fix the file in {path.parent}, and a resume takes the calibration "
+                                "from there")
+    edit(path, green("waist_mm", 0.5))
+    said: list[str] = []
+    resumed = run_procedure(None, resume=outcome.folder, allow_code=True, say=said.append)
+    assert resumed.ran == ["nothing"]  # done again: it may have used the bad model
+    assert said[0] == (f"{message.replace(str(path), str(copied))}: this run's copy is kept as "
+                       f"{outcome.folder / 'calibration.attempt-1'}; the run goes on with the fixed calibration from "
+                       f"{path.parent} and does its 1 finished step(s) again")
+    assert copied.read_bytes() == path.read_bytes()
+    assert json.loads((outcome.folder / "calibration.attempt-1" / "optical-model.json").read_text())[
+        "colours"]["green"]["waist_mm"] == 1e-9
+    assert run_procedure(None, resume=outcome.folder, allow_code=True, say=said.append).ran == []  # and it holds
 
 
 def test_training_through_a_malformed_model_file_is_one_line(tmp_path: Path, small_profile_path: Path,

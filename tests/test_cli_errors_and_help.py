@@ -72,6 +72,8 @@ def test_a_misspelt_method_in_a_procedure_gets_a_suggestion(tmp_path: Path, benc
     (["console", "--port", "99999"], "argument --port: must lie between 0 and 65535, got 99999"),
     (["console", "--deadman", "inf"], "argument --deadman: must be a finite number of seconds above 0, got 'inf'"),
     (["console", "--deadman", "0"], "argument --deadman: must be a finite number of seconds above 0, got '0'"),
+    (["console", "--deadman", "1e9"], "argument --deadman: must be at most 300 seconds (a dead-man switch that "
+                                      "waits longer guards nothing), got '1e9'"),
     (["bench", "console", "--seconds", "-1"],
      "argument --seconds: must be a finite number of seconds above 0, got '-1'"),
 ])
@@ -138,7 +140,9 @@ def test_camera_show_describes_a_monochrome_frame(tmp_path: Path, in_repo: None,
     lines = capsys.readouterr().out.splitlines()
     assert lines[0] == f"{frame}: 30 x 22 px visible (width x height), monochrome (every colour reads every pixel)"
     for colour, line in zip(("  red", "green", " blue"), lines[2:5]):  # mean (659 x 1998 / 3995 + 1) / 660
-        assert line == f"{colour}: peak 100.0% of full scale, mean 50.09%, saturated 0.152% (1 of 660 px)"
+        # the 99.9th percentile of 659 pixels at 50.01 % and one at 100 %: 0.341 of the way up (numpy's interpolation)
+        assert line == (f"{colour}: peak 67.1% of full scale (brightest 0.1 %), brightest pixel 100.0%, mean 50.09%, "
+                        "saturated 0.152% (1 of 660 px)")
 
 
 def test_camera_show_describes_a_raw_frame_and_writes_a_preview(tmp_path: Path, in_repo: None,
@@ -149,10 +153,14 @@ def test_camera_show_describes_a_raw_frame_and_writes_a_preview(tmp_path: Path, 
     assert capsys.readouterr().out.splitlines() == [
         f"{frame}: 30 x 22 px visible (width x height), RGGB Bayer",
         "black level 100, 100, 100, 100 (per CFA position, RGGB), white level 4095",
-        "  red: peak 100.0% of full scale, mean 50.32%, saturated 0.606% (1 of 165 px)",  # (164 x 1998/3995 + 1) / 165
-        "green: peak 25.0% of full scale, mean 25.01%, saturated 0.000% (0 of 330 px)",
-        " blue: peak 10.0% of full scale, mean 10.01%, saturated 0.000% (0 of 165 px)",
-        f"preview: {preview} (15 x 11 px, amplitude: square root of the signal, the frame's peak white)"]
+        # mean (164 x 1998/3995 + 1) / 165; peak 0.836 of the way from 50.01 % to 100 % (99.9th percentile of 165)
+        "  red: peak 91.8% of full scale (brightest 0.1 %), brightest pixel 100.0%, mean 50.32%, saturated 0.606% "
+        "(1 of 165 px)",
+        "green: peak 25.0% of full scale (brightest 0.1 %), brightest pixel 25.0%, mean 25.01%, saturated 0.000% "
+        "(0 of 330 px)",
+        " blue: peak 10.0% of full scale (brightest 0.1 %), brightest pixel 10.0%, mean 10.01%, saturated 0.000% "
+        "(0 of 165 px)",
+        f"preview: {preview} (15 x 11 px, amplitude: square root of the signal, the frame's brightest pixel white)"]
     image = read_image(preview)
     assert image.shape == (11, 15, 3) and image.dtype == np.uint8
     assert tuple(image[0, 0]) == (255, 128, 81) and tuple(image[1, 1]) == (180, 128, 81)  # sqrt(0.5) = 0.707

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 
+from benchctl.calibration.calibrated import Calibrated
 from benchctl.capture.raw import decode_raw
 from benchctl.console import preview
 from benchctl.devices.camera import open_camera
@@ -25,7 +26,7 @@ from benchctl.devices.sim import eos_usb, physics
 from benchctl.devices.sim.eos_usb import SimEosTransport
 from benchctl.devices.sim.slm import read_displayed
 from benchctl.devices.sim.state import CAMERA_STATE, load_state
-from benchctl.devices.slm import open_slm
+from benchctl.devices.slm import open_slm, slm_for
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import CameraConfig, Profile, load_profile
 
@@ -168,7 +169,7 @@ def test_light_is_computed_once_per_slm_frame_and_laser_state(bench_profile_path
     calls = []
     original = physics._electron_planes
     monkeypatch.setattr(physics, "_electron_planes", lambda *a: calls.append(a[2]) or original(*a))
-    view = physics.LiveView(profile)
+    view = physics.LiveView(profile, progressive=False)
     first = [view.render(64)[0] for _ in range(3)]
     assert len(calls) == 1 and not np.array_equal(first[0], first[1])  # new noise, same light
     lit_bench(profile, "green", "4mW")
@@ -183,6 +184,52 @@ def test_light_is_computed_once_per_slm_frame_and_laser_state(bench_profile_path
         slm.blank()
         shown = slm.shown_frame
     assert view.render(64)[1]["slm_frame"] == shown and len(calls) == 3
+
+
+def test_a_change_is_shown_at_once_in_coarse_light_then_refined(bench_profile_path: Path,
+                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    """Progressive preview: the first frame after an SLM or laser change shows the light computed on a grid twice
+    as coarse (a quarter of the work), the next one the full light, and later ones reuse it."""
+    profile = load_profile(bench_profile_path)
+    lit_bench(profile)
+    coarse_calls = []
+    original = physics._live_irradiance
+    monkeypatch.setattr(physics, "_live_irradiance", lambda *a, coarse=1: coarse_calls.append(coarse)
+                        or original(*a, coarse=coarse))
+    view = physics.LiveView(profile)
+    assert view.render(64)[1]["coarse"] is False  # the first light of all: no frame to show meanwhile
+    show(profile, SCENES["grating"](profile.slm.shape))
+    frames = [view.render(64)[1] for _ in range(3)]
+    shown = read_displayed()[1]["frame"]
+    assert [(m["slm_frame"], m["coarse"]) for m in frames] == [(shown, True), (shown, False), (shown, False)]
+    assert coarse_calls == [1, 2, 1] and frames[2]["light_s"] < frames[1]["light_s"]
+    steady = physics.LiveView(profile, progressive=False)
+    steady.render(64)
+    assert np.array_equal(view._planes, steady._planes)  # refined: exactly the light without progression
+
+
+@pytest.mark.parametrize("scene", ["flat", "grating", "dpac"])
+def test_the_coarse_light_is_the_light_at_a_previews_resolution(bench_profile_path: Path, scene: str) -> None:
+    """The coarse light against the full light, both averaged over 4 x 4 target pixels (a preview frame pixel spans
+    more): the same power and the same picture for what the iris passes (flat, a 6-pixel grating, a DPAC hologram).
+    A field with light at every frequency (uniform random phase) is the worst case: its coarse frame's power is
+    about 1.3 times the full one's, correlation 0.81 (docs/console.md)."""
+    from benchctl.holograms.cache import hologram
+    from benchctl.targets import load_target, prepare_target
+
+    profile = load_profile(bench_profile_path)
+    channel = profile.channel("green")
+    if scene == "dpac":
+        target = prepare_target(load_target("chart:bars", profile.optics.roi), profile.slm.shape, profile.optics.roi)
+        gray = hologram(Calibrated(profile), target, "green", "dpac", iterations=None, seed=0, checkpoint=None).gray
+    else:
+        gray = slm_for(profile).encode(SCENES[scene](profile.slm.shape), "green")
+    full = physics._live_irradiance(profile, channel, gray).numpy()
+    coarse = physics._live_irradiance(profile, channel, gray, coarse=2).numpy()
+    assert coarse.shape == full.shape and coarse.sum() == pytest.approx(full.sum(), rel=0.06)
+    rows, cols = (n // 4 for n in full.shape)
+    binned = [cv2.resize(light, (cols, rows), interpolation=cv2.INTER_AREA) for light in (full, coarse)]
+    assert np.corrcoef(binned[0].ravel(), binned[1].ravel())[0, 1] > 0.96
 
 
 def test_the_simulated_camera_previews_without_taking_a_capture_number(bench_profile_path: Path) -> None:

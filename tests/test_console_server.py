@@ -9,9 +9,11 @@ import contextlib
 import json
 import math
 import os
+import queue
 import re
 import signal
 import socket
+import struct
 import subprocess
 import sys
 import threading
@@ -47,6 +49,7 @@ from benchctl.console.server import allowed_hosts
 from benchctl.console.uploads import MAX_UPLOADS
 from benchctl.devices.serial_link import SerialLink
 from benchctl.devices.sim.slm import read_displayed
+from benchctl.errors import BadValueError
 from benchctl.optics.aberration import wavefront_phase
 from benchctl.profiles import load_profile
 
@@ -61,7 +64,7 @@ def console(bench_profile_path: Path, tmp_path: Path) -> Iterator[Console]:
 @pytest.fixture
 def client(console: Console) -> Iterator[TestClient]:
     with TestClient(create_app(console, access()), base_url=ORIGIN) as client:
-        client.headers["x-benchctl-token"] = TOKEN
+        client.headers.update({"x-benchctl-token": TOKEN, "origin": ORIGIN})  # as the page sends them
         yield client
 
 
@@ -88,18 +91,36 @@ def wait_for(condition, timeout_s: float = 10.0) -> bool:
     return condition()
 
 
-def test_the_page_needs_the_token_once_then_a_cookie(console: Console) -> None:
+def test_the_page_needs_the_token_in_its_url_and_no_cookie_holds_it(console: Console) -> None:
     with TestClient(create_app(console, access()), base_url=ORIGIN) as client:
         assert client.get("/").status_code == 403
         assert client.get("/?token=wrong").status_code == 403
-        first = client.get(f"/?token={TOKEN}", follow_redirects=False)
-        assert first.status_code == 303 and first.headers["location"] == "/"
-        assert "HttpOnly" in first.headers["set-cookie"] and "SameSite=Strict" in first.headers["set-cookie"]
-        page = client.get("/")  # the cookie the redirect set
+        page = client.get(f"/?token={TOKEN}", follow_redirects=False)
         assert page.status_code == 200 and "<title>benchctl console</title>" in page.text
-        assert client.get("/static/console.js").text.startswith("// benchctl console page")
-        assert client.get("/static/../core.py").status_code == 404
+        assert "set-cookie" not in page.headers and not client.cookies  # cookies ignore ports: never the token
+        assert page.headers["referrer-policy"] == "no-referrer"
+        assert client.get("/").status_code == 403  # nothing was kept: the page sends the token itself
+        assert client.get("/static/console.js").text.startswith("// benchctl console page")  # no secret in it
+        assert client.get("/static/../core.py").status_code == 403  # /core.py: not the page's, needs the token
         assert client.get("/static/secrets.txt").status_code == 404
+        assert client.get("/api/state").status_code == 403
+        assert client.get("/api/state", headers={TOKEN_HEADER: TOKEN}).status_code == 200
+
+
+def test_a_request_that_changes_a_device_needs_the_pages_origin(console: Console, sent: list[str]) -> None:
+    with TestClient(create_app(console, access()), base_url=ORIGIN) as client:
+        refused = client.post("/api/laser/green/power", json={"power": "5mW"}, headers={TOKEN_HEADER: TOKEN})
+        assert refused.status_code == 403 and "needs the Origin header" in refused.text
+        with pytest.raises(WebSocketDisconnect) as closed:
+            with client.websocket_connect(f"{WS}?token={TOKEN}"):
+                pass
+        assert closed.value.code == 1008
+        assert sent == [] and laser_channel(2)["setpoint_w"] == 0.0
+        allowed = client.post("/api/laser/green/power", json={"power": "5mW"},
+                              headers={TOKEN_HEADER: TOKEN, "origin": ORIGIN})
+        assert allowed.status_code == 200 and laser_channel(2)["setpoint_w"] == pytest.approx(0.005)
+        with client.websocket_connect(f"{WS}?token={TOKEN}", headers={"origin": ORIGIN}) as page:
+            assert next_frame(page)[0]["seq"] >= 1  # the page's socket: token in its URL, its Origin
 
 
 def test_the_page_loads_nothing_from_the_internet(client: TestClient) -> None:
@@ -114,6 +135,7 @@ def test_the_page_loads_nothing_from_the_internet(client: TestClient) -> None:
     {"x-benchctl-token": TOKEN, "origin": "http://evil.example"},  # a cross-site page (CSRF)
     {"x-benchctl-token": TOKEN, "host": f"evil.example:{PORT}"},  # DNS rebinding: the hostile name arrives
     {"x-benchctl-token": TOKEN, "origin": f"http://127.0.0.1:{PORT + 1}"},  # another local server's page
+    {"cookie": f"benchctl_console_{PORT}={TOKEN}", "origin": ORIGIN},  # a cookie is no credential
 ])
 def test_refused_requests_reach_no_device(console: Console, sent: list[str], headers: dict[str, str]) -> None:
     before = (laser_channel(2), read_displayed()[1])
@@ -218,6 +240,12 @@ def test_stopping_the_console_leaves_emission_off_at_the_profiles_setpoint(bench
     assert laser_channel(2)["setpoint_w"] == pytest.approx(2e-3)  # the profile's: the next `laser on` is no surprise
 
 
+def test_a_dead_man_of_more_than_minutes_is_refused_by_the_console_itself(bench_profile_path: Path,
+                                                                         tmp_path: Path) -> None:
+    with pytest.raises(BadValueError, match="at most 300 s, got 1e"):
+        Console(load_profile(bench_profile_path), tmp_path, deadman_s=1e9)
+
+
 def test_slm_patterns_round_trip_to_the_displayed_frame(client: TestClient, bench_profile_path: Path) -> None:
     profile = load_profile(bench_profile_path)
     rows, cols = profile.slm.shape
@@ -237,6 +265,52 @@ def test_slm_patterns_round_trip_to_the_displayed_frame(client: TestClient, benc
     assert not read_displayed()[0].any() and read_displayed()[1]["frame"] == state["frame"] + 2
     thumbnail = cv2.imdecode(np.frombuffer(client.get("/api/slm/thumbnail.png").content, np.uint8), 0)
     assert thumbnail.shape == (rows, cols) and not thumbnail.any()  # 192 px wide: shown at its own size
+
+
+def test_the_slm_panel_shows_what_the_slm_holds_and_who_put_it_there(bench_profile_path: Path,
+                                                                     tmp_path: Path) -> None:
+    """A new user met "nothing shown yet" while the panel held an earlier frame, and after a procedure the console
+    still named its own old hologram: the console reads the frame and its provenance from the device."""
+    from benchctl.images import write_png
+
+    profile = load_profile(bench_profile_path)
+    rows, cols = profile.slm.shape
+    earlier = (np.indices((rows, cols)).sum(axis=0) % 256).astype(np.uint8)
+    write_png(tmp_path / "earlier.png", earlier)
+
+    def benchctl(*argv: str) -> None:  # another program on this bench
+        subprocess.run([sys.executable, "-m", "benchctl", *argv, "-p", str(bench_profile_path)], check=True,
+                       capture_output=True)
+
+    def thumbnail() -> np.ndarray:
+        return cv2.imdecode(np.frombuffer(client.get("/api/slm/thumbnail.png").content, np.uint8), 0)
+
+    benchctl("slm", "show", str(tmp_path / "earlier.png"))
+    console = make_console(profile, tmp_path)
+    try:
+        with TestClient(create_app(console, access()), base_url=ORIGIN) as client:
+            client.headers.update({"x-benchctl-token": TOKEN, "origin": ORIGIN})
+            shows = client.get("/api/state").json()["slm"]["shows"]
+            assert shows["kind"] is None and shows["frame"] == 1 and shows["by"].startswith("`benchctl slm show` (pid")
+            assert np.array_equal(thumbnail(), earlier)  # the panel's frame, not a blank one
+            assert any("at start: the SLM shows frame 1, put there by `benchctl slm show`" in line
+                       for line in console.events)
+            own = client.post("/api/slm", json={"kind": "grating", "period_px": 8, "channel": "green"}).json()
+            assert own["frame"] == 2 and own["by"].endswith(f"(pid {os.getpid()})")  # this console's
+            console._release_for_run(["slm"])  # a procedure takes the SLM and shows a frame of its own
+            benchctl("slm", "blank")
+            console._reconnect()
+            shows = client.get("/api/state").json()["slm"]["shows"]
+            assert (shows["kind"], shows["frame"], shows["at"]) == (None, 3, read_displayed()[1]["time"])
+            assert shows["by"].startswith("`benchctl slm blank` (pid")
+            assert any("after procedure None: the SLM shows frame 3, put there by `benchctl slm blank`" in line
+                       for line in console.events)
+            assert not thumbnail().any()
+            console._release_for_run(["slm"])  # a procedure that leaves the SLM alone: nothing to say
+            console._reconnect()
+            assert sum("the SLM shows frame" in line for line in console.events) == 2
+    finally:
+        console.close()
 
 
 def test_holograms_are_the_ones_a_run_displays(client: TestClient, bench_profile_path: Path) -> None:
@@ -339,6 +413,26 @@ def test_capture_writes_raw_frames_and_settings_into_a_new_folder(client: TestCl
     assert client.post("/api/capture", json={"frames": 0}).status_code == 400
 
 
+def test_console_captures_are_runs_that_runs_lists_and_removes(client: TestClient, tmp_path: Path,
+                                                                capsys: pytest.CaptureFixture[str]) -> None:
+    """A new user found console captures invisible to `benchctl runs`, and `runs remove` refused them."""
+    from benchctl.cli import main
+    from benchctl.files import file_sha256
+
+    client.post("/api/slm", json={"kind": "grating", "period_px": 6, "channel": "green"})
+    folder = Path(client.post("/api/capture", json={"frames": 2}).json()["folder"])
+    steps = [json.loads(line) for line in (folder / "steps.jsonl").read_text().splitlines()]
+    assert [step["event"] for step in steps] == ["start", "done"]
+    assert steps[1]["result"]["sha256"] == {name: file_sha256(folder / name) for name in (
+        "frame-000.dng", "frame-001.dng", "settings.json", "slm-frame.png")}
+    assert main(["runs", "--out", str(tmp_path / "runs")]) == 0
+    listed = capsys.readouterr().out.splitlines()
+    assert listed[0].startswith(f"{folder.name}  console capture on bench  finished  ")
+    assert listed[0].endswith("  2 RAW frame(s) from the console") and listed[-1].startswith("1 run(s) in ")
+    assert main(["runs", "remove", str(folder), "--out", str(folder.parent), "--yes"]) == 0
+    assert f"removed {folder}" in capsys.readouterr().out and not folder.exists()
+
+
 def test_uploads_are_capped_and_named_by_number(client: TestClient, console: Console) -> None:
     ok, png = cv2.imencode(".png", np.full((40, 60, 3), 200, np.uint8))
     answer = client.post("/api/upload?name=../../evil.png", content=png.tobytes()).json()
@@ -351,6 +445,11 @@ def test_uploads_are_capped_and_named_by_number(client: TestClient, console: Con
     huge = bytearray(png.tobytes())
     huge[16:24] = (100000).to_bytes(4, "big") + (100000).to_bytes(4, "big")  # the header claims 10 Gpx
     assert "above the console's limit" in client.post("/api/upload", content=bytes(huge)).json()["error"]
+    tiff = b"II*\x00" + struct.pack("<IH", 8, 2) + struct.pack("<HHII", 256, 4, 1, 30000) + struct.pack(
+        "<HHII", 257, 4, 1, 30000) + bytes(4)  # a TIFF header claiming 900 Mpx: refused before decoding
+    assert "30000 x 30000 pixels is above the console's limit" in client.post("/api/upload", content=tiff).json()[
+        "error"]
+    assert "header gives no image size" in client.post("/api/upload", content=tiff[:8]).json()["error"]
     console.uploads.max_bytes = 100
     assert "above the limit of 100" in client.post("/api/upload", content=png.tobytes()).json()["error"]
     console.uploads.max_bytes = 10**6
@@ -375,22 +474,51 @@ def test_procedures_dry_run_then_run_with_the_devices_handed_over(client: TestCl
     assert wait_for(lambda: console.laser.held.connected and console.camera.connected, 5)
 
 
+def test_the_console_runs_only_what_its_procedures_folder_holds(client: TestClient, tmp_path: Path) -> None:
+    """A TOML procedure names a Python file, and a dry run imports it: one outside the console's folder (an absolute
+    path, ../) is refused before that; a link that leads out of the folder is not even offered."""
+    outside = tmp_path / "elsewhere"
+    outside.mkdir()
+    marker = tmp_path / "imported"
+    (outside / "evil.py").write_text(f"open({str(marker)!r}, 'w').close()\n")
+    (outside / "evil.toml").write_text('procedure = "evil.py"\n')
+    folder = tmp_path / "procedures"
+    (folder / "absolute.toml").write_text(f'procedure = "{outside / "evil.py"}"\n')
+    (folder / "up.toml").write_text('procedure = "../elsewhere/evil.py"\n')
+    (folder / "linked.toml").symlink_to(outside / "evil.toml")
+    (folder / "inside.py").write_text("")  # a Python file the folder holds is offered (it fails its dry run)
+    assert client.get("/api/info").json()["procedures"] == ["absolute.toml", "inside.py", "sweep.toml", "up.toml"]
+    for name, named in (("absolute.toml", str(outside / "evil.py")), ("up.toml", "../elsewhere/evil.py")):
+        for path in ("/api/procedures/dry-run", "/api/procedures/start"):
+            refused = client.post(path, json={"name": name}).json()["error"]
+            assert refused == (f"{name}: procedure = {named!r} is outside the console's procedures folder {folder}: "
+                               "the console runs only what its folder holds"), refused
+    assert "no procedure 'linked.toml'" in client.post("/api/procedures/dry-run", json={"name": "linked.toml"}).json()[
+        "error"]
+    assert not marker.exists()
+
+
 @contextlib.contextmanager
-def console_process(profile_path: Path, tmp_path: Path, *options: str) -> Iterator[tuple[subprocess.Popen, str,
-                                                                                         dict[str, str]]]:
-    """`benchctl console` started as a user starts it, on a free port: the process, its base URL and the headers
-    (token) a script sends."""
+def console_process(profile_path: Path, tmp_path: Path, *options: str, descriptors: int | None = None,
+                    ) -> Iterator[tuple[subprocess.Popen, str, dict[str, str]]]:
+    """`benchctl console` started as a user starts it, on a free port (`descriptors`: its RLIMIT_NOFILE): the
+    process, its base URL and the headers (token, Origin) a script sends."""
+    import resource
+
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    limit = None if descriptors is None else (lambda: resource.setrlimit(resource.RLIMIT_NOFILE,
+                                                                         (descriptors, descriptors)))
     server = subprocess.Popen([sys.executable, "-m", "benchctl", "console", "-p", str(profile_path), "--port", "0",
                                "--out", str(tmp_path), *options], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                              text=True, env=env, cwd=tmp_path)
+                              text=True, env=env, cwd=tmp_path, preexec_fn=limit)
     try:
         assert server.stdout is not None
         lines = []
         while not (url := re.search(r"http://\S+", lines[-1] if lines else "")):
             lines.append(server.stdout.readline())
             assert lines[-1], "".join(lines)
-        headers = {"x-benchctl-token": url.group(0).split("token=")[1], "content-type": "application/json"}
+        headers = {"x-benchctl-token": url.group(0).split("token=")[1], "content-type": "application/json",
+                   "origin": url.group(0).split("/?")[0]}
         yield server, url.group(0).split("/?")[0], headers
     finally:
         if server.poll() is None:
@@ -420,9 +548,54 @@ def test_laser_off_from_another_shell_while_the_console_runs(bench_profile_path:
         assert "console stopped: emission off, devices closed" in server.stdout.read()
 
 
+class LaserOnSocket(threading.Thread):
+    """The simulated RGB laser unit behind a TCP socket (a profile reaches it as pyserial's socket://), which can go
+    deaf: from `deaf.set()` on it neither obeys nor answers, as a unit whose cable was pulled."""
+
+    def __init__(self) -> None:
+        super().__init__(daemon=True)
+        self.server = socket.create_server(("127.0.0.1", 0))
+        self.url = f"socket://127.0.0.1:{self.server.getsockname()[1]}"
+        self.deaf = threading.Event()
+
+    def run(self) -> None:
+        from benchctl.devices.sim.laser_emulators import make_emulator
+
+        with contextlib.suppress(OSError):
+            while True:
+                connection, _ = self.server.accept()
+                unit = make_emulator("rgb-laser", {})
+                with connection:
+                    while data := connection.recv(4096):
+                        if not self.deaf.is_set() and (reply := unit.receive(data)):
+                            connection.sendall(reply)
+
+
+@pytest.mark.slow
+def test_a_switch_off_that_fails_at_stop_is_said_and_fails(bench_profile_path: Path, tmp_path: Path) -> None:
+    """The laser stops answering while green is on; stopping the console must not claim "emission off": its last
+    line says the state is unknown, and its exit status is an error (round 4 printed success)."""
+    laser = LaserOnSocket()
+    laser.start()
+    profile = tmp_path / "socket-laser.toml"
+    profile.write_text(bench_profile_path.read_text().replace('"sim://rgb-laser"', f'"{laser.url}"'))
+    with console_process(profile, tmp_path, "--deadman", "60") as (server, base, headers):
+        assert post(base, "/api/laser/green/power", {"power": "1mW"}, headers) == 200
+        assert post(base, "/api/laser/green/emission", {"on": True}, headers) == 200
+        laser.deaf.set()
+        server.send_signal(signal.SIGTERM)
+        assert server.wait(timeout=60) != 0
+        lines = server.stdout.read().strip().splitlines()
+    laser.server.close()
+    assert laser_channel(2)["emission"] is True  # the unit never heard the off command: "possibly ON" was right
+    assert not any("stopped: emission off" in line or "Traceback" in line for line in lines), lines
+    assert lines[-1] == "benchctl: error: console stopped: emission state UNKNOWN, possibly ON: check the laser"
+    assert any(line.startswith("laser: ") and "UNKNOWN" in line for line in lines[:-1]), lines
+
+
 class Page(threading.Thread):
     """A script that behaves as the console's page: answers every state message and frame, and sends a heartbeat
-    every second besides."""
+    every second besides; `all_off()` is the page's ALL OFF button."""
 
     def __init__(self, base: str, headers: dict[str, str]) -> None:
         from websockets.sync.client import connect
@@ -432,6 +605,7 @@ class Page(threading.Thread):
         self.socket = self.stack.enter_context(connect(base.replace("http://", "ws://") + "/ws",
                                                        additional_headers=headers, max_size=None))
         self.closed = threading.Event()
+        self.answers: queue.Queue[dict] = queue.Queue()
 
     def run(self) -> None:
         beat = threading.Thread(target=self._beat, daemon=True)
@@ -440,6 +614,13 @@ class Page(threading.Thread):
             for message in self.socket:
                 self.socket.send(f"ack {unpack_frame(message)[0]['seq']}" if isinstance(message, bytes)
                                  else "heartbeat")
+                if isinstance(message, str) and '"all_off"' in message:
+                    self.answers.put(json.loads(message)["all_off"])
+
+    def all_off(self, timeout_s: float = 10.0) -> dict:
+        """ALL OFF over the page's socket, as the page's button sends it: the console's answer."""
+        self.socket.send("all-off")
+        return self.answers.get(timeout=timeout_s)
 
     def _beat(self) -> None:
         while not self.closed.wait(1.0):
@@ -470,3 +651,79 @@ def test_a_stopped_console_does_not_trip_on_a_live_page_and_a_closed_page_trips(
         closed = time.monotonic()
         assert wait_for(lambda: laser_channel(2)["emission"] is False, 10.0)
         assert time.monotonic() - closed < 2.0  # the 1 s timeout, a watchdog period and the laser's answers
+
+
+class Flood(threading.Thread):
+    """Connections to a console, as many as `count`, idle or trickling a request a byte every half second; what the
+    console closes is opened again, until `stop`."""
+
+    def __init__(self, port: int, count: int) -> None:
+        super().__init__(daemon=True)
+        self.port, self.count = port, count
+        self.opened = 0
+        self.stopped = threading.Event()
+
+    def _connect(self) -> socket.socket:
+        sock = socket.socket()
+        sock.setblocking(False)
+        sock.connect_ex(("127.0.0.1", self.port))
+        self.opened += 1
+        return sock
+
+    def run(self) -> None:
+        sockets = [self._connect() for _ in range(self.count)]
+        request = b"GET /api/state HTTP/1.1\r\nHost: 127.0.0.1\r\n"
+        sent = 0
+        while not self.stopped.wait(0.5):
+            for index in range(len(sockets)):
+                try:
+                    if index % 2:  # half of them trickle
+                        sockets[index].send(request[sent % len(request):][:1])
+                    elif sockets[index].recv(1) == b"":
+                        raise ConnectionResetError
+                except BlockingIOError:
+                    pass
+                except OSError:  # closed by the console: open another
+                    sockets[index].close()
+                    sockets[index] = self._connect()
+            sent += 1
+        for sock in sockets:
+            sock.close()
+
+
+@pytest.mark.slow
+def test_all_off_answers_within_a_second_during_a_connection_flood(bench_profile_path: Path, tmp_path: Path) -> None:
+    """Round 4 held ~21,000 idle or trickling connections open: the console ran out of descriptors and ALL OFF timed
+    out while the open page kept the light on. Here the console may open 512 descriptors and is flooded with as many
+    connections as this machine allows this test (up to 3000, re-opened as the console closes them): the page's
+    ALL OFF answers within a second, the console keeps descriptors free, and serves again once the flood ends."""
+    import resource
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    count = min(3000, hard - 100)
+    resource.setrlimit(resource.RLIMIT_NOFILE, (min(hard, max(soft, count + 100)), hard))
+    try:
+        with console_process(bench_profile_path, tmp_path, "--deadman", "60", descriptors=512) as (server, base,
+                                                                                                      headers):
+            page = Page(base, headers)
+            page.start()
+            assert post(base, "/api/laser/green/power", {"power": "1mW"}, headers) == 200
+            assert post(base, "/api/laser/green/emission", {"on": True}, headers) == 200
+            flood = Flood(int(base.rsplit(":", 1)[1]), count)
+            flood.start()
+            time.sleep(3.0)  # every connection tried, and the trickles under way
+            started = time.monotonic()
+            assert page.all_off() == {"ok": True}
+            answered = time.monotonic() - started
+            assert laser_channel(2)["emission"] is False
+            descriptors = len(os.listdir(f"/proc/{server.pid}/fd"))
+            assert flood.opened >= count and answered < 1.0, (flood.opened, answered)
+            assert descriptors < 400, descriptors  # 128 connections at most: the rest stay free
+            flood.stopped.set()
+            flood.join()
+            state = urllib.request.Request(f"{base}/api/state", headers=headers)
+            with urllib.request.urlopen(state, timeout=5) as response:
+                assert json.loads(response.read())["laser"]["connected"] is True
+            page.close()
+    finally:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))

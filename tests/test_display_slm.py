@@ -498,3 +498,67 @@ def test_a_lab_runs_the_colour_capture_after_editing_only_the_example_profile(tm
     for result in exposures:
         assert decode_raw(folder / result["folder"] / result["frames"][0]).layout == "mono"
     assert set(metrics["targets"][0]["colours"]) == {"red", "green", "blue"}
+
+
+def test_showing_is_the_windows_own_frame_black_at_first(tmp_path: Path, x_display: str) -> None:
+    with slm(tmp_path, x_display, edid_name="DELL E178WFP") as display_slm:
+        opened = display_slm.showing()  # the new window's black background, as the X server holds it
+        assert opened.frame is not None and not opened.frame.any() and opened.frame_id == 0
+        assert opened.by is not None and opened.by.endswith(f"(pid {os.getpid()})")
+        assert not read_back(x_display, display_slm)[:, :, :3].any()
+        gray = (np.arange(SLM_SCREEN[0] * SLM_SCREEN[1]) % 256).astype(np.uint8).reshape(SLM_SCREEN[1], -1)
+        display_slm.show_gray(gray)
+        shown = display_slm.showing()
+        assert np.array_equal(shown.frame, gray) and shown.frame_id == 1 and shown.at == display_slm.presented_at
+        assert np.array_equal(read_back(x_display, display_slm)[:, :, 2], shown.frame)
+
+
+def start_xvfb(number: int) -> subprocess.Popen:
+    """Xvfb :number with one 192 x 128 screen (its output is named "screen"), once its socket is there."""
+    server = subprocess.Popen(["Xvfb", f":{number}", "-screen", "0", f"{SLM_SCREEN[0]}x{SLM_SCREEN[1]}x24",
+                               "-nolisten", "tcp"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    for _ in range(100):
+        if Path(f"/tmp/.X11-unix/X{number}").exists():
+            break
+        time.sleep(0.05)
+    time.sleep(0.2)
+    return server
+
+
+def test_the_console_says_a_lost_x_server_in_one_line_and_connects_again(tmp_path: Path) -> None:
+    """The X server of a display SLM dies under the console: the page gets one line (never a 500 and a traceback),
+    the SLM panel says it is lost, and once an X server is back the SLM connects again without a restart."""
+    from starlette.testclient import TestClient
+
+    from benchctl.console.app import create_app
+    from console_bench import ORIGIN, TOKEN, access, make_console
+
+    number = next(n for n in range(200, 300) if not Path(f"/tmp/.X11-unix/X{n}").exists()
+                  and not Path(f"/tmp/.X{n}-lock").exists())
+    profile = tmp_path / "display.toml"
+    profile.write_text(profile_text(f":{number}", output="screen") + "\n[optics]\ndistance_mm = 20\nroi = [96, 160]\n")
+    server = start_xvfb(number)
+    console = make_console(load_profile(profile), tmp_path)
+    try:
+        with TestClient(create_app(console, access()), base_url=ORIGIN) as client:  # a 500 would raise here
+            client.headers.update({"x-benchctl-token": TOKEN, "origin": ORIGIN})
+            assert client.post("/api/slm", json={"kind": "flat"}).status_code == 200
+            server.kill()
+            server.wait()
+            lost = client.post("/api/slm", json={"kind": "flat", "phase_rad": 1.0})
+            assert lost.status_code == 400 and "\n" not in lost.json()["error"], lost.text
+            assert "SLM (display slm.output = 'screen')" in lost.json()["error"]
+            slm = client.get("/api/state").json()["slm"]
+            assert slm["connected"] is False and slm["error"].endswith("(connect again when it is back)")
+            again = client.post("/api/slm", json={"kind": "flat"}).json()["error"]
+            assert again.startswith("SLM not connected: ") and "connect again" in again
+            server = start_xvfb(number)
+            connected = client.post("/api/connect", json={"device": "slm"}).json()
+            assert connected["connected"] is True and connected["error"] is None
+            shown = client.post("/api/slm", json={"kind": "blank"})
+            assert shown.status_code == 200 and console.slm.held.device is not None
+            assert not read_back(f":{number}", console.slm.held.device)[:, :, :3].any()  # the new server shows it
+    finally:
+        console.close()
+        server.kill()
+        server.wait()

@@ -259,3 +259,35 @@ def test_info_reports_the_geometry_while_open(tmp_path: Path) -> None:
     assert info["framebuffer"]["line_length"] == 32 and info["framebuffer"]["red"] == (16, 8)
     slm.close()
     assert slm.info()["framebuffer"] is None
+
+
+def test_showing_reads_the_framebuffer_back_and_knows_its_own_frames(tmp_path: Path) -> None:
+    """What the panel shows, read from the framebuffer's memory: this connection's own frame exactly, with who
+    showed it; a frame another program wrote, as its red bits, by nobody known."""
+    import os
+
+    slm = fake_slm(tmp_path, XRGB)
+    before = slm.showing()
+    assert before.by is None and before.frame is not None and (before.frame == FILL).all()
+    gray = (np.arange(15).reshape(3, 5) * 17).astype(np.uint8)
+    slm.show_gray(gray)
+    own = slm.showing()
+    assert np.array_equal(own.frame, gray) and own.frame_id == 1 and own.by.endswith(f"(pid {os.getpid()})")
+    assert own.at == slm.presented_at and own.channel is None
+    memory = bytearray(shown_bytes(slm))
+    memory[4:8] = bytes([1, 2, 200, 0])  # another program writes pixel (0, 1): red 200
+    Path(slm.path).write_bytes(bytes(memory))
+    other = slm.showing()
+    assert other.by is None and other.frame_id is None and other.frame[0, 1] == 200
+    assert np.array_equal(np.delete(other.frame.ravel(), 1), np.delete(gray.ravel(), 1))
+    slm.close()
+
+
+def test_showing_a_ten_bit_frame_on_rgb565_is_exact_for_its_own_frames(tmp_path: Path) -> None:
+    geo = FramebufferGeometry(xres=4, yres=2, bits_per_pixel=16, line_length=8, smem_len=16, red=Bitfield(11, 5),
+                              green=Bitfield(5, 6), blue=Bitfield(0, 5))
+    slm = fake_slm(tmp_path, geo, bit_depth=10)
+    gray = np.array([[0, 1, 511, 1023], [7, 64, 700, 1000]], np.uint16)
+    slm.show_gray(gray)
+    assert np.array_equal(slm.showing().frame, gray)  # its own frame, though five bits of red cannot hold it
+    slm.close()

@@ -144,8 +144,11 @@ def test_a_claim_is_read_where_training_ended_and_where_validation_was_best() ->
     assert claim["claim"] == "x2 about equal to HoloNet" and claim["pairs"] == 2
     assert claim["here_db"] == pytest.approx((25 + 28) / 2 - (29 + 30) / 2)  # end: -3
     assert claim["best_val_db"] == pytest.approx((30 + 28) / 2 - (29 + 26) / 2)  # best validation: +1.5
-    assert claim["paired_sd_db"] == pytest.approx(2 ** 0.5)  # per-seed differences at the end: -4 and -2
+    assert claim["per_seed_db"] == "-4.00 -2.00"
+    # 95 % t-interval of (-4, -2): mean -3, t(0.975, 1 dof) = 12.706, sd sqrt(2), n 2
+    assert (claim["ci_low_db"], claim["ci_high_db"]) == pytest.approx((-3 - 12.7062, -3 + 12.7062), abs=1e-3)
     assert claim["paper_db"] == pytest.approx(PAPER["holonet-dcm2"][0] - PAPER["holonet"][0])
+    assert claim["verdict"] == "not resolved"  # the paper's +0.36 lies inside an interval far wider than +-1 dB
 
 
 def test_a_seed_that_stopped_early_leaves_the_curve_to_the_others() -> None:

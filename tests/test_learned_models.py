@@ -338,3 +338,19 @@ def test_low_definition_ablation_propagates_sub_images_at_pitch_times_r(monkeypa
         expected = model.encoder.merge(model.encoder.subnet(expected_fields))
     assert propagated[0] == ((1, 4, 16, 32), (16e-6, 16e-6))  # the r^2 sub-fields, each at low definition
     torch.testing.assert_close(phase, expected)
+
+
+def test_complex_convolutions_as_one_block_convolution_equal_the_four_real_ones() -> None:
+    """ComplexConv2d / ComplexConvTranspose2d run one real convolution with the block weight [[Wr, -Wi], [Wi, Wr]]:
+    the same complex product (float64) as the pair's four convolutions, with the pair's own parameters."""
+    from benchctl.cgh.learned.complex_layers import ComplexConv2d, ComplexConvTranspose2d, ComplexPair
+
+    torch.manual_seed(0)
+    x = torch.randn(2, 3, 16, 20, dtype=torch.complex128)
+    for layer in (ComplexConv2d(3, 5, 3, stride=2, padding=1), ComplexConvTranspose2d(3, 5, 4, stride=2, padding=1)):
+        layer = layer.double()
+        expected = ComplexPair.forward(layer, x)  # (Wr re - Wi im) + i (Wr im + Wi re), four real layers
+        assert layer(x).shape == expected.shape
+        assert torch.allclose(layer(x), expected, rtol=0, atol=1e-12)
+        assert sorted(name for name, _ in layer.named_parameters()) == ["imag.bias", "imag.weight", "real.bias",
+                                                                        "real.weight"]

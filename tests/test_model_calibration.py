@@ -185,12 +185,13 @@ def test_the_procedure_fits_stores_and_hands_the_model_to_generation(tmp_path: P
     assert fitted["waist_mm"] == pytest.approx(0.5, rel=0.02)
     assert fitted["offset_mm"] == pytest.approx([0.05, -0.08], abs=0.005)
     assert fitted["zero_order"] == pytest.approx(0, abs=0.005)  # the panel here has no pixel gaps
-    # three point patterns and a flat one (the beam itself), each displayed and captured
-    assert fitted["patterns"] == 3 and fitted["flat"] is True
+    # three point patterns, one held out (judged on, never fitted) and a flat one (the beam itself), each captured
+    assert fitted["patterns"] == 3 and fitted["flat"] is True and fitted["held_out"] == 1
+    assert fitted["held_out_residual"] < 0.5 * fitted["initial_residual"]
     flat = read_image(folder / "holograms" / "model-green-flat.png")
     assert flat.shape == (64, 96) and len(np.unique(flat)) == 1
     assert sorted(path.name for path in (folder / "raw" / "model" / "capture" / "green").iterdir()) == ["0", "1", "2",
-                                                                                                  "3"]
+                                                                                                  "3", "4"]
     assert fitted["residual"] < 0.5 * fitted["initial_residual"]
     assert fitted["zernike_waves"]["tilt_vertical"] == pytest.approx(0, abs=0.01)  # a true registration, no tilt
     assert fitted["zernike_waves"]["tilt_horizontal"] == pytest.approx(0, abs=0.01)
@@ -442,20 +443,22 @@ def test_two_colours_share_one_panel_crosstalk(tmp_path: Path, make_bench_profil
 def test_the_fit_can_take_each_pattern_at_several_focus_depths(tmp_path: Path,
                                                               make_bench_profile: Callable[..., Profile],
                                                               capsys: pytest.CaptureFixture[str]) -> None:
-    """focus_depths_mm: every pattern captured with the camera focused at each depth (through the focus calibration,
-    the focus moving once per depth), the model fitted to the focal stacks; the same recovery of the hidden optics."""
+    """focus_depths_mm: every pattern (the held-out one too) captured with the camera focused at each depth (through
+    the focus calibration, the focus moving once per depth), the model fitted to the focal stacks and judged on the
+    held-out pattern's; the same recovery of the hidden optics."""
     profile = truly_focused(truly_registered(make_bench_profile(
         SMALL_BENCH, ABERRATED, optics={"depth_range_mm": [17.0, 23.0]},
         focus={"driver": "zaber", "port": "sim://focus-stage?dialect=zaber", "settle_ms": 0},
         sim={"focus": {"mm_per_step": 0.001, "range_steps": 8000, "start_steps": 4000, "backlash_steps": 25.0}})))
     procedure = tmp_path / "model.toml"
-    procedure.write_text(PROCEDURE.replace("patterns = 3", "patterns = 2") % "0.4mW"
+    procedure.write_text(PROCEDURE.replace("patterns = 3", "patterns = 2") % "0.3mW"  # no held-out point clips
                          + "focus_depths_mm = [2.0, -2.0, 0.0]\n")
     assert main(["run", str(procedure), "--profile", str(profile.path), "--dry-run"]) == 0
     lines = [x for x in capsys.readouterr().out.splitlines() if "model/capture/green/" in x]
     assert [x.split(":")[0].split()[-1] for x in lines] == [f"model/capture/green/{k}/z{j}" for j in range(3)
-                                                             for k in range(3)]  # by depth: one move per depth
-    assert all(f"focused at {z:.2f} mm" in x for x, z in zip(lines, [18.0] * 3 + [20.0] * 3 + [22.0] * 3))
+                                                             for k in range(4)]  # by depth: one move per depth
+    assert all(f"focused at {z:.2f} mm" in x for x, z in zip(lines, [18.0] * 4 + [20.0] * 4 + [22.0] * 4))
+    assert "(held out) focused at 18.00 mm" in lines[2] and "(flat) focused at 18.00 mm" in lines[3]
     outcome = run_procedure(procedure, profile=str(profile.path), out=tmp_path / "runs", say=lambda line: None)
     assert outcome.folder is not None
     results = {e["step"]: e["result"] for e in map(json.loads, (outcome.folder / "steps.jsonl").read_text()
@@ -468,6 +471,9 @@ def test_the_fit_can_take_each_pattern_at_several_focus_depths(tmp_path: Path,
         assert fitted["zernike_waves"][name] == pytest.approx(value, abs=max(0.02, 0.1 * abs(value))), name
     assert fitted["waist_mm"] == pytest.approx(0.5, rel=0.03)
     assert fitted["residual"] < 0.5 * fitted["initial_residual"]
+    verdict = results["model/fit/green"]["calibration"]  # judged on the held-out pattern's stack of three planes
+    assert verdict["held_out"] == 1 and verdict["stored"]
+    assert fitted["held_out_residual"] < 0.5 * verdict["ideal_held_out_residual"]
     assert "18, 20, 22" in (outcome.folder / "report.html").read_text()
 
 

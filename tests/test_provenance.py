@@ -81,19 +81,18 @@ def test_run_records_and_generate_metrics_carry_the_code_identity(small_profile_
 
 def test_refined_learned_methods_key_the_cache_by_their_networks_checkpoint(
         small_profile_path: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    shipped = tmp_path / "ccnn-dcm4.pt"
-    shipped.write_bytes(b"weights")
-    monkeypatch.setattr(hologram_cache, "find_checkpoint", lambda name, profile: shipped if name == "ccnn-dcm4"
-                        else None)
-    seen: list[dict] = []
-
-    def key(profile, setup, channel, plane, options):  # record what the key is made of, then stop before computing
-        seen.append(options)
-        raise RuntimeError("stop")
-
-    monkeypatch.setattr(hologram_cache, "_key", key)
+    """"ccnn-dcm4+sgd" runs ccnn-dcm4's checkpoint, found by the one search rule (checkpoints/<profile>/ in the
+    working folder): its bytes key the cache, so a retrained network is never served an old hologram."""
+    monkeypatch.chdir(tmp_path)
+    bench = Calibrated(load_profile(small_profile_path))
+    shipped = tmp_path / "checkpoints" / bench.profile.name / "ccnn-dcm4.pt"
+    shipped.parent.mkdir(parents=True)
     target = prepare_target(load_target("chart:siemens", (48, 80)), (64, 96), (48, 80))
-    with pytest.raises(RuntimeError, match="stop"):
-        hologram_cache.hologram(Calibrated(load_profile(small_profile_path)), target, "green", "ccnn-dcm4+sgd",
-                                iterations=5, seed=0, checkpoint=None)
-    assert seen == [{"method": "ccnn-dcm4+sgd", "iterations": 5, "seed": 0, "checkpoint": str(shipped)}]
+    entries = []
+    for weights in (b"first weights", b"retrained weights"):
+        shipped.write_bytes(weights)
+        entries.append(hologram_cache.cache_entry(bench, target, "green", "ccnn-dcm4+sgd", iterations=5, seed=0,
+                                                  checkpoint=None))
+    (first, used), (second, _) = entries
+    assert Path(used).resolve() == shipped.resolve() and first != second
+    assert hologram_cache.cache_entry(bench, target, "green", "sgd", iterations=5, seed=0, checkpoint=None)[1] is None

@@ -68,3 +68,9 @@ def test_the_report_reads_well_at_both_widths(report: Path, browser: webdriver.C
         assert "{" not in text and "null" not in text
     assert "git commit" in versions and "Canon EOS M10 (benchctl simulation)" in devices
     assert len(browser.find_elements(By.CSS_SELECTOR, "svg")) == 2  # the run's own lookup tables
+    for plot in browser.find_elements(By.CSS_SELECTOR, "svg"):  # drawn whole, scaled to fit, never clipped
+        drawn, shown = browser.execute_script("""
+            const svg = arguments[0], box = svg.getBBox(), rect = svg.getBoundingClientRect();
+            const view = svg.viewBox.baseVal, scale = view && view.width ? rect.width / view.width : 1;
+            return [(box.x + box.width) * scale, rect.width];""", plot)
+        assert drawn <= shown + 0.5, f"a lookup-table plot is cut off at {width} px: {drawn:.0f} > {shown:.0f} px"

@@ -227,7 +227,8 @@ def test_a_run_folder_has_one_writer(captured: Path, capsys: pytest.CaptureFixtu
         assert line.startswith(f"benchctl: error: {captured}: this run is being written already, held by `benchctl "
                                f"run` (pid {holder.pid}) since "), line
         assert (captured / "steps.jsonl").read_bytes() == log
-        assert main(["runs", "remove", str(captured), "--yes", "--force"]) == 2  # nor removed under its writer
+        # nor removed under its writer
+        assert main(["runs", "remove", str(captured), "--yes", "--force", "--out", str(captured.parent)]) == 2
         assert "this run is being written already" in capsys.readouterr().err and captured.is_dir()
     finally:
         holder.communicate("\n", timeout=30)

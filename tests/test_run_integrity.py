@@ -68,7 +68,7 @@ def test_a_frame_that_saw_another_slm_frame_fails_the_step_and_resume_redoes_it(
     assert not any(s.get("emission") for s in load_state("rgb-laser")["channels"].values())
 
     monkeypatch.setattr(physics, "render_capture", render)
-    outcome = run_procedure(None, resume=folder, say=lambda _: None)
+    outcome = run_procedure(None, resume=folder, allow_code=True, say=lambda _: None)
     assert outcome.ran == ["expose"]
     done = _events(folder)[-1]
     assert done["event"] == "done" and done["result"]["slm_frame"] == 3
@@ -119,7 +119,7 @@ def test_resume_refuses_a_changed_python_procedure(tmp_path: Path, bench_profile
     copy.write_text(copy.read_text() + "\nraise SystemExit('procedure code ran')\n")
     with pytest.raises(BenchctlError, match=r"expose.py changed since run .* started \(or is missing\); a resumed run "
                                             r"runs only the procedure code it started with"):
-        run_procedure(None, resume=folder, say=lambda _: None)
+        run_procedure(None, resume=folder, allow_code=True, say=lambda _: None)
 
 
 def test_a_corrupt_captured_frame_is_captured_again_on_resume_once(tmp_path: Path, bench_profile_path: Path,
@@ -134,11 +134,11 @@ def test_a_corrupt_captured_frame_is_captured_again_on_resume_once(tmp_path: Pat
     frame.write_bytes(bytes(damaged))
 
     said: list[str] = []
-    outcome = run_procedure(None, resume=folder, say=said.append)
+    outcome = run_procedure(None, resume=folder, allow_code=True, say=said.append)
     assert outcome.ran == ["expose"]
     assert any("step 'expose': raw/expose/frame-001.dng changed since it was written" in line for line in said)
     assert (folder / "raw" / "expose.attempt-1" / "frame-001.dng").read_bytes() == bytes(damaged)  # kept aside
-    assert run_procedure(None, resume=folder, say=said.append).ran == []  # verified now: nothing to re-do
+    assert run_procedure(None, resume=folder, allow_code=True, say=said.append).ran == []  # verified: nothing to redo
 
 
 def test_a_full_disk_shows_the_first_error_and_the_resume_hint(tmp_path: Path, bench_profile_path: Path,
@@ -220,3 +220,118 @@ def test_a_dry_run_of_python_code_says_the_code_ran_and_help_says_procedures_are
     help_text = " ".join(capsys.readouterr().out.split())
     assert "A .py procedure is code: running, dry-running or resuming it executes it with your rights" in help_text
     assert "(a .py procedure's own code still runs)" in help_text
+
+
+EVIL = "from pathlib import Path\nPath(__file__).with_name('ran').write_text('code ran')\n"
+
+
+def test_a_toml_procedure_runs_only_python_files_in_its_own_folder_after_allow_code(
+        tmp_path: Path, bench_profile_path: Path, expose_procedure: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A TOML file is data: naming a .py elsewhere is refused even with --allow-code, and one beside it runs only with
+    --allow-code. Before, `procedure = "/abs/evil.py"` was imported by a dry run."""
+    from conftest import one_error_line
+
+    outside = tmp_path / "x"
+    outside.mkdir()
+    (outside / "evil.py").write_text(EVIL)
+    folder = tmp_path / "procedures"
+    folder.mkdir()
+    (folder / "linked.py").symlink_to(outside / "evil.py")
+    toml = folder / "p.toml"
+    for kind in (str(outside / "evil.py"), "../x/evil.py", "linked.py"):
+        toml.write_text(f'procedure = "{kind}"\n')
+        for flags in ([], ["--allow-code"]):
+            line = one_error_line(capsys, ["run", str(toml), "-p", str(bench_profile_path), "--dry-run", *flags])
+            assert line == (f"benchctl: error: {toml}: procedure: {kind!r} is outside the procedure file's folder "
+                            f"{folder}: a TOML procedure names a built-in or a Python file in its own folder"), kind
+    assert not (outside / "ran").exists()
+
+    (folder / "expose.py").write_text(expose_procedure.read_text() + EVIL)
+    toml.write_text('procedure = "expose.py"\n')
+    line = one_error_line(capsys, ["run", str(toml), "-p", str(bench_profile_path), "--dry-run"])
+    assert line == (f"benchctl: error: {toml}: procedure: 'expose.py' is Python code, which would run with your "
+                    "rights: add --allow-code if you trust it")
+    assert not (folder / "ran").exists()
+    assert main(["run", str(toml), "-p", str(bench_profile_path), "--dry-run", "--allow-code"]) == 0
+    assert (folder / "ran").read_text() == "code ran"
+
+
+def test_resuming_a_python_procedure_needs_allow_code(tmp_path: Path, bench_profile_path: Path, expose_procedure: Path,
+                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """A run folder may come from anywhere: its Python code runs on resume only with --allow-code."""
+    from conftest import one_error_line
+
+    assert main(["sim", "fault", "sim-camera", "unplug_at=2"]) == 0
+    with pytest.raises(DeviceError):
+        run_procedure(expose_procedure, profile=str(bench_profile_path), out=tmp_path / "runs", say=lambda _: None)
+    (folder,) = (tmp_path / "runs").iterdir()
+    line = one_error_line(capsys, ["run", "--resume", str(folder)])
+    assert line == (f"benchctl: error: {folder}: this run's procedure is Python code (expose.py), which a resume runs "
+                    "with your rights: add --allow-code if you trust it")
+    assert main(["sim", "fault", "sim-camera", "--clear"]) == 0
+    assert main(["run", "--resume", str(folder), "--allow-code"]) == 0
+
+
+CRAFTED = [  # (file, change, the one line it gives)
+    ("run.json", lambda d: [1], "run.json: (top level): expected a JSON object {...}, got list"),
+    ("run.json", lambda d: {k: v for k, v in d.items() if k != "procedure_file"},
+     "run.json: procedure_file: missing required key"),
+    ("run.json", lambda d: {**d, "procedure_file": "../../x.py"},
+     "run.json: procedure_file: '../../x.py' is not a file name of the run folder"),
+    ("run.json", lambda d: {**d, "calibration_sha256": 5},
+     "run.json: calibration_sha256: expected a table of strings, got 5 (int)"),
+    ("run.json", lambda d: {**d, "profile_path": 5}, "run.json: profile_path: expected a string, got 5 (int)"),
+    ("steps.jsonl", lambda e: [1], "steps.jsonl, line 2: (top level): expected a JSON object {...}, got list"),
+    ("steps.jsonl", lambda e: {"event": "done"}, "steps.jsonl, line 2: step: missing: a step's event names its step"),
+    ("steps.jsonl", lambda e: {**e, "step": [1]}, "steps.jsonl, line 2: step: expected a string, got [1] (list)"),
+    ("steps.jsonl", lambda e: {**e, "result": 5}, "steps.jsonl, line 2: result: expected a [result] table, got 5"),
+    ("steps.jsonl", lambda e: {**e, "result": {"checksums": {"../../etc/passwd": "0"}}},
+     "steps.jsonl, line 2: result.checksums: '../../etc/passwd' is not a file inside the run folder"),
+    ("steps.jsonl", lambda e: {**e, "attempt": "a"}, "steps.jsonl, line 2: attempt: expected an integer, got 'a'"),
+]
+
+
+def test_a_crafted_run_record_is_one_line_on_resume(tmp_path: Path, bench_profile_path: Path,
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    """Each case was a traceback (AttributeError, KeyError, TypeError, ValueError) or read a file outside the run
+    folder."""
+    import shutil
+
+    from conftest import one_error_line
+
+    toml = tmp_path / "p.toml"
+    toml.write_text('procedure = "power-sweep"\n[parameters]\ncolours = ["green"]\nlevels = ["10%", "20%"]\n')
+    finished = _finished_run(tmp_path, toml, bench_profile_path)
+    for number, (name, change, message) in enumerate(CRAFTED):
+        folder = shutil.copytree(finished, tmp_path / f"crafted-{number}")
+        path = folder / name
+        if name == "run.json":
+            path.write_text(json.dumps(change(json.loads(path.read_text()))))
+        else:
+            events = [json.loads(line) for line in path.read_text().splitlines()]
+            events[1] = change(events[1])
+            path.write_text("".join(json.dumps(e) + "\n" for e in events))
+        line = one_error_line(capsys, ["run", "--resume", str(folder)])
+        assert line.startswith(f"benchctl: error: {folder}/{message}"), (line, message)
+    # a well-formed log whose exposure result lacks what the report reads (the report's own lines removed)
+    folder = shutil.copytree(finished, tmp_path / "crafted-result")
+    events = [json.loads(line) for line in (folder / "steps.jsonl").read_text().splitlines()]
+    events = [{**e, "result": {"frames": 5}} if e["event"] == "done" and e["step"] == "sweep/green/0" else e
+              for e in events if e.get("step") != "report"]
+    (folder / "steps.jsonl").write_text("".join(json.dumps(e) + "\n" for e in events))
+    assert one_error_line(capsys, ["run", "--resume", str(folder)]) == (
+        f"benchctl: error: {folder}/steps.jsonl: step 'sweep/green/0': no 'folder' in its recorded result: the step "
+        "log is damaged (start the run anew)")
+
+
+def test_frames_left_in_a_steps_folder_are_set_aside_even_when_the_log_lost_its_start(
+        tmp_path: Path, bench_profile_path: Path, expose_procedure: Path) -> None:
+    """A log that lost a finished step's events (cut by hand, or restored from an old copy) left its RAW frames in
+    place: the resume stopped with "frame-000.dng exists"; now they are set aside, kept, and captured again."""
+    folder = _finished_run(tmp_path, expose_procedure, bench_profile_path)
+    log = folder / "steps.jsonl"
+    log.write_text("")
+    before = (folder / "raw" / "expose" / "frame-000.dng").read_bytes()
+    assert run_procedure(None, resume=folder, allow_code=True, say=lambda _: None).ran == ["expose"]
+    assert (folder / "raw" / "expose.attempt-1" / "frame-000.dng").read_bytes() == before
+    assert (folder / "raw" / "expose" / "frame-000.dng").is_file()

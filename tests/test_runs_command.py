@@ -105,5 +105,44 @@ def test_runs_refuses_what_is_no_run(tmp_path: Path, capsys: pytest.CaptureFixtu
     line = one_error_line(capsys, ["runs", "compare", str(run)])
     assert line.startswith(f"benchctl: error: {run / 'metrics.json'}: cannot read metrics: ")
     (run / "run.json").write_text(json.dumps([1]))
-    assert one_error_line(capsys, ["runs", "--out", str(tmp_path / "runs")]) == (
-        f"benchctl: error: {run / 'run.json'}: not a run record (a JSON object)")
+    assert main(["runs", "--out", str(tmp_path / "runs")]) == 0  # listed as damaged; the others stay listed
+    listed = capsys.readouterr().out.splitlines()[0]
+    assert listed.startswith(f"{run.name}  ? on ?  damaged record ({run / 'run.json'}: (top level): expected a JSON "
+                             "object {...}, got list)")
+    line = one_error_line(capsys, ["runs", "remove", str(run), "--yes", "--out", str(tmp_path / "runs")])
+    assert line.startswith(f"benchctl: error: {run}: damaged record (") and line.endswith("add --force to remove it "
+                                                                                          "anyway")
+    assert main(["runs", "remove", str(run), "--yes", "--force", "--out", str(tmp_path / "runs")]) == 0
+    assert not run.exists()
+
+
+def test_runs_remove_removes_only_run_folders_below_the_runs_root(
+        tmp_path: Path, three_runs: tuple[Path, Path, Path], capsys: pytest.CaptureFixture[str],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """`runs remove . --yes` in a folder holding a run.json emptied it and then crashed; now only a folder directly
+    below the runs root, named as runs are and holding a run.json, is removed."""
+    first, _, _ = three_runs
+    runs = tmp_path / "runs"
+    work = tmp_path / "work"
+    work.mkdir()
+    (work / "run.json").write_text("{}")
+    (work / "thesis.tex").write_text("kept")
+    elsewhere = tmp_path / "elsewhere" / first.name  # named like a run, not below the root
+    elsewhere.mkdir(parents=True)
+    (elsewhere / "run.json").write_text("{}")
+    (runs / "link").symlink_to(first, target_is_directory=True)
+    (runs / "20260101-000000-empty").mkdir()  # named like a run, no run.json
+    monkeypatch.chdir(work)
+    for name in (".", str(runs / "link"), str(elsewhere), str(runs / ".."), str(runs)):
+        line = one_error_line(capsys, ["runs", "remove", name, "--yes", "--force", "--out", str(runs)])
+        assert line == (f"benchctl: error: {name}: not a run folder below {runs} (one is named "
+                        f"{runs}/<YYYYmmdd-HHMMSS>-<name>; --out names the runs root): nothing removed"), name
+    line = one_error_line(capsys, ["runs", "remove", "20260101-000000-empty", "--yes", "--out", str(runs)])
+    assert line == (f"benchctl: error: {runs / '20260101-000000-empty'}: not a benchctl run folder (no run.json): "
+                    "nothing removed")
+    monkeypatch.chdir(first)
+    for name in (".", str(first)):
+        line = one_error_line(capsys, ["runs", "remove", name, "--yes", "--out", str(runs)])
+        assert line == (f"benchctl: error: {name}: holds the current folder; change to another one first: nothing "
+                        "removed")
+    assert (work / "thesis.tex").read_text() == "kept" and (elsewhere / "run.json").is_file() and first.is_dir()

@@ -224,7 +224,7 @@ def test_open_slm_builds_the_profiles_driver(small_profile_path: Path) -> None:
     profile = load_profile(small_profile_path)
     with open_slm(profile) as slm:
         assert isinstance(slm, SimSLM) and slm.is_open
-        assert slm.shape == slm.resolution == (64, 96)
+        assert slm.shape == (64, 96)
         assert slm.pitch_m == pytest.approx(8e-6)
         assert (slm.bit_depth, slm.settle_s) == (8, 0.1)
         assert slm.channels == ("red", "green", "blue")

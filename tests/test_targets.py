@@ -91,7 +91,7 @@ def test_missing_or_unreadable_file(tmp_path: Path) -> None:
     with pytest.raises(BenchctlError, match="missing.png: cannot read image"):
         load_target(str(tmp_path / "missing.png"), SIZE)
     (tmp_path / "bad.jpg").write_text("text")
-    with pytest.raises(BenchctlError, match="bad.jpg: not an image"):
+    with pytest.raises(BenchctlError, match="bad.jpg: not a PNG, JPEG, BMP, TIFF or WebP image"):
         load_target(str(tmp_path / "bad.jpg"), SIZE)
 
 

@@ -45,6 +45,7 @@ from benchctl.holograms.scene import compute_scene, resolve_method, usable_metho
 from benchctl.optics.geometry import Geometry
 from benchctl.profiles import Profile
 from benchctl.targets import load_target, prepare_target, target_plane
+from benchctl.training.training import ReconstructionLoss, peak_normalised, training_step
 
 DEFAULT_TARGETS = ("chart:siemens", "chart:bars", "chart:text")
 BASELINES = {"holonet": "holonet", "ccnn": "ccnn"}
@@ -103,13 +104,13 @@ def _reset_peak() -> bool:
         return False
 
 
-def training_step_memory(method: str, geometry: dict[str, Any], device: str) -> dict[str, Any]:
+def training_step_memory(method: str, geometry: dict[str, Any], device: str,
+                         memory_cap: int | None = None) -> dict[str, Any]:
     """In this process: set up `method` for `geometry`, run one training step, return its peak memory.
 
-    Meant to run in a fresh subprocess (see `measure_training_step`), one per model.
+    Meant to run in a fresh subprocess (see `measure_training_step`), one per model. `memory_cap` (bytes) caps the
+    address space once the set-up is done, so libraries that load lazily while it runs are not refused.
     """
-    from benchctl.training.training import ReconstructionLoss, peak_normalised, training_step
-
     dev = torch.device(device)
     setup = OpticalSetup.of(Geometry.from_dict(geometry))
     torch.manual_seed(0)
@@ -122,15 +123,23 @@ def training_step_memory(method: str, geometry: dict[str, Any], device: str) -> 
     for propagator in (setup.slm_propagator(), setup.target_propagator()):
         propagator.kernel(torch.complex64, dev)
     loss_fn = ReconstructionLoss().to(dev)
+    if memory_cap:
+        _limit_memory(memory_cap)
     if dev.type == "cuda":
         torch.cuda.synchronize(dev)
         before = torch.cuda.memory_allocated(dev)
         torch.cuda.reset_peak_memory_stats(dev)
         start, start_cpu = time.perf_counter(), time.process_time()
-        training_step(model, optimiser, setup, amplitude, loss_fn)
+        try:
+            training_step(model, optimiser, setup, amplitude, loss_fn)
+        except torch.cuda.OutOfMemoryError:
+            return {"out_of_memory": True, "total_bytes": torch.cuda.get_device_properties(dev).total_memory}
         torch.cuda.synchronize(dev)
         seconds, cpu_seconds = time.perf_counter() - start, time.process_time() - start_cpu
         peak = torch.cuda.max_memory_allocated(dev) - before
+        extra = {"reserved_bytes": torch.cuda.max_memory_reserved(dev),
+                 "allocated_total_bytes": torch.cuda.max_memory_allocated(dev),
+                 "total_bytes": torch.cuda.get_device_properties(dev).total_memory}
         how = "torch.cuda.max_memory_allocated during the step minus memory allocated before it"
     else:
         if not _reset_peak():
@@ -140,16 +149,17 @@ def training_step_memory(method: str, geometry: dict[str, Any], device: str) -> 
         training_step(model, optimiser, setup, amplitude, loss_fn)
         seconds, cpu_seconds = time.perf_counter() - start, time.process_time() - start_cpu
         peak = _proc_status()["VmHWM"] - before
+        extra = {}
         how = "peak resident set (VmHWM, reset before the step) minus resident set before the step"
     return {"peak_bytes": int(peak), "baseline_bytes": int(before), "step_seconds": seconds,
-            "step_cpu_seconds": cpu_seconds, "measure": how}
+            "step_cpu_seconds": cpu_seconds, "measure": how} | extra
 
 
 OUT_OF_MEMORY = "out of memory"
 
 
 def measure_training_step(method: str, setup: OpticalSetup, device: torch.device,
-                          memory_cap: int | None = None) -> dict[str, Any]:
+                          memory_cap: int | None = None, env: dict[str, str] | None = None) -> dict[str, Any]:
     """`training_step_memory` for `method` in a fresh Python subprocess; its JSON result.
 
     `memory_cap` (bytes) limits the subprocess's address space (CPU; the kernel's out-of-memory killer is told to
@@ -158,7 +168,7 @@ def measure_training_step(method: str, setup: OpticalSetup, device: torch.device
     request = json.dumps({"method": method, "geometry": setup.geometry.to_dict(), "device": str(device),
                           "memory_cap": memory_cap})
     proc = subprocess.run([sys.executable, "-m", "benchctl.benchmarks.learned", request], capture_output=True,
-                          text=True, env=os.environ.copy(), check=False)
+                          text=True, env=env or os.environ.copy(), check=False)
     if memory_cap and proc.returncode in (-9, 137):  # killed by the kernel's out-of-memory killer
         return {"out_of_memory": True, "cap_bytes": memory_cap}
     if proc.returncode != 0:
@@ -368,18 +378,21 @@ def _limit_memory(cap: int) -> None:
         pass
 
 
+# how torch's CPU allocators and oneDNN (which cannot map its workspace) word a refused allocation
+_ALLOCATION_FAILED = ("memory", "allocate", "could not create a primitive")
+
+
 def _child(argv: Sequence[str]) -> int:
     request = json.loads(argv[0])
-    if request.get("memory_cap"):
-        _limit_memory(int(request["memory_cap"]))
     try:
-        result = training_step_memory(request["method"], request["geometry"], request["device"])
+        result = training_step_memory(request["method"], request["geometry"], request["device"],
+                                      request.get("memory_cap"))
     except MemoryError:
         result = {"out_of_memory": True}
-    except RuntimeError as exc:  # torch's allocators say so in their message
-        if "memory" not in str(exc).lower() and "allocate" not in str(exc).lower():
+    except RuntimeError as exc:
+        if not any(words in str(exc).lower() for words in _ALLOCATION_FAILED):
             raise
-        result = {"out_of_memory": True}
+        result = {"out_of_memory": True, "detail": str(exc).splitlines()[0]}
     print(json.dumps(result))
     return 0
 

@@ -21,8 +21,8 @@ from typing import TYPE_CHECKING, Annotated, Any
 from msgspec import Meta
 
 from benchctl.errors import BenchctlError
-from benchctl.files import file_sha256
-from benchctl.profiles import NonNegative, NonNegativeInt, ZernikeTerm
+from benchctl.files import file_sha256, read_capped
+from benchctl.profiles import NonNegative, NonNegativeInt, ZernikeTerm, waist_problem
 from benchctl.schema import Model, decode, fail
 
 if TYPE_CHECKING:
@@ -61,7 +61,9 @@ class FittedColour(Entry, kw_only=True):
     # written by model calibration, shown in reports
     residual: NonNegative | None = None
     initial_residual: NonNegative | None = None
+    held_out_residual: NonNegative | None = None  # on captures the fit did not see
     patterns: NonNegativeInt | None = None
+    held_out: NonNegativeInt | None = None
     flat: bool = False
     camera_blur_px: NonNegative = 0.0
     crosstalk_fitted_px: NonNegative | None = None
@@ -133,11 +135,9 @@ def checked_json(path: Path, model: Any) -> dict[str, Any] | None:
     above; None if there is no file). A BenchctlError names the file, the key and what is wrong."""
     path = Path(path)
     try:
-        data = json.loads(path.read_bytes())
+        data = json.loads(read_capped(path, "calibration"))
     except FileNotFoundError:
         return None
-    except OSError as exc:
-        raise BenchctlError(f"{path}: cannot read calibration: {exc.strerror or exc}") from None
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise BenchctlError(f"{path}: not a JSON calibration file: {exc}") from None
     if not isinstance(data, dict):
@@ -166,8 +166,12 @@ def fitted_model_entry(profile: Profile, channel: str) -> dict[str, Any] | None:
 
 
 def _check_beam(path: Path, channel: str, entry: dict[str, Any], slm: SLMConfig) -> None:
-    """A Gaussian beam must light the panel: its centre within MAX_BEAM_MISS_WAISTS waists of it."""
+    """A Gaussian beam must light the panel: at least MIN_WAIST_PX pixels wide, its centre within
+    MAX_BEAM_MISS_WAISTS waists of it."""
     waist = float(entry.get("waist_mm", 0.0))
+    problem = waist_problem(waist, slm)
+    if problem:
+        raise fail(path, f"colours.{channel}.waist_mm", problem)
     if not waist:
         return
     half = (slm.height * slm.pitch_um * 5e-4, slm.width * slm.pitch_um * 5e-4)  # mm

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from benchctl.capture.exposure import PEAK_PERCENTILE
 from benchctl.capture.raw import RawImage
 from benchctl.capture.registration import cfa_planes, plane_homography, warp_to_roi
 from benchctl.errors import BenchctlError
@@ -30,8 +31,6 @@ COLOUR_NAMES = ("red", "green", "blue")
 LOW_SIGNAL = 0.05
 """A plane whose 99.9th-percentile signal on the ROI is below this fraction of full scale is under-exposed:
 its amplitude carries visible shot and read noise (warned about, not refused)."""
-PEAK_PERCENTILE = 99.9
-"""Percentile taken as a plane's peak, so a single hot pixel does not count as signal."""
 
 
 def registered_plane(raw: RawImage, colour: int, homography: np.ndarray, shape: tuple[int, int],

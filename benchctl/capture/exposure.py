@@ -9,6 +9,10 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
+PEAK_PERCENTILE = 99.9
+"""Percentile taken as a plane's peak, so a single hot pixel does not count as signal: "peak" means the brightest
+0.1 % everywhere benchctl says it (reports, automatic exposure, `camera show`, which names the brightest pixel
+apart)."""
 SATURATED_BACKOFF = 0.25
 """Power factor after a saturated probe: its peak reads full scale whatever the true value, so the ratio
 goal / peak would overestimate the power; a quarter moves at least two stops down."""

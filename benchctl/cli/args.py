@@ -73,7 +73,26 @@ def seconds(text: str) -> float:
     return value
 
 
+def device_name(text: str) -> str:
+    """The argument type of --device: auto, cpu, cuda or cuda:N (whether it is here is checked where it is used)."""
+    from benchctl.errors import BadValueError
+    from benchctl.training.device import check_device_text
+
+    try:
+        return check_device_text(text)
+    except BadValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc).split(": ", 1)[1]) from None
+
+
+def add_device(parser: argparse.ArgumentParser) -> None:
+    """The --device option of the commands that train."""
+    parser.add_argument("--device", type=device_name, default="cpu", metavar="DEVICE",
+                        help="auto (the first GPU where there is one, else the CPU), cpu, cuda or cuda:N "
+                             "(default: cpu)")
+
+
 count = whole_number(0)
+seed_number = whole_number(0, 2**32 - 1)  # numpy's generators take seeds in this range
 positive_int = whole_number(1)
 port = whole_number(0, 65535)
 

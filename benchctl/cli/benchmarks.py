@@ -4,9 +4,21 @@ paper's tables)."""
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
-from benchctl.cli.args import add_profile, grid_size, int_list, name_list, positive_int, seconds, whole_number
+from benchctl.cli.args import (
+    add_device,
+    add_profile,
+    count,
+    grid_size,
+    int_list,
+    name_list,
+    positive_int,
+    seconds,
+    seed_number,
+    whole_number,
+)
 
 
 def _cmd_bench_speed(args: argparse.Namespace) -> int:
@@ -105,19 +117,82 @@ def _cmd_bench_reproduce(args: argparse.Namespace) -> int:
     if args.resume:
         if args.out:
             raise BadValueError("--resume continues the run in its own folder; leave out --out")
-        run_reproduction(args.resume, jobs=args.jobs, memory=not args.no_memory)
+        run_reproduction(args.resume, jobs=args.jobs, jobs_per_gpu=args.jobs_per_gpu, memory=not args.no_memory,
+                         wait=args.wait)
         return 0
     if not args.out:
         raise BadValueError("give --out DIR for a new run (or --resume DIR / --report DIR for an existing one)")
-    methods = args.methods or list(DEFAULT_METHODS)
+    methods = list(DEFAULT_METHODS) if args.methods is None else args.methods  # --methods "" is refused, not all
     settings = dict(size=args.size, methods=methods, seeds=args.seeds, ablation_seeds=args.ablation_seeds,
                     colour=args.colour, data=args.data, lr=args.lr, max_steps=args.max_steps, min_steps=args.min_steps,
                     min_gain_db=args.min_gain, patience=args.patience, iris_test=not args.no_iris_test,
-                    threads=args.threads)
-    command = reproduce_command(args.profile, args.out, jobs=args.jobs, **settings)
+                    threads=args.threads, warmup=args.warmup, decay=args.decay, held_out=args.held_out,
+                    device=args.device,
+                    slurm={"partition": args.slurm, "time_min": args.slurm_time} if args.slurm else None)
+    command = reproduce_command(args.profile, args.out, jobs=args.jobs, jobs_per_gpu=args.jobs_per_gpu, **settings)
     new_plan(args.out, load_profile(args.profile), command=command, **settings)
-    run_reproduction(args.out, jobs=args.jobs, memory=not args.no_memory)
+    run_reproduction(args.out, jobs=args.jobs, jobs_per_gpu=args.jobs_per_gpu, memory=not args.no_memory,
+                     wait=args.wait)
     return 0
+
+
+def _cmd_bench_sweep(args: argparse.Namespace) -> int:
+    from benchctl.benchmarks.sweep import new_sweep, run_sweep
+    from benchctl.errors import BadValueError
+    from benchctl.profiles import load_profile
+
+    if args.resume:
+        if args.out:
+            raise BadValueError("--resume continues the sweep in its own folder; leave out --out")
+        settings = json.loads((args.resume / "sweep-settings.json").read_text()) \
+            if (args.resume / "sweep-settings.json").is_file() else {}
+        run_sweep(args.resume, load_profile(settings.get("profile") or args.profile))
+        return 0
+    if not args.out:
+        raise BadValueError("give --out DIR for a new sweep (or --resume DIR to continue one)")
+    if not args.method:
+        raise BadValueError("give --method, the learned method to tune (`benchctl models` lists them)")
+    profile = load_profile(args.profile)
+    recipe = {"size": args.size, "data": args.data, "held_out": args.held_out, "colour": args.colour,
+              "max_steps": args.max_steps, "min_steps": min(args.min_steps, args.max_steps),
+              "min_gain_db": args.min_gain, "patience": args.patience, "threads": args.threads, "device": args.device,
+              "iris_test": False}
+    new_sweep(args.out, profile, method=args.method, trials=args.trials, lr=args.lr_range, warmup=args.warmup_choices,
+              decay=args.decay_choices, seed=args.seed, recipe=recipe)
+    run_sweep(args.out, profile)
+    return 0
+
+
+def add_recipe(parser: argparse.ArgumentParser, *, max_steps: int, min_steps: int) -> None:
+    """The options of a reproduction job's recipe that `bench reproduce` and `bench sweep` share."""
+    parser.add_argument("--size", type=grid_size, default=(136, 240), metavar="HxW",
+                        help="SLM grid; ROI and distance scaled to keep the Fresnel number (default: 136x240)")
+    parser.add_argument("--colour", "--color", default="red", help="laser channel (default: red, as Table 4)")
+    parser.add_argument("--data", default="procedural:32+photos:train",
+                        help="training images, as for train --data (default: procedural:32+photos:train)")
+    parser.add_argument("--held-out", default="photos:eval", metavar="DATA",
+                        help="images the tables score (never trained on), as for --data (default: photos:eval, the "
+                             "four held-out photographs)")
+    parser.add_argument("--max-steps", type=positive_int, default=max_steps, metavar="N",
+                        help=f"step cap per job, where a decay ends (default: {max_steps})")
+    parser.add_argument("--min-steps", type=positive_int, default=min_steps, metavar="N",
+                        help=f"no convergence test before this step (default: {min_steps})")
+    parser.add_argument("--min-gain", type=float, default=0.2, metavar="DB",
+                        help="stop once the validation score gains less than this per doubling of steps (default: "
+                             "0.2)")
+    parser.add_argument("--patience", type=positive_int, default=2, metavar="N",
+                        help="stop once N power-of-two steps in a row each gained less than --min-gain (default: 2: "
+                             "one dip of a noisy curve does not end a job)")
+    parser.add_argument("--threads", type=positive_int, default=1, help="torch threads per job (default: 1)")
+
+
+def lr_range(text: str) -> tuple[float, float]:
+    """LOW:HIGH learning rates, e.g. 1e-4:2e-3."""
+    try:
+        low, high = (float(v) for v in text.split(":"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected LOW:HIGH such as 1e-4:2e-3, got {text!r}") from None
+    return low, high
 
 
 def _cmd_bench_console(args: argparse.Namespace) -> int:
@@ -245,35 +320,62 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     reproduce.add_argument("--resume", type=Path, metavar="DIR", help="continue the run in DIR (its own settings)")
     reproduce.add_argument("--report", type=Path, metavar="DIR",
                            help="write the report from the finished jobs in DIR and exit (trains nothing)")
-    reproduce.add_argument("--size", type=grid_size, default=(136, 240), metavar="HxW",
-                           help="SLM grid; ROI and distance scaled to keep the Fresnel number (default: 136x240)")
     reproduce.add_argument("--methods", type=name_list, metavar="LIST",
                            help="comma-separated learned methods (default: those of Tables 1, 2, 4)")
     reproduce.add_argument("--seeds", type=int_list, default=(42, 43, 44), metavar="LIST",
                            help="seeds of holonet, its x2 / x4 / pyramid, ccnn and ccnn-dcm4 (default: 42,43,44)")
     reproduce.add_argument("--ablation-seeds", type=int_list, metavar="LIST",
                            help="seeds of the ablations (default: the first of --seeds)")
-    reproduce.add_argument("--colour", "--color", default="red", help="laser channel (default: red, as Table 4)")
-    reproduce.add_argument("--data", default="procedural:32+photos:train",
-                           help="training images, as for train --data (default: procedural:32+photos:train)")
     reproduce.add_argument("--lr", type=float, default=5e-4, help="Adam learning rate (default: 5e-4, the paper's)")
-    reproduce.add_argument("--max-steps", type=positive_int, default=8192, metavar="N",
-                           help="step cap per job (default: 8192)")
-    reproduce.add_argument("--min-steps", type=positive_int, default=1024, metavar="N",
-                           help="no convergence test before this step (default: 1024)")
-    reproduce.add_argument("--min-gain", type=float, default=0.2, metavar="DB",
-                           help="stop once the validation score gains less than this per doubling of steps "
-                                "(default: 0.2)")
-    reproduce.add_argument("--patience", type=positive_int, default=2, metavar="N",
-                           help="stop once N power-of-two steps in a row each gained less than --min-gain "
-                                "(default: 2: one dip of a noisy curve does not end a job)")
+    reproduce.add_argument("--warmup", type=count, default=0, metavar="STEPS",
+                           help="linear learning-rate warm-up over the first STEPS steps (default: 0, the paper's)")
+    reproduce.add_argument("--decay", choices=("none", "cosine"), default="none",
+                           help="learning-rate decay after the warm-up: none, or cosine to zero at --max-steps "
+                                "(default: none, the paper's)")
     reproduce.add_argument("--no-iris-test", action="store_true",
                            help="skip training holonet-dcm2 and holonet-lowdef2 again on the bench without its iris")
+    add_recipe(reproduce, max_steps=8192, min_steps=1024)
     reproduce.add_argument("--jobs", type=positive_int, default=2, help="jobs trained at a time (default: 2)")
-    reproduce.add_argument("--threads", type=positive_int, default=1, help="torch threads per job (default: 1)")
+    add_device(reproduce)
+    reproduce.add_argument("--jobs-per-gpu", type=positive_int, default=1, metavar="K",
+                           help="on GPUs: K jobs at a time per GPU, each pinned to one GPU by CUDA_VISIBLE_DEVICES "
+                                "(--jobs is the CPU's count) (default: 1)")
     reproduce.add_argument("--no-memory", action="store_true", help="skip the training-step memory subprocesses")
+    reproduce.add_argument("--slurm", metavar="PARTITION",
+                           help="run the plan's jobs as one SLURM job array in PARTITION (through submitit; the run "
+                                "folder must be on a file system the nodes share); --resume DIR then collects what "
+                                "finished and submits again what left the queue unfinished")
+    reproduce.add_argument("--slurm-time", type=positive_int, default=1440, metavar="MIN",
+                           help="SLURM time limit per job in minutes: a job that reaches it is requeued and "
+                                "continues from its saved state (default: 1440)")
+    reproduce.add_argument("--wait", action="store_true",
+                           help="with --slurm (or --resume of a SLURM run): wait until every job has finished")
     add_profile(reproduce)
     reproduce.set_defaults(func=_cmd_bench_reproduce)
+
+    sweep = bench.add_parser(
+        "sweep", help="hyperparameter search (lr, warm-up, decay) for one learned method through Optuna, resumable",
+        description="Optuna's TPE sampler proposes a learning rate (log-uniform in --lr-range), a warm-up and a "
+                    "decay per trial; each trial trains one bench reproduce job (its own seed: --seed + the trial's "
+                    "number) until its validation score flattens, and its best validation PSNR is the objective. "
+                    "The study is kept in DIR/sweep.journal (Optuna's file journal); --resume DIR continues an "
+                    "interrupted trial exactly and runs the rest. `benchctl runs compare DIR` shows the trials.")
+    sweep.add_argument("--method", "-m", help="learned method to tune (a new sweep needs one)")
+    sweep.add_argument("--trials", type=positive_int, default=8, help="trials to finish (default: 8)")
+    sweep.add_argument("--lr-range", type=lr_range, default=(1e-4, 2e-3), metavar="LOW:HIGH",
+                       help="learning rates tried, log-uniform (default: 1e-4:2e-3)")
+    sweep.add_argument("--warmup-choices", type=lambda t: [int(v) for v in t.split(",")], default=[0, 64, 256],
+                       metavar="LIST", help="warm-up step counts tried (default: 0,64,256)")
+    sweep.add_argument("--decay-choices", type=name_list, default=["none", "cosine"], metavar="LIST",
+                       help="decays tried (default: none,cosine)")
+    sweep.add_argument("--seed", type=seed_number, default=42,
+                       help="the first trial's seed (trial n trains with seed + n) and the sampler's (default: 42)")
+    add_recipe(sweep, max_steps=2048, min_steps=512)
+    add_device(sweep)
+    sweep.add_argument("--out", "-o", type=Path, metavar="DIR", help="folder of a new sweep")
+    sweep.add_argument("--resume", type=Path, metavar="DIR", help="continue the sweep in DIR")
+    add_profile(sweep)
+    sweep.set_defaults(func=_cmd_bench_sweep)
 
     console = bench.add_parser("console", help="the live console from outside: preview fps, change-to-frame latency, "
                                                "status latency during an SGD hologram (a console server is started)")

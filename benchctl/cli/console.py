@@ -11,6 +11,17 @@ from benchctl.errors import BenchctlError
 DEFAULT_PORT = 8765
 
 
+def deadman(text: str) -> float:
+    """The argument type of --deadman: seconds above 0, at most the console's MAX_DEADMAN_S (minutes)."""
+    from benchctl.console.laser import MAX_DEADMAN_S
+
+    value = seconds(text)
+    if value > MAX_DEADMAN_S:
+        raise argparse.ArgumentTypeError(f"must be at most {MAX_DEADMAN_S:g} seconds (a dead-man switch that waits "
+                                         f"longer guards nothing), got {text!r}")
+    return value
+
+
 def _cmd_console(args: argparse.Namespace) -> int:
     try:
         from benchctl.console.server import serve
@@ -46,6 +57,7 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                          help="where captures and procedure runs are written (default: runs/)")
     console.add_argument("--procedures", type=Path, metavar="DIR",
                          help="folder of procedure files the page offers (default: procedures/ if it exists)")
-    console.add_argument("--deadman", type=seconds, default=3.0, metavar="SECONDS",
-                         help="emission off when no page has been heard from for this long (default 3)")
+    console.add_argument("--deadman", type=deadman, default=3.0, metavar="SECONDS",
+                         help="emission off when no page has been heard from for this long (default 3, at most "
+                              "300)")
     console.set_defaults(func=_cmd_console)

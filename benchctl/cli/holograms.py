@@ -11,7 +11,7 @@ from benchctl.cli.args import EPILOG, add_profile, count, grid_size, name_list, 
 
 def _cmd_generate(args: argparse.Namespace) -> int:
     from benchctl.calibration.files import calibration_lines
-    from benchctl.cgh import DEFAULT_METHOD
+    from benchctl.cgh import DEFAULT_METHOD, get_method
     from benchctl.errors import BadValueError
     from benchctl.holograms.generate import run_generate
     from benchctl.scenes import is_scene
@@ -23,6 +23,8 @@ def _cmd_generate(args: argparse.Namespace) -> int:
     if not is_scene(args.target) and (args.planes is not None or args.fit_depth):
         raise BadValueError(f"--planes and --fit-depth are for scenes with depth (rgbd:...), not {args.target}")
     planes = args.planes if isinstance(args.planes, int) else None  # None: auto
+    if args.iterations == 0 and get_method(method).default_iterations is not None:
+        print(f"{method}: --iterations 0 runs no iteration: the holograms are {method}'s starting phase alone")
     metrics = run_generate(args.target, profile, Path(args.out), method=method, iterations=args.iterations,
                            colours=args.colours, seed=args.seed, progress=ProgressLine, checkpoint=args.checkpoint,
                            planes=planes, fit_depth=args.fit_depth)

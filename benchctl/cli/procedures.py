@@ -17,7 +17,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if args.procedure is not None and args.resume is not None:
         raise BenchctlError("give either a procedure file or --resume RUN_DIR, not both (a resumed run uses its own "
                             "copy of the procedure)")
-    run_procedure(args.procedure, profile=args.profile, out=args.out, dry_run=args.dry_run, resume=args.resume)
+    run_procedure(args.procedure, profile=args.profile, out=args.out, dry_run=args.dry_run, resume=args.resume,
+                  allow_code=args.allow_code)
     return 0
 
 
@@ -32,7 +33,8 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                     "interrupted run leaves emission off and keeps what it captured; --resume finishes it.",
         epilog="procedures: files in procedures/ (TOML, or a Python file with PARAMETERS and plan(); see README). "
                "A .py procedure is code: running, dry-running or resuming it executes it with your rights; run "
-               "only procedure files you trust.")
+               "only procedure files you trust. A TOML file is data: the Python file it names (in its own folder "
+               "only) runs only with --allow-code, and so does the Python code of a run resumed.")
     run.add_argument("procedure", nargs="?", type=Path, help="procedure file (.toml or .py)")
     add_profile(run)
     run.add_argument("--out", "-o", type=Path, default=Path("runs"), metavar="DIR",
@@ -42,4 +44,7 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                           "writes nothing (a .py procedure's own code still runs)")
     run.add_argument("--resume", type=Path, metavar="RUN_DIR",
                      help="finish an interrupted run without repeating its finished steps")
+    run.add_argument("--allow-code", action="store_true",
+                     help="let the Python file a TOML procedure names (in its own folder), or the Python procedure of "
+                          "the run resumed, run with your rights (a .py given as PROCEDURE needs no flag)")
     run.set_defaults(func=_cmd_run)

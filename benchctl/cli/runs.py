@@ -28,7 +28,7 @@ def _cmd_runs(args: argparse.Namespace) -> int:
     folders = _folders(args) if args.runs else runs.older_than(args.out, args.older_than)
     if not folders:
         return print_lines([f"no runs in {args.out} older than {args.older_than:g} days"])
-    return print_lines(runs.remove_runs(folders, args.yes, args.force))
+    return print_lines(runs.remove_runs(folders, args.out, args.yes, args.force))
 
 
 def _days(text: str) -> float:
@@ -56,7 +56,8 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     compare = actions.add_parser("compare", help="the runs' scores side by side")
     compare.add_argument("runs", nargs="+", metavar="RUN", help="run folders (paths, or names under --out)")
     remove = actions.add_parser("remove", help="remove run folders (listed only, until --yes)")
-    remove.add_argument("runs", nargs="*", metavar="RUN", help="run folders (paths, or names under --out)")
+    remove.add_argument("runs", nargs="*", metavar="RUN",
+                        help="run folders directly under --out (paths, or their names); nothing else is removed")
     remove.add_argument("--older-than", type=_days, metavar="DAYS", help="every run that started more than DAYS ago")
     remove.add_argument("--yes", action="store_true", help="remove them (without it, only say what would go)")
     remove.add_argument("--force", action="store_true",

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from benchctl.cli.args import EPILOG, add_profile, grid_size, name_list, positive_int
+from benchctl.cli.args import EPILOG, add_device, add_profile, count, grid_size, name_list, positive_int, seed_number
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
@@ -17,7 +17,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
                              loss=args.loss, vgg_weights=args.vgg_weights, batch_size=args.batch_size, seed=args.seed,
                              val_fraction=args.val_fraction, max_steps=args.max_steps,
                              weights_dtype=args.weights_dtype, model_calibration=args.model_calibration,
-                             ema=args.ema)
+                             ema=args.ema, warmup=args.warmup, decay=args.decay, device=args.device)
     run_train(load_profile(args.profile), settings, args.out, resume=args.resume)
     return 0
 
@@ -45,6 +45,12 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     train.add_argument("--epochs", type=positive_int, default=10, help="passes over the training images (default: 10)")
     train.add_argument("--max-steps", type=positive_int, metavar="N", help="stop after N steps in all")
     train.add_argument("--lr", type=float, default=5e-4, help="Adam learning rate (default: 5e-4, the paper's)")
+    train.add_argument("--warmup", type=count, default=0, metavar="STEPS",
+                       help="linear learning-rate warm-up over the first STEPS steps (default: 0, the paper's)")
+    train.add_argument("--decay", choices=("none", "cosine"), default="none",
+                       help="learning-rate decay after the warm-up: none, or cosine to zero at the last step "
+                            "(--epochs or --max-steps) (default: none, the paper's)")
+    add_device(train)
     train.add_argument("--ema", type=float, metavar="DECAY",
                        help="keep an exponential moving average of the weights with this per-step decay (e.g. 0.99: "
                             "about the last 100 steps); validation and the checkpoint use the average, the raw "
@@ -55,7 +61,8 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     train.add_argument("--vgg-weights", type=Path, metavar="FILE",
                        help="local torchvision-format VGG19 state dict for --loss l2-perceptual (never downloaded)")
     train.add_argument("--batch-size", type=positive_int, default=1, help="images per step and process (default: 1)")
-    train.add_argument("--seed", type=int, default=42, help="random seed (default: 42, the paper's)")
+    train.add_argument("--seed", type=seed_number, default=42,
+                       help="random seed, 0 to 2^32-1 (default: 42, the paper's)")
     train.add_argument("--val-fraction", type=float, default=0.1,
                        help="fraction of the images held out for validation (default: 0.1)")
     train.add_argument("--weights-dtype", choices=("float32", "float16"), default="float32",

@@ -6,7 +6,9 @@ length, the JSON header, the frame's JPEG, then the zoom's JPEG if any) and stat
 page answers each frame it has drawn with `ack <seq>` (the server keeps at most FRAMES_IN_FLIGHT frames
 unacknowledged, so a slow page never gets a backlog) and each state with `heartbeat`; every message it sends is a
 heartbeat for the laser's dead-man switch, so the page's heartbeats need no timer of its own (a browser slows a
-hidden tab's timers down to once a minute).
+hidden tab's timers down to once a minute). The page's ALL OFF goes over the same socket (`all-off`, answered with
+`{"all_off": ...}`): the open socket is the console's reserved channel, which no flood of new connections can
+starve (connections.py); ALL OFF runs on a thread of its own, never waiting for the worker threads.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import contextlib
 import contextvars
 import json
 import struct
+import threading
 import time
 from collections.abc import Awaitable, Callable
 from importlib import resources
@@ -106,11 +109,7 @@ def create_app(console: Console, access: Access) -> AccessMiddleware:
         return {"ok": True}
 
     async def all_off(request: Request) -> dict[str, Any]:
-        if console.procedures.active:  # the run holds the laser: stopping it switches emission off
-            await _in_thread(console.procedures.stop)
-            return {"ok": True, "stopped": "procedure"}
-        await _in_thread(console.all_off)
-        return {"ok": True}
+        return await _on_own_thread(console.emission_off)
 
     async def slm(request: Request) -> dict[str, Any]:
         pattern = parse_pattern(await body(request))
@@ -142,16 +141,7 @@ def create_app(console: Console, access: Access) -> AccessMiddleware:
         return await _in_thread(console.capture, frames)
 
     async def connect(request: Request) -> dict[str, Any]:
-        name = (await body(request)).get("device")
-        devices = {"laser": console.laser.held if console.laser else None,
-                   "slm": console.slm.held if console.slm else None, "camera": console.camera}
-        held = devices.get(name) if isinstance(name, str) else None
-        if held is None:
-            raise BadValueError(f"no device {name!r} to connect (laser, slm or camera)")
-        if console.procedures.active:
-            raise BenchctlError("a procedure holds the devices; wait for it or stop it")
-        await _in_thread(console.laser.connect if name == "laser" and console.laser else held.connect)
-        return {"connected": held.connected, "error": held.error}
+        return await _in_thread(console.connect, str((await body(request)).get("device")))
 
     async def dry_run(request: Request) -> dict[str, Any]:
         name = (await body(request)).get("name")
@@ -188,6 +178,8 @@ def create_app(console: Console, access: Access) -> AccessMiddleware:
                     console.laser.heartbeat()
                 if message.startswith("ack "):
                     page.ack(message[4:])
+                elif message == "all-off":
+                    page.answer(await _all_off_answer(console))
         except WebSocketDisconnect:
             pass
         finally:
@@ -219,7 +211,12 @@ class _Page:
 
     def __init__(self) -> None:
         self.unacked: list[int] = []
+        self.answers: list[str] = []  # text messages to send before anything else (ALL OFF's answer)
         self.wake = asyncio.Event()
+
+    def answer(self, message: dict[str, Any]) -> None:
+        self.answers.append(json.dumps(message))
+        self.wake.set()
 
     def ack(self, text: str) -> None:
         """The page has shown frame `text` (a number; anything else is only a heartbeat)."""
@@ -236,6 +233,8 @@ async def _send(websocket: WebSocket, console: Console, page: _Page) -> None:
     loop = asyncio.get_running_loop()
     while True:
         page.wake.clear()  # before looking: a wake-up that comes while this sends is kept for the wait below
+        while page.answers:
+            await websocket.send_text(page.answers.pop(0))
         shown = console.latest
         if shown is not None and shown.seq != sent and len(page.unacked) < FRAMES_IN_FLIGHT:
             sent = shown.seq
@@ -279,6 +278,37 @@ async def _in_thread(function: Callable[..., T], *args: Any) -> T:
                 spent[0] += time.thread_time() - start
 
     return await run_in_threadpool(timed)
+
+
+async def _all_off_answer(console: Console) -> dict[str, Any]:
+    """ALL OFF from the page's socket: its result, or its one-line error."""
+    try:
+        return {"all_off": await _on_own_thread(console.emission_off)}
+    except BenchctlError as exc:
+        return {"all_off": {"error": str(exc)}}
+
+
+async def _on_own_thread(function: Callable[[], T]) -> T:
+    """`function()` on a thread started for it: ALL OFF never queues behind other requests' device work."""
+    loop = asyncio.get_running_loop()
+    done: asyncio.Future[T] = loop.create_future()
+
+    def settle(outcome: tuple[T] | BaseException) -> None:
+        if not done.done():
+            if isinstance(outcome, BaseException):
+                done.set_exception(outcome)
+            else:
+                done.set_result(outcome[0])
+
+    def run() -> None:
+        try:
+            outcome: tuple[T] | BaseException = (function(),)
+        except BaseException as exc:  # noqa: BLE001 - handed to the awaiting request
+            outcome = exc
+        loop.call_soon_threadsafe(settle, outcome)
+
+    threading.Thread(target=run, name="console ALL OFF", daemon=True).start()
+    return await done
 
 
 def _static(name: str) -> Response:

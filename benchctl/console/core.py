@@ -44,8 +44,8 @@ class Console:
         self.profile = profile
         self.out = Path(out)
         self.events: deque[str] = deque(maxlen=EVENTS_KEPT)
-        self.uploads = Uploads()
         self.laser = LaserControl(profile, self.say, deadman_s) if profile.laser is not None else None
+        self.uploads = Uploads()
         self.slm = (SlmControl(profile, self.uploads, self._checkpoints())
                     if profile.slm is not None and profile.optics is not None else None)
         self.camera: Held[Camera] | None = (Held("camera", lambda: open_camera(profile), Camera.close)
@@ -76,18 +76,24 @@ class Console:
         for held in (self.slm.held if self.slm else None, self.camera):
             if held is not None and not held.connect():
                 self.say(f"{held.name}: {held.error}")
+        self._read_slm("at start")
         self.refresh_laser()
         for thread in self._threads:
             thread.start()
         self.say(f"console started on profile {self.profile.name!r}")
 
-    def close(self) -> None:
-        """Emission off and the laser closed first, then everything else; what the SLM shows stays."""
+    def close(self) -> str | None:
+        """Emission off and the laser closed first, then everything else; what the SLM shows stays. Returns None
+        when emission is known to be off, else why it is not (to be said loudly: the laser may still emit)."""
         self._stop.set()
         self.procedures.stop(wait_s=15.0)
+        unknown = None
         try:
             if self.laser is not None:
                 self.laser.close()
+                unknown = self.laser.unknown
+            if self.procedures.active:
+                unknown = f"procedure {self.procedures.running} still holds the laser after SIGTERM"
         finally:
             for held in (self.slm.held if self.slm else None, self.camera):
                 if held is not None:
@@ -98,9 +104,11 @@ class Console:
                 if thread.is_alive() and thread is not threading.current_thread():
                     thread.join(timeout=5.0)
             self.uploads.remove_all()
+        return unknown
 
     def emergency_off(self) -> None:
-        """Emission off and the laser let go now (a termination signal): `benchctl laser off` waits for that."""
+        """Emission off and the laser let go now (a termination signal): `benchctl laser off` waits for that. A
+        switch-off that cannot be confirmed is kept in `laser.unknown` for `close` to report."""
         if self.laser is not None:
             self.laser.close()
 
@@ -133,6 +141,15 @@ class Console:
             self._laser().all_off()
         finally:
             self.refresh_laser()
+
+    def emission_off(self) -> dict[str, Any]:
+        """ALL OFF: a procedure that holds the laser is stopped (SIGTERM: the runner switches emission off), else
+        emission off on every channel, read back."""
+        if self.procedures.active:
+            self.procedures.stop()
+            return {"ok": True, "stopped": "procedure"}
+        self.all_off()
+        return {"ok": True}
 
     def refresh_laser(self) -> None:
         """Read the laser's state now (also done twice a second)."""
@@ -181,14 +198,15 @@ class Console:
             settings = {"profile": {"name": self.profile.name, "path": str(self.profile.path)},
                         "laser": self.laser.status() if self.laser else None,
                         "slm": self._slm_settings()}
-            result = capture.capture(self.out, camera, frames, settings, self.slm.frame if self.slm else None)
+            result = capture.capture(self.out, self.profile, camera, frames, settings,
+                                     self.slm.frame if self.slm else None)
         self.say(f"captured {len(result['files'])} files into {result['folder']}")
         return result
 
     def _slm_settings(self) -> dict[str, Any] | None:
         if self.slm is None or not self.slm.held.connected:
             return None
-        with self.slm.held.use() as slm:
+        with self.slm.device() as slm:
             return {"shows": self.slm.shown, "info": slm.info(), "displayed_frame": slm.displayed_frame()}
 
     def set_view(self, mode: str | None, zoom: list[float] | None, clear_zoom: bool) -> None:
@@ -270,17 +288,42 @@ class Console:
 
     def _release_for_run(self, devices: list[str]) -> None:
         """Let go of the devices a run will use (emission off first): one holder per device."""
-        if "laser" in devices and self.laser is not None:
-            self.laser.held.release()
-            self.laser.emitting.clear()
+        if "laser" in devices and self.laser is not None and not self.laser.let_go():
+            raise BenchctlError(f"laser: {self.laser.unknown}; the procedure was not started")
         for name, held in (("slm", self.slm.held if self.slm else None), ("camera", self.camera)):
             if name in devices and held is not None:
                 held.release()
 
     def _reconnect(self) -> None:
+        """Take the devices back after a procedure, and say when it changed what the SLM shows."""
         for held in (self.laser.held if self.laser else None, self.slm.held if self.slm else None, self.camera):
             if held is not None and not held.connected:
                 held.connect()
+        self._read_slm(f"after procedure {self.procedures.running}")
+
+    def connect(self, name: str) -> dict[str, Any]:
+        """Connect device `name` (laser, slm or camera) again, e.g. after it was lost or held elsewhere."""
+        devices = {"laser": self.laser.held if self.laser else None, "slm": self.slm.held if self.slm else None,
+                   "camera": self.camera}
+        held = devices.get(name)
+        if held is None:
+            raise BadValueError(f"no device {name!r} to connect (laser, slm or camera)")
+        if self.procedures.active:
+            raise BenchctlError("a procedure holds the devices; wait for it or stop it")
+        if name == "laser" and self.laser is not None:
+            self.laser.connect()
+        elif held.connect() and name == "slm":
+            self._read_slm("connected again")
+        return {"connected": held.connected, "error": held.error}
+
+    def _read_slm(self, when: str) -> None:
+        if self.slm is not None:
+            try:
+                changed = self.slm.read_device()
+            except BenchctlError as exc:
+                changed = str(exc)
+            if changed:
+                self.say(f"{when}: {changed}")
 
     # -- state -----------------------------------------------------------------------------------------------------
 

@@ -53,6 +53,18 @@ class Held(Generic[T]):
                 self.error = "released by the console"
                 self._closer(device)
 
+    def lost(self, reason: str) -> None:
+        """The device stopped working (its X server went away, its cable was pulled): close what is left of it
+        (errors on the way are the loss itself) and keep `reason` for the page, which offers to connect again."""
+        with self._lock:
+            device, self.device = self.device, None
+            self.error = reason
+            if device is not None:
+                try:
+                    self._closer(device)
+                except Exception:  # noqa: BLE001 - a device that is gone fails to close; nothing is left to do
+                    pass
+
     @contextmanager
     def use(self) -> Iterator[T]:
         """The open device, for this thread alone until the block ends; BenchctlError when it is not connected

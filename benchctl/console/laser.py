@@ -20,10 +20,11 @@ from benchctl.devices.errors import EmissionNotOff
 from benchctl.devices.laser import Laser, open_laser
 from benchctl.devices.laser.base import UNKNOWN_EMISSION
 from benchctl.devices.power import format_power
-from benchctl.errors import BenchctlError
+from benchctl.errors import BadValueError, BenchctlError
 from benchctl.profiles import Profile
 
 DEADMAN_S = 3.0  # no heartbeat from any page for this long: emission off
+MAX_DEADMAN_S = 300.0  # a dead-man that waits longer than minutes guards nothing
 STALL_S = 0.5  # the watchdog woke this late: the process was stopped
 STALL_GRACE_S = 1.0  # after a stall, time for the server to read what the page sent meanwhile
 
@@ -36,6 +37,9 @@ class LaserControl:
         self.config = profile.section("laser")
         self.held: Held[Laser] = Held("laser", lambda: open_laser(self.config), self._shut)
         self.say = say
+        if not 0 < deadman_s <= MAX_DEADMAN_S:
+            raise BadValueError(f"the dead-man timeout must be above 0 and at most {MAX_DEADMAN_S:g} s, got "
+                                f"{deadman_s:g} s")
         self.deadman_s = deadman_s
         self.emitting: set[str] = set()  # channels this console switched on and not off since
         self.unknown: str | None = None  # set when a switch-off could not be confirmed
@@ -55,15 +59,27 @@ class LaserControl:
             self._watch.start()
 
     def close(self) -> None:
-        """Emission off on every channel and the laser closed (the driver's close); the dead-man stops."""
+        """The dead-man stops and the laser is let go (`let_go`); never raises: `unknown` keeps why emission could
+        not be confirmed off, for the console's last word."""
         self._stop.set()
+        self.let_go()
+
+    def let_go(self) -> bool:
+        """Emission off on every channel, setpoints back and the laser closed (the driver's close, which closes the
+        ports however it ends). True when emission is known to be off (confirmed now, or by an earlier let-go);
+        False, with `unknown` saying why, when switching off could not be confirmed."""
+        was_held = self.held.connected
         try:
             self.held.release()
-        except EmissionNotOff as exc:
-            self.unknown = str(exc)
-            raise
+        except Exception as exc:  # noqa: BLE001 - whatever went wrong on the way out, emission is not confirmed off
+            self.unknown = str(exc) if UNKNOWN_EMISSION in str(exc) else f"{exc}; {UNKNOWN_EMISSION}"
+            self.say(f"laser: letting go failed: {self.unknown}")
+            return False
         finally:
             self.emitting.clear()
+        if was_held:
+            self.unknown = None
+        return self.unknown is None
 
     def _shut(self, laser: Laser) -> None:
         """Let go of the laser as a run does: emission off, every setpoint back to the profile's (said), closed."""

@@ -173,8 +173,8 @@ def shown_frame(seq: int, frame: PreviewFrame, zoom: PreviewFrame | None, *, mod
     header = {
         "seq": seq, "format": frame.format, "shape": list(image.rgb.shape[:2]), "full_shape": image.full_shape,
         "zoom_window": window, "stats": statistics(image),
-        "source": {key: frame.metadata[key] for key in ("slm_frame", "lasers_on_w", "exposure_s", "iso", "bin")
-                   if key in frame.metadata},
+        "source": {key: frame.metadata[key] for key in ("slm_frame", "lasers_on_w", "coarse", "exposure_s", "iso",
+                                                        "bin") if key in frame.metadata},
         "render_started": render_started, "render_s": round(render_s[0], 6), "render_cpu_s": round(render_s[1], 6),
         "encode_s": round(time.perf_counter() - started, 6), "encode_cpu_s": round(time.thread_time() - cpu, 6),
         "published": time.time(),

@@ -5,7 +5,10 @@ The console couples to the runner through the command line only (`benchctl run F
 safety on every exit path. Before the run starts the console lets go of its devices (one holder per device: the
 run opens them itself) and takes them back when the run ends. Stop sends the run SIGTERM, on which the runner
 switches emission off, records where it stopped and exits (`benchctl run --resume` finishes it later).
-The page chooses a procedure by name among the files of the console's procedures folder, never by path.
+The page chooses a procedure by name among the files of the console's procedures folder, never by path, and the
+console runs only what that folder holds: a file (or symbolic link) that leads outside it is not offered, and a TOML
+whose `procedure` names a Python file outside it (an absolute path, `../`) is refused before its dry run, which
+would import that file.
 """
 
 from __future__ import annotations
@@ -23,6 +26,11 @@ from typing import Any
 
 from benchctl.errors import BadValueError, BenchctlError
 from benchctl.profiles import Profile
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:
+    import tomli as tomllib
 
 DEVICES = ["laser", "slm", "camera"]
 LINES_KEPT = 400
@@ -49,17 +57,39 @@ class Procedures:
         self._lock = threading.Lock()
 
     def files(self) -> dict[str, Path]:
-        """Name -> file of every procedure in the console's procedures folder (.toml and .py)."""
+        """Name -> file of every procedure in the console's procedures folder (.toml and .py; none that leads out
+        of it)."""
         if self.folder is None or not self.folder.is_dir():
             return {}
         return {path.name: path for path in sorted(self.folder.iterdir())
-                if path.suffix in (".toml", ".py") and path.is_file()}
+                if path.suffix in (".toml", ".py") and path.is_file() and self._inside(path)}
+
+    def _inside(self, path: Path) -> bool:
+        assert self.folder is not None
+        return path.resolve().is_relative_to(self.folder.resolve())
 
     def _file(self, name: str) -> Path:
         files = self.files()
         if name not in files:
             raise BadValueError(f"no procedure {name!r} in {self.folder} (known: {', '.join(files) or 'none'})")
-        return files[name]
+        path = files[name]
+        if path.suffix == ".toml":
+            self._check_code_inside(path)
+        return path
+
+    def _check_code_inside(self, path: Path) -> None:
+        """BadValueError when the TOML's `procedure` names a Python file outside the procedures folder (a TOML
+        that cannot be read is left to the runner's dry run to explain)."""
+        try:
+            kind = tomllib.loads(path.read_text(encoding="utf-8")).get("procedure")
+        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+            return
+        if not isinstance(kind, str) or not (kind.endswith(".py") or "/" in kind or "\\" in kind):
+            return  # a built-in procedure's name
+        named = Path(kind)
+        if named.is_absolute() or ".." in named.parts or not self._inside(path.parent / named):
+            raise BadValueError(f"{path.name}: procedure = {kind!r} is outside the console's procedures folder "
+                                f"{self.folder}: the console runs only what its folder holds")
 
     def _command(self, path: Path, *options: str) -> list[str]:
         return [sys.executable, "-m", "benchctl", "run", str(path), "--profile", str(self.profile.path), *options]

@@ -13,10 +13,12 @@ import threading
 from collections.abc import Callable
 from pathlib import Path
 from types import FrameType
+from typing import Any
 
 import uvicorn
 
 from benchctl.console.app import create_app
+from benchctl.console.connections import BACKLOG, Limits, guarded_protocol
 from benchctl.console.core import Console
 from benchctl.console.laser import DEADMAN_S
 from benchctl.console.security import LOOPBACK_NAMES, Access, new_token
@@ -26,6 +28,7 @@ from benchctl.profiles import Profile
 # torch threads in the console's process (the live view's light; holograms run in their own process). On a busy
 # 2-core machine one thread recomputed the light twice as fast as two, which waited for each other (docs/console.md).
 LIVE_VIEW_THREADS = 1
+STOPPED_UNKNOWN = "emission state UNKNOWN, possibly ON: check the laser"
 
 
 class _Server(uvicorn.Server):
@@ -82,13 +85,21 @@ def listen(bind: str, port: int) -> socket.socket:
     except OSError as exc:
         sock.close()
         raise BenchctlError(f"cannot listen on {bind}:{port}: {exc.strerror or exc} (choose another --port)") from None
-    sock.listen(64)
+    sock.listen(BACKLOG)
     return sock
+
+
+def server_config(app: Any, limits: Limits | None = None) -> uvicorn.Config:
+    """uvicorn's settings for the console: its connections bounded (`connections.Limits`, this process's by
+    default), quiet, and a short graceful shutdown."""
+    return uvicorn.Config(app, log_level="warning", lifespan="off", timeout_graceful_shutdown=2, backlog=BACKLOG,
+                          http=guarded_protocol(limits or Limits.for_this_process()))
 
 
 def serve(profile: Profile, *, port: int, bind: str = "127.0.0.1", out: Path = Path("runs"),
           procedures: Path | None = None, deadman_s: float = DEADMAN_S, say: Callable[[str], None] = print) -> None:
-    """Run the console until a termination signal; every device is closed (emission off first) however it ends."""
+    """Run the console until a termination signal; every device is closed (emission off first) however it ends.
+    BenchctlError (after the laser's own line) when emission could not be confirmed off."""
     import torch
 
     torch.set_num_threads(LIVE_VIEW_THREADS)
@@ -100,8 +111,7 @@ def serve(profile: Profile, *, port: int, bind: str = "127.0.0.1", out: Path = P
         console.start()
         for line in list(console.events):
             say(line)
-        config = uvicorn.Config(create_app(console, access), log_level="warning", lifespan="off",
-                                timeout_graceful_shutdown=2)
+        config = server_config(create_app(console, access))
         host = "127.0.0.1" if is_loopback(bind) else url_host(bind)
         if host.strip("[]") in ("0.0.0.0", "::"):
             host = url_host(socket.gethostname())
@@ -113,5 +123,8 @@ def serve(profile: Profile, *, port: int, bind: str = "127.0.0.1", out: Path = P
         _Server(config, console).run(sockets=[sock])
     finally:
         sock.close()
-        console.close()
+        unknown = console.close()
+        if unknown is not None:  # the last word is what is known, and the exit status says it went wrong
+            say(f"laser: {unknown}")
+            raise BenchctlError(f"console stopped: {STOPPED_UNKNOWN}") from None
         say("console stopped: emission off, devices closed")

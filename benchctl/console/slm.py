@@ -12,6 +12,8 @@ refused with its name before anything is computed.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Annotated, Any, Literal
 
 import cv2
@@ -21,6 +23,7 @@ import numpy as np
 from benchctl.console.devices import Held
 from benchctl.console.holograms import HologramWorker, Request
 from benchctl.console.uploads import Uploads
+from benchctl.devices.errors import DeviceError
 from benchctl.devices.slm import SLM, open_slm
 from benchctl.errors import BadValueError, BenchctlError
 from benchctl.profiles import Profile
@@ -66,7 +69,7 @@ class SlmControl:
         self.checkpoints = checkpoints  # name the page may choose -> checkpoint file
         self.worker = HologramWorker()
         self.held: Held[SLM] = Held("SLM", lambda: open_slm(profile), SLM.close)
-        self.shown: dict[str, Any] = {"kind": None}
+        self.shown: dict[str, Any] = {"kind": None}  # the pattern, or (kind None) what the device says it shows
         self.frame: np.ndarray | None = None
         self.last_hologram: dict[str, Any] | None = None  # how the last hologram was made: seconds, cache, scores
 
@@ -121,19 +124,54 @@ class SlmControl:
                                              checkpoint), progress)
         self.last_hologram = {"seconds": round(result.seconds, 3), "cached": result.cached,
                               "scores": {k: round(v, 3) for k, v in result.scores.items()}}
-        with self.held.use() as device:
+        with self.device() as device:
             return device.decode(result.gray, channel).astype(np.float64)
+
+    @contextmanager
+    def device(self) -> Iterator[SLM]:
+        """The open SLM for one block. A driver's error other than a refused value (the X server of a display SLM
+        died, a framebuffer went away) means the SLM is lost: it is let go, the page says why in one line and offers
+        to connect again, and the request gets that line (a DeviceError), never a traceback."""
+        with self.held.use() as device:
+            try:
+                yield device
+            except BadValueError:
+                raise
+            except Exception as exc:  # noqa: BLE001 - any failure of the driver is said, not a 500
+                reason = str(exc) if isinstance(exc, BenchctlError) else f"{device.label}: {type(exc).__name__}: {exc}"
+                self.held.lost(f"{reason} (connect again when it is back)")
+                raise DeviceError(reason) from None
+
+    def read_device(self) -> str | None:
+        """What the SLM shows now, from the device itself (at connect, and when the console takes the SLM back from
+        a procedure): its frame, who put it there and when. Returns a line saying so when that is not what the
+        console last showed (None when it is, or the SLM is not connected)."""
+        if not self.held.connected:
+            return None
+        with self.device() as device:
+            showing = device.showing()
+        if showing.frame_id is not None and showing.frame_id == self.shown.get("frame") and \
+                showing.by == self.shown.get("by"):
+            return None  # still the console's own frame
+        known = self.shown.get("frame") is not None
+        self.frame = showing.frame
+        self.shown = {"kind": None, "frame": showing.frame_id, "by": showing.by, "at": showing.at,
+                      "channel": showing.channel}
+        if showing.frame is None:  # nothing shown yet, or a panel that cannot be read back
+            return "the SLM cannot say what it shows now" if known else None
+        who = f" by {showing.by}" if showing.by else " by a program unknown to the SLM"
+        return f"the SLM shows frame {showing.frame_id}, put there{who}" + (f" at {showing.at}" if showing.at else "")
 
     def show(self, pattern: Pattern, phase: np.ndarray | None) -> dict[str, Any]:
         """Display `phase` (from `phase(pattern)`) through the driver and remember what is shown."""
-        with self.held.use() as device:
+        with self.device() as device:
             if phase is None:
                 self.frame = device.blank()
             else:
                 self.frame = device.show_phase(phase, self._channel(pattern))
-            frame_id = device.shown_frame
+            frame_id, by = device.shown_frame, device.holder()
         self.shown = {**msgspec.to_builtins(pattern), "channel": None if phase is None else self._channel(pattern),
-                      "frame": frame_id}
+                      "frame": frame_id, "by": by, "at": device.presented_at}
         if pattern.kind in ("hologram", "dots"):
             self.shown["hologram"] = self.last_hologram
         return self.shown

@@ -13,13 +13,13 @@ import threading
 from pathlib import Path
 
 from benchctl.errors import BadValueError
-from benchctl.images import header_size, read_image
+from benchctl.images import ACCEPTED, header_size, image_format, read_image
 from benchctl.limits import check_pixels
 
 MAX_UPLOAD_BYTES = 32 * 1024 * 1024
 MAX_UPLOAD_PIXELS = 40_000_000  # a 40 Mpx photo; the ROI it is resized to is far smaller
 MAX_UPLOADS = 50  # per console start: the private folder holds at most 50 x 32 MB
-_SUFFIXES = {b"\x89PNG": ".png", b"\xff\xd8": ".jpg", b"BM": ".bmp", b"II*\x00": ".tif", b"MM\x00*": ".tif"}
+_SUFFIXES = {"PNG": ".png", "JPEG": ".jpg", "BMP": ".bmp", "TIFF": ".tif", "WebP": ".webp"}
 
 
 class Uploads:
@@ -43,20 +43,20 @@ class Uploads:
         self.check_room()
         if len(data) > self.max_bytes:
             raise BadValueError(f"upload {name!r}: {len(data):,} bytes is above the limit of {self.max_bytes:,}")
-        suffix = next((s for magic, s in _SUFFIXES.items() if data.startswith(magic)), None)
-        if suffix is None:
-            raise BadValueError(f"upload {name!r}: not a PNG, JPEG, BMP or TIFF image")
+        kind = image_format(data)
+        if kind is None:
+            raise BadValueError(f"upload {name!r}: not a {ACCEPTED} image")
         size = header_size(data)
-        if size is not None:
-            self._check_pixels(name, *size)
+        if size is None:
+            raise BadValueError(f"upload {name!r}: a {kind} file whose header gives no image size; not decoded")
+        self._check_pixels(name, *size)  # the console's own limit, before anything is decoded
         with self._lock:
             self.check_room()
             upload_id = str(len(self.names) + 1)
-            path = self.folder / f"upload-{upload_id}{suffix}"
+            path = self.folder / f"upload-{upload_id}{_SUFFIXES[kind]}"
             path.write_bytes(data)
             try:
-                image = read_image(path)  # the project's limit, and formats whose header was not read above
-                self._check_pixels(name, *image.shape[:2])
+                read_image(path)  # the project's limit, and an image OpenCV decodes
             except Exception:
                 path.unlink(missing_ok=True)
                 raise

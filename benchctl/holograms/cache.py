@@ -77,26 +77,37 @@ def _key(profile: Profile, setup: OpticalSetup, channel: str, plane: torch.Tenso
     return digest.hexdigest()[:32]
 
 
-def hologram(bench: Calibrated, target: torch.Tensor, channel: str, method: str, *, iterations: int | None,
-             seed: int, checkpoint: str | None,
-             progress: Callable[[str], Callable[[int, int], None]] | None = None,
-             depth_m: torch.Tensor | None = None, planes_m: Sequence[float] | None = None) -> Hologram:
-    """The hologram of `channel` for `target` (3, H, W amplitude on the SLM grid), computed for the channel's setup on
-    `bench`: from the cache when this exact computation was done before, else computed (compute_scene, one colour)
-    and cached. With `depth_m` (H, W, metres from the SLM) the target is a scene with depth shown at `planes_m`
-    (compute_depth_scene, one colour, at exactly those planes)."""
-    profile, setup = bench.profile, bench.setup(channel)
-    network = get_method(method).network  # "ccnn-dcm4+sgd" runs ccnn-dcm4's checkpoint
+def cache_entry(bench: Calibrated, target: torch.Tensor, channel: str, method: str, *, iterations: int | None,
+                seed: int, checkpoint: str | None, depth_m: torch.Tensor | None = None,
+                planes_m: Sequence[float] | None = None) -> tuple[Path, str | None]:
+    """Where the hologram of `channel` for `target` with these options is cached, and the checkpoint it is computed
+    with: the one given, else the one found for a learned method (or for a refined one's network: "ccnn-dcm4+sgd"
+    runs ccnn-dcm4's). That checkpoint's bytes are part of the key, as are the code, the bench and the target (of a
+    scene with depth, its depth map and the planes it is shown at)."""
+    network = get_method(method).network
     if checkpoint is None and network is not None:
-        found = find_checkpoint(network, profile)  # what compute_scene will use: its bytes belong in the key
+        found = find_checkpoint(network, bench.profile)  # what compute_scene will use
         checkpoint = str(found) if found else None
     options: dict[str, Any] = {"method": method, "iterations": iterations, "seed": seed, "checkpoint": checkpoint}
     if depth_m is not None:
         if not planes_m:
             raise ValueError("a scene with depth needs the planes it is shown at")
         options["planes_m"] = [float(z) for z in planes_m]
-    plane = target[target_plane(profile.channel(channel))]
-    path = cache_dir() / "holograms" / f"{_key(profile, setup, channel, plane, options, depth_m)}.npz"
+    plane = target[target_plane(bench.profile.channel(channel))]
+    key = _key(bench.profile, bench.setup(channel), channel, plane, options, depth_m)
+    return cache_dir() / "holograms" / f"{key}.npz", checkpoint
+
+
+def hologram(bench: Calibrated, target: torch.Tensor, channel: str, method: str, *, iterations: int | None,
+             seed: int, checkpoint: str | None,
+             progress: Callable[[str], Callable[[int, int], None]] | None = None,
+             depth_m: torch.Tensor | None = None, planes_m: Sequence[float] | None = None) -> Hologram:
+    """The hologram of `channel` for `target` (3, H, W amplitude on the SLM grid) on `bench`: from the cache when
+    this exact computation was done before (`cache_entry`), else computed (compute_scene, one colour) and cached.
+    With `depth_m` (H, W, metres from the SLM) the target is a scene with depth shown at `planes_m`
+    (compute_depth_scene, one colour, at exactly those planes)."""
+    path, checkpoint = cache_entry(bench, target, channel, method, iterations=iterations, seed=seed,
+                                   checkpoint=checkpoint, depth_m=depth_m, planes_m=planes_m)
     if path.is_file():
         with np.load(path, allow_pickle=False) as data:
             return Hologram(data["gray"], data["reconstruction"], json.loads(str(data["scores"])),

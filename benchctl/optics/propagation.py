@@ -18,8 +18,8 @@ wraps all light that leaves. docs/propagation.md has the measurements behind the
 
 from __future__ import annotations
 
+import functools
 import math
-from collections import OrderedDict
 from dataclasses import replace
 
 import torch
@@ -186,8 +186,11 @@ class Propagator:
         return torch.fft.ifft2(spectrum)[..., row:row + rows, col:col + cols].contiguous()
 
 
-_CACHE: OrderedDict[tuple, Propagator] = OrderedDict()
-_CACHE_SIZE = 8  # each entry holds its kernels (and a work buffer): keep it small
+@functools.lru_cache(maxsize=8)  # each entry holds its kernels (and a work buffer): keep it small
+def _cached_propagator(shape: tuple[int, int], distance_m: float, wavelength_m: float, pitch_m: tuple[float, float],
+                       padding: Padding, band_limit: bool, aperture: float | None) -> Propagator:
+    return Propagator(shape, distance_m, wavelength_m, pitch_m, padding=padding, band_limit=band_limit,
+                      aperture=aperture)
 
 
 def propagate(
@@ -206,17 +209,8 @@ def propagate(
     """
     _check_shape(field)
     shape = (int(field.shape[-2]), int(field.shape[-1]))
-    key = (shape, float(distance_m), float(wavelength_m), pitch_pair(pitch_m), padding, band_limit, aperture)
-    prop = _CACHE.get(key)
-    if prop is None:
-        prop = Propagator(shape, distance_m, wavelength_m, pitch_m, padding=padding, band_limit=band_limit,
-                          aperture=aperture)
-        _CACHE[key] = prop
-        if len(_CACHE) > _CACHE_SIZE:
-            _CACHE.popitem(last=False)
-    else:
-        _CACHE.move_to_end(key)
-    return prop(field)
+    return _cached_propagator(shape, float(distance_m), float(wavelength_m), pitch_pair(pitch_m), padding, band_limit,
+                              aperture)(field)
 
 
 class PrunedPropagator:

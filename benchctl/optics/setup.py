@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import math
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
@@ -71,14 +72,13 @@ class OpticalSetup(Geometry):
 
     def roi_propagator(self) -> Propagator:
         """The propagator SLM -> target plane (+z) that computes only the ROI, built on first use and cached."""
-        propagator = self.__dict__.get("_to_roi")
-        if propagator is None:
-            rows, cols = self.roi_slices
-            propagator = Propagator(self.shape, self.distance_m, self.wavelength_m, self.pitch_m,
-                                    padding=self.padding, aperture=self.aperture,
-                                    window=(rows.start, self.roi[0], cols.start, self.roi[1]))
-            object.__setattr__(self, "_to_roi", propagator)
-        return propagator
+        return self._to_roi
+
+    @functools.cached_property
+    def _to_roi(self) -> Propagator:
+        rows, cols = self.roi_slices
+        return Propagator(self.shape, self.distance_m, self.wavelength_m, self.pitch_m, padding=self.padding,
+                          aperture=self.aperture, window=(rows.start, self.roi[0], cols.start, self.roi[1]))
 
     def planes_propagator(self, distances_m: Sequence[float], *, roi: bool = False) -> MultiPlanePropagator:
         """The propagator SLM -> the planes at `distances_m` (+z), of the whole grid or (`roi`) of the ROI only,
@@ -181,9 +181,9 @@ class OpticalSetup(Geometry):
 
     def slm_factor(self) -> torch.Tensor:
         """The fitted model's A e^(i W) on the SLM grid (complex64), computed once; ones without a model."""
-        factor = self.__dict__.get("_slm_factor")
-        if factor is None:
-            factor = (self.field_model.slm_factor(self.shape, self.pitch_m) if self.field_model is not None
-                      else torch.ones(self.shape, dtype=torch.complex64))
-            object.__setattr__(self, "_slm_factor", factor)
-        return factor
+        return self._slm_factor
+
+    @functools.cached_property
+    def _slm_factor(self) -> torch.Tensor:
+        return (self.field_model.slm_factor(self.shape, self.pitch_m) if self.field_model is not None
+                else torch.ones(self.shape, dtype=torch.complex64))

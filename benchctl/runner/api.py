@@ -15,9 +15,11 @@ and savers place every file in the run folder; a procedure names its files, neve
 - context: `Context` (profile, parameters, `Calibration`, optical setups, instruments), `Step`, `Expose`, `FocusAt`, and
   `StepRedo` (a step sends the run back to an earlier step whose work is damaged or diverged).
 - parameters: `Parameters`, the shared groups `ExposureParameters` and `HologramParameters`, and the types
-  `Frames`, `DarkFrames`, `RegistrationMode`, `ExposureMode`, `PeakGoal`.
-- planning: `channels`, `power_w`, `unknown_setpoints`, `unregistered`, `check_method`, `carried`,
-  `prepared_target`, `target_label`, `target_plane`, `focus_moves` (where the focus calibration puts a depth).
+  `Frames`, `DarkFrames`, `RegistrationMode`, `ExposureMode`, `PeakGoal`, `ExposureCap`.
+- planning: `channels`, `power_w` and `checked_power` (watts from a procedure's setting such as "1mW"),
+  `unknown_setpoints`, `exposure_cap_w` with `unknown_caps` (automatic exposure's
+  bound), `unregistered`, `check_method`, `carried`, `prepared_target`, `target_label`, `target_plane`,
+  `focus_moves` (where the focus calibration puts a depth).
 - holograms and steps: `compute_hologram`, `hologram_step`, `exposure_step`, `probe_step` with `probed_power`,
   `measure` (an exposure inside a step of one's own, decoded), `shown` and `displayed_frame` (what a hologram
   step kept).
@@ -33,7 +35,16 @@ and savers place every file in the run folder; a procedure names its files, neve
 from benchctl.calibration.acceptance import AcceptMode, Verdict
 from benchctl.calibration.store import Calibration
 from benchctl.errors import BenchctlError
-from benchctl.runner.auto_exposure import ExposureMode, PeakGoal, probe_step, probed_power, signal_stats
+from benchctl.runner.auto_exposure import (
+    ExposureCap,
+    ExposureMode,
+    PeakGoal,
+    exposure_cap_w,
+    probe_step,
+    probed_power,
+    signal_stats,
+    unknown_caps,
+)
 from benchctl.runner.context import Context, Expose, FocusAt, Parameters, Step, StepRedo
 from benchctl.runner.plots import ERROR_FULL_SCALE, dots_over, error_map, front_plot, line_plot
 from benchctl.runner.report import Report, figure, row, stepper, table
@@ -47,6 +58,7 @@ from benchctl.runner.steps import (
     carried,
     channels,
     check_method,
+    checked_power,
     compute_hologram,
     displayed_frame,
     exposure_step,
@@ -87,17 +99,20 @@ __all__ = [
     "Measurement",
     "Parameters",
     "PeakGoal",
+    "ExposureCap",
     "RegistrationMode",
     "Report",
     "Step",
     "StepRedo",
     "carried",
     "channels",
+    "checked_power",
     "check_method",
     "compute_hologram",
     "displayed_frame",
     "dots_over",
     "error_map",
+    "exposure_cap_w",
     "exposure_step",
     "figure",
     "focus_moves",
@@ -125,6 +140,7 @@ __all__ = [
     "table",
     "target_label",
     "target_plane",
+    "unknown_caps",
     "unknown_setpoints",
     "unregistered",
     "Verdict",

@@ -50,7 +50,7 @@ P = TypeVar("P", bound=Parameters)
 @dataclass(frozen=True)
 class Expose:
     """An exposure a step declares: show a frame, light `channel` alone at `power_w` (None: a power the step
-    decides when it runs, never above the channel's max_power_mw), capture `frames` RAW frames and then
+    decides when it runs, never above `max_w`, else the channel's max_power_mw), capture `frames` RAW frames and then
     `dark_frames` with emission off; `keep`: the RAW files are kept in the run folder (its disk estimate counts
     them); `times`: how many such exposures the step makes (its time estimate counts each)."""
 
@@ -60,9 +60,11 @@ class Expose:
     dark_frames: int
     keep: bool = True
     times: int = 1  # how many such exposures the step makes (a sweep makes one per position)
+    max_w: float | None = None
 
     def describe(self) -> str:
-        power = "a power chosen when the step runs" if self.power_w is None else format_power(self.power_w)
+        power = (format_power(self.power_w) if self.power_w is not None else "a power chosen when the step runs"
+                 + (f" (at most {format_power(self.max_w)})" if self.max_w is not None else ""))
         return (f"{f'{self.times} x ' if self.times > 1 else ''}{self.channel} alone at {power}, {self.frames} "
                 f"frame(s) + {self.dark_frames} dark" + ("" if self.keep else ", RAW not kept"))
 
@@ -296,14 +298,14 @@ class Context:
         folder = None
         if keep:
             folder = self.path(layout.raw_folder(step.key, within))
-            attempt = self.record.attempts.get(step.key, 1) if self.record else 1
-            if attempt > 1:
-                set_aside(folder, attempt - 1)
+            set_aside(folder)
         return self.instruments.expose(folder, channel, power_w, frame, frames=frames, dark_frames=dark_frames)
 
 
 def _allows(expose: Expose, channel: str, power_w: float, frames: int, dark_frames: int) -> bool:
-    """Whether `expose` declared this exposure (a power chosen at run time: any, within the channel's limit)."""
-    limit = expose.power_w * (1 + POWER_TOLERANCE) if expose.power_w is not None else float("inf")
+    """Whether `expose` declared this exposure (a power chosen at run time: within its max_w, else the channel's
+    limit, which `Context.expose` checks too)."""
+    bound = expose.power_w if expose.power_w is not None else expose.max_w
+    limit = bound * (1 + POWER_TOLERANCE) if bound is not None else float("inf")
     return (expose.channel == channel and 0 <= power_w <= limit and expose.frames == frames
             and expose.dark_frames == dark_frames)

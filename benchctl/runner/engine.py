@@ -29,7 +29,7 @@ from benchctl.calibration.files import check_calibration
 from benchctl.calibration.store import FOCUS_FILE, REGISTRATION_FILE, Calibration
 from benchctl.devices.power import format_power
 from benchctl.errors import BenchctlError
-from benchctl.files import file_sha256, write_json
+from benchctl.files import file_sha256, folder_problem, write_json
 from benchctl.memory import check_memory
 from benchctl.profiles import Profile, load_profile, resolve_profile_path
 from benchctl.runner.context import Context, Expose, FocusAt, Step, StepRedo
@@ -37,7 +37,8 @@ from benchctl.runner.estimates import RunEstimate, duration_text
 from benchctl.runner.instruments import Instruments
 from benchctl.runner.layout import CALIBRATION_COPY, DEVICES, PROFILE_COPY, REPORT, RUN_FILE
 from benchctl.runner.procedure import Procedure, load_procedure
-from benchctl.runner.record import RunRecord, create_run, open_run, run_folder_lock
+from benchctl.schema import fail
+from benchctl.runner.record import RunRecord, create_run, open_run, run_folder_lock, set_aside
 
 
 @dataclass
@@ -58,8 +59,8 @@ def _line(step: Step) -> str:
 
 def _describe(steps: list[Step], procedure: Procedure, profile: Profile) -> list[str]:
     """The dry run's account: every step with its exposures, then per laser channel the exposures and the highest
-    power the plan declares against the channel's limit (exposures whose power is chosen at run time are bounded
-    by the limit itself)."""
+    power the run may reach against the channel's limit: the powers the plan declares, and for those chosen at run
+    time (automatic exposure) the bound they are chosen under (the procedure's cap, else the channel's limit)."""
     lines = [f"procedure {procedure.name!r} ({procedure.kind}) on profile {profile.name!r} ({profile.path}): "
              f"{len(steps)} steps"]
     lines += [f"  {number:>3}. {step.key}: {_line(step)}" for number, step in enumerate(steps, 1)]
@@ -68,24 +69,29 @@ def _describe(steps: list[Step], procedure: Procedure, profile: Profile) -> list
         mine = [expose for expose in exposures if expose.channel == channel.name]
         if mine:
             known = [expose.power_w for expose in mine if expose.power_w is not None]
-            highest = f"at most {format_power(max(known))}" if known else "powers chosen at run time"
-            chosen = sum(expose.power_w is None for expose in mine)
-            later = f" ({chosen} at a power chosen at run time)" if known and chosen else ""
-            lines.append(f"  {channel.name}: {len(mine)} exposure(s), {highest}{later}; limit "
-                         f"{channel.max_power_mw:g} mW")
+            bounds = [expose.max_w if expose.max_w is not None else channel.max_power_mw * 1e-3
+                      for expose in mine if expose.power_w is None]
+            later = (f" ({len(bounds)} at a power chosen at run time, up to {format_power(max(bounds))}"
+                     + (", the channel's limit" if max(bounds) >= channel.max_power_mw * 1e-3 else "")
+                     + ")" if bounds else "")
+            lines.append(f"  {channel.name}: {len(mine)} exposure(s), at most {format_power(max(known + bounds))}"
+                         f"{later}; limit {channel.max_power_mw:g} mW")
     return lines
 
 
-def _resumed(folder: Path, profile_arg: str | None) -> tuple[RunRecord, Procedure, Profile]:
+def _resumed(folder: Path, profile_arg: str | None, allow_code: bool) -> tuple[RunRecord, Procedure, Profile]:
     """Reopen a run: its procedure copy, and the profile it used (which must not have changed)."""
     record = open_run(folder)
     info = record.info()
+    for key in ("procedure_file", "profile_path"):
+        if info.get(key) is None:
+            raise fail(folder / RUN_FILE, key, "missing required key")
     for name, digest in info.get("procedure_sha256", {}).items():  # checked before any procedure code runs
         copy = record.folder / name
         if not copy.is_file() or file_sha256(copy) != digest:
             raise BenchctlError(f"{copy} changed since run {record.name} started (or is missing); a resumed run "
                                 "runs only the procedure code it started with")
-    procedure = load_procedure(record.folder / info["procedure_file"], copies=record.folder)
+    procedure = load_procedure(record.folder / info["procedure_file"], copies=record.folder, allow_code=allow_code)
     source = Path(info["profile_path"])
     if profile_arg is not None and resolve_profile_path(profile_arg).resolve() != source.resolve():
         raise BenchctlError(f"{folder}: this run used profile {source}; resume it with that profile (or none)")
@@ -100,42 +106,37 @@ def _resumed(folder: Path, profile_arg: str | None) -> tuple[RunRecord, Procedur
 
 
 def run_procedure(path: Path | None, *, profile: str | None = None, out: Path = Path("runs"),
-                  dry_run: bool = False, resume: Path | None = None,
+                  dry_run: bool = False, resume: Path | None = None, allow_code: bool = False,
                   say: Callable[[str], None] = print) -> RunOutcome:
     """Run (or with `dry_run` only plan and print) a procedure file; `resume` finishes an earlier run instead. The run
-    folder is locked (`run_folder_lock`) for as long as this writes it."""
+    folder is locked (`run_folder_lock`) for as long as this writes it. `allow_code`: Python code that a TOML
+    procedure names, or that a resumed run kept, may run (load_procedure)."""
     with ExitStack() as held:
-        return _run(path, profile, out, dry_run, resume, say, held)
+        return _run(path, profile, out, dry_run, resume, allow_code, say, held)
 
 
-def _run(path: Path | None, profile: str | None, out: Path, dry_run: bool, resume: Path | None,
+def _run(path: Path | None, profile: str | None, out: Path, dry_run: bool, resume: Path | None, allow_code: bool,
          say: Callable[[str], None], held: ExitStack) -> RunOutcome:
     if resume is not None:
         if not (Path(resume) / RUN_FILE).is_file():
             raise BenchctlError(f"{resume}: not a benchctl run folder (no {RUN_FILE})")
         held.enter_context(run_folder_lock(Path(resume)))
-        record, procedure, bench_profile = _resumed(Path(resume), profile)
+        record, procedure, bench_profile = _resumed(Path(resume), profile, allow_code)
         calibration = Calibration(record.folder / CALIBRATION_COPY, bench_profile)
         changed = record.changed_calibration(calibration.folder)
         if changed:
             raise BenchctlError(f"{calibration.folder}/{changed}: a resumed run uses the calibration its finished "
                                 "steps were computed with; put that file back, or start a new run")
+        calibration = _usable_calibration(record, calibration, procedure, bench_profile, dry_run, say)
     else:
         if path is None:
             raise BenchctlError("give a procedure file (or --resume RUN_DIR)")
-        procedure = load_procedure(path)
+        procedure = load_procedure(path, allow_code=allow_code)
         bench_profile = load_profile(profile)
         calibration = Calibration.store(bench_profile)
         record = None
-    try:  # every calibration file the run will use, checked before a device opens
-        bench = Calibrated(procedure.params.applied_to(bench_profile), calibration)
-        effective = bench.profile
-        checked = check_calibration(effective, calibration.folder / REGISTRATION_FILE, calibration.folder / FOCUS_FILE)
-    except BenchctlError as exc:
-        if record is None:
-            raise
-        raise BenchctlError(f"{exc} (a resumed run uses its own copy of the calibration: repair it, or copy the file "
-                            f"from {Calibration.store(bench_profile).folder} over it)") from None
+    bench, checked = _checked_calibration(calibration, procedure, bench_profile)
+    effective = bench.profile
     checked += check_memory(effective, procedure.params, str(path or procedure.name))  # counts that scale memory
     with Instruments(effective, say) as instruments:
         context = Context(bench, procedure.params, instruments, record, say)
@@ -147,6 +148,9 @@ def _run(path: Path | None, profile: str | None, out: Path, dry_run: bool, resum
             where = path if record is None else record.folder / record.info()["procedure_file"]
             raise BenchctlError(f"{where}: {exc}") from None
         estimate = RunEstimate(steps, effective)
+        problem = folder_problem(Path(out)) if record is None else None
+        if problem:
+            raise BenchctlError(f"--out {out}: {problem}: a run folder cannot be created there")
         todo = [step for step in steps if record is None or not record.is_done(step.key)]
         if dry_run:
             for line in [*_describe(steps, procedure, bench_profile), *checked,
@@ -173,6 +177,46 @@ def _run(path: Path | None, profile: str | None, out: Path, dry_run: bool, resum
         for reason in [*record.invalidated, *record.damaged]:
             say(reason)
         return _execute(steps, context, record, estimate)
+
+
+def _checked_calibration(calibration: Calibration, procedure: Procedure,
+                         profile: Profile) -> tuple[Calibrated, list[str]]:
+    """The bench as `calibration` calibrates it for `procedure`, and one line per calibration file checked: every file
+    the run will use, checked before a device opens (a bad one is a BenchctlError naming it)."""
+    bench = Calibrated(procedure.params.applied_to(profile), calibration)
+    folder = calibration.folder
+    return bench, check_calibration(bench.profile, folder / REGISTRATION_FILE, folder / FOCUS_FILE)
+
+
+def _usable_calibration(record: RunRecord, calibration: Calibration, procedure: Procedure, profile: Profile,
+                        dry_run: bool, say: Callable[[str], None]) -> Calibration:
+    """The calibration a resumed run goes on with: its own copy, or, where a file of the copy fails its check (a run
+    started with a file that older benchctl let through), the store's once it is fixed there: the copy is set aside
+    (kept), the store's copied in its place, and every finished step done again (each may have used the bad file)."""
+    try:
+        _checked_calibration(calibration, procedure, profile)
+        return calibration
+    except BenchctlError as bad:
+        problem = str(bad)
+    store = Calibration.store(profile)
+    try:
+        _checked_calibration(store, procedure, profile)
+    except BenchctlError as exc:
+        raise BenchctlError(f"{problem}; the store it came from fails too ({exc}): fix the file in {store.folder}, "
+                            "and a resume takes the calibration from there") from None
+    finished = list(record.done)
+    if dry_run:
+        say(f"{problem}: a resume would take the fixed calibration from {store.folder} and do its {len(finished)} "
+            "finished step(s) again")
+        return store
+    aside = set_aside(calibration.folder)
+    copy = store.copy_to(calibration.folder)
+    if finished:
+        record.invalidate(finished[0], f"the run's calibration was replaced: {problem}")
+    record.calibration_written(copy.checksums(), replace=True)
+    say(f"{problem}: this run's copy is kept as {aside}; the run goes on with the fixed calibration from "
+        f"{store.folder} and does its {len(finished)} finished step(s) again")
+    return copy
 
 
 MAX_REDOS = 2  # times one run invocation goes back to the same step (StepRedo) before it stops

@@ -30,7 +30,8 @@ def _axes(x_range: tuple[float, float], y_range: tuple[float, float], labels: tu
                 f"{height - BOTTOM - (y - y0) / (y1 - y0) * (height - BOTTOM - PAD):.1f}")
 
     low_x, high_x, low_y, high_y = (html.escape(text) for text in labels)
-    parts = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" font-size="11">',
+    parts = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" '
+             f'viewBox="0 0 {width} {height}" font-size="11">',  # the viewBox scales it down whole where it must
              f'<rect x="{LEFT}" y="{PAD}" width="{width - LEFT - PAD}" height="{height - BOTTOM - PAD}" '
              'fill="none" stroke="#999"/>',
              f'<text x="{LEFT}" y="{height - 22}">{low_x}</text>',

@@ -11,19 +11,23 @@ from __future__ import annotations
 import json
 import os
 import platform
+import re
 import shutil
 import sys
 from dataclasses import dataclass, field
 from datetime import datetime
 from importlib import metadata
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
+
+import msgspec
 
 from benchctl.devices.lock import DeviceHeld, DeviceLock
 from benchctl.errors import BenchctlError
-from benchctl.files import atomic_write_bytes, ensure_dir, file_sha256, write_json
+from benchctl.files import RECORD_BYTES, atomic_write_bytes, ensure_dir, file_sha256, read_capped, write_json
 from benchctl.provenance import code_identity
 from benchctl.runner.layout import RUN_FILE, STEP_LOG
+from benchctl.schema import decode, fail
 
 PACKAGES = ("benchctl", "torch", "numpy", "pyserial", "pyusb", "opencv-contrib-python-headless", "rawpy")
 
@@ -41,6 +45,61 @@ def package_versions() -> dict[str, object]:
 
 def _now() -> str:
     return datetime.now().isoformat(timespec="milliseconds")
+
+
+RUN_FOLDER = re.compile(r"\d{8}-\d{6}-[A-Za-z0-9_.-]+")  # create_run's names: <YYYYmmdd-HHMMSS>-<name>[-<n>]
+Checksums = dict[str, str]  # run-relative path -> SHA-256
+
+
+class _Record(msgspec.Struct, frozen=True, kw_only=True):
+    """What benchctl reads back from a run's records to resume it, checked before use (unlike a configuration
+    `Model`, further keys are allowed and kept as they are: only these are interpreted)."""
+
+
+class StartRecord(_Record, frozen=True, kw_only=True):
+    """run.json, as a resume reads it."""
+
+    procedure_file: str | None = None  # the procedure as used, a file of the run folder (a resume needs both)
+    profile_path: str | None = None
+    procedure_sha256: Checksums = {}
+    calibration_sha256: Checksums = {}
+    resumed: list[dict[str, Any]] = []
+
+
+class StepResult(_Record, frozen=True, kw_only=True):
+    checksums: Checksums = {}  # files later steps read
+    archived: Checksums = {}  # files kept only as a record
+
+
+class Event(_Record, frozen=True, kw_only=True):
+    """One line of steps.jsonl."""
+
+    event: str
+    step: str | None = None  # every event but "calibration" names its step
+    attempt: int = 1
+    result: StepResult = StepResult()
+    checksums: Checksums = {}  # a "calibration" event's files
+    replaces: bool = False  # a "calibration" event's files are all the copy has (a new copy)
+    redo: str | None = None
+    diverged: bool = False
+
+
+def _checked(data: Any, model: type[_Record], where: Path) -> None:
+    """`data` (a JSON value read from a run's record) checked against `model`: one line naming the file, the key and
+    the value when it is not an object of that shape, or when a checksum names a file outside the run folder."""
+    if not isinstance(data, dict):
+        raise fail(where, "(top level)", f"expected a JSON object {{...}}, got {type(data).__name__}")
+    checked = decode(data, model, where)
+    tables = {"": checked} if not isinstance(checked, Event) else {"": checked, "result.": checked.result}
+    for prefix, part in tables.items():
+        for key in ("checksums", "archived", "procedure_sha256", "calibration_sha256"):
+            for name in getattr(part, key, {}):
+                pure = PurePosixPath(name)
+                if not name or pure.is_absolute() or ".." in pure.parts or "\\" in name:
+                    raise fail(where, f"{prefix}{key}", f"{name!r} is not a file inside the run folder")
+    name = checked.procedure_file if isinstance(checked, StartRecord) else None
+    if name is not None and (Path(name).name != name or name in ("", ".", "..")):
+        raise fail(where, "procedure_file", f"{name!r} is not a file name of the run folder")
 
 
 @dataclass
@@ -66,8 +125,17 @@ class RunRecord:
         return target
 
     def info(self) -> dict[str, Any]:
-        """The start (and stop) record."""
-        return json.loads((self.folder / RUN_FILE).read_text())
+        """The start (and stop) record: a JSON object (BenchctlError naming the file when it is not one)."""
+        path = self.folder / RUN_FILE
+        try:
+            data = json.loads(read_capped(path, "run record"))
+        except FileNotFoundError:
+            raise BenchctlError(f"{self.folder}: not a benchctl run folder (no {RUN_FILE})") from None
+        except ValueError as exc:  # not UTF-8, or not JSON
+            raise BenchctlError(f"{path}: not a run record (JSON): {exc}") from None
+        if not isinstance(data, dict):
+            raise fail(path, "(top level)", f"expected a JSON object {{...}}, got {type(data).__name__}")
+        return data
 
     def finish(self, status: str, **extra: Any) -> None:
         """Write the stop record: "finished", "failed" or "interrupted", with when and anything else given."""
@@ -81,9 +149,10 @@ class RunRecord:
         return key in self.done
 
     def result(self, key: str) -> dict[str, Any]:
-        """The result a finished step recorded; an error if it has not finished."""
+        """The result a finished step recorded; an error if it has not finished. A key the reader needs and the
+        result lacks (a damaged or hand-made step log) is one line naming the step and the key."""
         try:
-            return self.done[key]
+            return Recorded(self.done[key], f"{self.folder / STEP_LOG}: step {key!r}")
         except KeyError:
             raise BenchctlError(f"{self.folder}: step {key!r} has not finished") from None
 
@@ -128,17 +197,19 @@ class RunRecord:
                 return key, digest
         return None
 
-    def calibration_written(self, checksums: dict[str, str], step: str | None = None) -> None:
+    def calibration_written(self, checksums: dict[str, str], step: str | None = None, replace: bool = False) -> None:
         """Record the SHA-256 of each file of the run's calibration copy as the run wrote it (in the start record when
         no step has run yet, else in the step log, under `step`: the step that wrote it): a resume refuses a copy that
-        changed since (`changed_calibration`)."""
+        changed since (`changed_calibration`). `replace`: these are all the copy's files now (a new copy)."""
+        if replace:
+            self.calibration.clear()
         self.calibration.update(checksums)
         if not self.attempts:
             info = self.info()
             info["calibration_sha256"] = dict(self.calibration)
             write_json(self.folder / RUN_FILE, info)
         else:
-            self._log({"event": "calibration", "step": step, "checksums": checksums})
+            self._log({"event": "calibration", "step": step, "checksums": checksums, "replaces": replace})
 
     def changed_calibration(self, folder: Path) -> str | None:
         """Why the first file of the calibration copy in `folder` differs from what the run wrote (None: none)."""
@@ -183,6 +254,23 @@ class RunRecord:
             os.fsync(log.fileno())
 
 
+class Recorded(dict[str, Any]):
+    """A step's recorded result as later steps read it: a missing key, at any depth, is a BenchctlError naming the
+    step log, the step and the key (a KeyError traceback before)."""
+
+    def __init__(self, data: dict[str, Any], where: str) -> None:
+        super().__init__(data)
+        self._where = where
+
+    def __getitem__(self, name: str) -> Any:
+        value = super().__getitem__(name)
+        return Recorded(value, f"{self._where}, {name!r}") if isinstance(value, dict) else value
+
+    def __missing__(self, name: str) -> Any:
+        raise BenchctlError(f"{self._where}: no {name!r} in its recorded result: the step log is damaged (start the "
+                            "run anew)")
+
+
 def _damaged(folder: Path, checksums: dict[str, str], when: str = "it was written") -> str | None:
     """Why the first of `checksums`' files (relative to `folder`) is missing or changed; None if all match."""
     for name, digest in checksums.items():
@@ -209,7 +297,7 @@ def repair_log(path: Path) -> Path | None:
     lost its newline gets it back; a cut event is moved to `<log>.cut-<n>` (kept, never deleted) and removed from
     the log. Returns where the cut part went (None if there was none)."""
     try:
-        data = path.read_bytes()
+        data = read_capped(path, "step log", RECORD_BYTES)
     except FileNotFoundError:
         return None
     if not data or data.endswith(b"\n"):
@@ -243,17 +331,22 @@ def _unused(path: Path) -> Path:
 
 
 def _read_log(path: Path) -> list[dict[str, Any]]:
-    """The events of a step log; a last line cut short by a crash is ignored."""
+    """The events of a step log, each checked (`Event`); a last line cut short by a crash is ignored."""
     if not path.is_file():
         return []
     events = []
-    lines = path.read_text(encoding="utf-8").splitlines()
+    lines = read_capped(path, "step log", RECORD_BYTES).splitlines()
     for number, line in enumerate(lines, 1):
         try:
-            events.append(json.loads(line))
-        except json.JSONDecodeError:
+            event = json.loads(line)
+        except ValueError:  # not JSON, or not UTF-8
             if number < len(lines):
                 raise BenchctlError(f"{path}: line {number} is not a JSON event; the step log is damaged") from None
+            continue
+        _checked(event, Event, Path(f"{path}, line {number}"))
+        if event["event"] != "calibration" and event.get("step") is None:
+            raise fail(Path(f"{path}, line {number}"), "step", "missing: a step's event names its step")
+        events.append(event)
     return events
 
 
@@ -269,6 +362,8 @@ def create_run(out: Path, name: str, start: dict[str, Any], files: dict[str, byt
             folder.mkdir()
         except FileExistsError:
             continue
+        except OSError as exc:
+            raise BenchctlError(f"cannot create run folder {folder}: {exc.strerror or exc}") from None
         break
     else:
         raise BenchctlError(f"{out}: cannot create a new run folder for {name!r}")
@@ -288,10 +383,13 @@ def open_run(folder: Path) -> RunRecord:
     if not (folder / RUN_FILE).is_file():
         raise BenchctlError(f"{folder}: not a benchctl run folder (no {RUN_FILE})")
     record = RunRecord(folder)
+    _checked(record.info(), StartRecord, folder / RUN_FILE)
     repair_log(folder / STEP_LOG)
     record.calibration.update(record.info().get("calibration_sha256", {}))
     for event in record.events():
         if event.get("event") == "calibration":  # written by a step, or (step None) between steps
+            if event.get("replaces"):
+                record.calibration.clear()
             record.calibration.update(event.get("checksums", {}))
             continue
         key = event["step"]  # every other event of the step log names its step
@@ -325,12 +423,12 @@ def run_folder_lock(folder: Path) -> DeviceLock:
                             "wait for it to end, or stop it") from None
 
 
-def set_aside(folder: Path, attempt: int) -> Path | None:
-    """Move what an unfinished attempt left in `folder` to `<folder>.attempt-<n>` (kept, never deleted), so the
-    next attempt starts clean. Returns where it went, or None if there was nothing."""
+def set_aside(folder: Path) -> Path | None:
+    """Move what an unfinished attempt left in `folder` to `<folder>.attempt-<n>`, the first n free (kept, never
+    deleted), so the next attempt starts clean. Returns where it went, or None if there was nothing."""
     if not folder.exists() or not any(folder.iterdir()):
         return None
-    target = folder.with_name(f"{folder.name}.attempt-{attempt}")
+    target = _unused(folder.with_name(f"{folder.name}.attempt"))
     shutil.move(str(folder), str(target))
     return target
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import base64
 import html
 import json
+from collections.abc import Sequence
 from typing import Any
 
 import cv2
@@ -215,25 +216,29 @@ class Report:
     def _acceptance(self) -> str:
         if not self.verdicts:
             return ""
-        rows = [{"colour": r["colour"], "calibration": r["kind"], "measure": r["measure"],
-                 "previous, on the same captures": r["old"], "new": r["new"],
+        rows = [{"colour": r["colour"], "calibration": r["kind"], "measure": r["measure"], "new": r["new"],
+                 "compared with": r.get("replaces", "stored one") if r["old"] is not None else "nothing",
+                 "its value on the same captures": r["old"],
                  "stored": "yes, forced" if r["forced"] else "yes" if r["stored"] else "no",
                  "failed checks": "; ".join(r["failures"]) or "none"} for r in self.verdicts]
         return ("<h2>New calibration: stored only if it passes its acceptance test</h2>" + table(rows) +
-                "<p>A new calibration replaces the previous one only if light reached the camera, its fit improved on "
-                "its start, its residual is below the bound and not above that of the previous one on the same "
-                "captures (none: nothing was stored before). One that fails is kept for inspection in "
-                "<code>rejected/</code> beside the store and in this run's <code>calibration/</code>; "
-                "<code>accept = \"always\"</code> stores it anyway.</p>")
+                "<p>A new calibration replaces the one in use (the stored one, else the default: linear lookup "
+                "table, ideal optical model) only if light reached the camera, its fit improved on its start, and "
+                "on captures it was not fitted to (an optical model's held-out patterns, a lookup table's held-out "
+                "gray levels) its residual is below the bound and not above that of the one in use. One that fails "
+                "is kept for inspection in <code>rejected/</code> beside the store and in this run's "
+                "<code>calibration/</code>; <code>accept = \"always\"</code> stores it anyway.</p>")
 
-    def write(self, context: Context, metrics: dict[str, Any], rows: list[dict[str, Any]], colours: list[str],
-              headline: list[str]) -> dict[str, Any]:
-        """Write metrics.json (`metrics`), metrics.csv (`rows`) and report.html: the title, the warnings (this
-        report's and the calibration's for `colours`), the sections, then the run's details. Returns the report
-        step's result: the `headline` the run ends by printing, and the warnings."""
+    def write(self, context: Context, metrics: dict[str, Any], rows: Sequence[dict[str, Any]] = (),
+              colours: Sequence[str] | None = None, headline: Sequence[str] = ()) -> dict[str, Any]:
+        """Write metrics.json (`metrics`), metrics.csv (`rows`: one dict per row) and report.html: the title, the
+        warnings (this report's and the calibration's for `colours`, default every laser channel of the profile),
+        the sections, then the run's details. Returns the report step's result: the `headline` lines the run ends by
+        printing, and the warnings."""
         write_json(context.path(layout.METRICS_JSON), metrics)
         write_csv(context.path(layout.METRICS_CSV), rows)
-        details, calibration_warnings = _run_section(context, colours)
+        used = [c.name for c in context.profile.channels] if colours is None else list(colours)
+        details, calibration_warnings = _run_section(context, used)
         warnings = list(dict.fromkeys(self.warnings + calibration_warnings))
         box = ("<div class='warn'><b>Warnings</b><ul>" + "".join(f"<li>{_esc(w)}</li>" for w in warnings)
                + "</ul></div>") if warnings else "<p class='ok'>No warnings.</p>"
@@ -242,4 +247,4 @@ class Report:
                 f"{''.join(self.sections)}"
                 f"{details}</body></html>")
         atomic_write_bytes(context.path(layout.REPORT), page.encode())
-        return {"headline": headline, "warnings": list(dict.fromkeys(self.warnings))}
+        return {"headline": list(headline), "warnings": list(dict.fromkeys(self.warnings))}

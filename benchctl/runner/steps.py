@@ -29,7 +29,7 @@ from benchctl.holograms.cache import Hologram, hologram
 from benchctl.holograms.scene import resolve_method
 from benchctl.images import read_image, write_png
 from benchctl.optics import linear_to_srgb
-from benchctl.profiles import LaserChannel, NonNegative, NonNegativeInt, Profile
+from benchctl.profiles import LaserChannel, NonNegativeInt, Profile, SettleMs
 from benchctl.runner import layout
 from benchctl.runner.context import Context, Expose, FocusAt, P, Parameters, Step
 from benchctl.runner.instruments import Exposure
@@ -48,7 +48,7 @@ class ExposureParameters(Parameters, kw_only=True):
     setpoints: dict[str, str] = msgspec.field(default_factory=dict)  # colour -> "40mW" | "5%" (default: profile's)
     frames: Frames = 2
     dark_frames: DarkFrames = 1
-    settle_ms: NonNegative | None = None  # after a new SLM frame (default: the profile's slm.settle_ms)
+    settle_ms: SettleMs | None = None  # after a new SLM frame (default: the profile's slm.settle_ms)
     # a calibration the procedure measures (registration, lookup tables, optical model) replaces the stored one only
     # if it passes its acceptance test ("tested"), or always ("always": said, and in the report)
     accept: AcceptMode = "tested"
@@ -108,10 +108,21 @@ def power_w(context: Context, channel: LaserChannel) -> float:
     """The power a channel is exposed at: the procedure's setpoint for it, else the profile's; never above the
     channel's max_power_mw (checked here, at planning, and again by the laser driver)."""
     text = context.parameters(ExposureParameters).setpoints.get(channel.name)
-    watts = channel.setpoint_mw * 1e-3 if text is None else parse_power(text, channel.max_power_mw)
+    if text is None:
+        return channel.setpoint_mw * 1e-3
+    return checked_power(text, channel, f"setpoints.{channel.name}")
+
+
+def checked_power(text: str, channel: LaserChannel, key: str) -> float:
+    """A power the procedure's parameter `key` gives for `channel` ("20mW", "5%" of its max_power_mw), in watts,
+    never above the channel's max_power_mw; a BenchctlError naming the key otherwise."""
+    try:
+        watts = parse_power(text, channel.max_power_mw)
+    except BenchctlError as exc:
+        raise BenchctlError(f"parameters.{key}: {exc}") from None
     if watts > channel.max_power_mw * 1e-3 * (1 + 1e-9):
-        raise BenchctlError(f"parameters.setpoints.{channel.name}: {format_power(watts)} is above the channel's "
-                            f"max_power_mw {channel.max_power_mw:g} mW")
+        raise BenchctlError(f"parameters.{key}: {format_power(watts)} is above the channel's max_power_mw "
+                            f"{channel.max_power_mw:g} mW")
     return watts
 
 
@@ -270,12 +281,14 @@ def focus_moves(context: Context, channel: LaserChannel, depth_m: float | None =
 
 def exposure_step(context: Context, key: str, channel: LaserChannel, watts: float | Callable[[Context], float],
                   frame: Callable[[Context], np.ndarray], description: str, *, frames: int | None = None,
-                  dark_frames: int | None = None, read_later: bool = True, depth_m: float | None = None) -> Step:
+                  dark_frames: int | None = None, read_later: bool = True, max_w: float | None = None,
+                  depth_m: float | None = None) -> Step:
     """A step that shows `frame(context)` and exposes it with `channel` alone at `watts` (a number, or a function
-    of the context that decides when the step runs, as automatic exposure does), keeping the RAW frames and dark
-    frames (counts: as given, else the procedure's `frames` / `dark_frames`) for later steps (`load_exposure`).
-    The camera focuses first at `depth_m` from the SLM (which needs the focus calibration), or by default at the
-    target plane where the focus is calibrated (`focus_moves`). A retried step first moves what its unfinished
+    of the context that decides when the step runs, as automatic exposure does: `max_w` bounds what it may choose,
+    else the channel's max_power_mw), keeping the RAW frames and dark frames (counts: as given, else the procedure's
+    `frames` / `dark_frames`) for later steps (`load_exposure`). The camera focuses first at `depth_m` from the SLM
+    (which needs the focus calibration), or by default at the target plane where the focus is calibrated
+    (`focus_moves`). A retried step first moves what its unfinished
     attempt left aside (kept, never deleted)."""
     params = context.parameters(ExposureParameters)
     count = params.frames if frames is None else frames
@@ -289,7 +302,8 @@ def exposure_step(context: Context, key: str, channel: LaserChannel, watts: floa
                          read_later=read_later).record
         return {**record, "focus": moved[0]} if moved else record
 
-    declared = Expose(channel.name, None if callable(watts) else watts, count, darks)
+    declared = Expose(channel.name, None if callable(watts) else watts, count, darks,
+                      max_w=max_w if callable(watts) else None)
     return Step(key, description, action, (declared,), focus)
 
 

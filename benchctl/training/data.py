@@ -56,8 +56,8 @@ class ImageSource:
 
 
 def image_sources(spec: str) -> list[ImageSource]:
-    """The images `--data` names: `procedural:N`, `photos:train|eval`, a folder of image files (sorted by
-    name), or several of these joined with "+"."""
+    """The images `--data` names: `procedural:N` (or `procedural:A-B`), `photos:train|eval`, a folder of image
+    files (sorted by name), or several of these joined with "+"."""
     if JOIN in spec:
         parts = spec.split(JOIN)
         if not all(parts):
@@ -69,11 +69,15 @@ def image_sources(spec: str) -> list[ImageSource]:
             raise BadValueError(f"--data {spec!r}: expected photos:train or photos:eval")
         return [ImageSource(name, path=name) for name in photo_specs(split)]
     if spec.startswith(PROCEDURAL_PREFIX):
-        count = spec[len(PROCEDURAL_PREFIX):]
-        if not count.isdigit() or not 1 <= int(count) <= MAX_PROCEDURAL:
-            raise BadValueError(f"--data {spec!r}: expected procedural:N with 1 <= N <= {MAX_PROCEDURAL:,} images, "
-                                "e.g. procedural:64")
-        return [ImageSource(f"procedural-{i:05d}", index=i) for i in range(int(count))]
+        text = spec[len(PROCEDURAL_PREFIX):]
+        first, dash, last = text.partition("-")
+        if not dash:  # procedural:N, images 0 to N-1
+            first, last = "0", str(int(first) - 1) if first.isdigit() else ""
+        if not (first.isdigit() and last.isdigit() and int(first) <= int(last) < int(first) + MAX_PROCEDURAL):
+            raise BadValueError(f"--data {spec!r}: expected procedural:N with 1 <= N <= {MAX_PROCEDURAL:,} images "
+                                "(images 0 to N-1), or procedural:A-B (images A to B, e.g. 200000-200031, images that "
+                                "a run on procedural:N with N <= 200000 never sees), e.g. procedural:64")
+        return [ImageSource(f"procedural-{i:05d}", index=i) for i in range(int(first), int(last) + 1)]
     folder = Path(spec)
     if not folder.is_dir():
         raise BenchctlError(f"--data {spec}: no such folder (give a folder of images, or procedural:N)")

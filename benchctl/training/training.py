@@ -51,10 +51,13 @@ from benchctl.targets import prepare_target, target_plane
 from benchctl.terminal import ProgressLine
 from benchctl.training.averaging import WeightAverage
 from benchctl.training.data import ImageSource, describe_sources, image_sources, split_sources
+from benchctl.training.device import check_device_text, resolve_device
 from benchctl.training.health import StepStats, TrainingHealth, clamped_fraction, gradient_norm
+from benchctl.training.schedule import Schedule
 
 LOSSES = ("mse", "l2-perceptual")
 MAX_LR = 0.1  # Adam on these networks diverges far below this; above it a value is a typo
+BACKEND_ENV = "BENCHCTL_DDP_BACKEND"
 
 
 @dataclass(frozen=True)
@@ -76,6 +79,9 @@ class TrainSettings:
     weights_dtype: str = "float32"
     model_calibration: str | None = None  # "stored" or an optical-model.json: train through that fitted model
     ema: float | None = None  # decay of a weight average (averaging.py) that validation and the checkpoint use
+    warmup: int = 0  # steps of linear learning-rate warm-up (schedule.py)
+    decay: str = "none"  # learning-rate decay after the warm-up: none or cosine (to zero at the last step)
+    device: str = "cpu"  # --device: auto, cpu, cuda or cuda:N (device.py)
 
     def validate(self) -> None:
         """BadValueError naming the flag for every setting a user can get wrong."""
@@ -96,6 +102,10 @@ class TrainSettings:
             raise BadValueError(f"--lr must lie in (0, {MAX_LR:g}] (the paper's is 5e-4), got {self.lr:g}")
         if self.ema is not None and not 0 < self.ema < 1:
             raise BadValueError(f"--ema must lie between 0 and 1 (e.g. 0.99), got {self.ema}")
+        if not 0 <= self.seed < 2**32:
+            raise BadValueError(f"--seed must lie between 0 and {2**32 - 1}, got {self.seed}")
+        check_device_text(self.device)
+        Schedule(self.lr, self.warmup, self.decay, None if self.decay == "none" else 1 << 62)
         if self.weights_dtype not in WEIGHT_DTYPES:
             raise BadValueError(f"--weights-dtype {self.weights_dtype!r}: expected one of {', '.join(WEIGHT_DTYPES)}")
 
@@ -119,6 +129,12 @@ class TrainSettings:
             words += ["--model-calibration", self.model_calibration]
         if self.ema is not None:
             words += ["--ema", f"{self.ema:g}"]
+        if self.warmup:
+            words += ["--warmup", str(self.warmup)]
+        if self.decay != "none":
+            words += ["--decay", self.decay]
+        if self.device != "cpu":
+            words += ["--device", self.device]
         return shlex.join(words + ["--out", str(out_dir)])
 
 
@@ -145,19 +161,24 @@ class Distributed:
     owns_group: bool = False
 
     @classmethod
-    def from_env(cls) -> Distributed:
-        """Join the process group torchrun describes (RANK, WORLD_SIZE, LOCAL_RANK, MASTER_ADDR/PORT)."""
+    def from_env(cls, device_text: str = "cpu") -> Distributed:
+        """Join the process group torchrun describes (RANK, WORLD_SIZE, LOCAL_RANK, MASTER_ADDR/PORT) on the device
+        `--device` names: on GPUs, each process on GPU LOCAL_RANK (modulo the GPUs here) unless one is named.
+        Backend: nccl on GPUs, gloo on CPU, or $BENCHCTL_DDP_BACKEND (gloo lets several processes share a GPU,
+        which nccl refuses)."""
         world = int(os.environ.get("WORLD_SIZE", "1"))
         local_rank = int(os.environ.get("LOCAL_RANK", "0"))
-        cuda = torch.cuda.is_available()
-        device = torch.device("cuda", local_rank % torch.cuda.device_count()) if cuda else torch.device("cpu")
+        device = resolve_device(device_text, local_rank)
         if world <= 1:
             return cls(device=device)
         owns = not dist.is_initialized()
         if owns:
-            if cuda:
+            backend = os.environ.get(BACKEND_ENV) or ("nccl" if device.type == "cuda" else "gloo")
+            if backend not in ("nccl", "gloo"):
+                raise BadValueError(f"${BACKEND_ENV}={backend!r}: expected nccl or gloo")
+            if device.type == "cuda":
                 torch.cuda.set_device(device)
-            dist.init_process_group("nccl" if cuda else "gloo")
+            dist.init_process_group(backend)
         return cls(rank=dist.get_rank(), world_size=dist.get_world_size(), device=device, owns_group=owns)
 
     @property
@@ -167,7 +188,7 @@ class Distributed:
     def wrap(self, model: nn.Module) -> nn.Module:
         if self.world_size == 1:
             return model
-        ids = [self.device.index] if self.device.type == "cuda" else None
+        ids = [self.device.index] if self.device.type == "cuda" else None  # DDP's rule for one GPU per process
         return nn.parallel.DistributedDataParallel(model, device_ids=ids)
 
     def mean(self, values: Sequence[float]) -> list[float]:
@@ -354,13 +375,20 @@ def train(profile: Profile, settings: TrainSettings, out_dir: Path, planes: Mapp
     settings.validate()
     loss_fn = make_loss(settings.loss, settings.vgg_weights)
     setups = training_setups(profile, settings.size, settings.colours)
-    if not torch.cuda.is_available():  # the estimate is of CPU memory; a GPU's allocator says for itself
-        check_training_memory(step_estimate(settings, next(iter(setups.values())).shape))
     train_set, val_set = split_sources(image_sources(settings.data), settings.val_fraction, settings.seed)
-    job = Distributed.from_env()
+    job = Distributed.from_env(settings.device)
+    if job.device.type == "cpu":  # the estimate is of CPU memory; on a GPU its allocator's refusal is caught below
+        check_training_memory(step_estimate(settings, next(iter(setups.values())).shape))
     try:
         return _train(profile, settings, Path(out_dir), planes, setups, train_set, val_set, loss_fn, job, resume,
                       out if job.main else (lambda _: None), progress_stream)
+    except torch.cuda.OutOfMemoryError:
+        free, total = torch.cuda.mem_get_info(job.device)
+        grid = next(iter(setups.values())).shape
+        raise BenchctlError(f"one training step of {settings.method} on {grid[0]} x {grid[1]} with --batch-size "
+                            f"{settings.batch_size} does not fit in {job.device}'s memory ({size_text(total)}, "
+                            f"{size_text(free)} free now): use a smaller --size or --batch-size, or a DCM "
+                            "variant") from None
     finally:
         job.close()
 
@@ -390,15 +418,18 @@ def _train(profile: Profile, settings: TrainSettings, out_dir: Path, planes: Map
     total = settings.epochs * steps_per_epoch
     if settings.max_steps is not None:
         total = min(total, settings.max_steps)
+    schedule = Schedule(settings.lr, settings.warmup, settings.decay, total)
     geometry = next(iter(setups.values()))
     out(f"training {settings.method} for {', '.join(setups)} on {geometry.shape[0]}x{geometry.shape[1]} "
         f"(ROI {geometry.roi[0]}x{geometry.roi[1]}), {len(train_set)} training / {len(val_set)} validation images "
         f"from {settings.data}, {settings.epochs} epoch(s) of {steps_per_epoch} step(s) "
-        f"(batch {settings.batch_size} x {job.world_size} process(es)), {total} step(s) in all, on {device}"
+        f"(batch {settings.batch_size} x {job.world_size} process(es)), {total} step(s) in all, on {device}, "
+        f"{schedule.describe()}"
         + (f", about {size_text(step_estimate(settings, geometry.shape).peak)} per step" if device.type == "cpu"
            else ""))
     meta = {
-        "loss": settings.loss, "lr": settings.lr, "epochs": settings.epochs, "batch_size": settings.batch_size,
+        "loss": settings.loss, "lr": settings.lr, "warmup": settings.warmup, "decay": settings.decay,
+        "epochs": settings.epochs, "batch_size": settings.batch_size,
         "seed": settings.seed, "val_fraction": settings.val_fraction, "max_steps": settings.max_steps,
         "processes": job.world_size, "device": str(device), "size": list(settings.size) if settings.size else None,
         "profile": profile.name, "data": describe_sources(settings.data, train_set, val_set),
@@ -429,6 +460,7 @@ def _train(profile: Profile, settings: TrainSettings, out_dir: Path, planes: Map
                                    epoch_flips(settings.seed, epoch, positions)).to(device)
             for colour, model in wrapped.items():
                 amplitude = peak_normalised(targets[:, planes[colour]:planes[colour] + 1])
+                schedule.apply(optimisers[colour], step)
                 stats = training_step(model, optimisers[colour], setups[colour], amplitude, loss_fn)
                 verdict = health[colour].update(StepStats(*job.mean(
                     [stats.loss, stats.psnr_db, stats.grad_norm, stats.clamped])))
@@ -527,12 +559,9 @@ def _resume(path: Path, settings: TrainSettings, profile: Profile, setups: Mappi
             f"(resume from {path.with_suffix('').name}{RESUME_SUFFIX} to continue exactly)")
         return {"epoch": 0, "batch": 0, "step": 0}, history
     _refuse_changes(path, checkpoint.training, settings, setups)
-    saved_lr = set()
     for colour, optimiser in optimisers.items():
-        optimiser.load_state_dict(checkpoint.optimisers[colour])
-        for group in optimiser.param_groups:  # the saved state carries its lr: --lr is what this run asked for
-            saved_lr.add(group["lr"])
-            group["lr"] = settings.lr
+        optimiser.load_state_dict(checkpoint.optimisers[colour])  # its lr is replaced by the schedule's at each step
+    saved_lr = {checkpoint.training.get("lr", settings.lr)}
     position = {k: int(v) for k, v in checkpoint.position.items()}
     if averages and checkpoint.averages:
         for colour, average in averages.items():

@@ -1,6 +1,9 @@
-// benchctl console page: live view over a WebSocket, controls over JSON POSTs (same origin, token cookie).
+// benchctl console page: live view over a WebSocket, controls over JSON POSTs. The token comes from this page's URL
+// and goes with every request as a header (and in the socket's URL), never as a cookie: cookies ignore ports, so
+// every other web server on this computer would receive it.
 "use strict";
 const $ = (id) => document.getElementById(id);
+const TOKEN = new URLSearchParams(location.search).get("token") || "";
 const COLOURS = ["#ff5050", "#40d060", "#5090ff"];
 let info = null;
 let socket = null;
@@ -14,10 +17,11 @@ let laserState = {};
 function say(text) { const pre = $("events"); pre.textContent = text + "\n" + pre.textContent; }
 
 async function api(path, body, raw) {
-  const options = { method: body === undefined ? "GET" : "POST", credentials: "same-origin" };
+  const options = { method: body === undefined ? "GET" : "POST", credentials: "omit",
+    headers: { "x-benchctl-token": TOKEN } };
   if (body !== undefined) {
     options.body = raw ? body : JSON.stringify(body);
-    options.headers = { "content-type": raw ? "application/octet-stream" : "application/json" };
+    options.headers["content-type"] = raw ? "application/octet-stream" : "application/json";
   }
   const response = await fetch(path, options);
   const data = await response.json().catch(() => ({ error: `HTTP ${response.status}` }));
@@ -30,6 +34,7 @@ function option(select, value, text) {
 }
 
 async function init() {
+  $("report").href = "/api/procedures/report?token=" + encodeURIComponent(TOKEN);
   info = await api("/api/info");
   $("profile").textContent = "profile " + info.profile;
   if (info.deadman_s) $("deadman").textContent = `(emission off ${info.deadman_s} s after the page goes away)`;
@@ -74,17 +79,48 @@ function showFields() {
 }
 
 function connect() {
-  socket = new WebSocket(`ws://${location.host}/ws`);
+  socket = new WebSocket(`ws://${location.host}/ws?token=${encodeURIComponent(TOKEN)}`);
   socket.binaryType = "arraybuffer";
-  socket.onopen = () => { $("link").textContent = "connected"; $("link").className = "badge on"; drawnSeq = 0; };
+  socket.onopen = () => { $("link").textContent = "connected"; $("link").className = "badge on"; drawnSeq = 0; found(); };
   socket.onclose = () => {
     $("link").textContent = "disconnected"; $("link").className = "badge off";
+    lost();
     setTimeout(connect, 1000);
   };
   socket.onmessage = (event) => {
-    if (typeof event.data === "string") { send("heartbeat"); state(JSON.parse(event.data)); }
+    if (typeof event.data === "string") {
+      send("heartbeat");
+      const message = JSON.parse(event.data);
+      if ("all_off" in message) allOffAnswered(message.all_off); else state(message);
+    }
     else frame(event.data).then((seq) => send("ack " + seq), () => send("ack " + lastSeq));
   };
+}
+
+// A page that has lost its console knows nothing of the bench: every control is greyed out and the laser's state is
+// said to be unknown (the console switches emission off when it stops, but it may have stopped without doing so).
+function lost() {
+  if (document.body.classList.contains("lost")) return;
+  document.body.classList.add("lost");
+  $("lost").hidden = false;
+  for (const control of document.querySelectorAll("button, input, select")) {
+    control.dataset.before = control.disabled ? "disabled" : "";
+    control.disabled = true;
+  }
+  for (const row of document.querySelectorAll("#laser tbody tr")) {
+    const emit = row.querySelector(".emit");
+    emit.textContent = "?"; emit.className = "emit";
+    row.querySelector(".readback").textContent = "unknown";
+    row.querySelector(".status").textContent = "";
+  }
+  $("fps").textContent = "0";
+}
+
+function found() {
+  if (!document.body.classList.contains("lost")) return;
+  document.body.classList.remove("lost");
+  $("lost").hidden = true;
+  for (const control of document.querySelectorAll("button, input, select")) control.disabled = control.dataset.before === "disabled";
 }
 
 // Every message to the server is a heartbeat for the laser's dead-man switch: the page answers what the server
@@ -182,15 +218,19 @@ function state(s) {
     const interlock = ch.interlock === false ? "INTERLOCK OPEN" : ch.interlock ? "interlock ok" : "";
     row.querySelector(".status").textContent = [interlock, ...(ch.faults || [])].join(", ");
   }
-  if (s.camera) $("camera-error").textContent = s.camera.error || "";
+  reconnectable("laser", laser.connected !== false);
+  if (s.camera) { $("camera-error").textContent = s.camera.error || ""; reconnectable("camera", s.camera.connected); }
   const job = s.job;
   $("job").textContent = job.busy ? `${job.busy}` + (job.progress ? ` ${job.progress.done}/${job.progress.total}` : "…")
     : job.error ? "error: " + job.error : job.last ? `${job.last} done in ${job.seconds} s` : "";
   $("show").disabled = !!job.busy; $("capture").disabled = !!job.busy;
   if (s.slm) {
     const shows = s.slm.shows;
-    if (shows.frame !== shownFrame) { shownFrame = shows.frame; $("thumbnail").src = "/api/slm/thumbnail.png?f=" + shows.frame; }
-    $("slm-shows").textContent = shows.kind ? describe(shows) : (s.slm.error || "nothing shown yet");
+    const key = `${shows.frame}|${shows.by}|${shows.at}`;
+    if (key !== shownFrame) { shownFrame = key; thumbnail(); }
+    $("slm-shows").textContent = describe(shows);
+    $("slm-error").textContent = s.slm.connected ? "" : s.slm.error || "";
+    reconnectable("slm", s.slm.connected);
   }
   for (const [id, name] of Object.entries(s.uploads)) {
     if (![...$("target").options].some((o) => o.value === "upload:" + id)) option($("target"), "upload:" + id, `${name} (upload ${id})`);
@@ -201,7 +241,30 @@ function state(s) {
   $("stop").disabled = !p.running;
 }
 
+let thumbnailUrl = null;
+async function thumbnail() {
+  const response = await fetch("/api/slm/thumbnail.png", { credentials: "omit", headers: { "x-benchctl-token": TOKEN } });
+  if (!response.ok) return;
+  if (thumbnailUrl) URL.revokeObjectURL(thumbnailUrl);
+  thumbnailUrl = URL.createObjectURL(await response.blob());
+  $("thumbnail").src = thumbnailUrl;
+}
+
+// A device the console lost or could not open: its panel offers to connect it again.
+function reconnectable(device, connected) {
+  document.querySelector(`.reconnect[data-device="${device}"]`).hidden = !!connected;
+}
+
+function when(iso) { return iso ? new Date(iso).toLocaleTimeString() : ""; }
+
+// What the SLM shows: the pattern this console sent, or what the device says it holds and who put it there.
 function describe(shows) {
+  if (!shows.kind) {
+    if (shows.frame === undefined || (shows.frame === null && !shows.by)) return "nothing shown yet";
+    return `SLM frame ${shows.frame ?? "?"}, shown by ${shows.by || "a program unknown to the SLM"}` +
+      (shows.at ? ` at ${when(shows.at)}` : "") + (shows.channel ? ` for ${shows.channel}` : "") +
+      " (read from the SLM)";
+  }
   const parts = [shows.kind];
   if (shows.channel) parts.push(`for ${shows.channel}`);
   if (shows.kind === "grating") parts.push(`period ${shows.period_px} px, ${shows.angle_deg}°`);
@@ -210,7 +273,7 @@ function describe(shows) {
   if (shows.hologram) parts.push(`${shows.hologram.seconds} s${shows.hologram.cached ? " (cached)" : ""}`);
   const z = Object.entries(shows.zernike || {}).filter(([, v]) => v);
   if (z.length) parts.push("+ " + z.map(([k, v]) => `${k} ${v}`).join(", ") + " waves");
-  return parts.join(" · ") + ` · SLM frame ${shows.frame}`;
+  return parts.join(" · ") + ` · SLM frame ${shows.frame}` + (shows.at ? ` at ${when(shows.at)}` : "");
 }
 
 function pattern() {
@@ -231,8 +294,27 @@ function pattern() {
 }
 
 $("kind").onchange = showFields;
+for (const button of document.querySelectorAll(".reconnect")) {
+  button.onclick = () => api("/api/connect", { device: button.dataset.device })
+    .then((r) => say(`${button.dataset.device}: ${r.connected ? "connected" : r.error}`), () => {});
+}
 $("show").onclick = () => api("/api/slm", pattern()).catch(() => {});
-$("all-off").onclick = () => api("/api/laser/off", {}).then(() => say("all off"), () => {});
+// ALL OFF goes over the open socket first: it needs no new connection, so a flood of connections to the console
+// cannot hold it up; a request is the fallback when the socket is closed or does not answer within 2 s.
+let allOffWait = null;
+function allOff() {
+  if (socket && socket.readyState === 1) {
+    socket.send("all-off");
+    clearTimeout(allOffWait);
+    allOffWait = setTimeout(allOffByRequest, 2000);
+  } else allOffByRequest();
+}
+function allOffByRequest() { allOffWait = null; api("/api/laser/off", {}).then(() => say("all off"), () => {}); }
+function allOffAnswered(answer) {
+  clearTimeout(allOffWait); allOffWait = null;
+  say(answer.error ? "ALL OFF: " + answer.error : answer.stopped ? "all off: the procedure was stopped" : "all off");
+}
+$("all-off").onclick = allOff;
 $("zoom-clear").onclick = () => api("/api/view", { zoom: null }).catch(() => {});
 for (const radio of document.querySelectorAll("input[name=mode]")) radio.onchange = () => api("/api/view", { mode: radio.value }).catch(() => {});
 $("frame").onclick = (event) => {

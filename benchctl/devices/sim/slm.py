@@ -19,7 +19,7 @@ import numpy as np
 from benchctl.devices.errors import DeviceError
 from benchctl.devices.lock import DeviceLock
 from benchctl.devices.sim.state import device_file, load_state, save_state, sim_lock, state_dir
-from benchctl.devices.slm.base import SLM
+from benchctl.devices.slm.base import SLM, Showing
 from benchctl.errors import BenchctlError
 from benchctl.files import ensure_dir
 from benchctl.optics.phase_encoding import PhaseLUT
@@ -104,6 +104,7 @@ class SimSLM(SLM):
             "bit_depth": self.bit_depth,
             "channel": channel,
             "time": datetime.now(timezone.utc).isoformat(timespec="milliseconds"),
+            "by": self.holder(),
         })
         for old in state_dir().glob(f"{STATE_NAME}-*.png"):
             if old.name != name:
@@ -113,6 +114,13 @@ class SimSLM(SLM):
         """The simulated panel's frame counter (None before its first frame)."""
         frame = load_state(STATE_NAME).get("frame")
         return None if frame is None else int(frame)
+
+    def showing(self) -> Showing:
+        """The simulated panel's frame and its record: which program displayed it, when, for which colour."""
+        gray, state = read_displayed()
+        frame = state.get("frame")
+        return Showing(gray, None if frame is None else int(frame), state.get("by"), state.get("time"),
+                       state.get("channel"))
 
     def info(self) -> dict[str, Any]:
         """The base description plus where the simulated panel lives and what it shows now."""

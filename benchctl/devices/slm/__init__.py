@@ -8,12 +8,12 @@
 
 from __future__ import annotations
 
-from benchctl.devices.slm.base import SLM
+from benchctl.devices.slm.base import SLM, Showing
 from benchctl.devices.slm.lut import load_lut, lut_for, save_lut
 from benchctl.drivers import driver_class
 from benchctl.profiles import Profile
 
-__all__ = ["SLM", "load_lut", "lut_for", "open_slm", "save_lut", "slm_for"]
+__all__ = ["SLM", "Showing", "load_lut", "lut_for", "open_slm", "save_lut", "slm_for"]
 
 
 def slm_for(profile: Profile) -> SLM:

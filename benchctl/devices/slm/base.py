@@ -13,6 +13,7 @@ import sys
 import time
 from abc import abstractmethod
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from datetime import datetime, timedelta, timezone
 from typing import TYPE_CHECKING, Any, ClassVar
 
@@ -31,6 +32,20 @@ if TYPE_CHECKING:  # phases may come as tensors, but torch is never imported her
     import torch
 
 TWO_PI = 2.0 * math.pi
+
+
+@dataclass(frozen=True)
+class Showing:
+    """What an SLM's panel shows now, as far as the device can tell: the gray frame as shown (None: it cannot
+    tell), the device's id of that frame where it keeps one, who put it there (a program and its pid; None:
+    unknown, e.g. a frame read back that this connection did not write) and when (UTC, ISO 8601), and the colour
+    it was encoded for (None: raw gray levels, or unknown)."""
+
+    frame: np.ndarray | None
+    frame_id: int | None = None
+    by: str | None = None
+    at: str | None = None
+    channel: str | None = None
 # A table whose widest unshown phase interval exceeds this many ideal gray steps is worth optimising through: a
 # red laser on a panel with 2 pi at 600 nm (gap 0.76 rad) gains 3.6 dB from SGD through it, while an 8-bit
 # table covering 2 pi loses 0.1 dB (measured at 1088 x 1920, chart:bars, 70 iterations; docs/model_calibration.md).
@@ -49,6 +64,7 @@ class SLM(Connection):
         self.sleep: Callable[[float], None] = wait  # the settle wait; tests replace it
         self._luts: dict[str, PhaseLUT] = {}
         self._current: np.ndarray | None = None
+        self._current_channel: str | None = None
         self._frames_shown = 0
         self.shown_frame: int | None = None  # displayed_frame() right after this object's last frame went up
         # When the last frame was presented (UTC, ISO 8601 to the microsecond): the time the platform reports
@@ -93,11 +109,6 @@ class SLM(Connection):
     def shape(self) -> tuple[int, int]:
         """(H, W) = (rows, cols): the shape of phases and gray frames."""
         return self.config.shape
-
-    @property
-    def resolution(self) -> tuple[int, int]:
-        """Same as `shape`, (H, W)."""
-        return self.shape
 
     @property
     def pitch_m(self) -> float:
@@ -159,6 +170,25 @@ class SLM(Connection):
     def current(self) -> np.ndarray | None:
         """The last frame this object displayed (read-only), None before the first."""
         return self._current
+
+    def showing(self) -> Showing:
+        """What the panel shows now and who put it there: the frame this connection displayed last, unless the
+        panel, read back where the driver can (`_read_panel`), holds another one (then `by` is unknown). Drivers
+        that know more (the simulated panel records every program's frames) override it."""
+        panel = self._read_panel()
+        own = self._current
+        if own is not None and (panel is None or np.array_equal(panel, own)):
+            return Showing(own, self.displayed_frame(), self.holder(), self.presented_at, self._current_channel)
+        return Showing(panel)
+
+    def _read_panel(self) -> np.ndarray | None:
+        """The gray frame on the panel as the device reads it back; None where it cannot (the default)."""
+        return None
+
+    def holder(self) -> str | None:
+        """The program holding this SLM (its lock's holder: command and pid), while it is open."""
+        holder = self._hold.holder() if self._hold is not None else None
+        return None if holder is None else f"`{holder.command}` (pid {holder.pid})"
 
     # -- showing ----------------------------------------------------------------------------------------------
 
@@ -244,7 +274,7 @@ class SLM(Connection):
         presented = self._display(frame, channel)
         since = 0.0 if presented is None else max(0.0, time.monotonic() - presented)
         self.presented_at = (datetime.now(timezone.utc) - timedelta(seconds=since)).isoformat(timespec="microseconds")
-        self._current = frame
+        self._current, self._current_channel = frame, channel
         self._frames_shown += 1
         self.shown_frame = self.displayed_frame()
         self.sleep(max(0.0, self.settle_s - since))

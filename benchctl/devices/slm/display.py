@@ -153,6 +153,7 @@ class DisplaySLM(SLM):
         self._presenter = Presenter.on(self._x, self._window, output.crtc)
         self._x.sync()
         self._raise_errors("the SLM's window")
+        self._current = np.zeros(self.shape, self.gray_dtype)  # a new window shows its black background
 
     @property
     def presentation(self) -> str:

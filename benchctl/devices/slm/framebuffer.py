@@ -226,6 +226,19 @@ class FramebufferSLM(SLM):
         self._wait_vsync()
         self._pixels[...] = self._pack(gray)
 
+    def _read_panel(self) -> np.ndarray | None:
+        """The gray levels in the framebuffer's memory now: exactly the last frame where the memory holds its
+        pixels, else each pixel's red bits (another program wrote the framebuffer)."""
+        if self._pixels is None or self._pack is None or self.geometry is None:
+            return None
+        own = self.current()
+        if own is not None and np.array_equal(self._pixels, self._pack(own)):
+            return own
+        geo = self.geometry
+        field = Bitfield(0, 8) if geo.bits_per_pixel == 8 else geo.red
+        level = (self._pixels.astype(np.uint32) >> np.uint32(field.offset)) & np.uint32((1 << field.length) - 1)
+        return _top_bits(level, field.length, self.bit_depth).astype(self.gray_dtype)
+
     def _wait_vsync(self) -> None:
         """Wait for the vertical blank, so a frame starts being written as the panel starts a refresh."""
         if not self._vsync:

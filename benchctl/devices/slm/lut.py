@@ -14,6 +14,7 @@ phase <-> gray mapping (benchctl.optics.phase_encoding).
 
 from __future__ import annotations
 
+import io
 import re
 from collections.abc import Callable
 from pathlib import Path
@@ -21,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from benchctl.errors import BenchctlError
-from benchctl.files import atomic_write_bytes, ensure_dir
+from benchctl.files import atomic_write_bytes, ensure_dir, read_capped
 from benchctl.optics.phase_encoding import PhaseLUT
 from benchctl.profiles import SLMConfig
 
@@ -58,11 +59,16 @@ def lut_for(config: SLMConfig, channel: str) -> PhaseLUT:
     return load_lut(path, config.bit_depth)
 
 
+def _read(path: Path) -> bytes:
+    try:
+        return read_capped(path, "lookup table")
+    except FileNotFoundError as exc:
+        raise BenchctlError(f"{path}: cannot read lookup table: {exc.strerror or exc}") from None
+
+
 def _load_npy(path: Path, levels: int) -> PhaseLUT:
     try:
-        array = np.load(path, allow_pickle=False)
-    except OSError as exc:
-        raise BenchctlError(f"{path}: cannot read lookup table: {exc.strerror or exc}") from None
+        array = np.load(io.BytesIO(_read(path)), allow_pickle=False)
     except ValueError as exc:
         raise BenchctlError(f"{path}: not a readable .npy lookup table ({exc})") from None
     if array.ndim != 1 or array.dtype.kind not in "iuf":
@@ -75,9 +81,7 @@ def _load_npy(path: Path, levels: int) -> PhaseLUT:
 
 def _load_text(path: Path, levels: int) -> PhaseLUT:
     try:
-        text = path.read_text()
-    except OSError as exc:
-        raise BenchctlError(f"{path}: cannot read lookup table: {exc.strerror or exc}") from None
+        text = _read(path).decode()
     except UnicodeDecodeError:
         raise BenchctlError(f"{path}: not a text file (a lookup table is CSV/TXT or .npy)") from None
     rows = []

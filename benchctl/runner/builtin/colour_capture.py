@@ -25,7 +25,8 @@ import numpy as np
 import torch
 from msgspec import Meta
 
-from benchctl.capture.colour_planes import PEAK_PERCENTILE, merge_capture
+from benchctl.capture.colour_planes import merge_capture
+from benchctl.capture.exposure import PEAK_PERCENTILE
 from benchctl.cgh import DEFAULT_METHOD, get_method
 from benchctl.optics import colour_scores, crop_roi, lsq_scale
 from benchctl.optics.metrics import pareto_front
@@ -34,6 +35,7 @@ from benchctl.runner.api import (
     ERROR_FULL_SCALE,
     BenchctlError,
     Context,
+    ExposureCap,
     ExposureMode,
     HologramParameters,
     PeakGoal,
@@ -43,6 +45,7 @@ from benchctl.runner.api import (
     channels,
     check_method,
     error_map,
+    exposure_cap_w,
     exposure_step,
     figure,
     front_plot,
@@ -61,6 +64,7 @@ from benchctl.runner.api import (
     table,
     target_label,
     target_plane,
+    unknown_caps,
     unknown_setpoints,
 )
 from benchctl.runner.builtin import focal_stack, lut_calibration, registration
@@ -85,6 +89,7 @@ class ColourCaptureParameters(HologramParameters, kw_only=True):
     lut_calibration: Literal["auto", "skip"] = "auto"
     exposure: ExposureMode = "auto"  # "auto": a probe frame per colour sets the power (peak at peak_goal); "fixed"
     peak_goal: PeakGoal = 0.7  # fraction of full scale
+    max_exposure_power: ExposureCap = None  # the most "auto" may set: "5mW", "10%" or per colour; default max_power_mw
 
 
 PARAMETERS = ColourCaptureParameters
@@ -94,6 +99,7 @@ def plan(context: Context) -> list[Step]:
     """Registration if needed, then per target: holograms, exposures (per repeat), processing; the report."""
     params = context.parameters(ColourCaptureParameters)
     unknown_setpoints(context)
+    unknown_caps(context, params.max_exposure_power)
     used = channels(context)
     steps: list[Step] = []
     methods = list(dict.fromkeys([params.method] if isinstance(params.method, str) else params.method))
@@ -117,7 +123,8 @@ def plan(context: Context) -> list[Step]:
             for method in methods:
                 label = base if len(methods) == 1 else target_label(f"{base}-{method.replace('+', '-')}", labels)
                 scene = focal_stack.stack_scene(context, spec, label, None, False, used, "parameters.targets")
-                steps += focal_stack.stack_steps(context, scene, options[method], params.exposure, params.peak_goal)
+                steps += focal_stack.stack_steps(context, scene, options[method], params.exposure, params.peak_goal,
+                                                 params.max_exposure_power)
                 stacks.append(label)
             continue
         base, target = target_label(spec, labels), prepared_target(context.profile, spec, "parameters.targets")
@@ -154,17 +161,18 @@ def _capture_steps(context: Context, spec: str, label: str, lit: list[LaserChann
     processing."""
     steps = [hologram_step(f"hologram/{label}/{c.name}", label, target, c, options) for c in lit]
     powers: dict[str, float | Callable[[Context], float]] = {c.name: power_w(context, c) for c in lit}
+    caps = {c.name: exposure_cap_w(context, c, options.max_exposure_power) for c in lit}
     if options.exposure == "auto":
         for channel in lit:
             key = f"probe/{label}/{channel.name}"
             steps.append(probe_step(context, key, channel, shown(f"hologram/{label}/{channel.name}"),
-                                    f"probe exposure {label}", options.peak_goal))
+                                    f"probe exposure {label}", options.peak_goal, caps[channel.name]))
             powers[channel.name] = probed_power(key)
     for repeat in _repeats(options.repeats):
         for channel in lit:
             steps.append(exposure_step(context, f"capture/{label}{repeat}/{channel.name}", channel,
                                        powers[channel.name], shown(f"hologram/{label}/{channel.name}"),
-                                       f"expose {label}{repeat}"))
+                                       f"expose {label}{repeat}", max_w=caps[channel.name]))
         steps.append(Step(f"process/{label}{repeat}", f"register, merge and score {label}{repeat}",
                           _processor(spec, label, repeat, lit, target, str(options.method))))
     return steps

@@ -36,6 +36,7 @@ from benchctl.profiles import LaserChannel
 from benchctl.runner.api import (
     BenchctlError,
     Context,
+    ExposureCap,
     ExposureMode,
     HologramParameters,
     PeakGoal,
@@ -45,6 +46,7 @@ from benchctl.runner.api import (
     channels,
     check_method,
     compute_hologram,
+    exposure_cap_w,
     exposure_step,
     figure,
     line_plot,
@@ -64,6 +66,7 @@ from benchctl.runner.api import (
     table,
     target_label,
     target_plane,
+    unknown_caps,
     unknown_setpoints,
 )
 from benchctl.runner.builtin import registration
@@ -87,6 +90,7 @@ class FocalStackParameters(HologramParameters, kw_only=True):
     registration: RegistrationMode = "auto"
     exposure: ExposureMode = "auto"  # "auto": one probe per colour sets the power for all its planes; "fixed"
     peak_goal: PeakGoal = 0.7
+    max_exposure_power: ExposureCap = None  # the most "auto" may set: "5mW", "10%" or per colour; default max_power_mw
 
 
 PARAMETERS = FocalStackParameters
@@ -152,6 +156,7 @@ def plan(context: Context) -> list[Step]:
     scores; the report."""
     params = context.parameters(FocalStackParameters)
     unknown_setpoints(context)
+    unknown_caps(context, params.max_exposure_power)
     context.profile.require("focus", "camera", "slm", "optics", "laser")
     used = channels(context)
     check_method(context, used)
@@ -160,16 +165,18 @@ def plan(context: Context) -> list[Step]:
     scenes = [stack_scene(context, spec, scene_label(spec, labels), count, params.fit_depth, used)
               for spec in params.scenes]
     stacks = [step for scene in scenes for step in stack_steps(context, scene, params, params.exposure,
-                                                               params.peak_goal)]  # the focus calibration checked
+                                                               params.peak_goal, params.max_exposure_power)]
+    # (planning the stacks checked the focus calibration before registration is planned)
     lit = [c for c in used if any(c in s.lit for s in scenes)]
     return [*registration.registration_first(context, lit, params, params.registration), *stacks,
             Step("report", "metrics.json, metrics.csv and report.html", _reporter(scenes))]
 
 
 def stack_steps(context: Context, scene: StackScene, options: HologramParameters, exposure: str,
-                peak_goal: float) -> list[Step]:
+                peak_goal: float, cap: ExposureCap = None) -> list[Step]:
     """One scene: a hologram per colour as `options` say, the probes (`exposure` "auto": one per colour and plane,
-    aiming at `peak_goal`), then per plane each colour focused and exposed, and the plane's scores."""
+    aiming at `peak_goal`, never above `cap`, a procedure's `max_exposure_power`), then per plane each colour focused
+    and exposed, and the plane's scores."""
     label, planes = scene.label, scene.planes.planes_m
     if len(planes) > 1 and get_method(options.method).focal_stack is None:
         able = ", ".join(name for name in method_names() if get_method(name).focal_stack is not None)
@@ -178,18 +185,19 @@ def stack_steps(context: Context, scene: StackScene, options: HologramParameters
     steps = [Step(f"hologram/{label}/{c.name}", f"3D hologram {label} {c.name} ({options.method}, {len(planes)} "
                   f"plane(s))", _hologram(scene, c, options)) for c in scene.lit]
     powers: dict[str, Any] = {c.name: power_w(context, c) for c in scene.lit}
+    caps = {c.name: exposure_cap_w(context, c, cap) for c in scene.lit}
     if exposure == "auto":
         for channel in scene.lit:
             probes, powers[channel.name] = plane_probes(context, f"probe/{label}/{channel.name}", channel,
                                                         shown(f"hologram/{label}/{channel.name}"), planes, peak_goal,
-                                                        f"probe exposure {label}")
+                                                        f"probe exposure {label}", caps[channel.name])
             steps += probes
     for k, depth in enumerate(planes):
         where = f"plane {k + 1}/{len(planes)} ({depth * 1e3:.2f} mm)"
         for channel in scene.lit:
             steps.append(exposure_step(context, _capture_key(label, k, channel), channel, powers[channel.name],
                                        shown(f"hologram/{label}/{channel.name}"), f"expose {label} {where}",
-                                       depth_m=depth))
+                                       max_w=caps[channel.name], depth_m=depth))
         steps.append(Step(f"process/{label}/plane-{k + 1}", f"register, merge and score {label} {where}",
                           _processor(scene, k)))
     steps.append(Step(f"stack/{label}", f"the focal stack of {label}: its scores over the planes",
@@ -203,13 +211,13 @@ def scene_label(spec: str, taken: set[str]) -> str:
 
 
 def plane_probes(context: Context, key: str, channel: LaserChannel, frame: Callable[[Context], np.ndarray],
-                 planes_m: Sequence[float], peak_goal: float,
-                 what: str) -> tuple[list[Step], Callable[[Context], float]]:
+                 planes_m: Sequence[float], peak_goal: float, what: str,
+                 max_w: float | None = None) -> tuple[list[Step], Callable[[Context], float]]:
     """Automatic exposure of a focal stack: one probe of `frame` per plane, focused there (steps `<key>/plane-<k>`),
     and the power of every capture of the stack: the lowest the probes chose (read when a capture runs), so that
-    the planes compare and none saturates."""
+    the planes compare and none saturates; at most `max_w` (`exposure_cap_w`; None: the channel's max_power_mw)."""
     keys = [f"{key}/plane-{k + 1}" for k in range(len(planes_m))]
-    steps = [probe_step(context, probe, channel, frame, f"{what} at plane {k + 1}", peak_goal, depth_m=depth)
+    steps = [probe_step(context, probe, channel, frame, f"{what} at plane {k + 1}", peak_goal, max_w, depth_m=depth)
              for k, (probe, depth) in enumerate(zip(keys, planes_m))]
     return steps, lambda context: min(probed_power(probe)(context) for probe in keys)
 

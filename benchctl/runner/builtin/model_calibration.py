@@ -4,17 +4,20 @@ fit the propagation model's wavefront error (Zernike terms at the SLM), beam (Ga
 crosstalk and zero order by gradient descent through the differentiable propagation (optics.fitted). The fit is
 stored per profile (calibration/<profile>/optical-model.json), where generation, SGD and the simulated scores of
 later runs find it (OpticalSetup.field_model), if it passes its acceptance test (calibration.acceptance): light reached
-the camera, no capture clipped, the fit converged and brought the residual to at most MIN_IMPROVEMENT of the ideal
-model's and below MAX_RESIDUAL, and not above the residual of the stored model on the same captures.
+the camera, every pattern focused points (a pattern without any holds no information on the wavefront), no capture
+clipped, the fit converged and brought its residual to at most MIN_IMPROVEMENT of the ideal model's, and on captures
+it was not fitted to (`held_out` further point patterns) its residual is at most MIN_IMPROVEMENT of the ideal
+model's, below MAX_RESIDUAL and not above the stored model's.
 
 With `focus_depths_mm` each pattern is captured with the camera focused at each of those depths (from
 optics.distance_mm, through the focus calibration), and the model is fitted to all of them at once: its intensity at
-each plane against the capture focused there (one gain per pattern for its planes). Captures are ordered by depth, so
-the focus moves once per depth.
+each plane against the capture focused there (one gain per pattern for its planes), and judged on the held-out
+patterns at all those planes. Captures are ordered by depth, so the focus moves once per depth and colour.
 """
 
 from __future__ import annotations
 
+import math
 import time
 from functools import partial
 from pathlib import Path
@@ -24,7 +27,7 @@ import numpy as np
 import torch
 from msgspec import Meta
 
-from benchctl.capture.colour_planes import PEAK_PERCENTILE
+from benchctl.capture.exposure import PEAK_PERCENTILE
 from benchctl.files import write_json
 from benchctl.optics.aberration import ZERNIKE_TERMS
 from benchctl.optics.fitted import FitDiverged, FittedOptics, calibration_patterns, fit_optics, model_residual
@@ -58,6 +61,10 @@ MAX_SATURATED = 1e-3  # fraction of ROI pixels clipped in a capture above which 
 MIN_SIGNAL = 0.003
 MIN_IMPROVEMENT = 0.9  # the fit brings the residual to at most this fraction of the ideal model's
 MAX_RESIDUAL = 0.5  # and below this (fits of working benches: 0.03-0.4, docs/model_calibration.md)
+# Fewer points than this per pattern (the ROI's pixels / spacing_px^2, on average) leave the wavefront unmeasured: a
+# fit to patterns without points moved the defocus to -0.19 waves where the truth is +0.30, and was stored.
+MIN_POINTS = 20
+HELD_OUT_SEED = 1_000_003  # the held-out patterns' seed, from `seed`: other points than any fitted pattern's
 DESCRIPTION = ("random-point and flat phase patterns per colour, captured, registered; wavefront, beam, crosstalk and "
                "zero order fitted and stored")
 
@@ -67,6 +74,9 @@ class ModelCalibrationParameters(ExposureParameters, kw_only=True):
 
     # 4 patterns: more move the fitted coefficients by little (docs/model_calibration.md)
     patterns: Annotated[int, Meta(ge=1)] = 4
+    # further point patterns, captured but not fitted: acceptance judges the fit on them (a model that explains only
+    # the captures it was fitted to is not stored)
+    held_out: Annotated[int, Meta(ge=1, le=16)] = 1
     spacing_px: Annotated[int, Meta(ge=2)] = 6  # one focused point per spacing^2 ROI pixels
     fit_steps: Annotated[int, Meta(ge=2)] = 120  # Adam steps of the fit (half blurred, half sharp)
     # Adam moves each parameter by about this per step (in waves, pupil radii, units of crosstalk and zero order):
@@ -98,20 +108,22 @@ def plan(context: Context) -> list[Step]:
     unknown_setpoints(context)
     used = channels(context)
     params = context.parameters(ModelCalibrationParameters)
+    _check_points(context, params)
     depths = focus_depths(context)
     steps: list[Step] = []  # planned before registration, so that a missing focus calibration is said first
-    count = params.patterns + params.flat
+    count = params.patterns + params.held_out + params.flat
     for channel in used:
         steps.append(Step(f"model/patterns/{channel.name}", f"{count} calibration patterns ({channel.name})",
                           _patterns(channel)))
         for j, depth in enumerate(depths or [None]):
             at = "" if depth is None else f" focused at {depth * 1e3:.2f} mm"
             for k in range(count):
+                kind = " (flat)" if k == params.patterns + params.held_out else (
+                    " (held out)" if k >= params.patterns else "")
                 steps.append(exposure_step(
                     context, _capture_key(channel.name, k, None if depth is None else j), channel,
                     power_w(context, channel), partial(_pattern_frame, channel=channel.name, k=k),
-                    f"expose calibration pattern {k + 1}/{count}" + (" (flat)" if k == params.patterns else "") + at,
-                    depth_m=depth))
+                    f"expose calibration pattern {k + 1}/{count}{kind}{at}", depth_m=depth))
         steps.append(Step(f"model/fit/{channel.name}", f"fit wavefront, beam, crosstalk and zero order "
                           f"({channel.name})", _fitter(channel)))
     steps = registration.registration_first(context, used, params, params.registration) + steps
@@ -139,20 +151,35 @@ def focus_depths(context: Context) -> list[float]:
 def _capture_key(colour: str, k: int, j: int | None) -> str:
     """Pattern k's capture (at the `j`-th focus depth, where there are several)."""
     return f"model/capture/{colour}/{k}" + ("" if j is None else f"/z{j}")
+def _check_points(context: Context, params: ModelCalibrationParameters) -> None:
+    """Refuse a spacing that leaves the patterns (nearly) without points, before anything runs."""
+    optics = context.profile.require("optics").optics
+    assert optics is not None
+    rows, cols = optics.roi
+    points = rows * cols / params.spacing_px**2
+    if points < MIN_POINTS:
+        largest = math.isqrt(rows * cols // MIN_POINTS)
+        raise BenchctlError(f"parameters.spacing_px: {params.spacing_px} leaves about {points:.3g} point(s) per "
+                            f"pattern on the {rows} x {cols} ROI, too few to measure the wavefront (at least "
+                            f"{MIN_POINTS}): at most {largest}")
 
 
 def _patterns(channel: LaserChannel):
     def action(context: Context) -> dict[str, Any]:
         setup = context.setup(channel.name)
         params = context.parameters(ModelCalibrationParameters)
-        phases = calibration_patterns(setup.slm_propagator(), setup.roi, params.patterns, seed=params.seed,
-                                      spacing_px=params.spacing_px)
+        points = params.patterns + params.held_out
+        phases = torch.cat([calibration_patterns(setup.slm_propagator(), setup.roi, count, seed=seed,
+                                                 spacing_px=params.spacing_px)
+                            for count, seed in ((params.patterns, params.seed),
+                                                (params.held_out, params.seed + HELD_OUT_SEED))])
+        empty = [k for k, phase in enumerate(phases) if float(phase.max() - phase.min()) == 0]  # no point landed
         if params.flat:
             phases = torch.cat([phases, torch.zeros_like(phases[:1])])
         files = [save_hologram(context, context.encode(phase, channel.name),
-                               f"model-{channel.name}-{'flat' if k == params.patterns else k}.png")
+                               f"model-{channel.name}-{'flat' if k == points else k}.png")
                  for k, phase in enumerate(phases)]
-        return {"files": files, "flat": params.flat}
+        return {"files": files, "flat": params.flat, "held_out": params.held_out, "empty": empty}
 
     return action
 
@@ -166,8 +193,9 @@ def _fitter(channel: LaserChannel):
         setup = context.setup(channel.name)
         registration_entry = context.calibration.registrations()[channel.name]
         depths = focus_depths(context)
+        made = context.result(f"model/patterns/{channel.name}")
         shown, captured, saturated = [], [], 0.0
-        for k, file in enumerate(context.result(f"model/patterns/{channel.name}")["files"]):
+        for k, file in enumerate(made["files"]):
             shown.append(torch.from_numpy(context.slm.driven(load_image(context, file), channel.name)))
             planes = []
             for j in range(len(depths)) if depths else [None]:
@@ -179,9 +207,11 @@ def _fitter(channel: LaserChannel):
         propagator = setup.planes_propagator(depths) if depths else setup.target_propagator()
         start = time.perf_counter()
         params = context.parameters(ModelCalibrationParameters)
-        flat = bool(context.result(f"model/patterns/{channel.name}").get("flat"))
-        dark = [False] * (len(shown) - flat) + [True] * flat
-        phases, images = torch.stack(shown), torch.stack(captured)
+        flat, held = bool(made.get("flat")), int(made.get("held_out", 0))
+        fitted = list(range(len(shown) - flat - held)) + list(range(len(shown) - flat, len(shown)))
+        held_out = list(range(len(shown) - flat - held, len(shown) - flat))
+        dark = [False] * (len(fitted) - flat) + [True] * flat
+        phases, images = torch.stack([shown[k] for k in fitted]), torch.stack([captured[k] for k in fitted])
         try:
             fit = fit_optics(propagator, setup.roi, phases, images, beam=params.beam,
                              crosstalk=params.crosstalk, zero_order=params.zero_order,
@@ -191,17 +221,34 @@ def _fitter(channel: LaserChannel):
             fit, diverged = None, exc
         seconds = time.perf_counter() - start
         old = context.calibration.models().get(channel.name)
-        old_residual = None if old is None else model_residual(
-            propagator, setup.roi, phases, images, FittedOptics.from_dict(old),
-            camera_blur_px=float(old.get("camera_blur_px", 0.0)), dark_background=dark)
+        blur = 0.0 if fit is None else fit.camera_blur_px
+
+        def residual_held_out(model: FittedOptics, camera_blur_px: float) -> float | None:
+            """`model`'s residual on the held-out captures, which no fit saw (None without any)."""
+            if not held_out:
+                return None
+            return round(model_residual(propagator, setup.roi, torch.stack([shown[k] for k in held_out]),
+                                        torch.stack([captured[k] for k in held_out]), model,
+                                        camera_blur_px=camera_blur_px), 5)
+
+        ideal = residual_held_out(FittedOptics(), blur)  # seen through the same camera blur: only the optics differ
+        before = ideal if old is None else residual_held_out(FittedOptics.from_dict(old),
+                                                             float(old.get("camera_blur_px", 0.0)))
+        new = None if fit is None else residual_held_out(fit.model, blur)
         signal = min(float(np.percentile(plane.numpy(), PEAK_PERCENTILE)) for image in captured
                      for plane in (image if depths else [image]))
-        verdict = Verdict("optical model", channel.name, "residual", None if fit is None else round(fit.residual, 5),
-                          None if old_residual is None else round(old_residual, 5),
+        verdict = Verdict("optical model", channel.name, "held-out residual", new, before,
+                          replaces="ideal model" if old is None else "stored one",
                           details={"signal": round(signal, 6), "saturated_fraction": round(saturated, 6),
+                                   "held_out": len(held_out), "ideal_held_out_residual": ideal,
+                                   "fit_residual": None if fit is None else round(fit.residual, 5),
                                    "stored_fit_residual": None if old is None else old.get("residual")})
         verdict.check(signal >= MIN_SIGNAL, f"no light reached the camera: the brightest 0.1 % of a capture at "
                                             f"{signal:.2%} of full scale, below {MIN_SIGNAL:.1%}")
+        empty = made.get("empty", [])
+        verdict.check(not empty, f"no information: calibration pattern(s) {', '.join(str(k + 1) for k in empty)} "
+                                 f"focus no point (spacing_px {params.spacing_px})")
+        verdict.check(bool(held_out), "no held-out capture to judge the fit on (a run made before held_out existed)")
         verdict.check(saturated <= MAX_SATURATED, f"{saturated:.2%} of the ROI saturated in a capture (the fit needs "
                                                   "linear images): lower the setpoint or the exposure")
         if fit is None:
@@ -212,10 +259,15 @@ def _fitter(channel: LaserChannel):
         verdict.check(fit.residual <= MIN_IMPROVEMENT * fit.initial_residual,
                       f"the fit did not improve on the ideal model: residual {fit.initial_residual:.3f} -> "
                       f"{fit.residual:.3f}, needs at most {MIN_IMPROVEMENT:g} x the start")
-        verdict.check(fit.residual <= MAX_RESIDUAL, f"residual {fit.residual:.3f} above the bound {MAX_RESIDUAL:g}")
+        if new is not None and ideal is not None:
+            verdict.check(new <= MIN_IMPROVEMENT * ideal,
+                          f"on the held-out capture(s) the fit explains no more than the ideal model: residual "
+                          f"{new:.3f} against the ideal model's {ideal:.3f}, needs at most {MIN_IMPROVEMENT:g} x it")
+            verdict.check(new <= MAX_RESIDUAL, f"held-out residual {new:.3f} above the bound {MAX_RESIDUAL:g}")
         verdict.no_worse()
         entry = {**fit.model.to_dict(), "residual": round(fit.residual, 5),
-                 "initial_residual": round(fit.initial_residual, 5), "patterns": len(shown) - flat, "flat": flat,
+                 "initial_residual": round(fit.initial_residual, 5), "held_out_residual": new,
+                 "patterns": len(fitted) - flat, "held_out": len(held_out), "flat": flat,
                  "camera_blur_px": fit.camera_blur_px, "focus_depths_mm": [round(z * 1e3, 6) for z in depths]}
         waves = ", ".join(f"{name} {value:+.3f}" for name, value in fit.model.zernike_waves)
         context.say(f"      {channel.name}: {waves} waves; waist {fit.model.waist_m * 1e3:.2f} mm; crosstalk "
@@ -305,6 +357,7 @@ def model_calibration_report(context: Context, fits: dict[str, dict[str, Any]], 
              "zero order": f.get("zero_order", 0.0),
              "camera blur px": f.get("camera_blur_px", 0.0),
              "residual before": f["initial_residual"], "residual after": f["residual"],
+             "held-out residual": f.get("held_out_residual"),
              "patterns": f"{f['patterns']}{' + flat' if f.get('flat') else ''}",
              "captured at mm": f.get("focus_depths_mm") or "the target plane",
              "fit s": f["seconds"],

@@ -14,7 +14,7 @@ from typing import Annotated, Any
 import numpy as np
 from msgspec import Meta
 
-from benchctl.capture.colour_planes import PEAK_PERCENTILE
+from benchctl.capture.exposure import PEAK_PERCENTILE
 from benchctl.devices.power import parse_power
 from benchctl.profiles import LaserChannel
 from benchctl.runner.api import (

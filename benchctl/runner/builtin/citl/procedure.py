@@ -72,6 +72,7 @@ from benchctl.runner.api import (
     Context,
     DarkFrames,
     Expose,
+    ExposureCap,
     ExposureMode,
     ExposureParameters,
     FocusAt,
@@ -83,6 +84,7 @@ from benchctl.runner.api import (
     StepRedo,
     channels,
     compute_hologram,
+    exposure_cap_w,
     focus_moves,
     load_image,
     measure,
@@ -96,6 +98,7 @@ from benchctl.runner.api import (
     shown,
     state_path,
     target_plane,
+    unknown_caps,
     unknown_setpoints,
 )
 from benchctl.runner.builtin import focal_stack, registration
@@ -128,6 +131,7 @@ class CitlParameters(ExposureParameters, kw_only=True):
     registration: RegistrationMode = "auto"
     exposure: ExposureMode = "auto"  # "auto": a probe frame of the start hologram sets the power for every capture
     peak_goal: PeakGoal = 0.7  # fraction of full scale
+    max_exposure_power: ExposureCap = None  # the most "auto" may set: "5mW", "10%" or per colour; default max_power_mw
     device: Literal["auto", "cpu", "cuda"] = "auto"  # where the gradient runs; "auto": a CUDA GPU if there is one
 
 
@@ -148,6 +152,7 @@ def plan(context: Context) -> list[Step]:
     params = context.parameters(CitlParameters)
     gradient_device(params.device)
     unknown_setpoints(context)
+    unknown_caps(context, params.max_exposure_power)
     scene = None
     if is_scene(params.target):
         scene = focal_stack.stack_scene(context, params.target, focal_stack.scene_label(params.target, set()),
@@ -168,16 +173,17 @@ def plan(context: Context) -> list[Step]:
         name, focus = channel.name, views[channel.name]
         steps.append(Step(f"citl/{name}/start", f"start hologram {name} ({params.start})",
                           _starter(target, channel, scene)))
+        cap = exposure_cap_w(context, channel, params.max_exposure_power)
         power: Any = None if params.exposure == "auto" else power_w(context, channel)
         if params.exposure == "auto" and scene is None:
             steps.append(probe_step(context, f"citl/{name}/probe", channel, shown(f"citl/{name}/start"),
-                                    "probe exposure of the start hologram", params.peak_goal))
+                                    "probe exposure of the start hologram", params.peak_goal, cap))
             power = probed_power(f"citl/{name}/probe")
         elif params.exposure == "auto":
             assert scene is not None
             probes, power = focal_stack.plane_probes(context, f"citl/{name}/probe", channel,
                                                      shown(f"citl/{name}/start"), scene.planes.planes_m,
-                                                     params.peak_goal, "probe exposure of the start hologram")
+                                                     params.peak_goal, "probe exposure of the start hologram", cap)
             steps += probes
         declared = None if callable(power) else power
         for k in range(count + 1):
@@ -185,12 +191,13 @@ def plan(context: Context) -> list[Step]:
             steps.append(Step(f"citl/{name}/{k:04d}", f"CITL {name} iteration {k}/{count}: {what}",
                               _iteration(target, channel, k, scene, focus, power),
                               (Expose(name, declared, params.frames, params.dark_frames,
-                                      keeps_raw(k, count, params.keep_raw_every), times=len(focus)),),
+                                      keeps_raw(k, count, params.keep_raw_every), times=len(focus), max_w=cap),),
                               tuple(at for at in focus if at is not None)))
         if params.baseline:
             steps.append(Step(f"citl/{name}/baseline", f"model-only SGD {name} at {_budget(params)} iterations, "
                               "captured", _baseline(target, channel, scene, focus, power),
-                              (Expose(name, declared, params.frames, params.dark_frames, times=len(focus)),),
+                              (Expose(name, declared, params.frames, params.dark_frames, times=len(focus),
+                                      max_w=cap),),
                               tuple(at for at in focus if at is not None)))
     steps.append(Step("report", "metrics.json, metrics.csv and report.html", _reporter(target, used, scene)))
     return steps
