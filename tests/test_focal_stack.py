@@ -164,6 +164,12 @@ def test_the_dry_run_lists_every_focus_move_and_its_time(tmp_path: Path, ready_b
         assert f"[focus green at {PLANES_MM[k]:.2f} mm: {steps} steps from home, from below]" in line
     assert "6 focus move(s) at about 0.5 s each" in out  # three probes and three captures
     assert not load_state("sim-focus").get("moves")  # nothing moved
+    capped = write(tmp_path, STACK + 'max_exposure_power = "3mW"\n', "capped.toml")
+    assert main(["run", str(capped), "--profile", str(ready_bench.path), "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    line = next(line for line in out.splitlines() if "capture/three-planes/plane-2/green:" in line)
+    assert "[green alone at a power chosen when the step runs (at most 3 mW), 1 frame(s) + 1 dark]" in line
+    assert "  green: 6 exposure(s), at most 3 mW (3 at a power chosen at run time, up to 3 mW); limit 40 mW" in out
 
 
 def test_a_capture_at_the_target_plane_focuses_there_once_the_focus_is_calibrated(
