@@ -51,7 +51,7 @@ def merged_stack_scores(context: Context, stacks: dict[int, np.ndarray], target_
                                                                          target_roi)]
     mean = {key: round(value, 4) for key, value in mean_scores(scores).items()}
     result: dict[str, Any] = {"scores": mean, "planes": scores, "warnings": warnings}
-    return result | ({"images": images} if image is not None else {})
+    return result | ({"files": images} if image is not None else {})
 
 
 def citl_report(context: Context, summary: dict[str, Any]) -> dict[str, Any]:
@@ -71,8 +71,8 @@ def citl_report(context: Context, summary: dict[str, Any]) -> dict[str, Any]:
                                   baseline["merged"]["image"] if baseline else None, count, baseline))
     else:  # a focal stack: the same four pictures per plane, and a slider through depth
         pictures = stepper("citl", [(f"plane {k + 1} of {len(planes_mm)}: {depth:.2f} mm", row(*_pictures(
-            context, summary["target_planes"][k], merged[0]["images"][k], merged[-1]["images"][k],
-            baseline["merged"]["images"][k] if baseline else None, count, baseline)))
+            context, summary["target_planes"][k], merged[0]["files"][k], merged[-1]["files"][k],
+            baseline["merged"]["files"][k] if baseline else None, count, baseline)))
             for k, depth in enumerate(planes_mm)], "depth")
     colour_rows = []
     for name, rows in iterations.items():
