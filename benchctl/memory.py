@@ -224,14 +224,17 @@ def hologram_estimate(profile: Profile, colours: int = 1) -> Estimate:
                     run_bytes(profile, colours) + HOLOGRAM_BYTES_PER_PADDED_PX * padded, {}, {})
 
 
-def fit_estimate(profile: Profile, patterns: int, flat: bool, fit_steps: int, colours: int = 1) -> Estimate:
+def fit_estimate(profile: Profile, patterns: int, flat: bool, fit_steps: int, colours: int = 1,
+                 planes: int = 1) -> Estimate:
     """Model calibration's fit of `patterns` captured patterns (and the `flat` one) over `fit_steps` steps, on the
-    largest padded grid of the profile's channels."""
+    largest padded grid of the profile's channels; captured at `planes` focus depths, each pattern's fields and
+    gradients are propagated to every one of them (the per-pattern bytes times the planes, not measured apart)."""
     profile.require("slm", "optics", "laser")
     padded = padded_pixels(profile)
     return Estimate(f"the model fit on a padded grid of {padded / 1e6:.3g} Mpx",
-                    run_bytes(profile, colours) + (FIT_BYTES_PER_PADDED_PX + FIT_BYTES_PER_PATTERN_PX * flat) * padded,
-                    {"patterns": FIT_BYTES_PER_PATTERN_PX * padded, "fit_steps": FIT_BYTES_PER_STEP},
+                    run_bytes(profile, colours)
+                    + (FIT_BYTES_PER_PADDED_PX + FIT_BYTES_PER_PATTERN_PX * planes * flat) * padded,
+                    {"patterns": FIT_BYTES_PER_PATTERN_PX * planes * padded, "fit_steps": FIT_BYTES_PER_STEP},
                     {"patterns": patterns, "fit_steps": fit_steps})
 
 
@@ -287,7 +290,8 @@ def run_estimates(profile: Profile, params: Any) -> list[Estimate]:
     patterns = _count(params, "patterns")
     if patterns is not None:
         estimates.append(fit_estimate(profile, patterns, getattr(params, "flat", False) is True,
-                                      _count(params, "fit_steps") or 0, colours))
+                                      _count(params, "fit_steps") or 0, colours,
+                                      max(1, len(getattr(params, "focus_depths_mm", None) or ()))))
     return estimates
 
 

@@ -314,8 +314,8 @@ class SimFocusConfig(Model, kw_only=True):
     # Depth (from the SLM) of the camera's focus plane with the mechanism at start_steps; None: optics.distance_mm.
     plane_mm: Positive | None = None
     mm_per_step: float = 4.7625e-5  # focus-plane shift per step the mechanism truly makes (signed)
-    range_steps: PositiveInt = 84000  # travel between the end stops, in steps
-    start_steps: NonNegative = 42000  # where the mechanism is at power-on (state never saved yet)
+    range_steps: PositiveInt = 252000  # travel between the end stops, in steps (12 mm: a depth range and a margin)
+    start_steps: NonNegative = 126000  # where the mechanism is at power-on (state never saved yet)
     backlash_steps: NonNegative = 630.0  # lost motion on each reversal of direction
     step_spread: Fraction = 0.0  # relative standard deviation of each step's true size
     seed: NonNegativeInt = 0  # the step-size spread's random stream

@@ -190,6 +190,24 @@ def truly_registered(profile: Profile, *colours: str) -> Profile:
     return profile
 
 
+def truly_focused(profile: Profile, *colours: str) -> Profile:
+    """`profile` with the simulated focus mechanism's true map stored as its focus calibration for `colours` (default:
+    green): a Zaber stage homed, then approached from below, lags its counter by the backlash, so position s focuses
+    at plane + mm_per_step (s - backlash - start_steps) (`benchctl.devices.sim.focus_mechanics`)."""
+    from benchctl.calibration.store import Calibration
+    from benchctl.capture.focus import FocusMap
+
+    mechanics, distance = profile.sim.focus, profile.section("optics").distance_mm
+    plane = mechanics.plane_mm if mechanics.plane_mm is not None else distance
+    slope = mechanics.mm_per_step
+    found = FocusMap((plane - slope * (mechanics.backlash_steps + mechanics.start_steps), slope), 1,
+                     mechanics.backlash_steps, 0.0, (0.0, float(mechanics.range_steps)), 0.0)
+    store = Calibration.store(profile)
+    for colour in colours or ("green",):
+        store.save_focus(colour, {**found.to_dict(), "unit": "microstep"})
+    return profile
+
+
 def one_error_line(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:
     """Run benchctl; it must exit 2 with exactly one error line (no traceback). Returns that line."""
     assert main(argv) == 2

@@ -143,6 +143,25 @@ def test_a_map_that_fails_its_acceptance_test_is_kept_aside_and_the_run_fails(tm
         focus_go(focus_bench, "20mm", None)
 
 
+@pytest.mark.slow
+def test_round_trips_near_the_end_of_the_travel_go_below(tmp_path: Path, focus_bench: Profile) -> None:
+    """The middle depth 1.2 mm beyond the target plane (3225 steps on a 4000-step travel): round trips of 1000 steps
+    above it would pass the end stop (the stage refuses such a move and the run stopped there), so they go below it and
+    come back from there."""
+    procedure = tmp_path / "focus.toml"
+    procedure.write_text(SWEEP.replace("round_trip_steps = 500", "round_trip_steps = 1000")
+                         + "depths_mm = [1.2, 1.5, 1.8]\nround_trips = 2\n")
+    runs = tmp_path / "runs"
+    assert main(["run", str(procedure), "--profile", str(focus_bench.path), "--out", str(runs)]) == 0
+    steps = results(sorted(runs.iterdir())[-1])
+    repeat = steps["focus/green/repeat"]
+    assert 2200 < repeat["position"] < 3225 and len(repeat["read_steps"]) == 2
+    fit = steps["focus/green/fit"]
+    assert fit["calibration"]["stored"]
+    for depth, peak in zip((21.2, 21.5), (p["steps"] for p in fit["map"]["points"])):  # (21.8's sweep is cut at 4000)
+        assert peak - BACKLASH == pytest.approx(2000 + (depth - 20.0) * 1000, abs=40)
+
+
 def test_focus_go_uses_the_stored_map_from_its_side(focus_bench: Profile) -> None:
     found = FocusMap.fit([(1000.0, 19.0), (2000.0, 20.0), (3000.0, 21.0)], approach=1, backlash_steps=BACKLASH,
                          repeatability_steps=1.0, range_steps=(0.0, 4000.0))

@@ -15,7 +15,7 @@ import msgspec
 import numpy as np
 import pytest
 import torch
-from conftest import SMALL_BENCH
+from conftest import SMALL_BENCH, truly_focused, truly_registered
 
 from benchctl.calibration.setups import optical_setup, optical_setups, optimised_setup
 from benchctl.calibration.store import Calibration
@@ -442,3 +442,52 @@ def test_two_colours_share_one_panel_crosstalk(tmp_path: Path, make_bench_profil
                for line in said), said
     report = (outcome.folder / "report.html").read_text()
     assert "crosstalk px, this colour" in report and "one value for the panel" in report
+
+
+@pytest.mark.slow
+def test_the_fit_can_take_each_pattern_at_several_focus_depths(tmp_path: Path,
+                                                              make_bench_profile: Callable[..., Profile],
+                                                              capsys: pytest.CaptureFixture[str]) -> None:
+    """focus_depths_mm: every pattern (the held-out one too) captured with the camera focused at each depth (through
+    the focus calibration, the focus moving once per depth), the model fitted to the focal stacks and judged on the
+    held-out pattern's; the same recovery of the hidden optics."""
+    profile = truly_focused(truly_registered(make_bench_profile(
+        SMALL_BENCH, ABERRATED, optics={"depth_range_mm": [17.0, 23.0]},
+        focus={"driver": "zaber", "port": "sim://focus-stage?dialect=zaber", "settle_ms": 0},
+        sim={"focus": {"mm_per_step": 0.001, "range_steps": 8000, "start_steps": 4000, "backlash_steps": 25.0}})))
+    procedure = tmp_path / "model.toml"
+    procedure.write_text(PROCEDURE.replace("patterns = 3", "patterns = 2") % "0.3mW"  # no held-out point clips
+                         + "focus_depths_mm = [2.0, -2.0, 0.0]\n")
+    assert main(["run", str(procedure), "--profile", str(profile.path), "--dry-run"]) == 0
+    lines = [x for x in capsys.readouterr().out.splitlines() if "model/capture/green/" in x]
+    assert [x.split(":")[0].split()[-1] for x in lines] == [f"model/capture/green/{k}/z{j}" for j in range(3)
+                                                             for k in range(4)]  # by depth: one move per depth
+    assert all(f"focused at {z:.2f} mm" in x for x, z in zip(lines, [18.0] * 4 + [20.0] * 4 + [22.0] * 4))
+    assert "(held out) focused at 18.00 mm" in lines[2] and "(flat) focused at 18.00 mm" in lines[3]
+    outcome = run_procedure(procedure, profile=str(profile.path), out=tmp_path / "runs", say=lambda line: None)
+    assert outcome.folder is not None
+    results = {e["step"]: e["result"] for e in map(json.loads, (outcome.folder / "steps.jsonl").read_text()
+                                                   .splitlines()) if e["event"] == "done"}
+    assert [results[f"model/capture/green/0/z{j}"]["focus"]["depth_mm"] for j in range(3)] == \
+        pytest.approx([18.0, 20.0, 22.0])
+    fitted = json.loads((outcome.folder / "calibration" / "optical-model.json").read_text())["colours"]["green"]
+    assert fitted["focus_depths_mm"] == pytest.approx([18.0, 20.0, 22.0])
+    for name, value in HIDDEN.items():
+        assert fitted["zernike_waves"][name] == pytest.approx(value, abs=max(0.02, 0.1 * abs(value))), name
+    assert fitted["waist_mm"] == pytest.approx(0.5, rel=0.03)
+    assert fitted["residual"] < 0.5 * fitted["initial_residual"]
+    verdict = results["model/fit/green"]["calibration"]  # judged on the held-out pattern's stack of three planes
+    assert verdict["held_out"] == 1 and verdict["stored"]
+    assert fitted["held_out_residual"] < 0.5 * verdict["ideal_held_out_residual"]
+    assert "18, 20, 22" in (outcome.folder / "report.html").read_text()
+
+
+@pytest.mark.parametrize("depths, message", [("[1.0, 1.0]", "names a depth twice"),
+                                             ("[-25.0, 0.0]", "-25 mm puts a depth behind the SLM")])
+def test_bad_focus_depths_are_one_line(tmp_path: Path, profile: Profile, capsys: pytest.CaptureFixture[str],
+                                       depths: str, message: str) -> None:
+    procedure = tmp_path / "model.toml"
+    procedure.write_text(PROCEDURE % "0.4mW" + f"focus_depths_mm = {depths}\n")
+    assert main(["run", str(procedure), "--profile", str(profile.path), "--dry-run"]) == 2
+    (line,) = capsys.readouterr().err.splitlines()
+    assert "parameters.focus_depths_mm: " in line and message in line

@@ -14,6 +14,7 @@ from dataclasses import replace
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
+import msgspec
 import numpy as np
 
 from benchctl.calibration.store import Calibration
@@ -32,13 +33,19 @@ class Calibrated:
     training on a grid no bench was calibrated for)."""
 
     def __init__(self, profile: Profile, calibration: Calibration | None = None, *,
-                 distance_m: float | None = None) -> None:
+                 distance_m: float | None = None, ideal: bool = False) -> None:
         """`distance_m`: every channel's target plane at that distance from the SLM instead of the profile's (holograms
-        focused at another depth, through the same tables and fitted model)."""
+        focused at another depth, through the same tables and fitted model). `ideal`: without any fitted optical
+        model (stored or named by the profile), the lookup tables still applied: what holograms were before model
+        calibration, to measure what it buys."""
         self.configured = profile
         self.calibration = calibration
-        self.profile = calibration.applied(profile) if calibration is not None else profile
+        applied = calibration.applied(profile) if calibration is not None else profile
+        if ideal and applied.optics is not None and applied.optics.model is not None:
+            applied = msgspec.structs.replace(applied, optics=msgspec.structs.replace(applied.optics, model=None))
+        self.profile = applied
         self.distance_m = distance_m
+        self.ideal = ideal
         self._setups: dict[str, OpticalSetup] = {}
 
     @classmethod
@@ -48,11 +55,15 @@ class Calibrated:
 
     def recalibrated(self) -> Calibrated:
         """This bench built again from its calibration's files (after a step stored a new measurement)."""
-        return Calibrated(self.configured, self.calibration, distance_m=self.distance_m)
+        return Calibrated(self.configured, self.calibration, distance_m=self.distance_m, ideal=self.ideal)
 
     def at_distance(self, distance_m: float) -> Calibrated:
         """This bench with every channel's target plane `distance_m` from the SLM."""
-        return Calibrated(self.configured, self.calibration, distance_m=distance_m)
+        return Calibrated(self.configured, self.calibration, distance_m=distance_m, ideal=self.ideal)
+
+    def without_model(self) -> Calibrated:
+        """This bench as if no optical model had been fitted (`ideal`)."""
+        return Calibrated(self.configured, self.calibration, distance_m=self.distance_m, ideal=True)
 
     def setup(self, channel: str, *, as_displayed: bool = False) -> OpticalSetup:
         """`channel`'s optical setup (geometry and fitted model), built once; `as_displayed`: as optimisers see it,

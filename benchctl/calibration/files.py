@@ -67,6 +67,7 @@ class FittedColour(Entry, kw_only=True):
     flat: bool = False
     camera_blur_px: NonNegative = 0.0
     crosstalk_fitted_px: NonNegative | None = None
+    focus_depths_mm: list[Annotated[float, Meta(gt=0)]] = []  # the depths each pattern was captured at (none: target)
 
 
 class OpticalModelFile(Model, kw_only=True):

@@ -72,12 +72,17 @@ class MergedColours:
     gains: dict[int, float]
 
 
-def merge_colours(amplitudes: Mapping[int, torch.Tensor], target_roi: torch.Tensor) -> MergedColours:
-    """Balance and merge amplitudes (colour -> (h, w)) against the target amplitude on the ROI (3, h, w)."""
+def merge_colours(amplitudes: Mapping[int, torch.Tensor], target_roi: torch.Tensor,
+                  region: torch.Tensor | None = None) -> MergedColours:
+    """Balance and merge amplitudes (colour -> (h, w)) against the target amplitude on the ROI (3, h, w); with
+    `region` ((h, w) bool: a focal-stack plane's in-focus region) each gain is fitted there only, where the
+    capture is meant to match the target."""
     amplitude = torch.zeros_like(target_roi)
     gains: dict[int, float] = {}
+    inside = None if region is None else region.to(target_roi.dtype)
     for colour, measured in sorted(amplitudes.items()):
-        gain = lsq_scale(measured, target_roi[colour])
+        gain = (lsq_scale(measured, target_roi[colour]) if inside is None
+                else lsq_scale(measured * inside, target_roi[colour] * inside))
         amplitude[colour] = measured * gain
         gains[colour] = float(gain)
     return MergedColours(amplitude, amplitude.square().clamp(0, 1), gains)
@@ -94,23 +99,20 @@ class MergedCapture:
     warnings: list[str] = field(default_factory=list)
 
 
-def merge_capture(planes: Mapping[int, np.ndarray], target_roi: torch.Tensor,
-                  saturation: Mapping[int, float] | None = None, *, low_signal: float = LOW_SIGNAL) -> MergedCapture:
-    """Balance, merge and score registered planes (colour -> (h, w) linear signal, full scale 1) against the
-    target amplitude on the ROI (3, h, w). saturation: per colour, the fraction of ROI pixels touched by clipped
-    sensor pixels (`roi_saturation`), warned about when above 0."""
-    target = torch.as_tensor(target_roi, dtype=torch.float32)
-    if target.dim() != 3 or target.shape[0] != 3:
-        raise BenchctlError(f"target ROI must be (3, h, w) amplitude, got shape {tuple(target.shape)}")
-    amplitudes: dict[int, torch.Tensor] = {}
+def capture_warnings(planes: Mapping[int, np.ndarray], target_roi: torch.Tensor,
+                     saturation: Mapping[int, float] | None = None, *, low_signal: float = LOW_SIGNAL) -> list[str]:
+    """What is wrong with registered planes (colour -> (h, w) linear signal) as a capture of the target amplitude
+    (3, h, w): a colour under-exposed or saturated (`roi_saturation`), a colour of the target not captured; a plane
+    of the wrong colour index or shape is an error."""
+    if target_roi.dim() != 3 or target_roi.shape[0] != 3:
+        raise BenchctlError(f"target ROI must be (3, h, w) amplitude, got shape {tuple(target_roi.shape)}")
     warnings: list[str] = []
     for colour, signal in sorted(planes.items()):
         if colour not in (0, 1, 2):
             raise BenchctlError(f"colour plane {colour} is not 0 (red), 1 (green) or 2 (blue)")
         name = COLOUR_NAMES[colour]
-        signal = np.asarray(signal, dtype=np.float32)
-        if signal.shape != tuple(target.shape[1:]):
-            raise BenchctlError(f"{name} plane is {signal.shape}, the target ROI is {tuple(target.shape[1:])}")
+        if np.shape(signal) != tuple(target_roi.shape[1:]):
+            raise BenchctlError(f"{name} plane is {np.shape(signal)}, the target ROI is {tuple(target_roi.shape[1:])}")
         peak = float(np.percentile(signal, PEAK_PERCENTILE))
         if peak < low_signal:
             warnings.append(f"{name}: low signal, peak {peak:.1%} of full scale (below {low_signal:.0%}): "
@@ -118,10 +120,20 @@ def merge_capture(planes: Mapping[int, np.ndarray], target_roi: torch.Tensor,
         clipped = (saturation or {}).get(colour, 0.0)
         if clipped > 0:
             warnings.append(f"{name}: {clipped:.2%} of the ROI is saturated; that colour reads low there")
-        amplitudes[colour] = captured_amplitude(signal)
-    missing = [COLOUR_NAMES[c] for c in range(3) if c not in planes and float(target[c].max()) > 0]
+    missing = [COLOUR_NAMES[c] for c in range(3) if c not in planes and float(target_roi[c].max()) > 0]
     if missing:
         warnings.append(f"not captured: {', '.join(missing)} (present in the target; scored as black)")
+    return warnings
+
+
+def merge_capture(planes: Mapping[int, np.ndarray], target_roi: torch.Tensor,
+                  saturation: Mapping[int, float] | None = None, *, low_signal: float = LOW_SIGNAL) -> MergedCapture:
+    """Balance, merge and score registered planes (colour -> (h, w) linear signal, full scale 1) against the
+    target amplitude on the ROI (3, h, w). saturation: per colour, the fraction of ROI pixels touched by clipped
+    sensor pixels (`roi_saturation`), warned about when above 0."""
+    target = torch.as_tensor(target_roi, dtype=torch.float32)
+    warnings = capture_warnings(planes, target, saturation, low_signal=low_signal)
+    amplitudes = {colour: captured_amplitude(signal) for colour, signal in sorted(planes.items())}
     merged = merge_colours(amplitudes, target)
     scores = {colour: amplitude_scores(merged.amplitude[colour], target[colour]) for colour in amplitudes}
     return MergedCapture(merged, scores, colour_scores(merged.linear, target), warnings)

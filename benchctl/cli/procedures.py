@@ -26,8 +26,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
 def add_commands(sub: argparse._SubParsersAction) -> None:
     """Add this group's sub-commands to the `benchctl` sub-parsers (importing nothing heavy)."""
     run = sub.add_parser(
-        "run", help="run a procedure: colour-capture, registration, lut-calibration, model-calibration, citl, "
-                    "focus-calibration, power-sweep (procedures/*.toml) or a Python one",
+        "run", help="run a procedure: colour-capture, focal-stack, registration, model-calibration, lut-calibration, "
+                    "citl, focus-calibration, power-sweep (procedures/*.toml) or a Python one",
         description="Run a procedure file on the bench the profile describes. Every run writes a new folder "
                     "OUT/<timestamp>-<name>/ with the profile and procedure as used, versions, device identities, a "
                     "step log, holograms as displayed, RAW frames as captured, images, metrics and report.html. An "

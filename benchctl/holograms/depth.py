@@ -8,7 +8,7 @@ speed-vs-error`; it writes no files. A scene that needs one plane is computed an
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -51,9 +51,14 @@ def focal_stack_roi(setup: OpticalSetup, phase: torch.Tensor, planes_m: tuple[fl
 
 
 def scene_planes(depth_m: torch.Tensor, light: torch.Tensor, setups: Mapping[str, OpticalSetup],
-                 planes: int | None) -> PlaneChoice:
-    """`planes` evenly over the lit depth, or (None: auto) the planes the depth content and the finest axial
+                 planes: int | Sequence[float] | None) -> PlaneChoice:
+    """`planes` evenly over the lit depth (a count), exactly those planes (distances in metres, as a procedure that
+    chose them for every colour gives them), or (None: auto) the planes the depth content and the finest axial
     resolution of the colours' setups need (`choose_planes`)."""
+    if isinstance(planes, Sequence):
+        chosen = tuple(sorted(float(z) for z in planes))
+        return PlaneChoice(chosen, f"{len(chosen)} plane(s) at {', '.join(f'{z * 1e3:.2f}' for z in chosen)} mm, "
+                                   "as given")
     if planes is not None:
         return even_planes(depth_m, light, planes)
     return choose_planes(depth_m, light, finest_resolution_m([s.geometry for s in setups.values()]))
@@ -65,7 +70,7 @@ def compute_depth_scene(
     bench: Calibrated,
     method: str,
     *,
-    planes: int | None = None,
+    planes: int | Sequence[float] | None = None,
     iterations: int | None = None,
     colours: list[str] | None = None,
     seed: int = 0,
@@ -75,7 +80,8 @@ def compute_depth_scene(
 ) -> DepthSceneResult:
     """Choose the planes, then generate, quantise, display (in simulation) and score a hologram for each requested,
     non-black colour of a scene with depth (`benchctl.scenes.prepare_scene`: amplitude (3, H, W), depth (H, W) in
-    metres). `planes`: a number of planes evenly over the scene's lit depth, or None (auto). The rest as
+    metres). `planes`: a number of planes evenly over the scene's lit depth, the planes themselves (metres), or None
+    (auto). The rest as
     `compute_scene`; `perceptual` adds FLIP and speckle contrast to the scores."""
     profile = bench.profile
     grid, roi = profile.section("slm").shape, profile.section("optics").roi

@@ -2,7 +2,9 @@
 optics.aberration), the beam's amplitude (a Gaussian with waist and offset), the SLM's pixel crosstalk (a
 Gaussian blur of the phase the panel drives) and its zero order (the fraction of the light it leaves unmodulated),
 found by gradient descent through the differentiable propagation so that the model's target-plane intensity of
-known phase patterns matches what the camera recorded of them (registered onto the target plane).
+known phase patterns matches what the camera recorded of them (registered onto the target plane); or its intensity at
+several planes, where the camera captured each pattern focused at each of them: defocus, spherical aberration and
+the beam's curvature change the image with depth in ways one plane cannot tell apart.
 
 `FittedOptics` is the result: an `OpticalSetup` carrying one (field_model) modulates the light by
 (1 - f) e^(i C(phase)) + f and multiplies it by A e^(i W) before propagating, so SGD and every simulated score see
@@ -29,6 +31,7 @@ from benchctl.optics.aberration import (
     zernike_basis,
 )
 from benchctl.optics.metrics import centred_slices
+from benchctl.optics.multiplane import MultiPlanePropagator
 from benchctl.optics.propagation import Propagator
 
 # Below this blur (sigma, pixels) no spatial frequency of the driven phase changes by more than 0.05 %.
@@ -181,7 +184,8 @@ class _Model(torch.nn.Module):
 def _residual(model_intensity: torch.Tensor, captured: torch.Tensor, offset: torch.Tensor) -> torch.Tensor:
     """Relative RMS misfit per image after the best gain and offset (exposure, stray light), or the best gain
     alone where `offset` (N,) is False: closed-form least squares of captured ~ g model (+ b), differentiable in the
-    model."""
+    model. An image (N, ...) may be a stack of planes: one gain and offset for all of them (one pattern, one laser
+    power and exposure, whatever the focus)."""
     m = model_intensity.flatten(1).double()
     c = captured.flatten(1).double()
     keep = offset.to(m.device).double()[:, None]
@@ -191,7 +195,19 @@ def _residual(model_intensity: torch.Tensor, captured: torch.Tensor, offset: tor
     return (misfit / c.square().mean(1)).sqrt()
 
 
-def fit_optics(propagator: Propagator, roi: tuple[int, int], phases: torch.Tensor, captured: torch.Tensor, *,
+def _checked(propagator: Propagator | MultiPlanePropagator, roi: tuple[int, int], phases: torch.Tensor,
+             captured: torch.Tensor) -> tuple[slice, slice]:
+    """The ROI's slices; ValueError where the captures do not match the patterns and the propagator's planes."""
+    rows, cols = centred_slices(propagator.plan.shape, roi)
+    planes = (len(propagator.plans),) if isinstance(propagator, MultiPlanePropagator) else ()
+    wanted = (len(phases), *planes, *roi)
+    if tuple(captured.shape) != wanted:
+        raise ValueError(f"captures are {tuple(captured.shape)}, the patterns and planes need {wanted}")
+    return rows, cols
+
+
+def fit_optics(propagator: Propagator | MultiPlanePropagator, roi: tuple[int, int], phases: torch.Tensor,
+               captured: torch.Tensor, *,
                terms: Sequence[str] = tuple(ZERNIKE_TERMS), beam: bool = True, crosstalk: bool = True,
                zero_order: bool = True, camera_blur: bool = True, dark_background: Sequence[bool] | None = None,
                iterations: int = 200, learning_rate: float = 0.02, smoothing_px: Sequence[float] = (2.0, 0.0),
@@ -201,7 +217,9 @@ def fit_optics(propagator: Propagator, roi: tuple[int, int], phases: torch.Tenso
 
     `phases` (N, H, W) are the driven phases of the displayed frames (`SLM.driven`: unwrapped where the gray levels
     do not wrap, so that the crosstalk blurs the jumps the panel has), `captured` (N, rows, cols) the registered
-    captured intensity on the ROI (any scale, dark frame subtracted). Each image is compared after its best gain and
+    captured intensity on the ROI (any scale, dark frame subtracted). With a `MultiPlanePropagator` to K planes,
+    `captured` is (N, K, rows, cols): each pattern captured with the camera focused at each plane, one gain (and
+    offset) per pattern for all its planes. Each image is compared after its best gain and
     offset, or gain alone where `dark_background` says so (a constant phase, whose light is the beam itself: a
     free offset would absorb the beam's curvature, which pins its waist). With `camera_blur` the model's intensity is
     blurred by a fitted Gaussian first, as the camera's optics, Bayer sampling and the registration's resampling
@@ -213,7 +231,7 @@ def fit_optics(propagator: Propagator, roi: tuple[int, int], phases: torch.Tenso
     """
     offset = _offsets(dark_background, len(phases))
     shape = propagator.plan.shape
-    rows, cols = centred_slices(shape, roi)
+    rows, cols = _checked(propagator, roi, phases, captured)
     model = _Model(shape, propagator.plan.pitch_m, terms, beam, crosstalk, zero_order, camera_blur)
     optimiser = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=learning_rate)
     captured = captured.double()
@@ -249,15 +267,15 @@ def fit_optics(propagator: Propagator, roi: tuple[int, int], phases: torch.Tenso
                      model.camera_blur_px())
 
 
-def model_residual(propagator: Propagator, roi: tuple[int, int], phases: torch.Tensor, captured: torch.Tensor,
-                   model: FittedOptics, *, camera_blur_px: float = 0.0,
+def model_residual(propagator: Propagator | MultiPlanePropagator, roi: tuple[int, int], phases: torch.Tensor,
+                   captured: torch.Tensor, model: FittedOptics, *, camera_blur_px: float = 0.0,
                    dark_background: Sequence[bool] | None = None) -> float:
     """The relative RMS residual of `captured` under a given `model` (seen through the camera's blur), as
     `fit_optics` reports its own fit's: how well a stored model explains new captures, so that a new fit is
-    compared with the model it would replace on the same images."""
+    compared with the model it would replace on the same images (at the planes `propagator` reaches)."""
     offset = _offsets(dark_background, len(phases))
     shape, pitch = propagator.plan.shape, propagator.plan.pitch_m
-    rows, cols = centred_slices(shape, roi)
+    rows, cols = _checked(propagator, roi, phases, captured)
     with torch.no_grad():
         intensity = propagator(model.modulated(phases) * model.slm_factor(shape, pitch)).abs().square()[..., rows, cols]
         seen = gaussian_blur(intensity.double(), camera_blur_px**2)

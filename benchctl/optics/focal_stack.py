@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from benchctl.optics.colour import linear_to_srgb
 from benchctl.optics.metrics import lsq_scale, perceptual_scores, psnr_of_mse, ssim_map
 
 
@@ -116,6 +117,24 @@ def masked_scores(recon: torch.Tensor, target: torch.Tensor, region: torch.Tenso
     if perceptual:
         scores |= perceptual_scores(scaled, target, region)
     return scores
+
+
+def masked_colour_scores(merged_linear: torch.Tensor, target: torch.Tensor,
+                         region: torch.Tensor) -> dict[str, float] | None:
+    """PSNR of a merged colour image (3, h, w, linear intensity, balanced as `merge_colours` balances it) against the
+    target amplitude (3, h, w) inside `region` (h, w, bool), in linear intensity and in sRGB, over the three colours
+    together (as `colour_scores` over the whole image); None for an empty region."""
+    if not bool(region.any()):
+        return None
+    inside = region.to(merged_linear.dtype)
+    wanted = target.square().clamp(0, 1)
+
+    def db(image: torch.Tensor, reference: torch.Tensor) -> float:
+        mse = ((image - reference).square() * inside).sum() / (image.shape[0] * inside.sum())
+        return float(psnr_of_mse(mse, data_range=1.0))
+
+    return {"psnr_linear_db": db(merged_linear, wanted),
+            "psnr_srgb_db": db(linear_to_srgb(merged_linear.clamp(0, 1)), linear_to_srgb(wanted))}
 
 
 @dataclass

@@ -12,13 +12,14 @@ with every exposure the steps declare checked against the profile's limits). Eac
 of work and returns a JSON-ready result that later steps read with `context.result(key)`. The step builders
 and savers place every file in the run folder; a procedure names its files, never the folders they go in.
 
-- context: `Context` (profile, parameters, `Calibration`, optical setups, instruments), `Step`, `Expose`, and
+- context: `Context` (profile, parameters, `Calibration`, optical setups, instruments), `Step`, `Expose`, `FocusAt`, and
   `StepRedo` (a step sends the run back to an earlier step whose work is damaged or diverged).
 - parameters: `Parameters`, the shared groups `ExposureParameters` and `HologramParameters`, and the types
   `Frames`, `DarkFrames`, `RegistrationMode`, `ExposureMode`, `PeakGoal`, `ExposureCap`.
 - planning: `channels`, `power_w` and `checked_power` (watts from a procedure's setting such as "1mW"),
   `unknown_setpoints`, `exposure_cap_w` with `unknown_caps` (automatic exposure's
-  bound), `unregistered`, `check_method`, `carried`, `prepared_target`, `target_label`, `target_plane`.
+  bound), `unregistered`, `check_method`, `carried`, `prepared_target`, `target_label`, `target_plane`,
+  `focus_moves` (where the focus calibration puts a depth).
 - holograms and steps: `compute_hologram`, `hologram_step`, `exposure_step`, `probe_step` with `probed_power`,
   `measure` (an exposure inside a step of one's own, decoded), `shown` and `displayed_frame` (what a hologram
   step kept).
@@ -26,7 +27,8 @@ and savers place every file in the run folder; a procedure names its files, neve
 - files: `save_hologram`, `save_image`, `save_array` (each file's checksum joins the step's result), `load_image`,
   `load_array` (checked against it before use), `state_path`.
 - calibration: `Verdict` (a new calibration's acceptance test), stored or kept by `Context.store_calibration`.
-- reports: `Report` with the HTML helpers `table`, `figure`, `row` (figures side by side), `line_plot`,
+- reports: `Report` with the HTML helpers `table`, `figure`, `row` (figures side by side), `stepper` (a series
+  stepped through with a slider), `line_plot`,
   `front_plot`, and the pictures `error_map` and `dots_over`.
 """
 
@@ -43,9 +45,9 @@ from benchctl.runner.auto_exposure import (
     signal_stats,
     unknown_caps,
 )
-from benchctl.runner.context import Context, Expose, Parameters, Step, StepRedo
+from benchctl.runner.context import Context, Expose, FocusAt, Parameters, Step, StepRedo
 from benchctl.runner.plots import ERROR_FULL_SCALE, dots_over, error_map, front_plot, line_plot
-from benchctl.runner.report import Report, figure, row, table
+from benchctl.runner.report import Report, figure, row, stepper, table
 from benchctl.runner.steps import (
     DarkFrames,
     ExposureParameters,
@@ -60,6 +62,7 @@ from benchctl.runner.steps import (
     compute_hologram,
     displayed_frame,
     exposure_step,
+    focus_moves,
     hologram_step,
     load_array,
     load_exposure,
@@ -90,6 +93,7 @@ __all__ = [
     "Expose",
     "ExposureMode",
     "ExposureParameters",
+    "FocusAt",
     "Frames",
     "HologramParameters",
     "Measurement",
@@ -111,6 +115,7 @@ __all__ = [
     "exposure_cap_w",
     "exposure_step",
     "figure",
+    "focus_moves",
     "front_plot",
     "hologram_step",
     "line_plot",
@@ -131,6 +136,7 @@ __all__ = [
     "shown",
     "signal_stats",
     "state_path",
+    "stepper",
     "table",
     "target_label",
     "target_plane",

@@ -18,7 +18,7 @@ from benchctl.devices.power import format_power
 from benchctl.errors import BenchctlError
 from benchctl.profiles import LaserChannel
 from benchctl.runner.context import Context, Expose, Step
-from benchctl.runner.steps import checked_power, measure, power_w, registered, unregistered
+from benchctl.runner.steps import checked_power, focus_moves, measure, power_w, registered, unregistered
 from benchctl.targets import target_plane
 
 ExposureMode = Literal["auto", "fixed"]
@@ -67,15 +67,18 @@ def signal_stats(context: Context, image: RawImage, channel: LaserChannel) -> di
 
 
 def probe_step(context: Context, key: str, channel: LaserChannel, frame: Callable[[Context], np.ndarray],
-               description: str, peak_goal: float, max_w: float | None = None) -> Step:
-    """One frame of `frame` at the working setpoint, no dark; its result's "auto_exposure" holds the power
-    chosen for the captures that follow (`probed_power`), at most `max_w` (`exposure_cap_w`; None: the channel's
-    max_power_mw)."""
+               description: str, peak_goal: float, max_w: float | None = None,
+               depth_m: float | None = None) -> Step:
+    """One frame of `frame` at the working setpoint, no dark, focused at `depth_m` (as `exposure_step` focuses); its
+    result's "auto_exposure" holds the power chosen for the captures that follow (`probed_power`), at most `max_w`
+    (`exposure_cap_w`; None: the channel's max_power_mw)."""
     power = power_w(context, channel)
+    focus = focus_moves(context, channel, depth_m, required=depth_m is not None)
     limit_w = channel.max_power_mw * 1e-3 if max_w is None else max_w
     capped = limit_w < channel.max_power_mw * 1e-3
 
     def action(context: Context) -> dict[str, Any]:
+        moved = {"focus": context.focus_at(focus[0])} if focus else {}
         # kept as a record: later steps use the power chosen, not the frame
         probe = measure(context, channel, power, frame(context), frames=1, dark_frames=0, read_later=False)
         stats = signal_stats(context, probe.image, channel)
@@ -85,9 +88,9 @@ def probe_step(context: Context, key: str, channel: LaserChannel, frame: Callabl
                  if choice.limited_by_max else "")
         context.say(f"      auto exposure {channel.name}: peak {stats['peak']:.1%} at {format_power(choice.probe_w)}"
                     f" -> {format_power(choice.power_w)}{limit}")
-        return {**probe.record, "auto_exposure": choice.as_dict()}
+        return {**probe.record, "auto_exposure": choice.as_dict(), **moved}
 
-    return Step(key, description, action, (Expose(channel.name, power, 1, 0),))
+    return Step(key, description, action, (Expose(channel.name, power, 1, 0),), focus)
 
 
 def probed_power(probe_key: str) -> Callable[[Context], float]:

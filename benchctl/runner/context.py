@@ -3,7 +3,8 @@ step runs in.
 
 A step declares each exposure it makes (`Expose`: which channel, at what power, how many frames), so the plan can
 be checked against the profile's limits and printed before anything runs, and a step that tries an exposure it
-did not declare is stopped before the laser is touched.
+did not declare is stopped before the laser is touched. Likewise each focus move (`FocusAt`: the depth, the position
+the focus calibration gives it and the side it is approached from), which the dry run lists with its time.
 """
 
 from __future__ import annotations
@@ -69,19 +70,37 @@ class Expose:
 
 
 @dataclass(frozen=True)
+class FocusAt:
+    """A focus move a step declares: focus at `depth_m` from the SLM for `channel`, which its focus calibration puts
+    at `steps` from home, arriving while moving in direction `approach` after going `overshoot` steps past where it
+    has to come back (`Focus.move_to`)."""
+
+    channel: str
+    depth_m: float
+    steps: int
+    approach: int
+    overshoot: int
+
+    def describe(self) -> str:
+        side = "below" if self.approach > 0 else "above"
+        return f"focus {self.channel} at {self.depth_m * 1e3:.2f} mm: {self.steps} steps from home, from {side}"
+
+
+@dataclass(frozen=True)
 class Step:
     """One resumable piece of a run: `action(context)` does it and returns a JSON-ready result; `exposes` declares
-    every exposure it makes (a step without any uses no device)."""
+    every exposure it makes (a step without any uses no device), `focus` every focus move."""
 
     key: str
     description: str
     action: Callable[[Context], dict[str, Any]]
     exposes: tuple[Expose, ...] = ()
+    focus: tuple[FocusAt, ...] = ()
 
     @property
     def devices(self) -> tuple[str, ...]:
-        """The devices the step uses: all three when it exposes, none otherwise."""
-        return ("laser", "slm", "camera") if self.exposes else ()
+        """The devices the step uses: all three when it exposes, none otherwise; the focus when it moves it."""
+        return ("laser", "slm", "camera") * bool(self.exposes) + ("focus",) * bool(self.focus)
 
 
 class StepRedo(BenchctlError):
@@ -245,11 +264,26 @@ class Context:
     def progress(self, label: str) -> ProgressLine:
         return ProgressLine(label)
 
+    def focus_at(self, at: FocusAt) -> dict[str, Any]:
+        """Move the focus as the running step declared (`FocusAt`); returns the JSON-ready record of the move: the
+        depth, the position asked for, what was requested, the believed position and the device's own counter. A move
+        the step did not declare is refused before the focus is touched."""
+        step = self.step
+        if step is None:
+            raise BenchctlError("a focus move outside a running step")
+        if at not in step.focus:
+            raise BenchctlError(f"step {step.key!r} moves the focus ({at.describe()}), which it did not declare "
+                                "(declared: " + ("; ".join(f.describe() for f in step.focus) or "no focus move") + ")")
+        move = self.instruments.focus.move_to(at.steps, at.approach, at.overshoot)
+        return {"depth_mm": round(at.depth_m * 1e3, 6), "steps": at.steps, "requested": move.requested,
+                "position": move.position, "reported": move.reported}
+
     def expose(self, channel: str, power_w: float, frame: np.ndarray, *, frames: int, dark_frames: int,
-               keep: bool = True) -> Exposure:
+               keep: bool = True, within: str | None = None) -> Exposure:
         """One exposure the running step declared (see `Instruments.expose`); with `keep`, its RAW frames are
-        saved in the step's raw folder (what an unfinished earlier attempt left there is set aside first), else
-        they stay in memory. An exposure the step did not declare is refused before any device is touched."""
+        saved in the step's raw folder, or its sub-folder `within` for a step that keeps several exposures (what an
+        unfinished earlier attempt left there is set aside first), else they stay in memory. An exposure the step
+        did not declare is refused before any device is touched."""
         step = self.step
         if step is None:
             raise BenchctlError("an exposure outside a running step")
@@ -263,7 +297,7 @@ class Context:
                                 + ("; ".join(e.describe() for e in step.exposes) or "no exposure") + ")")
         folder = None
         if keep:
-            folder = self.path(layout.raw_folder(step.key))
+            folder = self.path(layout.raw_folder(step.key, within))
             set_aside(folder)
         return self.instruments.expose(folder, channel, power_w, frame, frames=frames, dark_frames=dark_frames)
 

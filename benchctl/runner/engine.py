@@ -32,7 +32,7 @@ from benchctl.errors import BenchctlError
 from benchctl.files import file_sha256, folder_problem, write_json
 from benchctl.memory import check_memory
 from benchctl.profiles import Profile, load_profile, resolve_profile_path
-from benchctl.runner.context import Context, Step, StepRedo
+from benchctl.runner.context import Context, Expose, FocusAt, Step, StepRedo
 from benchctl.runner.estimates import RunEstimate, duration_text
 from benchctl.runner.instruments import Instruments
 from benchctl.runner.layout import CALIBRATION_COPY, DEVICES, PROFILE_COPY, REPORT, RUN_FILE
@@ -52,8 +52,9 @@ class RunOutcome:
 
 
 def _line(step: Step) -> str:
-    """A step as the dry run and the run print it: its description and every exposure it declares."""
-    return step.description + "".join(f"  [{expose.describe()}]" for expose in step.exposes)
+    """A step as the dry run and the run print it: its description, every focus move and exposure it declares."""
+    declared: list[FocusAt | Expose] = [*step.focus, *step.exposes]
+    return step.description + "".join(f"  [{item.describe()}]" for item in declared)
 
 
 def _describe(steps: list[Step], procedure: Procedure, profile: Profile) -> list[str]:

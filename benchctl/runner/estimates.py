@@ -1,8 +1,9 @@
 """How long a run will take and how much disk it fills, estimated from its plan before it starts: the dry run prints
 both, a run refuses to start where the disk lacks the space, and each step's line says how long the rest will take.
 
-Time: every exposure a step declares costs its frames' capture time, plus the SLM's settle time; a step that exposes
-nothing (a hologram, a fit, processing) STEP_SECONDS. Once steps of a kind have run, their measured mean replaces
+Time: every exposure a step declares costs its frames' capture time, plus the SLM's settle time; every focus move
+FOCUS_MOVE_SECONDS plus the focus's settle time; a step that does neither (a hologram, a fit, processing)
+STEP_SECONDS. Once steps of a kind have run, their measured mean replaces
 the estimate for the rest of that kind. Disk: each RAW frame a step keeps, and DISK_MARGIN more for holograms, images
 and records. A frame's size and capture time are the camera driver's (`frame_size`: a GenICam camera's region and
 pixel format, the simulated camera's rendering of [sim.sensor], a body's sensor).
@@ -23,6 +24,7 @@ from benchctl.profiles import Profile
 from benchctl.runner.context import Step
 
 STEP_SECONDS = 1.0  # a step that exposes nothing, until one of its kind has run
+FOCUS_MOVE_SECONDS = 0.5  # one focus move's travel (a stage's few mm, a lens's few drives), until measured
 DISK_MARGIN = 1.1
 
 
@@ -32,7 +34,7 @@ def frame_bytes(profile: Profile) -> float:
 
 
 def _kind(step: Step) -> tuple[str, bool]:
-    return step.key.split("/")[0], bool(step.exposes)
+    return step.key.split("/")[0], bool(step.exposes or step.focus)
 
 
 def duration_text(seconds: float) -> str:
@@ -53,9 +55,10 @@ class RunEstimate:
         self.frame = frame_size(profile)
         self.frame_s = self.frame.seconds
         settle = (profile.slm.settle_ms if profile.slm else 0.0) / 1e3
+        self.move_s = FOCUS_MOVE_SECONDS + (profile.focus.settle_ms / 1e3 if profile.focus else 0.0)
         self.planned = {step.key: sum(((e.frames + e.dark_frames) * self.frame_s + settle) * e.times
-                                      for e in step.exposes)
-                        if step.exposes else STEP_SECONDS for step in steps}
+                                      for e in step.exposes) + len(step.focus) * self.move_s
+                        if step.exposes or step.focus else STEP_SECONDS for step in steps}
         self.measured: dict[tuple[str, bool], list[float]] = {}
         self._count: Counter[tuple[str, bool]] = Counter()  # steps left, per kind
         self._planned: dict[tuple[str, bool], float] = {}  # their planned seconds, per kind
@@ -99,9 +102,12 @@ class RunEstimate:
     def describe(self, steps: Sequence[Step], out: Path) -> list[str]:
         """The dry run's lines: time and disk, with what they rest on."""
         exposed, kept = self.frames(steps)
-        computing = sum(1 for step in steps if not step.exposes)
+        computing = sum(1 for step in steps if not step.exposes and not step.focus)
+        moves = sum(len(step.focus) for step in steps)
+        focus = f", {moves} focus move(s) at about {self.move_s:.1f} s each" if moves else ""
         return [f"time: about {duration_text(self.seconds(steps))} ({exposed} frame(s) at about {self.frame_s:.1f} s "
-                f"each with {self.frame.what}, {computing} other step(s) at about {STEP_SECONDS:g} s until measured)",
+                f"each with {self.frame.what}{focus}, {computing} other step(s) at about {STEP_SECONDS:g} s until "
+                "measured)",
                 f"disk: about {size_text(self.disk_bytes(steps))} in {out} ({kept} RAW frame(s) of "
                 f"{size_text(frame_bytes(self.profile))} kept, {DISK_MARGIN - 1:.0%} more for holograms and images); "
                 f"{size_text(free_bytes(out))} free there"]

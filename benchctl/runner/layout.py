@@ -53,9 +53,10 @@ def hologram_file(*parts: str) -> str:
     return _inside(HOLOGRAMS, parts)
 
 
-def raw_folder(step_key: str) -> str:
-    """Where the exposure step `step_key` keeps its RAW frames: raw/<step key>/ (its '/' make sub-folders)."""
-    return _inside(RAW, tuple(step_key.split("/")))
+def raw_folder(step_key: str, within: str | None = None) -> str:
+    """Where the exposure step `step_key` keeps its RAW frames: raw/<step key>/ (its '/' make sub-folders), or
+    raw/<step key>/<within>/ for one of several exposures a step keeps."""
+    return _inside(RAW, (*step_key.split("/"), *([within] if within is not None else [])))
 
 
 def image_file(*parts: str) -> str:

@@ -50,6 +50,7 @@ BUILTINS = {
     "model-calibration": "benchctl.runner.builtin.model_calibration",
     "citl": "benchctl.runner.builtin.citl.procedure",
     "focus-calibration": "benchctl.runner.builtin.focus_calibration",
+    "focal-stack": "benchctl.runner.builtin.focal_stack",
 }
 
 MAX_STEPS = 100_000  # a plan longer than this is a mistake (repeats = 1000000), not an experiment

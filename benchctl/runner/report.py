@@ -33,7 +33,8 @@ border:1px solid #888;box-sizing:border-box}.row{display:grid;grid-template-colu
 gap:1em;margin:.5em 0 1em}.row figure{margin:0}.row figure img{width:100%}svg{max-width:100%;height:auto}
 figcaption{font-size:.9em;color:#555}.warn{background:#fff4e0;border-left:4px solid #e69500;padding:.5em 1em}
 .ok{color:#2a7a2a}code{background:#f3f3f3;padding:0 .2em}td.group{font-weight:600;vertical-align:top}
-.text{text-align:left}"""
+.text{text-align:left}.stepper{border:1px solid #ccc;padding:.5em 1em;margin:.5em 0 1em}
+.stepper label{display:flex;gap:1em;align-items:center}.stepper input{flex:1;min-width:0}"""
 
 
 def _esc(value: Any) -> str:
@@ -95,6 +96,27 @@ def figure(context: Context, relative: str, caption: str) -> str:
     data = base64.b64encode(png.tobytes()).decode() if ok else ""
     return (f'<figure><a href="{_esc(relative)}"><img src="data:image/png;base64,{data}" alt="{_esc(caption)}">'
             f"</a><figcaption>{_esc(caption)}</figcaption></figure>")
+
+
+def stepper(key: str, frames: list[tuple[str, str]], what: str) -> str:
+    """A series of frames (caption, HTML such as a `row` of figures) one below the other, with above them a viewer
+    and a slider (`what` names it: "depth") that shows one frame at a time: a way to step through a focal stack,
+    self-contained (a few lines of script, the frames' own images), and without script the frames are still all
+    there. `key` makes the ids unique in the page."""
+    slug = "".join(c if c.isalnum() else "-" for c in key)
+    blocks = "".join(f"<div class='frame' data-caption='{_esc(caption)}'><h4>{_esc(caption)}</h4>{body}</div>"
+                     for caption, body in frames)
+    first = _esc(frames[0][0]) if frames else ""
+    script = ("<script>(function(){const box=document.getElementById('stepper-%s');"
+              "const frames=box.querySelectorAll('.frame'),view=box.querySelector('.view'),"
+              "slider=box.querySelector('input'),out=box.querySelector('output');"
+              "function show(k){const f=frames[k];view.innerHTML=f.querySelector('.row').outerHTML;"
+              "out.textContent=f.dataset.caption;}"
+              "slider.addEventListener('input',()=>show(+slider.value));if(frames.length)show(0);})();</script>"
+              % slug)
+    return (f"<div id='stepper-{slug}'><div class='stepper'><label>{_esc(what)} <input type='range' min='0' "
+            f"max='{max(len(frames) - 1, 0)}' value='0' step='1' aria-label='{_esc(what)}'><output>{first}</output>"
+            f"</label><div class='view'></div></div><div class='frames'>{blocks}</div></div>{script}")
 
 
 def _grouped(groups: dict[str, dict[str, Any]], headings: tuple[str, str, str]) -> str:

@@ -7,7 +7,7 @@ Every step writes its files into the run folder and returns a small JSON-ready r
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -19,6 +19,7 @@ from msgspec import Meta
 
 from benchctl.calibration.acceptance import AcceptMode
 from benchctl.capture.colour_planes import registered_plane, roi_saturation
+from benchctl.capture.focus import FocusMap
 from benchctl.capture.raw import RawImage, average_frames, decode_raw, subtract_dark
 from benchctl.cgh import DEFAULT_METHOD, Method
 from benchctl.devices.power import format_power, parse_power
@@ -30,7 +31,7 @@ from benchctl.images import read_image, write_png
 from benchctl.optics import linear_to_srgb
 from benchctl.profiles import LaserChannel, NonNegativeInt, Profile, SettleMs
 from benchctl.runner import layout
-from benchctl.runner.context import Context, Expose, P, Parameters, Step
+from benchctl.runner.context import Context, Expose, FocusAt, P, Parameters, Step
 from benchctl.runner.instruments import Exposure
 from benchctl.targets import CHART_PREFIX, PHOTO_PREFIX, load_target, prepare_target, target_plane
 
@@ -67,6 +68,9 @@ class HologramParameters(ExposureParameters, kw_only=True):
     iterations: NonNegativeInt | None = None  # default: the method's own (0: its start)
     seed: NonNegativeInt = 0
     checkpoint: str | None = None  # a trained model for a learned method
+    # "fitted": holograms computed through the optical model fitted for the bench (model calibration), if any;
+    # "ideal": as if none had been fitted (the lookup tables still apply), to measure what the model buys
+    optical_model: Literal["fitted", "ideal"] = "fitted"
 
 
 # -- planning -------------------------------------------------------------------------------------------------------
@@ -166,13 +170,17 @@ def prepared_target(profile: Profile, spec: str, key: str | None = None) -> torc
 # -- holograms ------------------------------------------------------------------------------------------------------
 
 def compute_hologram(context: Context, target: torch.Tensor, channel: LaserChannel,
-                     options: HologramParameters, *, distance_m: float | None = None) -> Hologram:
+                     options: HologramParameters, *, distance_m: float | None = None,
+                     depth_m: torch.Tensor | None = None, planes_m: Sequence[float] | None = None) -> Hologram:
     """`channel`'s hologram of `target` (3, H, W amplitude on the SLM grid) as `options` say: its frame as
     displayed, simulated reconstruction and scores; from the hologram cache when it was computed before.
-    `distance_m`: reconstructed at that depth instead of the profile's distance (the focus calibration's)."""
-    bench = context.bench if distance_m is None else context.bench.at_distance(distance_m)
+    `distance_m`: reconstructed at that depth instead of the profile's distance (the focus calibration's). A scene
+    with depth gives its `depth_m` (H, W) and the planes it is shown at: the reconstruction is its focal stack."""
+    bench = context.bench if options.optical_model == "fitted" else context.bench.without_model()
+    bench = bench if distance_m is None else bench.at_distance(distance_m)
     return hologram(bench, target, channel.name, options.method, iterations=options.iterations,
-                    seed=options.seed, checkpoint=options.checkpoint, progress=context.progress)
+                    seed=options.seed, checkpoint=options.checkpoint, progress=context.progress, depth_m=depth_m,
+                    planes_m=planes_m)
 
 
 def hologram_step(key: str, label: str, target: torch.Tensor, channel: LaserChannel,
@@ -224,17 +232,18 @@ class Measurement:
 
 
 def measure(context: Context, channel: LaserChannel, power: float, frame: np.ndarray, *, frames: int,
-            dark_frames: int, keep: bool = True, read_later: bool = True) -> Measurement:
+            dark_frames: int, keep: bool = True, read_later: bool = True, within: str | None = None) -> Measurement:
     """Show `frame`, expose it with `channel` alone at `power`, capture `frames` RAW frames and `dark_frames`
     dark ones: an exposure the running step declared. With `keep` the RAW files are kept in the step's raw folder
-    and the record holds each file's checksum, which a resumed run verifies: under "checksums" for files later
-    steps read (a changed one is captured again), under "archived" with `read_later=False` for a record no later
-    step reads (a changed one is reported)."""
-    exposure = context.expose(channel.name, power, frame, frames=frames, dark_frames=dark_frames, keep=keep)
+    (its sub-folder `within`, for one of several exposures of the step) and the record holds each file's checksum,
+    which a resumed run verifies: under "checksums" for files later steps read (a changed one is captured again),
+    under "archived" with `read_later=False` for a record no later step reads (a changed one is reported)."""
+    exposure = context.expose(channel.name, power, frame, frames=frames, dark_frames=dark_frames, keep=keep,
+                              within=within)
     record = dict(exposure.result)
     if keep:
         assert context.step is not None
-        folder = layout.raw_folder(context.step.key)
+        folder = layout.raw_folder(context.step.key, within)
         names = [*exposure.result["frames"], *exposure.result["darks"]]
         record["folder"] = folder
         record["checksums" if read_later else "archived"] = {
@@ -242,26 +251,60 @@ def measure(context: Context, channel: LaserChannel, power: float, frame: np.nda
     return Measurement(exposure, record)
 
 
+def focus_moves(context: Context, channel: LaserChannel, depth_m: float | None = None, *,
+                required: bool = False) -> tuple[FocusAt, ...]:
+    """The focus move that focuses the camera at `depth_m` from the SLM (None: the profile's target plane) for
+    `channel`, through its stored focus calibration (positions, approach side and overshoot past the backlash); checked
+    when planning. None where the profile has no [focus], or no focus calibration for the colour unless `required`
+    (then an error saying to calibrate first): a capture at the target plane leaves an uncalibrated focus where it
+    is."""
+    profile = context.profile
+    if profile.focus is None:
+        if required:
+            profile.require("focus")
+        return ()
+    entry = context.calibration.focus_maps().get(channel.name)
+    if entry is None:
+        if not required:
+            return ()
+        raise BenchctlError(f"no focus calibration for {channel.name} on profile {profile.name!r} with its [focus] "
+                            f"device ({context.calibration.focus_device()}): run procedures/focus_calibration.toml "
+                            "first")
+    depth = profile.section("optics").distance_mm * 1e-3 if depth_m is None else depth_m
+    found = FocusMap.from_dict(entry)
+    try:
+        steps = found.steps_for(depth)
+    except BenchctlError as exc:
+        raise BenchctlError(f"{channel.name}: {exc}") from None
+    return (FocusAt(channel.name, depth, steps, found.approach, found.overshoot_steps),)
+
+
 def exposure_step(context: Context, key: str, channel: LaserChannel, watts: float | Callable[[Context], float],
                   frame: Callable[[Context], np.ndarray], description: str, *, frames: int | None = None,
-                  dark_frames: int | None = None, read_later: bool = True, max_w: float | None = None) -> Step:
+                  dark_frames: int | None = None, read_later: bool = True, max_w: float | None = None,
+                  depth_m: float | None = None) -> Step:
     """A step that shows `frame(context)` and exposes it with `channel` alone at `watts` (a number, or a function
     of the context that decides when the step runs, as automatic exposure does: `max_w` bounds what it may choose,
     else the channel's max_power_mw), keeping the RAW frames and dark frames (counts: as given, else the procedure's
-    `frames` / `dark_frames`) for later steps (`load_exposure`). A retried step first moves what its unfinished
+    `frames` / `dark_frames`) for later steps (`load_exposure`). The camera focuses first at `depth_m` from the SLM
+    (which needs the focus calibration), or by default at the target plane where the focus is calibrated
+    (`focus_moves`). A retried step first moves what its unfinished
     attempt left aside (kept, never deleted)."""
     params = context.parameters(ExposureParameters)
     count = params.frames if frames is None else frames
     darks = params.dark_frames if dark_frames is None else dark_frames
+    focus = focus_moves(context, channel, depth_m, required=depth_m is not None)
 
     def action(context: Context) -> dict[str, Any]:
         power = watts(context) if callable(watts) else watts
-        return measure(context, channel, power, frame(context), frames=count, dark_frames=darks,
-                       read_later=read_later).record
+        moved = [context.focus_at(at) for at in focus]
+        record = measure(context, channel, power, frame(context), frames=count, dark_frames=darks,
+                         read_later=read_later).record
+        return {**record, "focus": moved[0]} if moved else record
 
     declared = Expose(channel.name, None if callable(watts) else watts, count, darks,
                       max_w=max_w if callable(watts) else None)
-    return Step(key, description, action, (declared,))
+    return Step(key, description, action, (declared,), focus)
 
 
 def load_exposure(context: Context, key: str) -> tuple[RawImage, RawImage | None]:

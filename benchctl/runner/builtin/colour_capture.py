@@ -3,6 +3,9 @@ hologram, expose that colour alone, capture RAW frames and dark frames; then reg
 onto the target with the stored camera-SLM registration, merge the colours, balance them and score the merged
 capture against the target, next to the simulated reconstruction and the generation time per colour.
 
+A scene with depth (`rgbd:...`) among the targets is captured as a focal stack, as procedures/focal_stack.toml
+captures it (its planes chosen automatically; the camera focused at each through the focus calibration).
+
 On a profile without them, it first measures the SLM's lookup tables (lut_calibration = "auto") and registers
 the camera (registration = "auto"), with the same steps as those procedures; both are then stored for later runs.
 
@@ -64,7 +67,8 @@ from benchctl.runner.api import (
     unknown_caps,
     unknown_setpoints,
 )
-from benchctl.runner.builtin import lut_calibration, registration
+from benchctl.runner.builtin import focal_stack, lut_calibration, registration
+from benchctl.scenes import is_scene
 from benchctl.targets import active_channels
 
 AUTO_LUT_GRAY_STEP = 16  # every 16th gray level: 17 exposures per colour, errors below 0.01 rad on the simulator
@@ -112,8 +116,17 @@ def plan(context: Context) -> list[Step]:
     steps += registration.registration_first(context, used, options[methods[0]], params.registration)
     calibrated_here = [step.key for step in steps if step.key.endswith("/fit") or "/fit/" in step.key]
     labels: set[str] = {registration.LABEL}  # registration's holograms are named after it
-    targets = []
+    targets, stacks = [], []
     for spec in params.targets:
+        if is_scene(spec):  # a scene with depth is captured as a focal stack, as procedures/focal_stack.toml does
+            base = focal_stack.scene_label(spec, labels)
+            for method in methods:
+                label = base if len(methods) == 1 else target_label(f"{base}-{method.replace('+', '-')}", labels)
+                scene = focal_stack.stack_scene(context, spec, label, None, False, used, "parameters.targets")
+                steps += focal_stack.stack_steps(context, scene, options[method], params.exposure, params.peak_goal,
+                                                 params.max_exposure_power)
+                stacks.append(label)
+            continue
         base, target = target_label(spec, labels), prepared_target(context.profile, spec, "parameters.targets")
         present = active_channels(target)
         lit = [c for c in used if present[target_plane(c)]]
@@ -124,7 +137,7 @@ def plan(context: Context) -> list[Step]:
             targets.append((spec, label, lit))
             steps += _capture_steps(context, spec, label, lit, target, options[method])
     steps.append(Step("report", "metrics.json, metrics.csv and report.html",
-                      _reporter(targets, used, calibrated_here)))
+                      _reporter(targets, stacks, used, calibrated_here)))
     return steps
 
 
@@ -224,13 +237,15 @@ def _processor(spec: str, label: str, repeat: str, lit: list[LaserChannel], targ
     return action
 
 
-def _reporter(targets: list[tuple[str, str, list[LaserChannel]]], used: list[LaserChannel], calibrated_here: list[str]):
+def _reporter(targets: list[tuple[str, str, list[LaserChannel]]], stacks: list[str], used: list[LaserChannel],
+              calibrated_here: list[str]):
     def action(context: Context) -> dict[str, Any]:
         results = [context.result(f"process/{label}{repeat}")
                    for _, label, _ in targets
                    for repeat in _repeats(context.parameters(ColourCaptureParameters).repeats)]
         fits = {key: context.result(key) for key in calibrated_here}
-        return colour_capture_report(context, results, [c.name for c in used], fits)
+        return colour_capture_report(context, results, [c.name for c in used], fits,
+                                     [context.result(f"stack/{label}") for label in stacks])
 
     return action
 
@@ -257,11 +272,14 @@ def exposure_warnings(label: str, colours: dict[str, dict[str, Any]]) -> list[st
 
 
 def colour_capture_report(context: Context, results: list[dict[str, Any]], colours: list[str],
-                          fits: dict[str, dict[str, Any]] | None = None) -> dict[str, Any]:
+                          fits: dict[str, dict[str, Any]] | None = None,
+                          stacks: list[dict[str, Any]] | None = None) -> dict[str, Any]:
     """Per target: target, simulation and capture side by side, each colour's capture, error maps, per-colour and
-    merged scores; the lookup tables and registration this run measured first (`fits`, by step key); across methods
-    the speed against error; metrics.json and metrics.csv (one row per target and colour, plus the merged row)."""
-    report = Report(f"Colour capture: {', '.join(r['label'] for r in results)}")
+    merged scores; per scene with depth its focal stack (`stacks`: the focal-stack summaries); the lookup tables and
+    registration this run measured first (`fits`, by step key); across methods the speed against error;
+    metrics.json and metrics.csv (one row per target and colour, plus the merged row)."""
+    stacks = stacks or []
+    report = Report(f"Colour capture: {', '.join([*(r['label'] for r in results), *(s['label'] for s in stacks)])}")
     rows = []
     for result in results:
         label = result["label"]
@@ -301,6 +319,8 @@ def colour_capture_report(context: Context, results: list[dict[str, Any]], colou
                        "<p>Generation time: the time it took to compute the hologram (for a cached hologram, when it "
                        "was computed). Peak: the capture's brightest 0.1 % as a fraction of full scale.</p>", level=3)
         report.section("Merged colour image", table(merged_rows), level=3)
+    for summary in stacks:
+        rows += focal_stack.focal_stack_sections(report, context, summary)
     method = context.parameters(HologramParameters).method
     front = method_front(results)
     if len(front) > 1:
@@ -321,8 +341,9 @@ def colour_capture_report(context: Context, results: list[dict[str, Any]], colou
                 f"{r['merged']['capture']['ssim_srgb']:.3f} (simulated {r['merged']['simulated']['psnr_srgb_db']:.2f} "
                 f"dB, {r['merged']['simulated']['ssim_srgb']:.3f}); generation "
                 + ", ".join(f"{n} {c['generation_s']:.2f} s" for n, c in r["colours"].items()) for r in results]
+    headline += [focal_stack.stack_headline(summary) for summary in stacks]
     return report.write(context, {"procedure": "colour-capture", "method": method, "targets": results,
-                                  "front": front}, rows, colours, headline)
+                                  "scenes": stacks, "front": front}, rows, colours, headline)
 
 
 def method_front(results: list[dict[str, Any]]) -> list[dict[str, Any]]:

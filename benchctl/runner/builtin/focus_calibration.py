@@ -202,6 +202,16 @@ def _flank(positions: list[int], values: list[float]) -> tuple[list[float], list
     return flank_s, flank_p
 
 
+def _away(position: int, distance: int, swept: tuple[int, int]) -> int | None:
+    """Where a round trip from `position` goes: `distance` above it, or below it where that would pass the swept
+    range's end (the focus's travel may end there); None where neither stays inside."""
+    low, high = swept
+    for away in (position + distance, position - distance):
+        if low <= away <= high:
+            return away
+    return None
+
+
 def _round_trips(channel: LaserChannel, watts: float):
     def action(context: Context) -> dict[str, Any]:
         params = context.parameters(FocusCalibrationParameters)
@@ -215,9 +225,13 @@ def _round_trips(channel: LaserChannel, watts: float):
         half = (flank_s[0] + flank_s[-1]) / 2
         target = round(float(np.interp(half, flank_s, flank_p)))
         span = params.fine_span_steps
+        away = _away(target, params.round_trip_steps, params.sweep_steps)
+        if away is None:
+            return {"problem": f"no round trip of {params.round_trip_steps} steps from {target} stays inside the "
+                               f"swept range {list(params.sweep_steps)}: lower round_trip_steps"}
         read, truth = [], []
         for _ in range(params.round_trips):
-            focus.move_to(target + params.round_trip_steps, approach=1, overshoot=span)
+            focus.move_to(away, approach=1, overshoot=span)
             focus.move_to(target, approach=1, overshoot=span)
             value = _sharpness_at(context, channel, watts, frame)
             read.append(float(np.interp(value, flank_s, flank_p)) - target)

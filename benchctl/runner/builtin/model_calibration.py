@@ -8,6 +8,11 @@ the camera, every pattern focused points (a pattern without any holds no informa
 clipped, the fit converged and brought its residual to at most MIN_IMPROVEMENT of the ideal model's, and on captures
 it was not fitted to (`held_out` further point patterns) its residual is at most MIN_IMPROVEMENT of the ideal
 model's, below MAX_RESIDUAL and not above the stored model's.
+
+With `focus_depths_mm` each pattern is captured with the camera focused at each of those depths (from
+optics.distance_mm, through the focus calibration), and the model is fitted to all of them at once: its intensity at
+each plane against the capture focused there (one gain per pattern for its planes), and judged on the held-out
+patterns at all those planes. Captures are ordered by depth, so the focus moves once per depth and colour.
 """
 
 from __future__ import annotations
@@ -90,6 +95,9 @@ class ModelCalibrationParameters(ExposureParameters, kw_only=True):
     camera_blur: bool = True  # compare through a fitted blur of the captures (camera optics, sampling, registration)
     seed: NonNegativeInt = 0  # of the random points
     registration: RegistrationMode = "auto"
+    # capture every pattern focused at each of these depths from optics.distance_mm (the focus calibration puts the
+    # camera there) and fit the model at all of them; empty: at the target plane only
+    focus_depths_mm: tuple[float, ...] = ()
 
 
 PARAMETERS = ModelCalibrationParameters
@@ -101,19 +109,24 @@ def plan(context: Context) -> list[Step]:
     used = channels(context)
     params = context.parameters(ModelCalibrationParameters)
     _check_points(context, params)
-    steps = registration.registration_first(context, used, params, params.registration)
+    depths = focus_depths(context)
+    steps: list[Step] = []  # planned before registration, so that a missing focus calibration is said first
     count = params.patterns + params.held_out + params.flat
     for channel in used:
         steps.append(Step(f"model/patterns/{channel.name}", f"{count} calibration patterns ({channel.name})",
                           _patterns(channel)))
-        for k in range(count):
-            kind = " (held out)" if k >= params.patterns else ""
-            steps.append(exposure_step(context, f"model/capture/{channel.name}/{k}", channel, power_w(context, channel),
-                                       partial(_pattern_frame, channel=channel.name, k=k),
-                                       f"expose calibration pattern {k + 1}/{count}"
-                                       + (" (flat)" if k == params.patterns + params.held_out else kind)))
+        for j, depth in enumerate(depths or [None]):
+            at = "" if depth is None else f" focused at {depth * 1e3:.2f} mm"
+            for k in range(count):
+                kind = " (flat)" if k == params.patterns + params.held_out else (
+                    " (held out)" if k >= params.patterns else "")
+                steps.append(exposure_step(
+                    context, _capture_key(channel.name, k, None if depth is None else j), channel,
+                    power_w(context, channel), partial(_pattern_frame, channel=channel.name, k=k),
+                    f"expose calibration pattern {k + 1}/{count}{kind}{at}", depth_m=depth))
         steps.append(Step(f"model/fit/{channel.name}", f"fit wavefront, beam, crosstalk and zero order "
                           f"({channel.name})", _fitter(channel)))
+    steps = registration.registration_first(context, used, params, params.registration) + steps
     panel = params.crosstalk and params.panel_crosstalk and len(used) > 1
     if panel:
         steps.append(Step("model/panel", "one crosstalk for the panel: the median of the colours' fits",
@@ -122,6 +135,22 @@ def plan(context: Context) -> list[Step]:
     return steps
 
 
+def focus_depths(context: Context) -> list[float]:
+    """The depths (metres from the SLM) every pattern is captured at: `focus_depths_mm` from the profile's distance,
+    distinct and in front of the SLM; none: the target plane, where the camera is."""
+    params = context.parameters(ModelCalibrationParameters)
+    offsets = params.focus_depths_mm
+    if len(set(offsets)) != len(offsets):
+        raise BenchctlError(f"parameters.focus_depths_mm: {list(offsets)} names a depth twice")
+    depths = [(context.profile.section("optics").distance_mm + offset) * 1e-3 for offset in sorted(offsets)]
+    if depths and min(depths) <= 0:
+        raise BenchctlError(f"parameters.focus_depths_mm: {min(offsets):g} mm puts a depth behind the SLM")
+    return depths
+
+
+def _capture_key(colour: str, k: int, j: int | None) -> str:
+    """Pattern k's capture (at the `j`-th focus depth, where there are several)."""
+    return f"model/capture/{colour}/{k}" + ("" if j is None else f"/z{j}")
 def _check_points(context: Context, params: ModelCalibrationParameters) -> None:
     """Refuse a spacing that leaves the patterns (nearly) without points, before anything runs."""
     optics = context.profile.require("optics").optics
@@ -163,13 +192,19 @@ def _fitter(channel: LaserChannel):
     def action(context: Context) -> dict[str, Any]:
         setup = context.setup(channel.name)
         registration_entry = context.calibration.registrations()[channel.name]
+        depths = focus_depths(context)
         made = context.result(f"model/patterns/{channel.name}")
         shown, captured, saturated = [], [], 0.0
         for k, file in enumerate(made["files"]):
             shown.append(torch.from_numpy(context.slm.driven(load_image(context, file), channel.name)))
-            image, _ = load_exposure(context, f"model/capture/{channel.name}/{k}")
-            captured.append(torch.from_numpy(registered(context, image, channel)))
-            saturated = max(saturated, registered_saturation(context, image, channel))
+            planes = []
+            for j in range(len(depths)) if depths else [None]:
+                image, _ = load_exposure(context, _capture_key(channel.name, k, j))
+                planes.append(torch.from_numpy(registered(context, image, channel)))
+                saturated = max(saturated, registered_saturation(context, image, channel))
+            captured.append(torch.stack(planes) if depths else planes[0])
+        # at several depths, the model's intensity at each against the capture focused there
+        propagator = setup.planes_propagator(depths) if depths else setup.target_propagator()
         start = time.perf_counter()
         params = context.parameters(ModelCalibrationParameters)
         flat, held = bool(made.get("flat")), int(made.get("held_out", 0))
@@ -178,7 +213,7 @@ def _fitter(channel: LaserChannel):
         dark = [False] * (len(fitted) - flat) + [True] * flat
         phases, images = torch.stack([shown[k] for k in fitted]), torch.stack([captured[k] for k in fitted])
         try:
-            fit = fit_optics(setup.target_propagator(), setup.roi, phases, images, beam=params.beam,
+            fit = fit_optics(propagator, setup.roi, phases, images, beam=params.beam,
                              crosstalk=params.crosstalk, zero_order=params.zero_order,
                              camera_blur=params.camera_blur, dark_background=dark, iterations=params.fit_steps,
                              learning_rate=params.learning_rate, progress=context.progress(f"      fit {channel.name}"))
@@ -192,7 +227,7 @@ def _fitter(channel: LaserChannel):
             """`model`'s residual on the held-out captures, which no fit saw (None without any)."""
             if not held_out:
                 return None
-            return round(model_residual(setup.target_propagator(), setup.roi, torch.stack([shown[k] for k in held_out]),
+            return round(model_residual(propagator, setup.roi, torch.stack([shown[k] for k in held_out]),
                                         torch.stack([captured[k] for k in held_out]), model,
                                         camera_blur_px=camera_blur_px), 5)
 
@@ -200,7 +235,8 @@ def _fitter(channel: LaserChannel):
         before = ideal if old is None else residual_held_out(FittedOptics.from_dict(old),
                                                              float(old.get("camera_blur_px", 0.0)))
         new = None if fit is None else residual_held_out(fit.model, blur)
-        signal = min(float(np.percentile(image.numpy(), PEAK_PERCENTILE)) for image in captured)
+        signal = min(float(np.percentile(plane.numpy(), PEAK_PERCENTILE)) for image in captured
+                     for plane in (image if depths else [image]))
         verdict = Verdict("optical model", channel.name, "held-out residual", new, before,
                           replaces="ideal model" if old is None else "stored one",
                           details={"signal": round(signal, 6), "saturated_fraction": round(saturated, 6),
@@ -232,7 +268,7 @@ def _fitter(channel: LaserChannel):
         entry = {**fit.model.to_dict(), "residual": round(fit.residual, 5),
                  "initial_residual": round(fit.initial_residual, 5), "held_out_residual": new,
                  "patterns": len(fitted) - flat, "held_out": len(held_out), "flat": flat,
-                 "camera_blur_px": fit.camera_blur_px}
+                 "camera_blur_px": fit.camera_blur_px, "focus_depths_mm": [round(z * 1e3, 6) for z in depths]}
         waves = ", ".join(f"{name} {value:+.3f}" for name, value in fit.model.zernike_waves)
         context.say(f"      {channel.name}: {waves} waves; waist {fit.model.waist_m * 1e3:.2f} mm; crosstalk "
                     f"{fit.model.crosstalk_px:.3f} px; zero order {fit.model.zero_order:.3f}; "
@@ -323,6 +359,7 @@ def model_calibration_report(context: Context, fits: dict[str, dict[str, Any]], 
              "residual before": f["initial_residual"], "residual after": f["residual"],
              "held-out residual": f.get("held_out_residual"),
              "patterns": f"{f['patterns']}{' + flat' if f.get('flat') else ''}",
+             "captured at mm": f.get("focus_depths_mm") or "the target plane",
              "fit s": f["seconds"],
              "registered through a model": "yes" if f.get("registration_through_model") else "no",
              "stored": "yes" if f["calibration"]["stored"] else "no"}

@@ -36,6 +36,14 @@ device continues from the saved state, equal to float32 rounding rather than bit
 
 With `baseline` (default on), model-only SGD with the same number of Adam steps (start_iterations + iterations
 for an SGD start) is captured the same way, so the report compares both at one budget.
+
+A scene with depth (`target = "rgbd:..."`) is optimised on its focal stack: its planes chosen as focal-stack capture
+chooses them (`planes`), the start hologram and the baseline made for those planes (layered DPAC, multi-plane SGD),
+and every iteration captures the phase at every plane, the camera focused there through the focus calibration, each
+plane's RAW frames in raw/<step>/plane-<k>/ and registered plane in images/citl/<colour>/<k>-plane-<j>.png; the loss
+is the focal-stack loss of those captures (each plane where the scene is in focus there), its gradient through the
+model's focal stack (cgh.citl.straight_through_stack_loss). The captured PSNR of an iteration is the mean over the
+planes of the in-focus PSNR. A 2D target is captured at the target plane, focused there where the focus is calibrated.
 """
 
 from __future__ import annotations
@@ -45,16 +53,19 @@ import io
 import math
 import time
 import zipfile
+from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, TypeAlias
 
 import numpy as np
 import torch
 from msgspec import Meta
 
-from benchctl.cgh.citl import straight_through_loss
+from benchctl.cgh.citl import straight_through_loss, straight_through_stack_loss
 from benchctl.files import atomic_write_bytes
 from benchctl.optics import crop_roi, lsq_scale, psnr
+from benchctl.optics.focal_stack import focal_stack_loss, focal_stack_scores
+from benchctl.optics.planes import MAX_PLANES
 from benchctl.profiles import LaserChannel
 from benchctl.runner.api import (
     BenchctlError,
@@ -64,6 +75,7 @@ from benchctl.runner.api import (
     ExposureCap,
     ExposureMode,
     ExposureParameters,
+    FocusAt,
     Frames,
     HologramParameters,
     PeakGoal,
@@ -73,6 +85,7 @@ from benchctl.runner.api import (
     channels,
     compute_hologram,
     exposure_cap_w,
+    focus_moves,
     load_image,
     measure,
     power_w,
@@ -88,8 +101,9 @@ from benchctl.runner.api import (
     unknown_caps,
     unknown_setpoints,
 )
-from benchctl.runner.builtin import registration
-from benchctl.runner.builtin.citl.report import citl_report, merged_scores
+from benchctl.runner.builtin import focal_stack, registration
+from benchctl.runner.builtin.citl.report import citl_report, merged_scores, merged_stack_scores
+from benchctl.scenes import is_scene
 from benchctl.targets import active_channels
 
 DESCRIPTION = "camera in the loop: per colour, display, capture, register and step the phase on the captured error"
@@ -98,7 +112,9 @@ DESCRIPTION = "camera in the loop: per colour, display, capture, register and st
 class CitlParameters(ExposureParameters, kw_only=True):
     """What to optimise on the bench, how long, how fast, and what to keep on disk."""
 
-    target: str = "chart:bars"
+    target: str = "chart:bars"  # a 2D target, or a scene with depth (rgbd:...): optimised on its focal stack
+    # a scene with depth: "auto" (the planes its depth and the bench's axial resolution need) or a count
+    planes: Literal["auto"] | Annotated[int, Meta(ge=1, le=MAX_PLANES)] = "auto"
     frames: Frames = 1  # RAW frames averaged per iteration
     dark_frames: DarkFrames = 0  # per iteration (the decoder removes the black level)
     iterations: Annotated[int, Meta(ge=1, le=10_000)] = 50  # Adam steps on the captured error
@@ -137,35 +153,62 @@ def plan(context: Context) -> list[Step]:
     gradient_device(params.device)
     unknown_setpoints(context)
     unknown_caps(context, params.max_exposure_power)
-    target = prepared_target(context.profile, params.target, "parameters.target")
-    present = active_channels(target)
-    used = [c for c in channels(context) if present[target_plane(c)]]
+    scene = None
+    if is_scene(params.target):
+        scene = focal_stack.stack_scene(context, params.target, focal_stack.scene_label(params.target, set()),
+                                        None if params.planes == "auto" else params.planes, False, channels(context),
+                                        "parameters.target")
+        target, used = scene.amplitude, list(scene.lit)
+    else:
+        target = prepared_target(context.profile, params.target, "parameters.target")
+        present = active_channels(target)
+        used = [c for c in channels(context) if present[target_plane(c)]]
     if not used:
         raise BenchctlError(f"parameters.target: {params.target!r} has none of the colours "
                             f"{[c.name for c in channels(context)]}")
-    steps = registration.registration_first(context, used, params, params.registration)
     count = params.iterations
+    views = {c.name: _views(context, c, scene) for c in used}  # the focus calibration checked before registering
+    steps = registration.registration_first(context, used, params, params.registration)
     for channel in used:
-        name = channel.name
+        name, focus = channel.name, views[channel.name]
         steps.append(Step(f"citl/{name}/start", f"start hologram {name} ({params.start})",
-                          _starter(target, channel)))
+                          _starter(target, channel, scene)))
         cap = exposure_cap_w(context, channel, params.max_exposure_power)
-        if params.exposure == "auto":
+        power: Any = None if params.exposure == "auto" else power_w(context, channel)
+        if params.exposure == "auto" and scene is None:
             steps.append(probe_step(context, f"citl/{name}/probe", channel, shown(f"citl/{name}/start"),
                                     "probe exposure of the start hologram", params.peak_goal, cap))
-        power = None if params.exposure == "auto" else power_w(context, channel)
+            power = probed_power(f"citl/{name}/probe")
+        elif params.exposure == "auto":
+            assert scene is not None
+            probes, power = focal_stack.plane_probes(context, f"citl/{name}/probe", channel,
+                                                     shown(f"citl/{name}/start"), scene.planes.planes_m,
+                                                     params.peak_goal, "probe exposure of the start hologram", cap)
+            steps += probes
+        declared = None if callable(power) else power
         for k in range(count + 1):
             what = "capture the final phase" if k == count else "capture, register, step the phase"
             steps.append(Step(f"citl/{name}/{k:04d}", f"CITL {name} iteration {k}/{count}: {what}",
-                              _iteration(target, channel, k),
-                              (Expose(name, power, params.frames, params.dark_frames,
-                                      keeps_raw(k, count, params.keep_raw_every), max_w=cap),)))
+                              _iteration(target, channel, k, scene, focus, power),
+                              (Expose(name, declared, params.frames, params.dark_frames,
+                                      keeps_raw(k, count, params.keep_raw_every), times=len(focus), max_w=cap),),
+                              tuple(at for at in focus if at is not None)))
         if params.baseline:
             steps.append(Step(f"citl/{name}/baseline", f"model-only SGD {name} at {_budget(params)} iterations, "
-                              "captured", _baseline(target, channel),
-                              (Expose(name, power, params.frames, params.dark_frames, max_w=cap),)))
-    steps.append(Step("report", "metrics.json, metrics.csv and report.html", _reporter(target, used)))
+                              "captured", _baseline(target, channel, scene, focus, power),
+                              (Expose(name, declared, params.frames, params.dark_frames, times=len(focus),
+                                      max_w=cap),),
+                              tuple(at for at in focus if at is not None)))
+    steps.append(Step("report", "metrics.json, metrics.csv and report.html", _reporter(target, used, scene)))
     return steps
+
+
+def _views(context: Context, channel: LaserChannel, scene: focal_stack.StackScene | None) -> list[FocusAt | None]:
+    """Where each capture of an iteration focuses: a 2D target once, at the target plane where the focus is
+    calibrated (else wherever it is: None); a scene with depth at each of its planes (which needs the calibration)."""
+    if scene is None:
+        return list(focus_moves(context, channel)) or [None]
+    return [focus_moves(context, channel, depth, required=True)[0] for depth in scene.planes.planes_m]
 
 
 def _budget(params: CitlParameters) -> int:
@@ -285,45 +328,78 @@ def _diverged(channel: LaserChannel, k: int, what: str, rate: float, scale: floa
 
 # -- one capture, decoded and registered --------------------------------------------------------------------------
 
-def _capture(context: Context, channel: LaserChannel, gray: np.ndarray,
-             keep: bool) -> tuple[np.ndarray, dict[str, Any], dict[str, float]]:
-    """Display `gray`, expose it (RAW files kept with `keep`, else only in memory), decode and register the
-    colour's plane: (ROI linear signal, JSON-ready record, seconds per stage)."""
+Power: TypeAlias = "float | Callable[[Context], float]"  # the captures' laser power, or how to read it when they run
+
+
+def _capture(context: Context, channel: LaserChannel, gray: np.ndarray, keep: bool, views: list[FocusAt | None],
+             power: Power) -> tuple[np.ndarray, dict[str, Any], dict[str, float]]:
+    """Display `gray`, expose it once per view (focused there, where a view says: a scene's planes), RAW files kept
+    with `keep` (each plane's in its own sub-folder), else only in memory; decode and register the colour's plane:
+    (ROI linear signal (h, w), or (K, h, w) for K planes; JSON-ready record; seconds per stage, summed over views)."""
     params = context.parameters(CitlParameters)
-    power = (probed_power(f"citl/{channel.name}/probe")(context) if params.exposure == "auto"
-             else power_w(context, channel))
-    measured = measure(context, channel, power, gray, frames=params.frames, dark_frames=params.dark_frames,
-                       keep=keep, read_later=False)
+    watts = power(context) if callable(power) else power
     clock = time.perf_counter
-    start = clock()
-    image = measured.image
-    decoded = clock()
-    plane = registered(context, image, channel)
-    registered_at = clock()
-    exposure = measured.exposure
-    metadata = [frame.metadata for frame in (*exposure.frames, *exposure.darks)]
-    render = sum(float(m.get("render_s", 0.0)) for m in metadata)
-    transfer = sum(float(m.get("transfer_s", 0.0)) for m in metadata)
-    timing = {"display_s": exposure.timing["display_s"], "laser_s": exposure.timing["laser_s"],
-              "exposure_s": exposure.timing["capture_s"] - render - transfer, "transfer_s": transfer,
-              "render_s": render, "decode_s": decoded - start, "register_s": registered_at - decoded}
-    record = {key: value for key, value in measured.record.items()
-              if key in ("setpoint_w", "slm_frame", "folder", "archived")}
-    record["saturated_fraction"] = round(float(image.saturation_fraction), 6)
-    return plane, record, timing
+    planes, records = [], []
+    timing: dict[str, float] = {}
+    for j, view in enumerate(views):
+        within = f"plane-{j + 1}" if len(views) > 1 else None
+        moved = context.focus_at(view) if view is not None else None
+        measured = measure(context, channel, watts, gray, frames=params.frames, dark_frames=params.dark_frames,
+                           keep=keep, read_later=False, within=within)
+        start = clock()
+        image = measured.image
+        decoded = clock()
+        planes.append(registered(context, image, channel))
+        registered_at = clock()
+        exposure = measured.exposure
+        metadata = [frame.metadata for frame in (*exposure.frames, *exposure.darks)]
+        render = sum(float(m.get("render_s", 0.0)) for m in metadata)
+        transfer = sum(float(m.get("transfer_s", 0.0)) for m in metadata)
+        for key, value in {"display_s": exposure.timing["display_s"], "laser_s": exposure.timing["laser_s"],
+                           "exposure_s": exposure.timing["capture_s"] - render - transfer, "transfer_s": transfer,
+                           "render_s": render, "decode_s": decoded - start,
+                           "register_s": registered_at - decoded}.items():
+            timing[key] = timing.get(key, 0.0) + value
+        record = {key: value for key, value in measured.record.items()
+                  if key in ("setpoint_w", "slm_frame", "folder", "archived")}
+        record["saturated_fraction"] = round(float(image.saturation_fraction), 6)
+        records.append({**record, **({"focus": moved} if moved is not None else {})})
+    if len(views) == 1:
+        return planes[0], records[0], timing
+    archived = {name: digest for r in records for name, digest in r.get("archived", {}).items()}
+    record = {"setpoint_w": records[0]["setpoint_w"], "slm_frame": records[0]["slm_frame"],
+              "saturated_fraction": max(r["saturated_fraction"] for r in records),
+              "views": [{k: v for k, v in r.items() if k != "archived"} for r in records],
+              **({"archived": archived, "folder": records[0]["folder"].rsplit("/", 1)[0]} if keep else {})}
+    return np.stack(planes), record, timing
 
 
-def _amplitude_error(plane: np.ndarray, target_roi: torch.Tensor) -> tuple[torch.Tensor, float, float]:
+def _amplitude_error(plane: np.ndarray, target_roi: torch.Tensor,
+                     scene: focal_stack.StackScene | None) -> tuple[torch.Tensor, float, float]:
     """The captured amplitude (sqrt of the signal, negatives clipped), its MSE and PSNR against the target after
-    least-squares scaling."""
+    least-squares scaling; of a focal stack (K, h, w), the focal-stack loss and the mean over the planes of the
+    in-focus PSNR."""
     captured = torch.from_numpy(np.sqrt(np.clip(plane, 0.0, None)))
+    if scene is not None:
+        masks = _masks(scene)
+        scores = focal_stack_scores(captured, target_roi, masks, scene.planes.planes_m)
+        return captured, float(focal_stack_loss(captured, target_roi, masks)), scores.mean["psnr_amplitude_db"]
     scaled = lsq_scale(captured, target_roi) * captured
     loss = torch.nn.functional.mse_loss(scaled, target_roi)
     return captured, float(loss), float(psnr(scaled, target_roi, data_range=1.0))
 
 
+def _masks(scene: focal_stack.StackScene) -> torch.Tensor:
+    """The scene's in-focus masks (K, h, w) on the ROI: each pixel belongs to the plane nearest its depth."""
+    planes = len(scene.planes.planes_m)
+    return torch.nn.functional.one_hot(scene.owner, planes).movedim(-1, 0).to(torch.float32)
+
+
 def _save_plane(context: Context, channel: LaserChannel, name: str, plane: np.ndarray) -> dict[str, Any]:
-    """The registered plane as a 16-bit PNG on the ROI, scaled by its maximum (recorded to undo the scaling)."""
+    """The registered plane as a 16-bit PNG on the ROI, scaled by its maximum (recorded to undo the scaling); a
+    focal stack (K, h, w) as one such PNG per plane (`planes`)."""
+    if plane.ndim == 3:
+        return {"planes": [_save_plane(context, channel, f"{name}-plane-{j + 1}", p) for j, p in enumerate(plane)]}
     peak = float(max(plane.max(), 1e-12))
     file = save_image(context, np.clip(plane, 0, None) / peak, "citl", channel.name, f"{name}.png")
     return {"file": file, "full_scale": peak}
@@ -331,12 +407,20 @@ def _save_plane(context: Context, channel: LaserChannel, name: str, plane: np.nd
 
 # -- the steps ------------------------------------------------------------------------------------------------------
 
-def _starter(target: torch.Tensor, channel: LaserChannel):
+def _hologram(context: Context, target: torch.Tensor, channel: LaserChannel, scene: focal_stack.StackScene | None,
+              method: str, iterations: int | None) -> Any:
+    """The model hologram of `target` (of a scene with depth: for its planes) by `method`."""
+    options = HologramParameters(method=method, iterations=iterations)
+    if scene is None:
+        return compute_hologram(context, target, channel, options)
+    return compute_hologram(context, target, channel, options, depth_m=scene.depth_m, planes_m=scene.planes.planes_m)
+
+
+def _starter(target: torch.Tensor, channel: LaserChannel, scene: focal_stack.StackScene | None):
     def action(context: Context) -> dict[str, Any]:
         params = context.parameters(CitlParameters)
         iterations = params.start_iterations if params.start == "sgd" else None
-        result = compute_hologram(context, target, channel,
-                                  HologramParameters(method=params.start, iterations=iterations))
+        result = _hologram(context, target, channel, scene, params.start, iterations)
         file = save_hologram(context, result.gray, "citl", channel.name, "start.png")
         phase = torch.from_numpy(context.decode(result.gray, channel.name))
         digest = _save_state(_state_file(context, channel, 0), phase, None)
@@ -346,7 +430,8 @@ def _starter(target: torch.Tensor, channel: LaserChannel):
     return action
 
 
-def _iteration(target: torch.Tensor, channel: LaserChannel, k: int):
+def _iteration(target: torch.Tensor, channel: LaserChannel, k: int, scene: focal_stack.StackScene | None,
+               views: list[FocusAt | None], power: Power):
     def action(context: Context) -> dict[str, Any]:
         params, clock = context.parameters(CitlParameters), time.perf_counter
         begin = clock()
@@ -360,10 +445,10 @@ def _iteration(target: torch.Tensor, channel: LaserChannel, k: int):
         scale *= 0.5 ** context.divergences(key)
         gray = context.encode(phase.detach(), channel.name)
         keep = keeps_raw(k, count, params.keep_raw_every)
-        plane, record, timing = _capture(context, channel, gray, keep)
+        plane, record, timing = _capture(context, channel, gray, keep, views, power)
         target_roi = _target_roi(context, target, channel)
         start = clock()
-        captured, loss, score = _amplitude_error(plane, target_roi)
+        captured, loss, score = _amplitude_error(plane, target_roi, scene)
         if k > 0:
             first = context.result(f"citl/{channel.name}/0000")["loss"]
             if not math.isfinite(loss) or loss > DIVERGENCE * first:
@@ -375,7 +460,12 @@ def _iteration(target: torch.Tensor, channel: LaserChannel, k: int):
                 optimiser.param_groups[0]["lr"] = rate
                 optimiser.zero_grad(set_to_none=True)
                 setup = context.setup(channel.name, as_displayed=True)
-                straight_through_loss(phase, captured.to(device), target_roi.to(device), setup).backward()
+                if scene is None:
+                    loss_of = straight_through_loss(phase, captured.to(device), target_roi.to(device), setup)
+                else:
+                    loss_of = straight_through_stack_loss(phase, captured.to(device), target_roi.to(device),
+                                                          _masks(scene).to(device), scene.planes.planes_m, setup)
+                loss_of.backward()
                 optimiser.step()
                 with torch.no_grad():
                     phase.copy_(setup.within_reach(phase))
@@ -401,12 +491,13 @@ def _iteration(target: torch.Tensor, channel: LaserChannel, k: int):
     return action
 
 
-def _baseline(target: torch.Tensor, channel: LaserChannel):
+def _baseline(target: torch.Tensor, channel: LaserChannel, scene: focal_stack.StackScene | None,
+              views: list[FocusAt | None], power: Power):
     def action(context: Context) -> dict[str, Any]:
         budget = _budget(context.parameters(CitlParameters))
-        result = compute_hologram(context, target, channel, HologramParameters(method="sgd", iterations=budget))
-        plane, record, _ = _capture(context, channel, result.gray, keep=True)
-        _, loss, score = _amplitude_error(plane, _target_roi(context, target, channel))
+        result = _hologram(context, target, channel, scene, "sgd", budget)
+        plane, record, _ = _capture(context, channel, result.gray, True, views, power)
+        _, loss, score = _amplitude_error(plane, _target_roi(context, target, channel), scene)
         frame = save_hologram(context, result.gray, "citl", channel.name, "baseline.png")
         context.say(f"      {channel.name}: model-only SGD ({budget} iterations) captured PSNR {score:.2f} dB")
         return {"iterations": budget, "loss": loss, "psnr_amplitude_db": round(score, 4), **record,
@@ -416,7 +507,14 @@ def _baseline(target: torch.Tensor, channel: LaserChannel):
     return action
 
 
-def _reporter(target: torch.Tensor, used: list[LaserChannel]):
+def _loaded(context: Context, result: dict[str, Any]) -> np.ndarray:
+    """A registered plane a step saved (`_save_plane`), at its recorded scale; a focal stack's planes (K, h, w)."""
+    if "planes" in result:
+        return np.stack([_loaded(context, plane) for plane in result["planes"]])
+    return load_image(context, result["file"]) / 65535.0 * result["full_scale"]
+
+
+def _reporter(target: torch.Tensor, used: list[LaserChannel], scene: focal_stack.StackScene | None):
     def action(context: Context) -> dict[str, Any]:
         assert context.profile.optics is not None
         params = context.parameters(CitlParameters)
@@ -425,24 +523,30 @@ def _reporter(target: torch.Tensor, used: list[LaserChannel]):
         iterations = {c.name: [context.result(f"citl/{c.name}/{k:04d}") for k in range(count + 1)] for c in used}
         baseline = {c.name: context.result(f"citl/{c.name}/baseline") for c in used} if params.baseline else {}
 
-        def planes(results: dict[str, dict[str, Any]]) -> dict[int, np.ndarray]:
-            return {target_plane(c): load_image(context, results[c.name]["file"]) / 65535.0
-                    * results[c.name]["full_scale"] for c in used}
-
         def merged(results: dict[str, dict[str, Any]], image: str | None = None) -> dict[str, Any]:
-            """The merged capture's scores (with SSIM, warnings and the image where `image` names it)."""
-            return merged_scores(context, planes(results), target_roi, image)
+            """The merged capture's scores (with SSIM, warnings and the image where `image` names it); of focal
+            stacks, per plane in its in-focus region and their mean."""
+            planes = {target_plane(c): _loaded(context, results[c.name]) for c in used}
+            if scene is None:
+                return merged_scores(context, planes, target_roi, image)
+            return merged_stack_scores(context, planes, target_roi, scene.owner, image)
 
         per_k = [merged({name: rows[k] for name, rows in iterations.items()},
                         "merged-first.png" if k == 0 else "merged-last.png" if k == count else None)
                  for k in range(count + 1)]
         return citl_report(context, {
             "target": params.target, "iterations": iterations, "merged": per_k,
+            "planes_mm": [round(z * 1e3, 6) for z in scene.planes.planes_m] if scene is not None else None,
+            "planes_reason": scene.planes.reason if scene is not None else None,
             "baseline": {"colours": baseline, "merged": merged(baseline, "merged-baseline.png"),
                          "iterations": _budget(params)} if baseline else None,
             "start": {c.name: context.result(f"citl/{c.name}/start") for c in used},
             "timing_keys": list(TIMING_KEYS), "disk": _disk(context, iterations, used),
-            "target_image": save_image(context, target_roi.square(), "citl", "target.png", srgb=True)})
+            "target_image": save_image(context, target_roi.square(), "citl", "target.png", srgb=True),
+            "target_planes": [save_image(context, target_roi.square() * torch.where(scene.region(j), 1.0,
+                                                                                     focal_stack.OUT_OF_FOCUS_SHADE),
+                                         "citl", f"target-plane-{j + 1}.png", srgb=True)
+                              for j in range(len(scene.planes.planes_m))] if scene is not None else None})
 
     return action
 
@@ -458,7 +562,7 @@ def _disk(context: Context, iterations: dict[str, list[dict[str, Any]]], used: l
     kept = [row for row in rows if "folder" in row]
     raw = sum(size(name) for row in kept for name in row["archived"])
     frames = sum(size(row["hologram"]) for row in kept)
-    planes = sum(size(row["file"]) for row in rows)
+    planes = sum(size(plane["file"]) for row in rows for plane in row.get("planes", [row]))
     states = [p.stat().st_size for c in used for p in state_path(context, c.name).glob("*.npz")]
     return {"iterations": len(rows), "kept_raw_iterations": len(kept),
             "registered_bytes_per_iteration": round(planes / len(rows)),
