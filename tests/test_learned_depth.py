@@ -22,7 +22,7 @@ from benchctl.holograms.checkpoints import Checkpoint, read_checkpoint
 from benchctl.optics import Propagator
 from benchctl.optics.focal_stack import focal_stack_loss, in_focus_masks
 from benchctl.profiles import load_profile
-from benchctl.training.data import ImageSource, image_sources, procedural_scene, scene_planes
+from benchctl.training.data import ImageSource, image_sources, procedural_scene, loss_planes
 from benchctl.training.training import (
     ReconstructionLoss,
     SceneDepth,
@@ -170,17 +170,17 @@ def test_a_picture_without_depth_lies_on_a_ground_plane() -> None:
 
 def test_scene_planes_are_a_layered_scenes_own_depths_else_jittered_bin_centres() -> None:
     layered = np.array([[0.2, 0.2, 0.7], [0.9, 0.7, 0.2]])
-    assert scene_planes(layered, 5) == (0.2, 0.7, 0.9)
-    assert scene_planes(layered, 5, jitter=0.4) == (0.2, 0.7, 0.9)
+    assert loss_planes(layered, 5) == (0.2, 0.7, 0.9)
+    assert loss_planes(layered, 5, jitter=0.4) == (0.2, 0.7, 0.9)
     ramp = np.linspace(1.0, 2.0, 101)
-    assert scene_planes(ramp, 4) == pytest.approx((1.125, 1.375, 1.625, 1.875))
-    assert scene_planes(ramp, 4, jitter=-0.5) == pytest.approx((1.0, 1.25, 1.5, 1.75))
-    assert scene_planes(ramp, 4, jitter=0.5) == pytest.approx((1.25, 1.5, 1.75, 2.0))
-    assert scene_planes(np.full(3, 1.5), 4) == (1.5,)
+    assert loss_planes(ramp, 4) == pytest.approx((1.125, 1.375, 1.625, 1.875))
+    assert loss_planes(ramp, 4, jitter=-0.5) == pytest.approx((1.0, 1.25, 1.5, 1.75))
+    assert loss_planes(ramp, 4, jitter=0.5) == pytest.approx((1.25, 1.5, 1.75, 2.0))
+    assert loss_planes(np.full(3, 1.5), 4) == (1.5,)
     with pytest.raises(ValueError):
-        scene_planes(ramp, 0)
+        loss_planes(ramp, 0)
     with pytest.raises(ValueError):
-        scene_planes(ramp, 3, jitter=0.6)
+        loss_planes(ramp, 3, jitter=0.6)
 
 
 def test_scene_targets_flip_image_and_depth_together_and_take_their_planes_on_the_roi() -> None:
@@ -197,7 +197,7 @@ def test_scene_targets_flip_image_and_depth_together_and_take_their_planes_on_th
     torch.testing.assert_close(flipped_scenes.depth_m[0, 0], scenes.depth_m[0, 0].flip(-1, -2))
     assert plain[0, :, :rows.start].abs().max() == 0  # the image is dark outside the ROI ...
     assert torch.equal(scenes.depth_m[0, 0, 0, cols], scenes.depth_m[0, 0, rows.start, cols])  # ... its depth not
-    assert scenes.planes_m[0] == scene_planes(scenes.depth_m[0, 0, rows, cols].numpy(), 3)
+    assert scenes.planes_m[0] == loss_planes(scenes.depth_m[0, 0, rows, cols].numpy(), 3)
     assert len(flipped_scenes.planes_m[0]) <= 3
 
 

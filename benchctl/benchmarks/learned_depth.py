@@ -4,7 +4,7 @@ scenes: focal-stack quality per plane, and time.
 On the bench the checkpoints were trained for (their recorded geometry and depth range, which must agree), per
 held-out scene (the bundled `rgbd:` scenes, never drawn by the training data) and one colour:
 - the scene prepared as `benchctl generate` prepares it (`scenes.load_scene`, `scenes.prepare_scene`), its focal
-  planes by `training.data.scene_planes` (a layered scene's own depths, else `planes` evenly over its depth span,
+  planes by `training.data.loss_planes` (a layered scene's own depths, else `planes` evenly over its depth span,
   bin centres, no jitter) and its in-focus masks;
 - each checkpoint's network: one forward pass on the image and its depth;
 - layered DPAC (the registry's `dpac` of a scene with depth: the scene's field layer by layer with occlusion,
@@ -40,7 +40,7 @@ from benchctl.optics.focal_stack import FocalStackTarget
 from benchctl.profiles import Profile
 from benchctl.scenes import list_scenes, load_scene, prepare_scene
 from benchctl.targets import target_plane
-from benchctl.training.data import scene_planes
+from benchctl.training.data import loss_planes
 from benchctl.training.training import peak_normalised, phase_stack_scores
 
 DPAC_LABEL = "layered dpac"
@@ -105,7 +105,7 @@ def run_learned_depth_bench(profile: Profile, checkpoints: Sequence[Path], *, sc
         amplitudes, depth = prepare_scene(scene, setup.shape, setup.roi)
         amplitude = peak_normalised(amplitudes[plane][None, None])[0, 0]
         roi_rows, roi_cols = setup.roi_slices
-        focal = scene_planes(depth[roi_rows, roi_cols].numpy(), planes)
+        focal = loss_planes(depth[roi_rows, roi_cols].numpy(), planes)
         target = FocalStackTarget(amplitude, depth, focal)
         # untimed warm-up: every propagation kernel this scene needs is computed once, as for repeated holograms,
         # and one SGD iteration (a process's first Adam step takes seconds of lazy imports)

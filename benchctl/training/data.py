@@ -17,7 +17,7 @@ background plane (fronto-parallel, tilted or a ground plane) and on 1-4 occludin
 depth, the nearer to the camera painted over the farther. An image without a depth map (a picture, a procedural
 image) is a picture on a ground plane: its top row at the near end of the depth range, its bottom row at the far
 end (the convention of `rgbd:photo`). Depth is relative here (0 .. 1 across the bench's depth range, 0 its near
-end); `scene_planes` says where a scene's focal stack is taken. The bundled `rgbd:` scenes are never drawn here:
+end); `loss_planes` says where a scene's focal stack is taken. The bundled `rgbd:` scenes are never drawn here:
 they are the held-out scenes.
 
 Images become targets exactly as `benchctl generate` prepares them (`benchctl.targets.prepare_target`).
@@ -276,7 +276,7 @@ def procedural_scene(index: int, size: tuple[int, int]) -> tuple[np.ndarray, np.
     return np.clip(image, 0.0, 1.0), depth
 
 
-def scene_planes(depth: np.ndarray, count: int, jitter: float = 0.0) -> tuple[float, ...]:
+def loss_planes(depth: np.ndarray, count: int, jitter: float = 0.0) -> tuple[float, ...]:
     """Where to take the focal stack of a scene whose depth map is `depth` (any unit): its distinct depths when
     it has at most `count` (a layered scene: every layer in focus on its own plane), else `count` planes evenly
     spread over its depth span, each at the centre of its bin moved by `jitter` (-0.5 .. 0.5) bins (training moves

@@ -12,7 +12,7 @@ sees the same flips). All colours' models train side by side on the same images.
 A network for scenes with depth (`DEPTH_METHODS`) trains the same way on scenes (`procedural-rgbd:N`, or pictures
 on a ground plane; `training.data`), the depth map prepared like `benchctl generate` prepares a scene's
 (`scenes.prepare_scene`) over the bench's depth range, flipped with its image; its loss is the focal-stack loss
-(`optics.focal_stack`: the reconstruction at each scene's focal planes, `data.scene_planes`, at most `--planes`,
+(`optics.focal_stack`: the reconstruction at each scene's focal planes, `data.loss_planes`, at most `--planes`,
 moved at random within their bins while training, one multi-plane propagation each, every plane scored where the
 scene is in focus there) and its validation scores are the mean in-focus PSNR / SSIM over the planes, beside 2D
 DPAC of the image at the middle of the depth range (the one-shot hologram that ignores depth).
@@ -62,7 +62,7 @@ from benchctl.scenes import Scene, prepare_scene
 from benchctl.targets import prepare_target, target_plane
 from benchctl.terminal import ProgressLine
 from benchctl.training.averaging import WeightAverage
-from benchctl.training.data import ImageSource, describe_sources, image_sources, scene_planes, split_sources
+from benchctl.training.data import ImageSource, describe_sources, image_sources, loss_planes, split_sources
 from benchctl.training.device import check_device_text, resolve_device
 from benchctl.training.health import StepStats, TrainingHealth, clamped_fraction, gradient_norm
 from benchctl.training.schedule import Schedule
@@ -372,7 +372,7 @@ class TargetLoader:
     def __call__(self, sources: Sequence[ImageSource], flips: Sequence[tuple[bool, bool]] | None = None,
                  jitters: Sequence[float] | None = None) -> tuple[torch.Tensor, SceneDepth | None]:
         """Targets (B, 3, H, W) and, for scenes, their depth; flips as `load_targets`; `jitters` (-0.5 .. 0.5 per
-        image) move the focal planes within their bins (`scene_planes`)."""
+        image) move the focal planes within their bins (`loss_planes`)."""
         if self.depth_range_m is None:
             return load_targets(sources, self.grid, self.roi, flips), None
         near, far = self.depth_range_m
@@ -388,7 +388,7 @@ class TargetLoader:
                                              self.grid, self.roi)
             targets.append(amplitude)
             depths.append(depth)
-            planes.append(scene_planes(depth[rows, cols].numpy(), self.planes, jitters[i] if jitters else 0.0))
+            planes.append(loss_planes(depth[rows, cols].numpy(), self.planes, jitters[i] if jitters else 0.0))
         return torch.stack(targets), SceneDepth(torch.stack(depths)[:, None], tuple(planes))
 
 
