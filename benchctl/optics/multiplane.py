@@ -39,7 +39,7 @@ def plane_plans(shape: tuple[int, int], distances_m: Sequence[float], wavelength
 class MultiPlanePropagator:
     """Propagates fields of one shape to K planes at one wavelength: (..., H, W) -> (..., K, H, W) (the window's
     shape, if any). Caches its K transfer functions per dtype and device, and outside autograd keeps its work
-    buffers (K padded grids); not safe to call from two threads at once.
+    buffers (two padded grids); not safe to call from two threads at once.
     """
 
     def __init__(
@@ -85,20 +85,22 @@ class MultiPlanePropagator:
             raise ValueError(f"field is {tuple(field.shape[-2:])}, this propagator is for {self.plan.shape}")
         spectrum = torch.fft.fft2(self._padded(field))
         kernels = self.kernels(spectrum.dtype, spectrum.device)
-        if spectrum.requires_grad:
-            planes = torch.fft.ifft2(spectrum.unsqueeze(-3) * kernels)
-        else:  # outside autograd the K padded grids are one work buffer, reused: fresh ones cost 10 % more time
-            planes = self._planes_buffer((*spectrum.shape[:-2], len(kernels), *spectrum.shape[-2:]), spectrum)
-            torch.mul(spectrum.unsqueeze(-3), kernels, out=planes)
-            torch.fft.ifft2(planes, out=planes)
         row, rows, col, cols = self.plan.window or (0, self.plan.shape[0], 0, self.plan.shape[1])
-        # One batched 2-D inverse FFT (two 1-D passes that skip the rows not wanted were 2-3x slower on a CPU); a
-        # copy out of the padded grid, so that the result does not keep K padded grids alive.
-        return planes[..., row:row + rows, col:col + cols].contiguous()
+        if spectrum.requires_grad or spectrum.device.type != "cpu":  # one batch of K grids (cuFFT batches them)
+            planes = torch.fft.ifft2(spectrum.unsqueeze(-3) * kernels)
+            return planes[..., row:row + rows, col:col + cols].contiguous()
+        # On a CPU outside autograd, one plane at a time: a working set of two padded grids, not K (K at once took 30 %
+        # longer; an inverse FFT written into its input, 15 % longer than into a new grid: docs/depth.md).
+        product = self._work_buffer(spectrum)
+        out = spectrum.new_empty((*spectrum.shape[:-2], len(kernels), rows, cols))
+        for k, kernel in enumerate(kernels):
+            torch.mul(spectrum, kernel, out=product)
+            out[..., k, :, :] = torch.fft.ifft2(product)[..., row:row + rows, col:col + cols]
+        return out
 
-    def _planes_buffer(self, shape: tuple[int, ...], like: torch.Tensor) -> torch.Tensor:
+    def _work_buffer(self, like: torch.Tensor) -> torch.Tensor:
         buffer = self._buffer
-        if buffer is None or buffer.shape != shape or buffer.dtype != like.dtype or buffer.device != like.device:
+        if buffer is None or buffer.shape != like.shape or buffer.dtype != like.dtype or buffer.device != like.device:
             with torch.inference_mode(False):
-                buffer = self._buffer = like.new_empty(shape)
+                buffer = self._buffer = torch.empty_like(like)
         return buffer
