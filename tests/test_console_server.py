@@ -16,6 +16,7 @@ import socket
 import struct
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 import urllib.request
@@ -46,7 +47,7 @@ from benchctl.console.app import create_app
 from benchctl.console.core import Console
 from benchctl.console.security import TOKEN_HEADER, Access
 from benchctl.console.server import allowed_hosts
-from benchctl.console.uploads import MAX_UPLOADS
+from benchctl.console.uploads import MAX_UPLOADS, Uploads
 from benchctl.devices.serial_link import SerialLink
 from benchctl.devices.sim.slm import read_displayed
 from benchctl.errors import BadValueError
@@ -523,6 +524,20 @@ def test_console_captures_are_runs_that_runs_lists_and_removes(client: TestClien
     assert listed[0].endswith("  2 RAW frame(s) from the console") and listed[-1].startswith("1 run(s) in ")
     assert main(["runs", "remove", str(folder), "--out", str(folder.parent), "--yes"]) == 0
     assert f"removed {folder}" in capsys.readouterr().out and not folder.exists()
+
+
+def test_the_upload_folder_exists_only_from_the_first_upload_until_the_console_stops(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    Uploads().remove_all()
+    Uploads()
+    assert list(tmp_path.iterdir()) == []  # a console never sent an image leaves nothing behind, even unclosed
+    uploads = Uploads()
+    ok, png = cv2.imencode(".png", np.full((40, 60, 3), 200, np.uint8))
+    assert uploads.add(png.tobytes(), "a.png") == "1"
+    assert [f.name for f in tmp_path.glob("benchctl-console-uploads-*/*")] == ["upload-1.png"]
+    uploads.remove_all()
+    assert list(tmp_path.iterdir()) == []
 
 
 @pytest.mark.slow

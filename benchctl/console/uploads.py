@@ -1,7 +1,7 @@
 """Images uploaded from the page as hologram targets: size- and pixel-capped, kept in a private temporary folder.
 
 The page never names a path: an upload gets a number, and `upload:<number>` is the only way to refer to it. The
-folder is created for one console start (mode 0700), its files are named by the console, and it is deleted when
+folder is created at a console's first upload (mode 0700), its files are named by the console, and it is deleted when
 the console stops.
 """
 
@@ -26,11 +26,18 @@ class Uploads:
     """The console's upload folder and the uploads in it, numbered from 1."""
 
     def __init__(self, max_bytes: int = MAX_UPLOAD_BYTES, max_pixels: int = MAX_UPLOAD_PIXELS) -> None:
-        self.folder = Path(tempfile.mkdtemp(prefix="benchctl-console-uploads-"))  # mode 0700
+        self._folder: Path | None = None
         self.max_bytes = max_bytes
         self.max_pixels = max_pixels
         self.names: dict[str, str] = {}  # id -> the name the browser gave (shown only, never used as a path)
         self._lock = threading.Lock()
+
+    @property
+    def folder(self) -> Path:
+        """The private folder, created on first use (a console that is never sent an image leaves nothing behind)."""
+        if self._folder is None:
+            self._folder = Path(tempfile.mkdtemp(prefix="benchctl-console-uploads-"))  # mode 0700
+        return self._folder
 
     def check_room(self) -> None:
         """BadValueError when the console holds MAX_UPLOADS uploads already."""
@@ -78,4 +85,5 @@ class Uploads:
 
     def remove_all(self) -> None:
         """Delete the folder and everything in it."""
-        shutil.rmtree(self.folder, ignore_errors=True)
+        if self._folder is not None:
+            shutil.rmtree(self._folder, ignore_errors=True)
