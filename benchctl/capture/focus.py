@@ -19,6 +19,7 @@ import numpy as np
 from benchctl.errors import BadValueError, BenchctlError
 
 BIN = 4  # sensor pixels per side averaged before the sharpness is taken: read noise falls, a focused dot survives
+FLOOR = 0.02  # the floor under which faint light is left out where frames of different powers compare
 _DEPTH = re.compile(r"^\s*([-+]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][-+]?\d+)?)\s*(mm|m|D|dpt)\s*$")
 
 
@@ -34,15 +35,18 @@ def parse_depth(text: str) -> float:
     return metres
 
 
-def sharpness(image: np.ndarray) -> float:
+def sharpness(image: np.ndarray, floor: float = 0.0) -> float:
     """How concentrated the light of `image` (2-D, linear, dark subtracted) is: N sum(I^2) / sum(I)^2 over the image
-    binned BIN x BIN, its median (background) removed. Independent of exposure; a point spread over A bins gives about
-    N / A, so it peaks where the camera is focused on the dots or lines it sees."""
+    binned BIN x BIN, counting light above its median (the background) by more than `floor` of the brightest bin's.
+    A point spread over A bins gives about N / A, so it peaks where the camera is focused on the dots or lines it
+    sees. Without a floor, faint light near the noise counts more or less with the exposure; with FLOOR, frames
+    taken at different powers compare (docs/focus.md)."""
     rows, cols = (n // BIN * BIN for n in image.shape[:2])
     if rows == 0 or cols == 0:
         raise BadValueError(f"an image of {image.shape[0]} x {image.shape[1]} pixels is too small to judge focus")
     binned = image[:rows, :cols].astype(np.float64).reshape(rows // BIN, BIN, cols // BIN, BIN).mean(axis=(1, 3))
-    light = np.clip(binned - np.median(binned), 0, None)
+    light = binned - np.median(binned)
+    light = np.clip(light - floor * light.max(), 0, None)
     total = light.sum()
     return float(light.size * np.square(light).sum() / total**2) if total > 0 else 0.0
 

@@ -23,7 +23,9 @@ from typing import Annotated, Any
 import numpy as np
 from msgspec import Meta
 
-from benchctl.capture.focus import FocusMap, fit_peak, sharpness
+from benchctl.capture.exposure import SATURATED_BACKOFF, brightest, kept_in_range
+from benchctl.capture.focus import FLOOR, FocusMap, fit_peak, sharpness
+from benchctl.capture.raw import RawImage
 from benchctl.capture.registration import dot_grid_target
 from benchctl.files import write_json
 from benchctl.profiles import LaserChannel, Positive, PositiveInt
@@ -52,6 +54,7 @@ from benchctl.runner.api import (
 
 DESCRIPTION = "through-focus sweeps per colour: focus steps <-> depth, backlash and repeatability, stored per profile"
 Points = Annotated[int, Meta(ge=5)]
+RESTARTS = 3  # fine sweeps taken again at a quarter of the power when a frame clipped
 
 
 class FocusCalibrationParameters(HologramParameters, kw_only=True):
@@ -97,9 +100,9 @@ def plan(context: Context) -> list[Step]:
                           _coarse(channel, watts), expose(params.coarse_points * depths)))
         for k in range(depths):
             steps.append(Step(f"focus/{name}/fine/{k}", f"fine sweep up and down, depth {k + 1} ({name})",
-                              _fine(channel, watts, k), expose(2 * params.fine_points)))
+                              _fine(channel, k), expose(2 * params.fine_points)))
         steps.append(Step(f"focus/{name}/repeat", f"{params.round_trips} round trips ({name})",
-                          _round_trips(channel, watts), expose(params.round_trips)))
+                          _round_trips(channel), expose(params.round_trips)))
         steps.append(Step(f"focus/{name}/fit", f"steps <-> depth, backlash, repeatability ({name})", _fitter(channel)))
     return steps + [Step("report", "focus calibration report", _reporter(used))]
 
@@ -134,11 +137,29 @@ def _holograms(channel: LaserChannel):
     return action
 
 
-def _sharpness_at(context: Context, channel: LaserChannel, watts: float, frame: np.ndarray) -> float:
+def _capture(context: Context, channel: LaserChannel, power: float, frame: np.ndarray) -> RawImage:
     params = context.parameters(FocusCalibrationParameters)
-    measured = measure(context, channel, watts, frame, frames=params.frames, dark_frames=params.dark_frames,
-                       keep=False)
-    return sharpness(measured.image.mosaic)
+    return measure(context, channel, power, frame, frames=params.frames, dark_frames=params.dark_frames,
+                   keep=False).image
+
+
+def _found_anywhere(context: Context, channel: LaserChannel, power: float, frame: np.ndarray) -> tuple[float, float]:
+    """The coarse sweep's sharpness of `frame` at the focus where it stands (floored: comparable across powers), and
+    the power it was taken at: starting at `power`, retaken lower or higher (never above the declared setpoint) until
+    it neither clips nor drowns in noise."""
+    def take(watts: float) -> tuple[float, bool, float]:
+        image = _capture(context, channel, watts, frame)
+        return (*brightest(image.mosaic, image.saturated), sharpness(image.mosaic, floor=FLOOR))
+
+    value, used, _ = kept_in_range(take, power, power_w(context, channel))
+    return value, used
+
+
+def _at_power(context: Context, channel: LaserChannel, power: float, frame: np.ndarray) -> tuple[float, bool]:
+    """The sharpness of `frame` at one power, unfloored (the finest measure where every frame of a curve shares
+    its exposure), and whether it clipped."""
+    image = _capture(context, channel, power, frame)
+    return sharpness(image.mosaic), brightest(image.mosaic, image.saturated)[1]
 
 
 def _frames(context: Context, channel: LaserChannel) -> list[np.ndarray]:
@@ -151,19 +172,22 @@ def _coarse(channel: LaserChannel, watts: float):
         focus, frames = context.instruments.focus, _frames(context, channel)
         positions = [round(p) for p in np.linspace(*params.sweep_steps, params.coarse_points)]
         values: list[list[float]] = [[] for _ in frames]
+        powers: list[list[float]] = [[] for _ in frames]
         focus.home()
         for position in positions:
             focus.move_to(position, approach=1, overshoot=params.fine_span_steps)
             for k, frame in enumerate(frames):
-                values[k].append(_sharpness_at(context, channel, watts, frame))
+                value, power = _found_anywhere(context, channel, powers[k][-1] if powers[k] else watts, frame)
+                values[k].append(value)
+                powers[k].append(power)
         peaks = [positions[int(np.argmax(v))] for v in values]
         context.say(f"      {channel.name}: coarse peaks at {', '.join(str(p) for p in peaks)} {focus.unit}(s)")
-        return {"positions": positions, "sharpness": values, "peaks": peaks}
+        return {"positions": positions, "sharpness": values, "peaks": peaks, "power_w": powers}
 
     return action
 
 
-def _fine(channel: LaserChannel, watts: float, k: int):
+def _fine(channel: LaserChannel, k: int):
     def action(context: Context) -> dict[str, Any]:
         params = context.parameters(FocusCalibrationParameters)
         focus, frame = context.instruments.focus, _frames(context, channel)[k]
@@ -172,19 +196,28 @@ def _fine(channel: LaserChannel, watts: float, k: int):
         low, high = params.sweep_steps  # the window stays inside the range the coarse sweep showed reachable
         positions = [round(p) for p in np.linspace(max(centre - span, low), min(centre + span, high),
                                                    params.fine_points)]
-        result: dict[str, Any] = {"positions": positions}
-        for direction, label, order in ((1, "up", positions), (-1, "down", positions[::-1])):
-            values = []
-            for position in order:
-                focus.move_to(position, approach=direction, overshoot=span)
-                values.append(_sharpness_at(context, channel, watts, frame))
-            values = values if direction > 0 else values[::-1]
-            result[label] = values
-            try:
-                result[f"peak_{label}"] = fit_peak(positions, values)
-            except BenchctlError as exc:
-                result[f"peak_{label}"], result["problem"] = None, str(exc)
-        return result
+        focus.move_to(centre, approach=1, overshoot=span)
+        _, power = _found_anywhere(context, channel, power_w(context, channel), frame)  # the brightest's power
+        for _ in range(RESTARTS):
+            result: dict[str, Any] = {"positions": positions, "power_w": power}
+            clipped = False
+            for direction, label, order in ((1, "up", positions), (-1, "down", positions[::-1])):
+                values = []
+                for position in order:
+                    focus.move_to(position, approach=direction, overshoot=span)
+                    value, saturated = _at_power(context, channel, power, frame)
+                    values.append(value)
+                    clipped |= saturated
+                result[label] = values = values if direction > 0 else values[::-1]
+                try:
+                    result[f"peak_{label}"] = fit_peak(positions, values)
+                except BenchctlError as exc:
+                    result[f"peak_{label}"], result["problem"] = None, str(exc)
+            if not clipped:
+                return result
+            power *= SATURATED_BACKOFF
+        return {**result, "problem": f"frames still clip at {power / SATURATED_BACKOFF * 1e3:.3g} mW after "
+                                     f"{RESTARTS} sweeps"}
 
     return action
 
@@ -212,7 +245,7 @@ def _away(position: int, distance: int, swept: tuple[int, int]) -> int | None:
     return None
 
 
-def _round_trips(channel: LaserChannel, watts: float):
+def _round_trips(channel: LaserChannel):
     def action(context: Context) -> dict[str, Any]:
         params = context.parameters(FocusCalibrationParameters)
         focus = context.instruments.focus
@@ -224,6 +257,7 @@ def _round_trips(channel: LaserChannel, watts: float):
             return {"problem": "the middle depth's up-sweep has no rising flank to read positions from"}
         half = (flank_s[0] + flank_s[-1]) / 2
         target = round(float(np.interp(half, flank_s, flank_p)))
+        power = fine["power_w"]
         span = params.fine_span_steps
         away = _away(target, params.round_trip_steps, params.sweep_steps)
         if away is None:
@@ -233,7 +267,7 @@ def _round_trips(channel: LaserChannel, watts: float):
         for _ in range(params.round_trips):
             focus.move_to(away, approach=1, overshoot=span)
             focus.move_to(target, approach=1, overshoot=span)
-            value = _sharpness_at(context, channel, watts, frame)
+            value, _ = _at_power(context, channel, power, frame)
             read.append(float(np.interp(value, flank_s, flank_p)) - target)
             known = focus.ground_truth()
             if known is not None:
