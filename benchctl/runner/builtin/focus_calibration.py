@@ -180,11 +180,20 @@ def _coarse(channel: LaserChannel, watts: float):
                 value, power = _found_anywhere(context, channel, powers[k][-1] if powers[k] else watts, frame)
                 values[k].append(value)
                 powers[k].append(power)
-        peaks = [positions[int(np.argmax(v))] for v in values]
+        peaks = [_coarse_peak(positions, v) for v in values]
         context.say(f"      {channel.name}: coarse peaks at {', '.join(str(p) for p in peaks)} {focus.unit}(s)")
         return {"positions": positions, "sharpness": values, "peaks": peaks, "power_w": powers}
 
     return action
+
+
+def _coarse_peak(positions: list[int], values: list[float]) -> int:
+    """Where a coarse sweep peaks: its fitted vertex (the top of a broad peak is flat, and its sharpest point may lie
+    a spacing or two from the middle), or its sharpest position where that is at an end of the sweep."""
+    try:
+        return round(fit_peak(positions, values))
+    except BenchctlError:
+        return positions[int(np.argmax(values))]
 
 
 def _fine(channel: LaserChannel, k: int):
