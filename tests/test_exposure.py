@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from benchctl.capture.exposure import SATURATED_BACKOFF, STUCK_PIXELS, brightest, choose_power, kept_in_range
+from benchctl.capture.exposure import SATURATED_BACKOFF, STUCK_PIXELS, brightest, choose_power, clipped, kept_in_range
 from benchctl.errors import BenchctlError
 
 
@@ -46,20 +46,22 @@ def camera(level_per_w: float, log: list[float]):
 
 def test_a_frame_that_saturates_is_retaken_lower_until_it_is_in_range() -> None:
     log: list[float] = []
-    value, power, retakes = kept_in_range(camera(25_000.0, log), 40e-3, 40e-3)  # 1000 x full scale at the setpoint
-    assert 0.1 <= 25_000.0 * power < 1.0 and retakes == len(log) - 1 and value == f"frame at {power:g}"
+    value, power = kept_in_range(camera(25_000.0, log), 40e-3, 40e-3)  # 1000 x full scale at the setpoint
+    assert 0.1 <= 25_000.0 * power < 1.0 and log[-1] == power and value == f"frame at {power:g}"
     assert log[:5] == pytest.approx([40e-3 * SATURATED_BACKOFF**k for k in range(5)])  # two stops down per try
-    assert retakes <= 6
+    assert len(log) <= 7
 
 
 def test_a_dim_frame_is_retaken_higher_but_never_above_the_maximum() -> None:
     log: list[float] = []
-    _, power, retakes = kept_in_range(camera(20.0, log), 1e-3, 40e-3)  # 2 % of full scale at 1 mW
-    assert power == pytest.approx(0.5 / 20.0) and retakes == 1  # the ratio to the goal, one retake
-    _, power, retakes = kept_in_range(camera(0.5, log), 1e-3, 40e-3)  # dim even at the maximum: kept there
-    assert power == 40e-3 and retakes == 1
-    _, power, retakes = kept_in_range(camera(5.0, log), 0.1, 40e-3)  # in range as it came: not retaken
-    assert power == 0.1 and retakes == 0
+    _, power = kept_in_range(camera(20.0, log), 1e-3, 40e-3)  # 2 % of full scale at 1 mW
+    assert power == pytest.approx(0.5 / 20.0) and len(log) == 2  # the ratio to the goal, one retake
+    log.clear()
+    _, power = kept_in_range(camera(0.5, log), 1e-3, 40e-3)  # dim even at the maximum: kept there
+    assert power == 40e-3 and len(log) == 2
+    log.clear()
+    _, power = kept_in_range(camera(5.0, log), 0.1, 40e-3)  # in range as it came: not retaken
+    assert power == 0.1 and len(log) == 1
 
 
 def test_a_retake_stays_between_the_powers_that_were_dim_and_saturated() -> None:
@@ -75,8 +77,8 @@ def test_a_retake_stays_between_the_powers_that_were_dim_and_saturated() -> None
     assert len(log) == 12
     for k in range(2, 12):  # once bracketed, each try lies strictly between the dim and the saturated powers so far
         dim = max((p for p in log[:k] if p < 1e-3), default=0.0)
-        clipped = min(p for p in log[:k] if p >= 1e-3)
-        assert dim < log[k] < clipped or not dim
+        clipping = min(p for p in log[:k] if p >= 1e-3)
+        assert dim < log[k] < clipping or not dim
 
 
 def test_brightest_leaves_out_a_few_stuck_pixels() -> None:
@@ -85,6 +87,6 @@ def test_brightest_leaves_out_a_few_stuck_pixels() -> None:
     hot = (np.arange(STUCK_PIXELS), np.arange(STUCK_PIXELS))
     mosaic[hot], saturated[hot] = 1.0, True
     mosaic[40, 40:43] = 0.3
-    assert brightest(mosaic, saturated) == (pytest.approx(0.3), False)
+    assert brightest(mosaic) == pytest.approx(0.3) and clipped(saturated) is False
     saturated[50, 50] = True
-    assert brightest(mosaic, saturated)[1] is True
+    assert clipped(saturated) is True

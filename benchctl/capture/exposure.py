@@ -62,28 +62,31 @@ def choose_power(probe_w: float, probe_peak: float, saturated: bool, goal: float
     return ExposureChoice(probe_w, probe_peak, saturated, goal, power, limited_by_max=wanted > max_w)
 
 
-def brightest(mosaic: np.ndarray, saturated: np.ndarray) -> tuple[float, bool]:
-    """A frame's brightest level (fraction of full scale) apart from its STUCK_PIXELS brightest pixels, and whether
-    more than STUCK_PIXELS of its pixels saturate."""
+def brightest(mosaic: np.ndarray) -> float:
+    """A frame's brightest level (fraction of full scale) apart from its STUCK_PIXELS brightest pixels."""
     values = mosaic.ravel()
-    rank = min(STUCK_PIXELS, values.size - 1)
-    level = float(np.partition(values, values.size - 1 - rank)[values.size - 1 - rank])
-    return level, int(np.count_nonzero(saturated)) > STUCK_PIXELS
+    rank = values.size - 1 - min(STUCK_PIXELS, values.size - 1)
+    return float(np.partition(values, rank)[rank])
+
+
+def clipped(saturated: np.ndarray) -> bool:
+    """Whether more than STUCK_PIXELS pixels of a frame saturate."""
+    return int(np.count_nonzero(saturated)) > STUCK_PIXELS
 
 
 Taken = TypeVar("Taken")
 
 
 def kept_in_range(take: Callable[[float], tuple[float, bool, Taken]], power_w: float, max_w: float, *,
-                  low: float = 0.05, goal: float = 0.5, tries: int = 12) -> tuple[Taken, float, int]:
+                  low: float = 0.05, goal: float = 0.5, tries: int = 12) -> tuple[Taken, float]:
     """A frame for a measure that does not depend on exposure (a sweep's sharpness), taken again until it neither
     saturates nor reads below `low` of full scale (unless already at `max_w`): through focus the brightest pixel moves
     by orders of magnitude, and a clipped focus flattens the very peak the sweep looks for.
 
     take(power) captures at `power` and returns (brightest level, saturated, value). Each retake's power lies between
-    the highest that read dim and the lowest that saturated. Returns (value, power used, retakes)."""
+    the highest that read dim and the lowest that saturated. Returns (value, power used)."""
     dim_w, saturated_w = 0.0, math.inf
-    for retake in range(tries):
+    for _ in range(tries):
         level, saturated, value = take(power_w)
         if saturated:
             saturated_w = power_w
@@ -94,7 +97,7 @@ def kept_in_range(take: Callable[[float], tuple[float, bool, Taken]], power_w: f
             if wanted >= saturated_w:
                 wanted = math.sqrt(dim_w * saturated_w)
         else:
-            return value, power_w, retake
+            return value, power_w
         power_w = wanted
     raise BenchctlError(f"no laser power kept a frame between {low:.0%} of full scale and saturation in {tries} "
                         f"tries (the last at {power_w * 1e3:.3g} mW): shorten the camera's exposure_s or lower its iso")

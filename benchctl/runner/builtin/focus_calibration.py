@@ -23,7 +23,7 @@ from typing import Annotated, Any
 import numpy as np
 from msgspec import Meta
 
-from benchctl.capture.exposure import SATURATED_BACKOFF, brightest, kept_in_range
+from benchctl.capture.exposure import SATURATED_BACKOFF, brightest, clipped, kept_in_range
 from benchctl.capture.focus import FLOOR, FocusMap, fit_peak, sharpness
 from benchctl.capture.raw import RawImage
 from benchctl.capture.registration import dot_grid_target
@@ -143,23 +143,23 @@ def _capture(context: Context, channel: LaserChannel, power: float, frame: np.nd
                    keep=False).image
 
 
-def _found_anywhere(context: Context, channel: LaserChannel, power: float, frame: np.ndarray) -> tuple[float, float]:
+def _comparable_sharpness(context: Context, channel: LaserChannel, power: float,
+                          frame: np.ndarray) -> tuple[float, float]:
     """The coarse sweep's sharpness of `frame` at the focus where it stands (floored: comparable across powers), and
     the power it was taken at: starting at `power`, retaken lower or higher (never above the declared setpoint) until
     it neither clips nor drowns in noise."""
     def take(watts: float) -> tuple[float, bool, float]:
         image = _capture(context, channel, watts, frame)
-        return (*brightest(image.mosaic, image.saturated), sharpness(image.mosaic, floor=FLOOR))
+        return brightest(image.mosaic), clipped(image.saturated), sharpness(image.mosaic, floor=FLOOR)
 
-    value, used, _ = kept_in_range(take, power, power_w(context, channel))
-    return value, used
+    return kept_in_range(take, power, power_w(context, channel))
 
 
 def _at_power(context: Context, channel: LaserChannel, power: float, frame: np.ndarray) -> tuple[float, bool]:
     """The sharpness of `frame` at one power, unfloored (the finest measure where every frame of a curve shares
     its exposure), and whether it clipped."""
     image = _capture(context, channel, power, frame)
-    return sharpness(image.mosaic), brightest(image.mosaic, image.saturated)[1]
+    return sharpness(image.mosaic), clipped(image.saturated)
 
 
 def _frames(context: Context, channel: LaserChannel) -> list[np.ndarray]:
@@ -177,7 +177,7 @@ def _coarse(channel: LaserChannel, watts: float):
         for position in positions:
             focus.move_to(position, approach=1, overshoot=params.fine_span_steps)
             for k, frame in enumerate(frames):
-                value, power = _found_anywhere(context, channel, powers[k][-1] if powers[k] else watts, frame)
+                value, power = _comparable_sharpness(context, channel, powers[k][-1] if powers[k] else watts, frame)
                 values[k].append(value)
                 powers[k].append(power)
         peaks = [_coarse_peak(positions, v) for v in values]
@@ -200,29 +200,32 @@ def _fine(channel: LaserChannel, k: int):
     def action(context: Context) -> dict[str, Any]:
         params = context.parameters(FocusCalibrationParameters)
         focus, frame = context.instruments.focus, _frames(context, channel)[k]
-        centre = context.result(f"focus/{channel.name}/coarse")["peaks"][k]
+        coarse = context.result(f"focus/{channel.name}/coarse")
+        centre = coarse["peaks"][k]
+        nearest = int(np.argmin(np.abs(np.asarray(coarse["positions"]) - centre)))
         span = params.fine_span_steps
         low, high = params.sweep_steps  # the window stays inside the range the coarse sweep showed reachable
         positions = [round(p) for p in np.linspace(max(centre - span, low), min(centre + span, high),
                                                    params.fine_points)]
         focus.move_to(centre, approach=1, overshoot=span)
-        _, power = _found_anywhere(context, channel, power_w(context, channel), frame)  # the brightest's power
+        # the power that keeps the brightest frame (the peak's) in range, from the coarse sweep's there
+        _, power = _comparable_sharpness(context, channel, coarse["power_w"][k][nearest], frame)
         for _ in range(RESTARTS):
             result: dict[str, Any] = {"positions": positions, "power_w": power}
-            clipped = False
+            any_clipped = False
             for direction, label, order in ((1, "up", positions), (-1, "down", positions[::-1])):
                 values = []
                 for position in order:
                     focus.move_to(position, approach=direction, overshoot=span)
                     value, saturated = _at_power(context, channel, power, frame)
                     values.append(value)
-                    clipped |= saturated
+                    any_clipped |= saturated
                 result[label] = values = values if direction > 0 else values[::-1]
                 try:
                     result[f"peak_{label}"] = fit_peak(positions, values)
                 except BenchctlError as exc:
                     result[f"peak_{label}"], result["problem"] = None, str(exc)
-            if not clipped:
+            if not any_clipped:
                 return result
             power *= SATURATED_BACKOFF
         return {**result, "problem": f"frames still clip at {power / SATURATED_BACKOFF * 1e3:.3g} mW after "
