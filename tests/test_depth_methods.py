@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 
+from benchctl.benchmarks.depth import all_in_focus_psnr
 from benchctl.cgh import get_method
 from benchctl.cgh.dpac import anti_aliased, layered_field
 from benchctl.errors import BadValueError
@@ -18,6 +19,7 @@ from benchctl.optics.colour import linear_to_srgb
 from benchctl.optics.fitted import FittedOptics
 from benchctl.optics.focal_stack import FocalStackTarget, focal_stack_scores
 from benchctl.optics.metrics import flip_map, perceptual_scores, speckle_contrast
+from benchctl.optics.planes import DepthSweep, axial_resolution_m, choose_planes, even_planes
 from benchctl.optics.propagation import propagate
 from benchctl.optics.setup import OpticalSetup
 from benchctl.scenes import load_scene, prepare_scene
@@ -89,6 +91,42 @@ def test_multiplane_sgd_optimises_through_the_fitted_model_and_the_display():
     # scored on the measured bench, as shown by its panel
     assert np.mean(_plane_psnrs(measured, display(aware), target)) > np.mean(
         _plane_psnrs(measured, display(naive), target)) + 1.0
+
+
+def test_a_swept_target_scores_each_plane_near_its_depth_only():
+    target = _target("tilted", PLANES)
+    sweep = DepthSweep(((0.0165, 0.0170, 0.0175), (0.0225, 0.0230, 0.0235)), reach_m=0.0004)
+    swept = FocalStackTarget(target.amplitude, target.depth_m, PLANES, sweep=sweep)
+    picks, masks = swept.swept(1)
+    assert picks == [1, 5] and masks.shape == (2, *SHAPE)  # the second plane half a cycle on
+    near = [(target.depth_m - z).abs() <= 0.0004 for z in (0.0170, 0.0235)]
+    for k in range(2):
+        assert bool((masks[k].bool() == near[k]).all()), k  # no tilted pixel lies within reach of both planes
+    assert 0 < float(masks.sum()) < masks[0].numel()
+    with pytest.raises(ValueError, match="a sweep of 2 planes for 3 planes"):
+        FocalStackTarget(target.amplitude, target.depth_m, (0.017, 0.02, 0.023), sweep=sweep)
+    with pytest.raises(ValueError, match="no sweep"):
+        target.swept(0)
+
+
+@pytest.mark.slow
+def test_sweeping_the_planes_of_a_tilted_scene_shows_it_in_focus_at_every_depth():
+    setup, iterations = _setup(), 40
+    rows, cols = setup.roi_slices
+    scene = _target("tilted", PLANES)
+    light = scene.amplitude[rows, cols].square()
+    choice = choose_planes(scene.depth_m[rows, cols], light, axial_resolution_m(setup.geometry))
+    assert choice.sweep is not None and len(choice.planes_m) == 6
+    judge = FocalStackTarget(scene.amplitude, scene.depth_m, even_planes(scene.depth_m[rows, cols], light, 64).planes_m)
+
+    def all_in_focus(planes: tuple[float, ...], sweep: DepthSweep | None) -> float:
+        phase = get_method("sgd")(FocalStackTarget(scene.amplitude, scene.depth_m, planes, sweep=sweep), setup,
+                                  iterations=iterations)
+        return all_in_focus_psnr(setup, phase, judge)
+
+    fixed, swept = all_in_focus(choice.planes_m, None), all_in_focus(choice.planes_m, choice.sweep)
+    sixteen = all_in_focus(even_planes(scene.depth_m[rows, cols], light, 16).planes_m, None)
+    assert swept > fixed + 2.0 and swept > sixteen - 0.5, (fixed, swept, sixteen)
 
 
 def test_layered_field_lets_a_farther_layer_hide_what_lies_behind_it():

@@ -30,6 +30,7 @@ from benchctl.devices.sim.state import load_state
 from benchctl.holograms.cache import hologram
 from benchctl.optics.focal_stack import FocalStackTarget, masked_colour_scores, masked_scores
 from benchctl.optics.metrics import centred_slices
+from benchctl.optics.planes import PlaneChoice
 from benchctl.profiles import Profile
 from benchctl.runner.engine import run_procedure
 from benchctl.scenes import load_scene, prepare_scene
@@ -264,7 +265,7 @@ def test_a_focal_stack_hologram_is_cached_by_its_depth_and_planes(ready_bench: P
 
     def make(depth_m: torch.Tensor, planes_m: tuple[float, ...]):
         return hologram(bench, amplitude, "green", "dpac", iterations=None, seed=0, checkpoint=None, depth_m=depth_m,
-                        planes_m=planes_m)
+                        planes=PlaneChoice(planes_m, "as given"))
 
     first = make(depth, planes)
     assert not first.cached and first.reconstruction.shape == (3, *optics.roi) and len(first.plane_scores) == 3

@@ -77,6 +77,26 @@ def test_a_fixed_number_of_planes_spreads_them_over_the_scenes_depth(capsys, tmp
     assert "as asked" in stdout
 
 
+@pytest.mark.slow
+def test_auto_sweeps_a_tilted_scenes_planes_and_scores_it_all_in_focus(capsys, tmp_path, depth_profile):
+    swept, layers = tmp_path / "swept", tmp_path / "layers"
+    code, stdout, _ = _run(capsys, "generate", "rgbd:tilted", "-m", "sgd", "-n", "20", "--colours", "green",
+                           "-p", str(depth_profile), "-o", str(swept))
+    assert code == 0
+    metrics = json.loads((swept / "metrics.json").read_text())
+    assert len(metrics["planes"]) == 6 and len(metrics["sweep_mm"]) == 6
+    for plane, depths in zip(metrics["planes"], metrics["sweep_mm"]):
+        assert depths[0] < plane["distance_mm"] < depths[-1] and depths == sorted(depths)
+    assert "each swept over its cluster" in stdout
+    seen = metrics["mean"]["all_in_focus_psnr_db"]
+    assert seen == pytest.approx(metrics["colours"]["green"]["mean"]["all_in_focus_psnr_db"])
+    assert f"all in focus: PSNR {seen:.2f} dB (each pixel seen at the depth nearest its own of the sweep's)" in stdout
+    assert _run(capsys, "generate", "rgbd:two-planes", "-m", "sgd", "-n", "5", "--colours", "green",
+                "-p", str(depth_profile), "-o", str(layers))[0] == 0
+    metrics = json.loads((layers / "metrics.json").read_text())
+    assert metrics["sweep_mm"] is None and 10 < metrics["mean"]["all_in_focus_psnr_db"] < 60
+
+
 @pytest.mark.parametrize("argv, message", [
     (["rgbd:two-planes"], "optics.depth_range_mm"),
     (["rgbd:two-planes", "-m", "gs"], "makes holograms of one plane"),

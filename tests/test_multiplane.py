@@ -204,3 +204,20 @@ def test_reused_work_buffers_never_alias_results():
     fresh = MultiPlanePropagator(shape, distances, 520e-9, 6.4e-6)(second_field)
     torch.testing.assert_close(second, fresh, rtol=0, atol=0)
     assert second.shape == (2, *shape)
+
+
+def test_picked_planes_are_those_planes_of_the_whole_stack_in_the_order_asked():
+    shape, pitch, wavelength = (32, 48), 6.4e-6, 520e-9
+    distances = (3e-3, 4e-3, 5e-3, 6e-3)
+    propagator = MultiPlanePropagator(shape, distances, wavelength, pitch, padding="2x", window=(4, 24, 8, 32))
+    field = torch.from_numpy(_random_phase(shape)).to(torch.complex64)
+    every = propagator(field)
+    torch.testing.assert_close(propagator(field, [3, 0, 2]), every[[3, 0, 2]], rtol=0, atol=0)
+    grad_field = field.clone().requires_grad_()
+    picked = propagator(grad_field, [1, 3])
+    torch.testing.assert_close(picked.detach(), every[[1, 3]], rtol=0, atol=1e-6)
+    picked.abs().sum().backward()
+    assert grad_field.grad is not None and bool(grad_field.grad.abs().sum() > 0)
+    for bad in ([], [4], [-1]):
+        with pytest.raises(ValueError, match=r"pick must name planes 0 \.\. 3"):
+            propagator(field, bad)

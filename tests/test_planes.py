@@ -1,5 +1,5 @@
-"""Only the planes a scene needs: the axial resolution against its closed forms, and the planes chosen for flat,
-layered, tilted and partly dark scenes."""
+"""Only the planes a scene needs: the axial resolution against its closed forms, the planes chosen for flat,
+layered, tilted and partly dark scenes, and the sweep of a scene with continuous depth."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from benchctl.optics.geometry import Geometry
-from benchctl.optics.planes import (MAX_PLANES, axial_resolution_m, choose_planes, even_planes, finest_resolution_m,
-                                    numerical_aperture)
+from benchctl.optics.planes import (MAX_PLANES, SWEEP_STEP, DepthSweep, axial_resolution_m, choose_planes,
+                                    even_planes, finest_resolution_m, numerical_aperture)
 
 
 def test_axial_resolution_is_lambda_over_na_squared_with_the_iris_or_the_slm_extent_limiting_na():
@@ -75,3 +75,38 @@ def test_even_planes_and_the_planes_option():
     for bad in ("0", "-2", "two", ""):
         with pytest.raises(argparse.ArgumentTypeError, match="'auto' or a whole number"):
             plane_count(bad)
+
+
+def test_a_tilted_plane_is_swept_plane_by_plane_and_layers_are_not():
+    depth = torch.linspace(0.065, 0.075, 200, dtype=torch.float64).repeat(4, 1)
+    resolution = 0.9e-3
+    choice = choose_planes(depth, torch.ones_like(depth, dtype=torch.float32), resolution)
+    sweep = choice.sweep
+    assert sweep is not None and sweep.reach_m == pytest.approx(SWEEP_STEP * resolution)
+    assert len(sweep.depths_m) == len(choice.planes_m) and "each swept over its cluster" in choice.reason
+    for plane, depths in zip(choice.planes_m, sweep.depths_m):
+        steps = torch.tensor(depths).diff()
+        assert bool((steps > 0).all()) and float(steps.max()) <= SWEEP_STEP * resolution + 1e-12
+        assert depths[0] < plane < depths[-1] and plane == pytest.approx(0.5 * (depths[0] + depths[-1]))
+    # every pixel lies within reach of some depth of the sweep: over a cycle each is scored near its own depth
+    every = torch.tensor(sweep.all_m, dtype=torch.float64)
+    assert float((depth[..., None] - every).abs().amin(-1).max()) <= sweep.reach_m
+    # the deepest content, capped at MAX_PLANES even planes, is swept over each plane's share of the depth
+    capped = choose_planes(depth, torch.ones_like(depth, dtype=torch.float32), 0.1e-3).sweep
+    assert capped is not None and len(capped.depths_m) == MAX_PLANES
+    assert capped.depths_m[0][0] == pytest.approx(0.065) and capped.depths_m[-1][-1] == pytest.approx(0.075)
+    layers, light = _maps((0.066, 1.0), (0.070, 0.8), (0.074, 0.6))
+    assert choose_planes(layers, light, 0.4e-3).sweep is None
+    assert even_planes(depth, torch.ones_like(depth), 4).sweep is None  # planes asked for by count stay put
+
+
+def test_a_sweep_steps_each_plane_through_its_depths_half_a_cycle_out_of_step_with_the_last():
+    sweep = DepthSweep(((1.0, 2.0, 3.0, 4.0), (5.0, 6.0, 7.0, 8.0), (9.0,)), reach_m=0.5)
+    assert sweep.all_m == (1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0)
+    assert sweep.at(0) == ([0, 6, 8], (1.0, 7.0, 9.0))
+    assert sweep.at(1) == ([1, 7, 8], (2.0, 8.0, 9.0))
+    assert sweep.at(3) == ([3, 5, 8], (4.0, 6.0, 9.0))
+    assert sweep.at(4) == sweep.at(0)
+    seen = [sweep.at(t)[1] for t in range(4)]
+    assert sorted(z for planes in seen for z in planes[:2]) == [float(z) for z in range(1, 9)]
+    assert len({planes[1] - planes[0] for planes in seen}) == 2  # the gap between neighbours changes

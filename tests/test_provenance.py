@@ -12,6 +12,7 @@ import benchctl
 from benchctl import provenance
 from benchctl.calibration.calibrated import Calibrated
 from benchctl.holograms import cache as hologram_cache
+from benchctl.optics.planes import DepthSweep, PlaneChoice
 from benchctl.profiles import load_profile
 from benchctl.targets import load_target, prepare_target
 
@@ -96,3 +97,19 @@ def test_refined_learned_methods_key_the_cache_by_their_networks_checkpoint(
     (first, used), (second, _) = entries
     assert Path(used).resolve() == shipped.resolve() and first != second
     assert hologram_cache.cache_entry(bench, target, "green", "sgd", iterations=5, seed=0, checkpoint=None)[1] is None
+
+
+def test_a_scene_with_depth_keys_the_cache_by_its_planes_and_their_sweep(small_profile_path: Path) -> None:
+    """The same scene at the same planes, once held fixed and once swept (`--planes auto` on continuous depth), are two
+    holograms: neither is served for the other."""
+    bench = Calibrated(load_profile(small_profile_path))
+    target = prepare_target(load_target("chart:siemens", (48, 80)), (64, 96), (48, 80))
+    depth = torch.linspace(0.016, 0.024, 96, dtype=torch.float64).repeat(64, 1)
+    fixed = PlaneChoice((0.018, 0.022), "fixed")
+    swept = PlaneChoice((0.018, 0.022), "swept", DepthSweep(((0.017, 0.018, 0.019), (0.021, 0.022, 0.023)), 0.0005))
+    moved = PlaneChoice((0.018, 0.0225), "fixed")
+    keys = [hologram_cache.cache_entry(bench, target, "green", "sgd", iterations=5, seed=0, checkpoint=None,
+                                       depth_m=depth, planes=choice)[0] for choice in (fixed, swept, moved, fixed)]
+    assert len(set(keys[:3])) == 3 and keys[3] == keys[0]
+    with pytest.raises(ValueError, match="needs the planes it is shown at"):
+        hologram_cache.cache_entry(bench, target, "green", "sgd", iterations=5, seed=0, checkpoint=None, depth_m=depth)

@@ -26,7 +26,8 @@ from benchctl.cgh import get_method
 from benchctl.holograms.depth import compute_depth_scene, scene_planes
 from benchctl.holograms.scene import compute_scene
 from benchctl.optics.focal_stack import FocalStackTarget, focal_stack_scores
-from benchctl.optics.metrics import centred_slices, lsq_scale, psnr
+from benchctl.optics.focal_stack import all_in_focus_psnr as stack_all_in_focus_psnr
+from benchctl.optics.metrics import centred_slices
 from benchctl.optics.planes import PlaneChoice, even_planes
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import Profile
@@ -68,14 +69,11 @@ def _stack(setup: OpticalSetup, phase: torch.Tensor, planes_m: tuple[float, ...]
 
 
 def all_in_focus_psnr(setup: OpticalSetup, phase: torch.Tensor, judge: FocalStackTarget) -> float:
-    """Amplitude PSNR of the all-in-focus image of `phase`: each ROI pixel from the plane of `judge` nearest its
-    depth, one least-squares scale."""
+    """Amplitude PSNR of the all-in-focus image of `phase` (`focal_stack.all_in_focus_psnr`) at the planes of
+    `judge`, on the ROI."""
     rows, cols = setup.roi_slices
-    stack = _stack(setup, phase, judge.planes_m)
-    owner = judge.masks[:, rows, cols].argmax(dim=0).to(stack.device)
-    image = stack.gather(0, owner[None])[0].cpu()
-    wanted = judge.amplitude[rows, cols].cpu()
-    return float(psnr(lsq_scale(image, wanted) * image, wanted, data_range=1.0))
+    return stack_all_in_focus_psnr(_stack(setup, phase, judge.planes_m), judge.amplitude[rows, cols],
+                                   judge.masks[:, rows, cols])
 
 
 def run_depth_bench(
@@ -116,13 +114,13 @@ def run_depth_bench(
         choices: list[tuple[int | str, PlaneChoice]] = [(k, even_planes(depth[rows, cols], light, k)) for k in counts]
         choices.append((AUTO, auto))
         warm_up = 2 if generate.default_iterations is not None else None  # kernels and caches built outside the timing
-        generate(FocalStackTarget(amplitude, depth, auto.planes_m), setup, iterations=warm_up)
+        generate(FocalStackTarget(amplitude, depth, auto.planes_m, sweep=auto.sweep), setup, iterations=warm_up)
         seen: set[tuple[float, ...]] = set()
         for count, choice in choices:
             if count != AUTO and choice.planes_m in seen:
                 continue  # a flat scene: every K is one plane
             seen.add(choice.planes_m)
-            target = FocalStackTarget(amplitude, depth, choice.planes_m)
+            target = FocalStackTarget(amplitude, depth, choice.planes_m, sweep=choice.sweep)
             phase, seconds = _timed(device, generate, target, setup, iterations=iterations, seed=seed)
             score = all_in_focus_psnr(setup, phase, judge)
             results.append({"scene": spec, "planes": count, "planes_m": choice.planes_m, "count": len(choice.planes_m),

@@ -22,11 +22,15 @@ Choices (docs/benchmarks.md and docs/model_calibration.md measure them):
 A scene with depth (`FocalStackTarget`, two planes or more) is optimised the same way, on the focal-stack loss
 (`stack_loss`: every plane scored where the scene is in focus there, Neural 3D Holography's masked loss) through
 the same setup, so the fitted model and the lookup table apply as in 2D; it starts from the method DPAC makes of
-the scene (layered, anti-aliased).
+the scene (layered, anti-aliased). A target with a sweep (a scene with continuous depth, `--planes auto`) is scored
+at planes that move one step through its depths per iteration (`FocalStackTarget.swept`), each plane scoring the
+pixels near its depth: each iteration's loss then sees another part of the scene, so there is no early stop and the
+last phase is returned.
 """
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable
 
 import torch
@@ -59,12 +63,19 @@ def roi_loss(phase: torch.Tensor, target: torch.Tensor, setup: OpticalSetup) -> 
     return torch.nn.functional.mse_loss(scale * recon, wanted)
 
 
-def stack_loss(phase: torch.Tensor, target: FocalStackTarget, setup: OpticalSetup) -> torch.Tensor:
+def stack_loss(phase: torch.Tensor, target: FocalStackTarget, setup: OpticalSetup,
+               iteration: int | None = None) -> torch.Tensor:
     """The focal-stack loss (`focal_stack_loss`) over the ROI of the planes of `target`, reconstructed from `phase`
-    as the SLM shows it (`setup.displayed`) through one multi-plane propagation."""
+    as the SLM shows it (`setup.displayed`) through one multi-plane propagation; with an `iteration`, at the planes
+    of the target's sweep there (`FocalStackTarget.swept`)."""
     rows, cols = setup.roi_slices
-    recon = setup.reconstruct_planes_roi(setup.displayed(phase), target.planes_m)
-    return focal_stack_loss(recon, target.amplitude[rows, cols], target.masks[:, rows, cols].to(recon.device))
+    if iteration is None or target.sweep is None:
+        recon = setup.reconstruct_planes_roi(setup.displayed(phase), target.planes_m)
+        masks = target.masks
+    else:
+        pick, masks = target.swept(iteration)
+        recon = setup.reconstruct_planes_roi(setup.displayed(phase), target.sweep.all_m, pick)
+    return focal_stack_loss(recon, target.amplitude[rows, cols], masks[:, rows, cols].to(recon.device))
 
 
 def _initial_phase(init: Init, target: torch.Tensor | FocalStackTarget, setup: OpticalSetup,
@@ -79,13 +90,17 @@ def _initial_phase(init: Init, target: torch.Tensor | FocalStackTarget, setup: O
 
 
 def _descend(loss_of: Callable[[torch.Tensor], torch.Tensor], start: torch.Tensor, setup: OpticalSetup,
-             iterations: int, lr: float, tolerance: float | None, progress: Progress | None) -> torch.Tensor:
-    """Adam on the phase from `start`, minimising `loss_of(phase)`: the best phase seen (module docstring)."""
+             iterations: int, lr: float, tolerance: float | None, progress: Progress | None, *,
+             sampled: bool = False) -> torch.Tensor:
+    """Adam on the phase from `start`, minimising `loss_of(phase)`: the best phase seen (module docstring); where the
+    loss is `sampled` (each call scores another part of the target), the last one, after every iteration."""
     phase = start.detach().clone().requires_grad_()
     optimiser = torch.optim.Adam([phase], lr=lr)
     losses: list[float] = []
     best_loss, best_phase = float("inf"), phase.detach().clone()
     for done in range(iterations + 1):
+        if sampled and done == iterations:
+            return phase.detach()
         optimiser.zero_grad(set_to_none=True)
         loss = loss_of(phase)
         losses.append(float(loss.detach()))
@@ -93,7 +108,7 @@ def _descend(loss_of: Callable[[torch.Tensor], torch.Tensor], start: torch.Tenso
             best_loss, best_phase = losses[-1], phase.detach().clone()
         if done == iterations:
             break  # the loss of the last step's phase is known: no further step
-        if tolerance is not None and stopped_improving(losses, tolerance):
+        if tolerance is not None and not sampled and stopped_improving(losses, tolerance):
             if progress is not None:
                 progress(done, done)
             break
@@ -134,8 +149,9 @@ def sgd_method(name: str = "sgd", *, init: Init = "dpac", lr: float = PHASE_LR,
         with torch.inference_mode(False), torch.enable_grad():
             target = target.with_amplitude(target.amplitude.clone())
             start = _initial_phase(init, target, setup, seed)
-            return _descend(lambda phase: stack_loss(phase, target, setup), start, setup, iterations, lr, tolerance,
-                            progress)
+            steps = itertools.count()
+            return _descend(lambda phase: stack_loss(phase, target, setup, next(steps)), start, setup, iterations,
+                            lr, tolerance, progress, sampled=target.sweep is not None)
 
     return Method(name=name, default_iterations=DEFAULT_ITERATIONS, algorithm=algorithm, focal_stack=focal_stack,
                   description=description or f"Adam on the SLM phase from a {start} start, minimising the simulated "

@@ -257,7 +257,7 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                                            "planes --planes auto chooses, multi-plane against 2D SGD",
                              description="Per bundled scene, the method's hologram at each K of --planes evenly over "
                                          "the scene's depth and at the planes --planes auto chooses, each judged on "
-                                         "the same 16-plane focal stack (in-focus amplitude PSNR) and timed; then "
+                                         "the same all-in-focus image (from a 64-plane focal stack) and timed; then "
                                          "multi-plane SGD on rgbd:two-planes against 2D SGD on each plane's image "
                                          "alone. One colour, scaled bench as speed-vs-error, no SLM quantisation.")
     depth.add_argument("--scenes", nargs="+", metavar="SCENE", help="rgbd scenes (default: all bundled ones)")

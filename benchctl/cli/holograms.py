@@ -63,6 +63,9 @@ def focal_stack_lines(metrics: dict[str, Any]) -> list[str]:
     lines.append(f"{'mean':>5} {'':>8} {'':>9} {cell(mean, 'psnr_amplitude_db', '.2f'):>8} "
                  f"{cell(mean, 'ssim_amplitude', '.3f'):>6} {cell(mean, 'flip', '.3f'):>6} "
                  f"{cell(mean, 'speckle_contrast', '.3f'):>8}")
+    if mean and "all_in_focus_psnr_db" in mean:
+        lines.append(f"all in focus: PSNR {mean['all_in_focus_psnr_db']:.2f} dB (each pixel seen at the depth nearest "
+                     "its own of " + ("the sweep's" if metrics.get("sweep_mm") else "the planes'") + ")")
     colours = metrics["colours"].items()
     times = [f"{name} {colour['seconds']:.2f} s" for name, colour in colours if not colour["skipped"]]
     skipped = [name for name, colour in colours if colour["skipped"]]

@@ -17,7 +17,6 @@ import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from collections.abc import Sequence
 from typing import Any, Callable
 
 import numpy as np
@@ -29,6 +28,7 @@ from benchctl.files import atomic_write_bytes, ensure_dir
 from benchctl.holograms.checkpoints import find_checkpoint
 from benchctl.holograms.depth import compute_depth_scene
 from benchctl.holograms.scene import compute_scene
+from benchctl.optics.planes import PlaneChoice
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import Profile
 from benchctl.provenance import source_hash
@@ -79,20 +79,22 @@ def _key(profile: Profile, setup: OpticalSetup, channel: str, plane: torch.Tenso
 
 def cache_entry(bench: Calibrated, target: torch.Tensor, channel: str, method: str, *, iterations: int | None,
                 seed: int, checkpoint: str | None, depth_m: torch.Tensor | None = None,
-                planes_m: Sequence[float] | None = None) -> tuple[Path, str | None]:
+                planes: PlaneChoice | None = None) -> tuple[Path, str | None]:
     """Where the hologram of `channel` for `target` with these options is cached, and the checkpoint it is computed
     with: the one given, else the one found for a learned method (or for a refined one's network: "ccnn-dcm4+sgd"
     runs ccnn-dcm4's). That checkpoint's bytes are part of the key, as are the code, the bench and the target (of a
-    scene with depth, its depth map and the planes it is shown at)."""
+    scene with depth, its depth map, the planes it is shown at and their sweep)."""
     network = get_method(method).network
     if checkpoint is None and network is not None:
         found = find_checkpoint(network, bench.profile)  # what compute_scene will use
         checkpoint = str(found) if found else None
     options: dict[str, Any] = {"method": method, "iterations": iterations, "seed": seed, "checkpoint": checkpoint}
     if depth_m is not None:
-        if not planes_m:
+        if planes is None:
             raise ValueError("a scene with depth needs the planes it is shown at")
-        options["planes_m"] = [float(z) for z in planes_m]
+        options["planes_m"] = [float(z) for z in planes.planes_m]
+        if planes.sweep is not None:
+            options["sweep"] = {"depths_m": planes.sweep.depths_m, "reach_m": planes.sweep.reach_m}
     plane = target[target_plane(bench.profile.channel(channel))]
     key = _key(bench.profile, bench.setup(channel), channel, plane, options, depth_m)
     return cache_dir() / "holograms" / f"{key}.npz", checkpoint
@@ -101,13 +103,13 @@ def cache_entry(bench: Calibrated, target: torch.Tensor, channel: str, method: s
 def hologram(bench: Calibrated, target: torch.Tensor, channel: str, method: str, *, iterations: int | None,
              seed: int, checkpoint: str | None,
              progress: Callable[[str], Callable[[int, int], None]] | None = None,
-             depth_m: torch.Tensor | None = None, planes_m: Sequence[float] | None = None) -> Hologram:
+             depth_m: torch.Tensor | None = None, planes: PlaneChoice | None = None) -> Hologram:
     """The hologram of `channel` for `target` (3, H, W amplitude on the SLM grid) on `bench`: from the cache when
     this exact computation was done before (`cache_entry`), else computed (compute_scene, one colour) and cached.
-    With `depth_m` (H, W, metres from the SLM) the target is a scene with depth shown at `planes_m`
-    (compute_depth_scene, one colour, at exactly those planes)."""
+    With `depth_m` (H, W, metres from the SLM) the target is a scene with depth shown at `planes`
+    (compute_depth_scene, one colour, at exactly those planes and their sweep)."""
     path, checkpoint = cache_entry(bench, target, channel, method, iterations=iterations, seed=seed,
-                                   checkpoint=checkpoint, depth_m=depth_m, planes_m=planes_m)
+                                   checkpoint=checkpoint, depth_m=depth_m, planes=planes)
     if path.is_file():
         with np.load(path, allow_pickle=False) as data:
             return Hologram(data["gray"], data["reconstruction"], json.loads(str(data["scores"])),
@@ -118,7 +120,7 @@ def hologram(bench: Calibrated, target: torch.Tensor, channel: str, method: str,
         result = compute_scene(target, bench, method, iterations=iterations, colours=[channel], seed=seed,
                                progress=progress, **extra).colours[0]
     else:
-        result = compute_depth_scene(target, depth_m, bench, method, planes=planes_m, iterations=iterations,
+        result = compute_depth_scene(target, depth_m, bench, method, planes=planes, iterations=iterations,
                                      colours=[channel], seed=seed, progress=progress, perceptual=False,
                                      **extra).colours[0]
     assert not result.skipped and result.gray is not None and result.reconstruction is not None

@@ -1,5 +1,7 @@
 """Holograms for a colour scene with depth: the planes it needs, one method per emitting colour, the displayed phase,
-the simulated focal stack and its per-plane scores.
+the simulated focal stack and its per-plane scores, and the all-in-focus PSNR at the depths the hologram is meant to
+be seen at (its planes, or a sweep's depths: a swept hologram is in focus between its planes, where the per-plane
+scores, which ask every pixel near a plane to be sharp there, count its natural defocus as error).
 
 The depth twin of `holograms.scene.compute_scene`, shared by `benchctl generate rgbd:...` and `benchctl bench
 speed-vs-error`; it writes no files. A scene that needs one plane is computed and scored as 2D at that plane.
@@ -17,7 +19,8 @@ import torch
 from benchctl.calibration.calibrated import Calibrated
 from benchctl.errors import BenchctlError
 from benchctl.holograms.scene import ColourResult, resolve_method, select_channels
-from benchctl.optics.focal_stack import FocalStackTarget, focal_stack_scores, mean_scores, stack_scale
+from benchctl.optics.focal_stack import (FocalStackTarget, all_in_focus_psnr, focal_stack_scores, in_focus_masks,
+                                         mean_scores, stack_scale)
 from benchctl.optics.metrics import centred_slices
 from benchctl.optics.planes import PlaneChoice, choose_planes, even_planes, finest_resolution_m
 from benchctl.optics.setup import OpticalSetup
@@ -51,10 +54,12 @@ def focal_stack_roi(setup: OpticalSetup, phase: torch.Tensor, planes_m: tuple[fl
 
 
 def scene_planes(depth_m: torch.Tensor, light: torch.Tensor, setups: Mapping[str, OpticalSetup],
-                 planes: int | Sequence[float] | None) -> PlaneChoice:
-    """`planes` evenly over the lit depth (a count), exactly those planes (distances in metres, as a procedure that
-    chose them for every colour gives them), or (None: auto) the planes the depth content and the finest axial
-    resolution of the colours' setups need (`choose_planes`)."""
+                 planes: int | Sequence[float] | PlaneChoice | None) -> PlaneChoice:
+    """`planes` evenly over the lit depth (a count), exactly those planes (distances in metres, or the choice itself
+    with its sweep, as a procedure that chose them for every colour gives them), or (None: auto) the planes the depth
+    content and the finest axial resolution of the colours' setups need (`choose_planes`)."""
+    if isinstance(planes, PlaneChoice):
+        return planes
     if isinstance(planes, Sequence):
         chosen = tuple(sorted(float(z) for z in planes))
         return PlaneChoice(chosen, f"{len(chosen)} plane(s) at {', '.join(f'{z * 1e3:.2f}' for z in chosen)} mm, "
@@ -70,7 +75,7 @@ def compute_depth_scene(
     bench: Calibrated,
     method: str,
     *,
-    planes: int | Sequence[float] | None = None,
+    planes: int | Sequence[float] | PlaneChoice | None = None,
     iterations: int | None = None,
     colours: list[str] | None = None,
     seed: int = 0,
@@ -106,17 +111,22 @@ def compute_depth_scene(
             results.append(ColourResult(channel.name, channel.wavelength_nm, skipped=True))
             continue
         setup = bench.setup(channel.name, as_displayed=True)
-        target = FocalStackTarget(target_amplitude[target_plane(channel)], depth_m, choice.planes_m)
+        target = FocalStackTarget(target_amplitude[target_plane(channel)], depth_m, choice.planes_m,
+                                  sweep=choice.sweep)
         start = time.perf_counter()
         phase = generate(target, setup, iterations=iterations, seed=seed,
                          progress=progress(f"{method} {channel.name}") if progress else None)
         seconds = time.perf_counter() - start
         gray = slm.encode(phase, channel.name)
-        stack = focal_stack_roi(setup, torch.from_numpy(slm.driven(gray, channel.name)), choice.planes_m)
+        shown = torch.from_numpy(slm.driven(gray, channel.name))
+        stack = focal_stack_roi(setup, shown, choice.planes_m)
         masks, wanted = target.masks[:, rows, cols], target_roi[target_plane(channel)]
         stack = stack * stack_scale(stack, wanted, masks)
         stacks[target_plane(channel)] = stack
         scores = focal_stack_scores(stack, wanted, masks, choice.planes_m, perceptual=perceptual)
+        seen, seen_masks = (stack, masks) if choice.sweep is None else (
+            focal_stack_roi(setup, shown, choice.sweep.all_m), in_focus_masks(depth_roi, choice.sweep.all_m))
+        scores.mean["all_in_focus_psnr_db"] = all_in_focus_psnr(seen, wanted, seen_masks)
         results.append(ColourResult(channel.name, channel.wavelength_nm, skipped=False, seconds=seconds, gray=gray,
                                     reconstruction=stack, scores=scores.mean, plane_scores=scores.per_plane))
     linear = torch.zeros((count, *target_roi.shape), dtype=torch.float32)
@@ -125,7 +135,9 @@ def compute_depth_scene(
     owner = FocalStackTarget(target_amplitude[0], depth_m, choice.planes_m).masks[:, rows, cols].argmax(0)
     done = [c for c in results if not c.skipped]
     plane_scores = [mean_scores([c.plane_scores[k] for c in done]) or None for k in range(count)]
+    in_focus = [c.scores["all_in_focus_psnr_db"] for c in done]
+    overall = mean_scores(plane_scores) | ({"all_in_focus_psnr_db": sum(in_focus) / len(in_focus)} if in_focus else {})
     return DepthSceneResult(method, iterations, choice, results, target_roi, depth_roi,
                             [float((owner == k).float().mean()) for k in range(count)], linear, plane_scores,
-                            mean_scores(plane_scores), checkpoint=used_checkpoint)
+                            overall, checkpoint=used_checkpoint)
 

@@ -133,6 +133,8 @@ def depth_scene_metrics(scene: DepthSceneResult) -> dict[str, Any]:
         "planes": [{"distance_mm": round(z * 1e3, 4), "in_focus": round(share, 4), "scores": rounded(scores)}
                    for z, share, scores in zip(scene.planes.planes_m, scene.in_focus, scene.plane_scores)],
         "planes_reason": scene.planes.reason,
+        "sweep_mm": None if scene.planes.sweep is None else [[round(z * 1e3, 4) for z in depths]
+                                                             for depths in scene.planes.sweep.depths_m],
         "mean": rounded(scene.mean_scores),
         "seconds": round(sum(c.seconds for c in scene.colours), 4),
         "colours": colours,

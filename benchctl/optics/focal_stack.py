@@ -6,7 +6,8 @@ reconstruction at K planes (`OpticalSetup.reconstruct_planes`). Following Neural
 each plane is judged only where the scene is in focus there: each pixel belongs to the plane nearest its depth
 (or, with a softness, to every plane with a Gaussian weight of its distance to it). The loss takes one
 least-squares scale for the whole stack (a hologram sends the same light to every plane); scores take one per plane,
-as 2D scores take one per image.
+as 2D scores take one per image. A target with a sweep (`DepthSweep`) has its planes moved from one iteration of an
+optimiser to the next (`FocalStackTarget.swept`): each plane then scores only the pixels whose depth lies near it.
 """
 
 from __future__ import annotations
@@ -18,7 +19,8 @@ from dataclasses import dataclass, field
 import torch
 
 from benchctl.optics.colour import linear_to_srgb
-from benchctl.optics.metrics import lsq_scale, perceptual_scores, psnr_of_mse, ssim_map
+from benchctl.optics.metrics import lsq_scale, perceptual_scores, psnr, psnr_of_mse, ssim_map
+from benchctl.optics.planes import DepthSweep
 
 
 def in_focus_masks(depth_m: torch.Tensor, planes_m: Sequence[float], softness_m: float = 0.0) -> torch.Tensor:
@@ -44,12 +46,14 @@ def in_focus_masks(depth_m: torch.Tensor, planes_m: Sequence[float], softness_m:
 class FocalStackTarget:
     """What a hologram of a scene with depth aims for in one colour: the amplitude (H, W) on the SLM grid (zero
     outside the ROI, as a 2D target), the depth (H, W) in metres from the SLM, the planes (metres, ascending) it is
-    shown at, and per plane the in-focus mask (K, H, W) that `in_focus_masks` gives."""
+    shown at, and per plane the in-focus mask (K, H, W) that `in_focus_masks` gives; with a `sweep`, the depths an
+    optimiser moves its planes through instead (`swept`)."""
 
     amplitude: torch.Tensor
     depth_m: torch.Tensor
     planes_m: tuple[float, ...]
     softness_m: float = 0.0
+    sweep: DepthSweep | None = None
     masks: torch.Tensor = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -63,6 +67,8 @@ class FocalStackTarget:
         planes = tuple(float(z) for z in self.planes_m)
         if not planes or any(not (math.isfinite(z) and z > 0) for z in planes) or list(planes) != sorted(set(planes)):
             raise ValueError(f"planes_m must be distinct distances > 0 in ascending order, got {self.planes_m!r}")
+        if self.sweep is not None and len(self.sweep.depths_m) != len(planes):
+            raise ValueError(f"a sweep of {len(self.sweep.depths_m)} planes for {len(planes)} planes")
         object.__setattr__(self, "planes_m", planes)
         object.__setattr__(self, "masks", in_focus_masks(self.depth_m, planes, self.softness_m))
 
@@ -70,9 +76,20 @@ class FocalStackTarget:
         """The same depth, planes and masks for another amplitude (a checked or scaled one)."""
         twin = FocalStackTarget.__new__(FocalStackTarget)
         for name, value in (("amplitude", amplitude), ("depth_m", self.depth_m), ("planes_m", self.planes_m),
-                            ("softness_m", self.softness_m), ("masks", self.masks)):
+                            ("softness_m", self.softness_m), ("sweep", self.sweep), ("masks", self.masks)):
             object.__setattr__(twin, name, value)
         return twin
+
+    def swept(self, iteration: int) -> tuple[list[int], torch.Tensor]:
+        """Where the sweep's planes stand at `iteration` (`DepthSweep.at`: their indices into `sweep.all_m`) and their
+        masks (K, H, W): each pixel in focus at the plane nearest its depth, and scored there only within
+        `sweep.reach_m` of it (a pixel farther from every plane is left out of this iteration)."""
+        if self.sweep is None:
+            raise ValueError("this focal-stack target has no sweep")
+        picks, planes = self.sweep.at(iteration)
+        near = (self.depth_m.to(torch.float64) - torch.tensor(planes, dtype=torch.float64,
+                                                              device=self.depth_m.device).view(-1, 1, 1)).abs()
+        return picks, in_focus_masks(self.depth_m, planes, self.softness_m) * (near <= self.sweep.reach_m)
 
 
 def focal_stack_loss(recon: torch.Tensor, target: torch.Tensor, masks: torch.Tensor) -> torch.Tensor:
@@ -158,6 +175,15 @@ def focal_stack_scores(recon: torch.Tensor, target: torch.Tensor, masks: torch.T
     owner = masks.argmax(dim=0)
     per_plane = [masked_scores(recon[k], target, owner == k, perceptual=perceptual) for k in range(len(recon))]
     return FocalStackScores(tuple(float(z) for z in planes_m), per_plane, mean_scores(per_plane))
+
+
+def all_in_focus_psnr(stack: torch.Tensor, target: torch.Tensor, masks: torch.Tensor) -> float:
+    """Amplitude PSNR of the all-in-focus image of a focal stack (K, h, w): each pixel from the plane where its mask
+    (K, h, w) is largest (the plane nearest its depth), one least-squares scale against `target` (h, w). What a
+    viewer sees focusing on each point in turn, at the planes of the stack."""
+    image = stack.gather(0, masks.argmax(dim=0).to(stack.device)[None])[0]
+    wanted = target.to(image.device)
+    return float(psnr(lsq_scale(image, wanted) * image, wanted, data_range=1.0))
 
 
 def mean_scores(scores: Sequence[dict[str, float] | None]) -> dict[str, float]:

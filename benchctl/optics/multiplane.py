@@ -78,13 +78,18 @@ class MultiPlanePropagator:
                 self._kernels[key] = torch.stack([transfer_function(p, dtype, device) for p in self.plans])
         return self._kernels[key]
 
-    def __call__(self, field: torch.Tensor) -> torch.Tensor:
-        """The field at every plane, (..., K, rows, cols), same complex dtype as `field`."""
+    def __call__(self, field: torch.Tensor, pick: Sequence[int] | None = None) -> torch.Tensor:
+        """The field at every plane, (..., K, rows, cols), same complex dtype as `field`; with `pick`, at those
+        planes only (indices into `distances_m`, in that order)."""
         field = _checked_field(field)
         if tuple(field.shape[-2:]) != self.plan.shape:
             raise ValueError(f"field is {tuple(field.shape[-2:])}, this propagator is for {self.plan.shape}")
+        kernels = self.kernels(field.dtype, field.device)
+        if pick is not None:
+            if not pick or any(not 0 <= k < len(kernels) for k in pick):
+                raise ValueError(f"pick must name planes 0 .. {len(kernels) - 1}, got {list(pick)!r}")
+            kernels = kernels[list(pick)]
         spectrum = torch.fft.fft2(self._padded(field))
-        kernels = self.kernels(spectrum.dtype, spectrum.device)
         row, rows, col, cols = self.plan.window or (0, self.plan.shape[0], 0, self.plan.shape[1])
         if spectrum.requires_grad or spectrum.device.type != "cpu":  # one batch of K grids (cuFFT batches them)
             planes = torch.fft.ifft2(spectrum.unsqueeze(-3) * kernels)

@@ -1,5 +1,10 @@
 """Only the planes a scene needs: the bench's axial resolution, and the planes that resolve a scene's depth content.
 
+A scene whose depth is continuous (a tilted plane, a photograph's depth map) has no depth at which a few fixed planes
+show it: a pixel between two planes is judged at the nearer one, out of its own focus. So `choose_planes` also says,
+per plane, the depths of its cluster an optimiser moves it through, one step per iteration (`DepthSweep`): over the
+iterations every depth of the scene is scored near itself, at the cost of the same number of planes per iteration.
+
 The axial resolution (docs/depth.md derives it): light converging to an image point at distance z arrives within
 a cone of numerical aperture NA = min(a lambda / (2 pitch), N pitch / (2 z)) per axis (a: the iris radius in
 Nyquist units, 1 without an iris; N pitch: the SLM's extent), whose depth of focus is lambda / NA^2 (using the
@@ -8,6 +13,7 @@ larger of the two axes' NA: the finer resolution). Points closer than that in de
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -17,6 +23,9 @@ from benchctl.optics.geometry import Geometry
 
 MAX_PLANES = 16
 """The most planes `choose_planes` gives a scene; deeper content is spread evenly over that many."""
+SWEEP_STEP = 0.25
+"""A sweep's depths lie this many axial resolutions apart, and a plane scores the pixels within this many of it
+(docs/depth.md measures the choice)."""
 MIN_LIGHT_SHARE = 0.01
 """A depth cluster holding less of the scene's light than this gets no plane of its own (its pixels go to the
 nearest plane): a few stray pixels, such as the resampled edge of a layer, do not cost a propagation per frame."""
@@ -36,11 +45,47 @@ def axial_resolution_m(geometry: Geometry) -> float:
 
 
 @dataclass(frozen=True)
+class DepthSweep:
+    """Where an optimiser moves a scene's planes, from one iteration to the next: per plane the depths (metres,
+    ascending) it steps through, and how far from a plane a pixel's depth may lie for it to be scored there."""
+
+    depths_m: tuple[tuple[float, ...], ...]
+    reach_m: float
+
+    @property
+    def all_m(self) -> tuple[float, ...]:
+        """Every depth of the sweep, plane by plane (the order `at`'s indices count in)."""
+        return tuple(z for depths in self.depths_m for z in depths)
+
+    def at(self, iteration: int) -> tuple[list[int], tuple[float, ...]]:
+        """Where the planes stand at `iteration` (their indices into `all_m`, and the depths): each steps through
+        its depths in turn, cyclically, half a cycle out of step with the plane before it (so that the gap between
+        neighbours changes from one iteration to the next)."""
+        picks, start = [], 0
+        for k, depths in enumerate(self.depths_m):
+            picks.append(start + (iteration + k * (len(depths) // 2)) % len(depths))
+            start += len(depths)
+        every = self.all_m
+        return picks, tuple(every[i] for i in picks)
+
+
+@dataclass(frozen=True)
 class PlaneChoice:
-    """The planes (metres from the SLM, ascending) a scene is shown at, and one line saying why."""
+    """The planes (metres from the SLM, ascending) a scene is shown at, one line saying why, and (a scene with
+    continuous depth) the sweep an optimiser moves them through."""
 
     planes_m: tuple[float, ...]
     reason: str
+    sweep: DepthSweep | None = None
+
+
+def _sweep(spans: Sequence[tuple[float, float]], resolution_m: float) -> DepthSweep | None:
+    """Per span (nearest, farthest depth of a plane's pixels), depths SWEEP_STEP resolutions apart from end to end;
+    None where every span is one depth (layers: their planes need no sweep)."""
+    step = SWEEP_STEP * resolution_m
+    depths = tuple(tuple(low + (high - low) * k / n for k in range(n + 1)) if n else (low,)
+                   for low, high in spans for n in [math.ceil((high - low) / step - 1e-9)])
+    return DepthSweep(depths, step) if any(len(d) > 1 for d in depths) else None
 
 
 def _lit(depth_m: torch.Tensor, light: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -77,7 +122,7 @@ def choose_planes(depth_m: torch.Tensor, light: torch.Tensor, resolution_m: floa
     the nearest lit depth, each plane takes the pixels up to one resolution deeper and sits halfway between the
     nearest and farthest of them (a flat scene: exactly at its depth); a cluster with less than MIN_LIGHT_SHARE of
     the light is left to its neighbours. More than `max_planes` clusters: `max_planes` planes evenly over the lit
-    depth.
+    depth. Where a plane's pixels span more than one depth, the choice holds the sweep over them (`DepthSweep`).
     """
     if not resolution_m > 0:
         raise ValueError(f"the axial resolution must be > 0, got {resolution_m!r}")
@@ -97,15 +142,19 @@ def choose_planes(depth_m: torch.Tensor, light: torch.Tensor, resolution_m: floa
         start = stop
     kept = [c for c in clusters if c[2] >= MIN_LIGHT_SHARE] or [max(clusters, key=lambda c: c[2])]
     if len(kept) > max_planes:
-        choice = even_planes(depth_m, light, max_planes)
-        return PlaneChoice(choice.planes_m, f"{why}: {len(kept)} depth clusters, more than {max_planes}: "
-                                            f"{max_planes} planes evenly")
+        planes = even_planes(depth_m, light, max_planes).planes_m
+        edges = [near, *(0.5 * (a + b) for a, b in zip(planes, planes[1:])), far]
+        return PlaneChoice(planes, f"{why}: {len(kept)} depth clusters, more than {max_planes}: {max_planes} planes "
+                                   "evenly, each swept over its share of the depth",
+                           _sweep(list(zip(edges, edges[1:])), resolution_m))
     planes = tuple(0.5 * (low + high) for low, high, _ in kept)
+    sweep = _sweep([(low, high) for low, high, _ in kept], resolution_m)
     dropped = len(clusters) - len(kept)
     note = f" ({dropped} cluster(s) under {MIN_LIGHT_SHARE:.0%} of the light left to their neighbours)" if dropped \
         else ""
     listed = ", ".join(f"{z * 1e3:.2f}" for z in planes)
-    return PlaneChoice(planes, f"{why}: {len(planes)} plane(s) at {listed} mm{note}")
+    swept = f", each swept over its cluster ({len(sweep.all_m)} depths)" if sweep else ""
+    return PlaneChoice(planes, f"{why}: {len(planes)} plane(s) at {listed} mm{swept}{note}", sweep)
 
 
 def finest_resolution_m(geometries: Sequence[Geometry]) -> float:

@@ -141,9 +141,12 @@ class OpticalSetup(Geometry):
         shaped (..., K, H, W), from one SLM field through one forward FFT (`MultiPlanePropagator`)."""
         return self.planes_propagator(distances_m)(self.slm_field(phase)).abs()
 
-    def reconstruct_planes_roi(self, phase: torch.Tensor, distances_m: Sequence[float]) -> torch.Tensor:
-        """`reconstruct_planes` on the ROI only, (..., K, rows, cols), on the smaller grid the ROI needs."""
-        return self.planes_propagator(distances_m, roi=True)(self.slm_field(phase)).abs()
+    def reconstruct_planes_roi(self, phase: torch.Tensor, distances_m: Sequence[float],
+                               pick: Sequence[int] | None = None) -> torch.Tensor:
+        """`reconstruct_planes` on the ROI only, (..., K, rows, cols), on the smaller grid the ROI needs; `pick`: at
+        those of the planes only (indices into `distances_m`; the propagator, its transfer functions cached, is the
+        one for all of them)."""
+        return self.planes_propagator(distances_m, roi=True)(self.slm_field(phase), pick).abs()
 
     def displayed(self, phase: torch.Tensor) -> torch.Tensor:
         """`phase` as the SLM shows it (`display`), its gradient passed straight through the quantisation, so an

@@ -7,7 +7,7 @@ Every step writes its files into the run folder and returns a small JSON-ready r
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -29,6 +29,7 @@ from benchctl.holograms.cache import Hologram, hologram
 from benchctl.holograms.scene import resolve_method
 from benchctl.images import read_image, write_png
 from benchctl.optics import linear_to_srgb
+from benchctl.optics.planes import PlaneChoice
 from benchctl.profiles import LaserChannel, NonNegativeInt, Profile, SettleMs
 from benchctl.runner import layout
 from benchctl.runner.context import Context, Expose, FocusAt, P, Parameters, Step
@@ -171,7 +172,7 @@ def prepared_target(profile: Profile, spec: str, key: str | None = None) -> torc
 
 def compute_hologram(context: Context, target: torch.Tensor, channel: LaserChannel,
                      options: HologramParameters, *, distance_m: float | None = None,
-                     depth_m: torch.Tensor | None = None, planes_m: Sequence[float] | None = None) -> Hologram:
+                     depth_m: torch.Tensor | None = None, planes: PlaneChoice | None = None) -> Hologram:
     """`channel`'s hologram of `target` (3, H, W amplitude on the SLM grid) as `options` say: its frame as
     displayed, simulated reconstruction and scores; from the hologram cache when it was computed before.
     `distance_m`: reconstructed at that depth instead of the profile's distance (the focus calibration's). A scene
@@ -180,7 +181,7 @@ def compute_hologram(context: Context, target: torch.Tensor, channel: LaserChann
     bench = bench if distance_m is None else bench.at_distance(distance_m)
     return hologram(bench, target, channel.name, options.method, iterations=options.iterations,
                     seed=options.seed, checkpoint=options.checkpoint, progress=context.progress, depth_m=depth_m,
-                    planes_m=planes_m)
+                    planes=planes)
 
 
 def hologram_step(key: str, label: str, target: torch.Tensor, channel: LaserChannel,

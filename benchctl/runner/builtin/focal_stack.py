@@ -233,7 +233,7 @@ def _rounded(scores: dict[str, float] | None) -> dict[str, float] | None:
 def _hologram(scene: StackScene, channel: LaserChannel, options: HologramParameters):
     def action(context: Context) -> dict[str, Any]:
         result = compute_hologram(context, scene.amplitude, channel, options, depth_m=scene.depth_m,
-                                  planes_m=scene.planes.planes_m)
+                                  planes=scene.planes)
         cached = "cached" if result.cached else f"{result.seconds:.2f} s"
         context.say(f"      {options.method} {channel.name}: {cached}, simulated mean in-focus PSNR "
                     f"{result.scores['psnr_amplitude_db']:.2f} dB amplitude over {len(scene.planes.planes_m)} plane(s)")

@@ -413,7 +413,7 @@ def _hologram(context: Context, target: torch.Tensor, channel: LaserChannel, sce
     options = HologramParameters(method=method, iterations=iterations)
     if scene is None:
         return compute_hologram(context, target, channel, options)
-    return compute_hologram(context, target, channel, options, depth_m=scene.depth_m, planes_m=scene.planes.planes_m)
+    return compute_hologram(context, target, channel, options, depth_m=scene.depth_m, planes=scene.planes)
 
 
 def _starter(target: torch.Tensor, channel: LaserChannel, scene: focal_stack.StackScene | None):
