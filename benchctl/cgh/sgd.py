@@ -71,11 +71,11 @@ def stack_loss(phase: torch.Tensor, target: FocalStackTarget, setup: OpticalSetu
     rows, cols = setup.roi_slices
     if iteration is None or target.sweep is None:
         recon = setup.reconstruct_planes_roi(setup.displayed(phase), target.planes_m)
-        masks = target.masks
+        masks = target.masks[:, rows, cols]
     else:
-        pick, masks = target.swept(iteration)
+        pick, masks = target.swept(iteration, (rows, cols))
         recon = setup.reconstruct_planes_roi(setup.displayed(phase), target.sweep.all_m, pick)
-    return focal_stack_loss(recon, target.amplitude[rows, cols], masks[:, rows, cols].to(recon.device))
+    return focal_stack_loss(recon, target.amplitude[rows, cols], masks.to(recon.device))
 
 
 def _initial_phase(init: Init, target: torch.Tensor | FocalStackTarget, setup: OpticalSetup,

@@ -80,16 +80,20 @@ class FocalStackTarget:
             object.__setattr__(twin, name, value)
         return twin
 
-    def swept(self, iteration: int) -> tuple[list[int], torch.Tensor]:
+    def swept(self, iteration: int, region: tuple[slice, slice] | None = None) -> tuple[list[int], torch.Tensor]:
         """Where the sweep's planes stand at `iteration` (`DepthSweep.at`: their indices into `sweep.all_m`) and their
-        masks (K, H, W): each pixel in focus at the plane nearest its depth, and scored there only within
-        `sweep.reach_m` of it (a pixel farther from every plane is left out of this iteration)."""
+        masks (K, ...) on `region` (rows, cols) of the depth map (None: all of it): each pixel scored at the plane
+        nearest its depth if that lies within `sweep.reach_m` (farther from every plane: left out of this
+        iteration). Hard masks whatever the softness: a sweep scores only near each plane."""
         if self.sweep is None:
             raise ValueError("this focal-stack target has no sweep")
         picks, planes = self.sweep.at(iteration)
-        near = (self.depth_m.to(torch.float64) - torch.tensor(planes, dtype=torch.float64,
-                                                              device=self.depth_m.device).view(-1, 1, 1)).abs()
-        return picks, in_focus_masks(self.depth_m, planes, self.softness_m) * (near <= self.sweep.reach_m)
+        depth = (self.depth_m if region is None else self.depth_m[region]).to(torch.float32).contiguous()
+        at = torch.tensor(planes, dtype=torch.float32, device=depth.device)
+        nearest = torch.searchsorted((at[1:] + at[:-1]) / 2, depth)  # a tie: the plane nearer the SLM
+        nearest = torch.where((depth - at[nearest]).abs() <= self.sweep.reach_m, nearest, len(planes))
+        index = torch.arange(len(planes), device=depth.device).view(-1, *[1] * depth.dim())
+        return picks, (nearest.unsqueeze(0) == index).to(torch.float32)
 
 
 def focal_stack_loss(recon: torch.Tensor, target: torch.Tensor, masks: torch.Tensor) -> torch.Tensor:
