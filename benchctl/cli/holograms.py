@@ -109,7 +109,9 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                                     "(`benchctl targets` lists them)")
     gen.add_argument("--planes", type=plane_count, default=None, metavar="auto|K",
                      help="a scene with depth: 'auto' (default) for the planes its depth content and the bench's "
-                          "depth of field need (one for a flat scene, said why), or K planes evenly over its depth")
+                          "depth of field need (one for a flat scene, said why; with continuous depth each plane is "
+                          "swept through its share of the depth while an optimiser runs), or K fixed planes evenly "
+                          "over its depth")
     gen.add_argument("--fit-depth", action="store_true",
                      help="a scene file whose depth lies outside the profile's optics.depth_range_mm: map its near .. "
                           "far onto that range (default: refuse)")
