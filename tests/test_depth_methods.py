@@ -17,7 +17,7 @@ from benchctl.cgh.dpac import anti_aliased, layered_field
 from benchctl.errors import BadValueError
 from benchctl.optics.colour import linear_to_srgb
 from benchctl.optics.fitted import FittedOptics
-from benchctl.optics.focal_stack import FocalStackTarget, focal_stack_scores
+from benchctl.optics.focal_stack import FocalStackTarget, focal_stack_scores, in_focus_masks, nearest_plane
 from benchctl.optics.metrics import flip_map, perceptual_scores, speckle_contrast
 from benchctl.optics.planes import DepthSweep, axial_resolution_m, choose_planes, even_planes
 from benchctl.optics.propagation import propagate
@@ -107,6 +107,15 @@ def test_a_swept_target_scores_each_plane_near_its_depth_only():
         FocalStackTarget(target.amplitude, target.depth_m, (0.017, 0.02, 0.023), sweep=sweep)
     with pytest.raises(ValueError, match="no sweep"):
         target.swept(0)
+
+
+def test_the_nearest_plane_is_the_hard_in_focus_masks_owner_ties_included():
+    planes = (4 / 256, 5 / 256, 5.5 / 256, 6 / 256)  # binary fractions: halfway between two is exactly a tie
+    depth = torch.rand((40, 50), generator=torch.Generator().manual_seed(3), dtype=torch.float64) * 0.01 + 0.014
+    depth[0, :3] = torch.tensor([4.5 / 256, 5.25 / 256, 0.0001])  # two ties, and far nearer than every plane
+    owner = nearest_plane(depth, planes)
+    assert torch.equal(owner, in_focus_masks(depth, planes).argmax(dim=0))
+    assert owner[0, :3].tolist() == [0, 1, 0]
 
 
 @pytest.mark.slow

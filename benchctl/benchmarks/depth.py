@@ -73,7 +73,7 @@ def all_in_focus_psnr(setup: OpticalSetup, phase: torch.Tensor, judge: FocalStac
     `judge`, on the ROI."""
     rows, cols = setup.roi_slices
     return stack_all_in_focus_psnr(_stack(setup, phase, judge.planes_m), judge.amplitude[rows, cols],
-                                   judge.masks[:, rows, cols])
+                                   judge.masks[:, rows, cols].argmax(dim=0))
 
 
 def run_depth_bench(

@@ -19,8 +19,8 @@ import torch
 from benchctl.calibration.calibrated import Calibrated
 from benchctl.errors import BenchctlError
 from benchctl.holograms.scene import ColourResult, resolve_method, select_channels
-from benchctl.optics.focal_stack import (FocalStackTarget, all_in_focus_psnr, focal_stack_scores, in_focus_masks,
-                                         mean_scores, stack_scale)
+from benchctl.optics.focal_stack import (FocalStackTarget, all_in_focus_psnr, focal_stack_scores, mean_scores,
+                                         nearest_plane, stack_scale)
 from benchctl.optics.metrics import centred_slices
 from benchctl.optics.planes import PlaneChoice, choose_planes, even_planes, finest_resolution_m
 from benchctl.optics.setup import OpticalSetup
@@ -124,9 +124,10 @@ def compute_depth_scene(
         stack = stack * stack_scale(stack, wanted, masks)
         stacks[target_plane(channel)] = stack
         scores = focal_stack_scores(stack, wanted, masks, choice.planes_m, perceptual=perceptual)
-        seen, seen_masks = (stack, masks) if choice.sweep is None else (
-            focal_stack_roi(setup, shown, choice.sweep.all_m), in_focus_masks(depth_roi, choice.sweep.all_m))
-        scores.mean["all_in_focus_psnr_db"] = all_in_focus_psnr(seen, wanted, seen_masks)
+        seen = choice.planes_m if choice.sweep is None else choice.sweep.all_m
+        scores.mean["all_in_focus_psnr_db"] = all_in_focus_psnr(
+            stack if choice.sweep is None else focal_stack_roi(setup, shown, seen), wanted,
+            nearest_plane(depth_roi, seen))
         results.append(ColourResult(channel.name, channel.wavelength_nm, skipped=False, seconds=seconds, gray=gray,
                                     reconstruction=stack, scores=scores.mean, plane_scores=scores.per_plane))
     linear = torch.zeros((count, *target_roi.shape), dtype=torch.float32)

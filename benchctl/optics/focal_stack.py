@@ -42,6 +42,13 @@ def in_focus_masks(depth_m: torch.Tensor, planes_m: Sequence[float], softness_m:
     return torch.softmax(-offset.square() / (2 * softness_m**2), dim=0).to(torch.float32)
 
 
+def nearest_plane(depth_m: torch.Tensor, planes_m: Sequence[float]) -> torch.Tensor:
+    """Per pixel, the index of the plane (ascending `planes_m`) nearest its depth, the nearer to the SLM on a tie
+    (`in_focus_masks`' hard rule, without its K maps); float32 depths, which resolve nanometres at these distances."""
+    planes = torch.tensor([float(z) for z in planes_m], dtype=torch.float32, device=depth_m.device)
+    return torch.searchsorted((planes[1:] + planes[:-1]) / 2, depth_m.to(torch.float32).contiguous())
+
+
 @dataclass(frozen=True, eq=False)
 class FocalStackTarget:
     """What a hologram of a scene with depth aims for in one colour: the amplitude (H, W) on the SLM grid (zero
@@ -88,10 +95,10 @@ class FocalStackTarget:
         if self.sweep is None:
             raise ValueError("this focal-stack target has no sweep")
         picks, planes = self.sweep.at(iteration)
-        depth = (self.depth_m if region is None else self.depth_m[region]).to(torch.float32).contiguous()
+        depth = self.depth_m if region is None else self.depth_m[region]
+        nearest = nearest_plane(depth, planes)
         at = torch.tensor(planes, dtype=torch.float32, device=depth.device)
-        nearest = torch.searchsorted((at[1:] + at[:-1]) / 2, depth)  # a tie: the plane nearer the SLM
-        nearest = torch.where((depth - at[nearest]).abs() <= self.sweep.reach_m, nearest, len(planes))
+        nearest = torch.where((depth.to(torch.float32) - at[nearest]).abs() <= self.sweep.reach_m, nearest, len(planes))
         index = torch.arange(len(planes), device=depth.device).view(-1, *[1] * depth.dim())
         return picks, (nearest.unsqueeze(0) == index).to(torch.float32)
 
@@ -181,11 +188,11 @@ def focal_stack_scores(recon: torch.Tensor, target: torch.Tensor, masks: torch.T
     return FocalStackScores(tuple(float(z) for z in planes_m), per_plane, mean_scores(per_plane))
 
 
-def all_in_focus_psnr(stack: torch.Tensor, target: torch.Tensor, masks: torch.Tensor) -> float:
-    """Amplitude PSNR of the all-in-focus image of a focal stack (K, h, w): each pixel from the plane where its mask
-    (K, h, w) is largest (the plane nearest its depth), one least-squares scale against `target` (h, w). What a
+def all_in_focus_psnr(stack: torch.Tensor, target: torch.Tensor, owner: torch.Tensor) -> float:
+    """Amplitude PSNR of the all-in-focus image of a focal stack (K, h, w): each pixel from the plane `owner` (h, w)
+    names (the plane nearest its depth, `nearest_plane`), one least-squares scale against `target` (h, w). What a
     viewer sees focusing on each point in turn, at the planes of the stack."""
-    image = stack.gather(0, masks.argmax(dim=0).to(stack.device)[None])[0]
+    image = stack.gather(0, owner.to(stack.device)[None])[0]
     wanted = target.to(image.device)
     return float(psnr(lsq_scale(image, wanted) * image, wanted, data_range=1.0))
 
