@@ -103,15 +103,16 @@ def _descend(loss_of: Callable[[torch.Tensor], torch.Tensor], start: torch.Tenso
             return phase.detach()
         optimiser.zero_grad(set_to_none=True)
         loss = loss_of(phase)
-        losses.append(float(loss.detach()))
-        if losses[-1] < best_loss:
-            best_loss, best_phase = losses[-1], phase.detach().clone()
-        if done == iterations:
-            break  # the loss of the last step's phase is known: no further step
-        if tolerance is not None and not sampled and stopped_improving(losses, tolerance):
-            if progress is not None:
-                progress(done, done)
-            break
+        if not sampled:  # a sampled loss is not comparable between iterations: no best phase, no early stop
+            losses.append(float(loss.detach()))
+            if losses[-1] < best_loss:
+                best_loss, best_phase = losses[-1], phase.detach().clone()
+            if done == iterations:
+                break  # the loss of the last step's phase is known: no further step
+            if tolerance is not None and stopped_improving(losses, tolerance):
+                if progress is not None:
+                    progress(done, done)
+                break
         loss.backward()
         optimiser.step()
         with torch.no_grad():

@@ -124,10 +124,11 @@ def compute_depth_scene(
         stack = stack * stack_scale(stack, wanted, masks)
         stacks[target_plane(channel)] = stack
         scores = focal_stack_scores(stack, wanted, masks, choice.planes_m, perceptual=perceptual)
-        seen = choice.planes_m if choice.sweep is None else choice.sweep.all_m
-        scores.mean["all_in_focus_psnr_db"] = all_in_focus_psnr(
-            stack if choice.sweep is None else focal_stack_roi(setup, shown, seen), wanted,
-            nearest_plane(depth_roi, seen))
+        if choice.sweep is None:  # seen at its planes: each pixel where the per-plane scores take it
+            seen = (stack, masks.argmax(dim=0))
+        else:
+            seen = (focal_stack_roi(setup, shown, choice.sweep.all_m), nearest_plane(depth_roi, choice.sweep.all_m))
+        scores.mean["all_in_focus_psnr_db"] = all_in_focus_psnr(seen[0], wanted, seen[1])
         results.append(ColourResult(channel.name, channel.wavelength_nm, skipped=False, seconds=seconds, gray=gray,
                                     reconstruction=stack, scores=scores.mean, plane_scores=scores.per_plane))
     linear = torch.zeros((count, *target_roi.shape), dtype=torch.float32)

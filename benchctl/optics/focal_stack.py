@@ -95,10 +95,10 @@ class FocalStackTarget:
         if self.sweep is None:
             raise ValueError("this focal-stack target has no sweep")
         picks, planes = self.sweep.at(iteration)
-        depth = self.depth_m if region is None else self.depth_m[region]
+        depth = (self.depth_m if region is None else self.depth_m[region]).to(torch.float32)
         nearest = nearest_plane(depth, planes)
         at = torch.tensor(planes, dtype=torch.float32, device=depth.device)
-        nearest = torch.where((depth.to(torch.float32) - at[nearest]).abs() <= self.sweep.reach_m, nearest, len(planes))
+        nearest = torch.where((depth - at[nearest]).abs() <= self.sweep.reach_m, nearest, len(planes))
         index = torch.arange(len(planes), device=depth.device).view(-1, *[1] * depth.dim())
         return picks, (nearest.unsqueeze(0) == index).to(torch.float32)
 
