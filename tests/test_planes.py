@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from benchctl.optics.geometry import Geometry
-from benchctl.optics.planes import (MAX_PLANES, SWEEP_STEP, DepthSweep, axial_resolution_m, choose_planes,
-                                    even_planes, finest_resolution_m, numerical_aperture)
+from benchctl.optics.planes import (MAX_PLANES, MAX_SWEEP_DEPTHS, SWEEP_STEP, DepthSweep, axial_resolution_m,
+                                    choose_planes, even_planes, finest_resolution_m, numerical_aperture)
 
 
 def test_axial_resolution_is_lambda_over_na_squared_with_the_iris_or_the_slm_extent_limiting_na():
@@ -82,19 +82,28 @@ def test_a_tilted_plane_is_swept_plane_by_plane_and_layers_are_not():
     resolution = 0.9e-3
     choice = choose_planes(depth, torch.ones_like(depth, dtype=torch.float32), resolution)
     sweep = choice.sweep
-    assert sweep is not None and sweep.reach_m == pytest.approx(SWEEP_STEP * resolution)
+    # 12 clusters of 0.85 mm at 0.225 mm steps would be 60 depths: the steps widen to keep MAX_SWEEP_DEPTHS
+    assert sweep is not None and len(sweep.all_m) <= MAX_SWEEP_DEPTHS < 60
+    assert SWEEP_STEP * resolution < sweep.reach_m < 2 * SWEEP_STEP * resolution
     assert len(sweep.depths_m) == len(choice.planes_m) and "each swept over its cluster" in choice.reason
     for plane, depths in zip(choice.planes_m, sweep.depths_m):
         steps = torch.tensor(depths).diff()
-        assert bool((steps > 0).all()) and float(steps.max()) <= SWEEP_STEP * resolution + 1e-12
+        assert bool((steps > 0).all()) and float(steps.max()) <= sweep.reach_m + 1e-12
         assert depths[0] < plane < depths[-1] and plane == pytest.approx(0.5 * (depths[0] + depths[-1]))
     # every pixel lies within reach of some depth of the sweep: over a cycle each is scored near its own depth
     every = torch.tensor(sweep.all_m, dtype=torch.float64)
     assert float((depth[..., None] - every).abs().amin(-1).max()) <= sweep.reach_m
+    # a shallower scene keeps the SWEEP_STEP: 3 clusters, 5 depths each
+    shallow = depth.clamp(max=0.0677)
+    few = choose_planes(shallow, torch.ones_like(shallow, dtype=torch.float32), resolution).sweep
+    assert few is not None and few.reach_m == pytest.approx(SWEEP_STEP * resolution)
+    assert [len(d) for d in few.depths_m] == [5, 5, 5]
     # the deepest content, capped at MAX_PLANES even planes, is swept over each plane's share of the depth
     capped = choose_planes(depth, torch.ones_like(depth, dtype=torch.float32), 0.1e-3).sweep
-    assert capped is not None and len(capped.depths_m) == MAX_PLANES
+    assert capped is not None and len(capped.depths_m) == MAX_PLANES and len(capped.all_m) <= MAX_SWEEP_DEPTHS
     assert capped.depths_m[0][0] == pytest.approx(0.065) and capped.depths_m[-1][-1] == pytest.approx(0.075)
+    assert float((depth[..., None] - torch.tensor(capped.all_m, dtype=torch.float64)).abs().amin(-1).max()) <= \
+        capped.reach_m
     layers, light = _maps((0.066, 1.0), (0.070, 0.8), (0.074, 0.6))
     assert choose_planes(layers, light, 0.4e-3).sweep is None
     assert even_planes(depth, torch.ones_like(depth), 4).sweep is None  # planes asked for by count stay put

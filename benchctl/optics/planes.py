@@ -26,6 +26,9 @@ MAX_PLANES = 16
 SWEEP_STEP = 0.25
 """A sweep's depths lie this many axial resolutions apart, and a plane scores the pixels within this many of it
 (docs/depth.md measures the choice)."""
+MAX_SWEEP_DEPTHS = 48
+"""The most depths a sweep holds: each keeps a transfer function (54 MiB at full size), so a deep scene's sweep takes
+wider steps instead of more memory (2.6 GiB per colour at most at full size)."""
 MIN_LIGHT_SHARE = 0.01
 """A depth cluster holding less of the scene's light than this gets no plane of its own (its pixels go to the
 nearest plane): a few stray pixels, such as the resampled edge of a layer, do not cost a propagation per frame."""
@@ -80,9 +83,11 @@ class PlaneChoice:
 
 
 def _sweep(spans: Sequence[tuple[float, float]], resolution_m: float) -> DepthSweep | None:
-    """Per span (nearest, farthest depth of a plane's pixels), depths SWEEP_STEP resolutions apart from end to end;
-    None where every span is one depth (layers: their planes need no sweep)."""
-    step = SWEEP_STEP * resolution_m
+    """Per span (nearest, farthest depth of a plane's pixels), depths SWEEP_STEP resolutions apart from end to end,
+    or wider apart where that would make more than MAX_SWEEP_DEPTHS (each span's rounding up adds one depth at most,
+    its end another); None where every span is one depth (layers: their planes need no sweep)."""
+    spare = MAX_SWEEP_DEPTHS - 2 * len(spans)
+    step = max(SWEEP_STEP * resolution_m, sum(high - low for low, high in spans) / max(spare, 1))
     depths = tuple(tuple(low + (high - low) * k / n for k in range(n + 1)) if n else (low,)
                    for low, high in spans for n in [math.ceil((high - low) / step - 1e-9)])
     return DepthSweep(depths, step) if any(len(d) > 1 for d in depths) else None
