@@ -97,6 +97,40 @@ def test_auto_sweeps_a_tilted_scenes_planes_and_scores_it_all_in_focus(capsys, t
     assert metrics["sweep_mm"] is None and 10 < metrics["mean"]["all_in_focus_psnr_db"] < 60
 
 
+def test_a_colours_plane_propagators_are_released_before_the_next_colour(depth_profile, monkeypatch):
+    import gc
+    import weakref
+
+    from benchctl.calibration.calibrated import Calibrated
+    from benchctl.holograms.depth import compute_depth_scene
+    from benchctl.optics.multiplane import MultiPlanePropagator
+    from benchctl.profiles import load_profile
+    from benchctl.scenes import load_scene, prepare_scene
+
+    held: dict[float, list[weakref.ref]] = {}
+    original = MultiPlanePropagator.kernels
+
+    def recorded(self, dtype, device):
+        kernels = original(self, dtype, device)
+        held.setdefault(self.plan.wavelength_m, []).append(weakref.ref(kernels))
+        return kernels
+
+    monkeypatch.setattr(MultiPlanePropagator, "kernels", recorded)
+    profile = load_profile(depth_profile)
+    bench, optics = Calibrated(profile), profile.section("optics")
+    grid, roi = profile.section("slm").shape, optics.roi
+    amplitude, depth = prepare_scene(load_scene("rgbd:tilted", roi, optics.depth_range_m), grid, roi)
+    result = compute_depth_scene(amplitude, depth, bench, "sgd", iterations=2, colours=["red", "green"],
+                                 perceptual=False)
+    gc.collect()
+    assert result.planes.sweep is not None and [c.channel for c in result.colours] == ["red", "green"]
+    red, green = (profile.channel(name).wavelength_nm * 1e-9 for name in ("red", "green"))
+    alive = {round(w * 1e9): [ref() is not None for ref in refs] for w, refs in held.items()}
+    assert set(alive) == {round(red * 1e9), round(green * 1e9)}
+    assert not any(alive[round(red * 1e9)])  # red's sweep went before green's optimisation
+    assert any(alive[round(green * 1e9)])  # the last colour keeps its own, as a second frame of it would
+
+
 @pytest.mark.parametrize("argv, message", [
     (["rgbd:two-planes"], "optics.depth_range_mm"),
     (["rgbd:two-planes", "-m", "gs"], "makes holograms of one plane"),

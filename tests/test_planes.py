@@ -82,10 +82,11 @@ def test_a_tilted_plane_is_swept_plane_by_plane_and_layers_are_not():
     resolution = 0.9e-3
     choice = choose_planes(depth, torch.ones_like(depth, dtype=torch.float32), resolution)
     sweep = choice.sweep
-    # 12 clusters of 0.85 mm at 0.225 mm steps would be 60 depths: the steps widen to keep MAX_SWEEP_DEPTHS
-    assert sweep is not None and len(sweep.all_m) <= MAX_SWEEP_DEPTHS < 60
-    assert SWEEP_STEP * resolution < sweep.reach_m < 2 * SWEEP_STEP * resolution
-    assert len(sweep.depths_m) == len(choice.planes_m) and "each swept over its cluster" in choice.reason
+    # 11 clusters of 0.85 mm at 0.225 mm steps, 5 depths each, and the last of 0.05 mm, 2
+    assert sweep is not None and [len(d) for d in sweep.depths_m] == [5] * 11 + [2]
+    assert sweep.reach_m == pytest.approx(SWEEP_STEP * resolution)
+    assert len(sweep.depths_m) == len(choice.planes_m)
+    assert "each swept over its cluster (57 depths, at most 0.225 mm apart)" in choice.reason
     for plane, depths in zip(choice.planes_m, sweep.depths_m):
         steps = torch.tensor(depths).diff()
         assert bool((steps > 0).all()) and float(steps.max()) <= sweep.reach_m + 1e-12
@@ -100,7 +101,11 @@ def test_a_tilted_plane_is_swept_plane_by_plane_and_layers_are_not():
     assert [len(d) for d in few.depths_m] == [5, 5, 5]
     # the deepest content, capped at MAX_PLANES even planes, is swept over each plane's share of the depth
     capped = choose_planes(depth, torch.ones_like(depth, dtype=torch.float32), 0.1e-3).sweep
-    assert capped is not None and len(capped.depths_m) == MAX_PLANES and len(capped.all_m) <= MAX_SWEEP_DEPTHS
+    # 16 planes 0.625 mm apart at 25 micrometre steps would be 416 depths: the steps widen to keep MAX_SWEEP_DEPTHS
+    assert capped is not None and len(capped.depths_m) == MAX_PLANES and len(capped.all_m) <= MAX_SWEEP_DEPTHS < 416
+    assert SWEEP_STEP * 0.1e-3 < capped.reach_m < 0.625e-3 / 3
+    assert f"({len(capped.all_m)} depths, at most {capped.reach_m * 1e3:.3g} mm apart, wider than 0.25 resolution to " \
+        f"keep {MAX_SWEEP_DEPTHS} depths at most)" in choose_planes(depth, torch.ones_like(depth), 0.1e-3).reason
     assert capped.depths_m[0][0] == pytest.approx(0.065) and capped.depths_m[-1][-1] == pytest.approx(0.075)
     assert float((depth[..., None] - torch.tensor(capped.all_m, dtype=torch.float64)).abs().amin(-1).max()) <= \
         capped.reach_m

@@ -106,11 +106,14 @@ def compute_depth_scene(
     count = len(choice.planes_m)
     stacks: dict[int, torch.Tensor] = {}
     results = []
+    previous: OpticalSetup | None = None
     for channel in channels:
         if channel not in lit:
             results.append(ColourResult(channel.name, channel.wavelength_nm, skipped=True))
             continue
-        setup = bench.setup(channel.name, as_displayed=True)
+        if previous is not None:  # one colour's plane propagators at a time: a sweep's hold GiBs
+            previous.release_planes()
+        setup = previous = bench.setup(channel.name, as_displayed=True)
         target = FocalStackTarget(target_amplitude[target_plane(channel)], depth_m, choice.planes_m,
                                   sweep=choice.sweep)
         start = time.perf_counter()

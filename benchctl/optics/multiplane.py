@@ -74,8 +74,11 @@ class MultiPlanePropagator:
         """The K transfer functions (K, padded rows, padded cols) for this dtype and device, computed once."""
         key = (dtype, torch.device(device))
         if key not in self._kernels:
-            with torch.inference_mode(False):
-                self._kernels[key] = torch.stack([transfer_function(p, dtype, device) for p in self.plans])
+            with torch.inference_mode(False):  # filled plane by plane: a sweep's K kernels can be GiBs, held once
+                kernels = torch.empty((len(self.plans), *self.plan.padded_shape), dtype=dtype, device=device)
+                for k, plan in enumerate(self.plans):
+                    kernels[k] = transfer_function(plan, dtype, device)
+                self._kernels[key] = kernels
         return self._kernels[key]
 
     def __call__(self, field: torch.Tensor, pick: Sequence[int] | None = None) -> torch.Tensor:

@@ -26,9 +26,9 @@ MAX_PLANES = 16
 SWEEP_STEP = 0.25
 """A sweep's depths lie this many axial resolutions apart, and a plane scores the pixels within this many of it
 (docs/depth.md measures the choice)."""
-MAX_SWEEP_DEPTHS = 48
+MAX_SWEEP_DEPTHS = 96
 """The most depths a sweep holds: each keeps a transfer function (54 MiB at full size), so a deep scene's sweep takes
-wider steps instead of more memory (2.6 GiB per colour at most at full size)."""
+wider steps instead of more memory (docs/depth.md measures what wider steps cost in focus)."""
 MIN_LIGHT_SHARE = 0.01
 """A depth cluster holding less of the scene's light than this gets no plane of its own (its pixels go to the
 nearest plane): a few stray pixels, such as the resampled edge of a layer, do not cost a propagation per frame."""
@@ -93,6 +93,15 @@ def _sweep(spans: Sequence[tuple[float, float]], resolution_m: float) -> DepthSw
     return DepthSweep(depths, step) if any(len(d) > 1 for d in depths) else None
 
 
+def _steps(sweep: DepthSweep | None, resolution_m: float) -> str:
+    """How many depths a sweep holds and how far apart, and whether MAX_SWEEP_DEPTHS widened its steps."""
+    if sweep is None:
+        return ""
+    widened = f", wider than {SWEEP_STEP:g} resolution to keep {MAX_SWEEP_DEPTHS} depths at most" \
+        if sweep.reach_m > SWEEP_STEP * resolution_m * (1 + 1e-9) else ""
+    return f" ({len(sweep.all_m)} depths, at most {sweep.reach_m * 1e3:.3g} mm apart{widened})"
+
+
 def _lit(depth_m: torch.Tensor, light: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Depths and light of the pixels that carry light, sorted by depth (all pixels, equally, where none does)."""
     depth, weight = depth_m.detach().double().flatten(), light.detach().double().flatten()
@@ -149,16 +158,17 @@ def choose_planes(depth_m: torch.Tensor, light: torch.Tensor, resolution_m: floa
     if len(kept) > max_planes:
         planes = even_planes(depth_m, light, max_planes).planes_m
         edges = [near, *(0.5 * (a + b) for a, b in zip(planes, planes[1:])), far]
+        sweep = _sweep(list(zip(edges, edges[1:])), resolution_m)
         return PlaneChoice(planes, f"{why}: {len(kept)} depth clusters, more than {max_planes}: {max_planes} planes "
-                                   "evenly, each swept over its share of the depth",
-                           _sweep(list(zip(edges, edges[1:])), resolution_m))
+                                   f"evenly, each swept over its share of the depth{_steps(sweep, resolution_m)}",
+                           sweep)
     planes = tuple(0.5 * (low + high) for low, high, _ in kept)
     sweep = _sweep([(low, high) for low, high, _ in kept], resolution_m)
     dropped = len(clusters) - len(kept)
     note = f" ({dropped} cluster(s) under {MIN_LIGHT_SHARE:.0%} of the light left to their neighbours)" if dropped \
         else ""
     listed = ", ".join(f"{z * 1e3:.2f}" for z in planes)
-    swept = f", each swept over its cluster ({len(sweep.all_m)} depths)" if sweep else ""
+    swept = f", each swept over its cluster{_steps(sweep, resolution_m)}" if sweep else ""
     return PlaneChoice(planes, f"{why}: {len(planes)} plane(s) at {listed} mm{swept}{note}", sweep)
 
 

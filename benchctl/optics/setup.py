@@ -99,6 +99,11 @@ class OpticalSetup(Geometry):
             cache.move_to_end(key)
         return propagator
 
+    def release_planes(self) -> None:
+        """Drops the cached multi-plane propagators (shared with this setup's display twins): a deep scene's sweep
+        holds GiBs of transfer functions, which the next colour must not find still held."""
+        self.__dict__.get("_planes", {}).clear()
+
     def at_distance(self, distance_m: float) -> OpticalSetup:
         """This setup (fitted model and display included) with its target plane at `distance_m`: itself where that
         is its own distance; built once per distance and cached."""
