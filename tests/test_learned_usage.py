@@ -67,12 +67,14 @@ def test_generate_with_a_checkpoint_writes_the_trained_models_holograms(capsys, 
     assert len(np.unique(written)) > 16
 
 
-def test_learned_method_without_a_checkpoint_is_a_clear_error(capsys, tmp_path, small_profile_path) -> None:
-    code, _, err = _run(capsys, "generate", "chart:bars", "--method", "holonet-dcm4", "-p", str(small_profile_path),
+@pytest.mark.parametrize("method, data", [("holonet-dcm4", "DIR"), ("holonet3d-dcm4", "procedural-rgbd:1024")])
+def test_learned_method_without_a_checkpoint_is_a_clear_error(capsys, tmp_path, small_profile_path, method,
+                                                              data) -> None:
+    code, _, err = _run(capsys, "generate", "chart:bars", "--method", method, "-p", str(small_profile_path),
                         "-o", str(tmp_path / "gen"))
     assert code == 2
-    assert "no trained checkpoint for 'holonet-dcm4' and profile 'small'" in err
-    assert "benchctl train --method holonet-dcm4" in err and "--checkpoint" in err
+    assert f"no trained checkpoint for '{method}' and profile 'small'" in err
+    assert f"benchctl train --method {method} --data {data} --profile small`" in err and "--checkpoint" in err
     assert "Traceback" not in err and not (tmp_path / "gen" / "metrics.json").exists()
 
 

@@ -16,7 +16,7 @@ import torch
 from benchctl.calibration.calibrated import Calibrated
 from benchctl.capture.colour_planes import merge_colours
 from benchctl.cgh import Method, get_method, method_names
-from benchctl.cgh.learned import LEARNED_METHODS, model_info
+from benchctl.cgh.learned import DEPTH_METHODS, LEARNED_METHODS, model_info
 from benchctl.errors import BadValueError, BenchctlError
 from benchctl.holograms.checkpoint_notes import checkpoint_notes
 from benchctl.holograms.checkpoints import (
@@ -121,8 +121,9 @@ def resolve_method(name: str, profile: Profile, checkpoint: Path | str | None = 
         return method, None
     path = Path(checkpoint) if checkpoint is not None else find_checkpoint(method.network, profile)
     if path is None:
+        data = "procedural-rgbd:1024" if method.network in DEPTH_METHODS else "DIR"
         raise BenchctlError(f"no trained checkpoint for {method.network!r} and profile {profile.name!r}: train one "
-                            f"with `benchctl train --method {method.network} --data DIR --profile {profile.name}` "
+                            f"with `benchctl train --method {method.network} --data {data} --profile {profile.name}` "
                             "or pass --checkpoint FILE")
     runnable = learned_method(name, path)
     cached_checkpoint(path).check(profile_geometries(profile, channels), f"profile {profile.name!r}")
