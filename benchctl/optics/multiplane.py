@@ -1,5 +1,6 @@
 """Propagation of one field to several planes: one forward FFT, then per plane one band-limited transfer function
-and one inverse FFT, all planes in one batch.
+and one inverse FFT; on a GPU all planes in one batch, on a CPU one plane at a time (under autograd too, through the
+adjoint written out: a working set of a few padded grids instead of K).
 
 Every plane is propagated as `Propagator` would propagate it alone (band-limited ASM, kernel phase in float64 with
 the piston removed, evanescent components zeroed), on one padded grid shared by all planes: the one the padding
@@ -12,6 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import replace
+from typing import Any
 
 import torch
 
@@ -87,28 +89,67 @@ class MultiPlanePropagator:
         field = _checked_field(field)
         if tuple(field.shape[-2:]) != self.plan.shape:
             raise ValueError(f"field is {tuple(field.shape[-2:])}, this propagator is for {self.plan.shape}")
-        kernels = self.kernels(field.dtype, field.device)
-        if pick is not None:
-            if not pick or any(not 0 <= k < len(kernels) for k in pick):
-                raise ValueError(f"pick must name planes 0 .. {len(kernels) - 1}, got {list(pick)!r}")
-            kernels = kernels[list(pick)]
+        every = self.kernels(field.dtype, field.device)
+        if pick is not None and (not pick or any(not 0 <= k < len(every) for k in pick)):
+            raise ValueError(f"pick must name planes 0 .. {len(every) - 1}, got {list(pick)!r}")
+        kernels = [every[k] for k in (range(len(every)) if pick is None else pick)]  # views: a sweep's are GiBs
+        if field.device.type != "cpu":  # one batch of K grids (cuFFT batches them)
+            planes = torch.fft.ifft2(torch.fft.fft2(self._padded(field)).unsqueeze(-3) * torch.stack(kernels))
+            return planes[..., self._rows, self._cols].contiguous()
+        if torch.is_grad_enabled() and field.requires_grad:
+            return _PlanesOneByOne.apply(field, self, kernels)
+        return self._one_by_one(field, kernels)
+
+    @property
+    def _rows(self) -> slice:
+        row, rows = self.plan.window[:2] if self.plan.window else (0, self.plan.shape[0])
+        return slice(row, row + rows)
+
+    @property
+    def _cols(self) -> slice:
+        col, cols = self.plan.window[2:] if self.plan.window else (0, self.plan.shape[1])
+        return slice(col, col + cols)
+
+    def _one_by_one(self, field: torch.Tensor, kernels: Sequence[torch.Tensor]) -> torch.Tensor:
+        """The planes one at a time, outside autograd: a working set of two padded grids, not K (K at once took 30 %
+        longer; an inverse FFT written into its input, 15 % longer than into a new grid: docs/depth.md)."""
         spectrum = torch.fft.fft2(self._padded(field))
-        row, rows, col, cols = self.plan.window or (0, self.plan.shape[0], 0, self.plan.shape[1])
-        if spectrum.requires_grad or spectrum.device.type != "cpu":  # one batch of K grids (cuFFT batches them)
-            planes = torch.fft.ifft2(spectrum.unsqueeze(-3) * kernels)
-            return planes[..., row:row + rows, col:col + cols].contiguous()
-        # On a CPU outside autograd, one plane at a time: a working set of two padded grids, not K (K at once took 30 %
-        # longer; an inverse FFT written into its input, 15 % longer than into a new grid: docs/depth.md).
         product = self._work_buffer(spectrum)
-        out = spectrum.new_empty((*spectrum.shape[:-2], len(kernels), rows, cols))
+        out = spectrum.new_empty((*spectrum.shape[:-2], len(kernels), *self.output_shape))
         for k, kernel in enumerate(kernels):
             torch.mul(spectrum, kernel, out=product)
-            out[..., k, :, :] = torch.fft.ifft2(product)[..., row:row + rows, col:col + cols]
+            out[..., k, :, :] = torch.fft.ifft2(product)[..., self._rows, self._cols]
         return out
 
+    def _adjoint(self, grad: torch.Tensor, kernels: Sequence[torch.Tensor]) -> torch.Tensor:
+        """The gradient with respect to the field of the planes' gradient `grad` (..., K, rows, cols): the adjoint
+        crop -> FFT -> conjugate kernel, summed over the planes, then one inverse FFT and the field's corner (the
+        transforms' 1/N factors cancel), one plane at a time."""
+        placed = grad.new_zeros((*grad.shape[:-3], *self.plan.padded_shape))
+        total = torch.zeros_like(placed)
+        for k, kernel in enumerate(kernels):
+            placed[..., self._rows, self._cols] = grad[..., k, :, :]
+            total.addcmul_(torch.fft.fft2(placed), kernel.conj())
+        h, w = self.plan.shape
+        return torch.fft.ifft2(total)[..., :h, :w]
     def _work_buffer(self, like: torch.Tensor) -> torch.Tensor:
         buffer = self._buffer
         if buffer is None or buffer.shape != like.shape or buffer.dtype != like.dtype or buffer.device != like.device:
             with torch.inference_mode(False):
                 buffer = self._buffer = torch.empty_like(like)
         return buffer
+
+
+class _PlanesOneByOne(torch.autograd.Function):
+    """`MultiPlanePropagator` on a CPU under autograd, one plane at a time both ways: autograd's batch kept K padded
+    products and K inverse transforms for the backward pass; this keeps the kernels it already caches."""
+
+    @staticmethod
+    def forward(ctx: Any, field: torch.Tensor, propagator: MultiPlanePropagator,
+                kernels: Sequence[torch.Tensor]) -> torch.Tensor:
+        ctx.propagator, ctx.kernels = propagator, kernels
+        return propagator._one_by_one(field, kernels)
+
+    @staticmethod
+    def backward(ctx: Any, grad: torch.Tensor) -> tuple[torch.Tensor, None, None]:
+        return ctx.propagator._adjoint(grad, ctx.kernels), None, None
