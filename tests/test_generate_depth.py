@@ -97,6 +97,31 @@ def test_auto_sweeps_a_tilted_scenes_planes_and_scores_it_all_in_focus(capsys, t
     assert metrics["sweep_mm"] is None and 10 < metrics["mean"]["all_in_focus_psnr_db"] < 60
 
 
+def test_the_swept_all_in_focus_image_is_the_whole_stacks_a_few_depths_at_a_time(depth_profile, monkeypatch):
+    import torch
+
+    import benchctl.holograms.depth as depth_module
+    from benchctl.calibration.calibrated import Calibrated
+    from benchctl.holograms.depth import focal_stack_roi, scene_planes, swept_image
+    from benchctl.optics.focal_stack import nearest_plane
+    from benchctl.profiles import load_profile
+    from benchctl.scenes import load_scene, prepare_scene
+
+    profile = load_profile(depth_profile)
+    optics, grid = profile.section("optics"), profile.section("slm").shape
+    amplitude, depth = prepare_scene(load_scene("rgbd:tilted", optics.roi, optics.depth_range_m), grid, optics.roi)
+    setup = Calibrated(profile).setup("green")
+    rows, cols = setup.roi_slices
+    sweep = scene_planes(depth[rows, cols], amplitude[1, rows, cols] ** 2, {"green": setup}, None).sweep
+    assert sweep is not None and len(sweep.all_m) > 7
+    phase = torch.rand(grid, generator=torch.Generator().manual_seed(3)) * 6
+    monkeypatch.setattr(depth_module, "JUDGE_CHUNK", 3)  # several chunks, the last one short
+    image = swept_image(setup, phase, sweep.all_m, depth[rows, cols])
+    stack = focal_stack_roi(setup, phase, sweep.all_m)
+    owner = nearest_plane(depth[rows, cols], sweep.all_m)
+    assert torch.equal(image, stack.gather(0, owner[None])[0])
+
+
 def test_a_colours_plane_propagators_are_released_before_the_next_colour(depth_profile, monkeypatch):
     import gc
     import weakref

@@ -192,7 +192,11 @@ def all_in_focus_psnr(stack: torch.Tensor, target: torch.Tensor, owner: torch.Te
     """Amplitude PSNR of the all-in-focus image of a focal stack (K, h, w): each pixel from the plane `owner` (h, w)
     names (the plane nearest its depth, `nearest_plane`), one least-squares scale against `target` (h, w). What a
     viewer sees focusing on each point in turn, at the planes of the stack."""
-    image = stack.gather(0, owner.to(stack.device)[None])[0]
+    return scaled_psnr(stack.gather(0, owner.to(stack.device)[None])[0], target)
+
+
+def scaled_psnr(image: torch.Tensor, target: torch.Tensor) -> float:
+    """Amplitude PSNR of `image` against `target` (h, w) after one least-squares scale."""
     wanted = target.to(image.device)
     return float(psnr(lsq_scale(image, wanted) * image, wanted, data_range=1.0))
 
