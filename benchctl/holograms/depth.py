@@ -60,8 +60,8 @@ JUDGE_CHUNK = 16
 def swept_image(setup: OpticalSetup, phase: torch.Tensor, depths_m: tuple[float, ...],
                 depth_roi: torch.Tensor) -> torch.Tensor:
     """The all-in-focus amplitude (h, w) on the ROI of `phase` over a sweep's depths: each pixel at the depth nearest
-    its own (`nearest_plane`), the depths propagated JUDGE_CHUNK at a time through the sweep's cached propagator
-    (all 92 of a full-size sweep at once held 2.3 GB more than the optimisation)."""
+    its own (`nearest_plane`), the depths propagated JUDGE_CHUNK at a time through the sweep's cached propagator: all
+    of a deep sweep's at once held more memory than its optimisation (docs/depth.md)."""
     owner = nearest_plane(depth_roi, depths_m)
     image = torch.zeros(owner.shape, dtype=torch.promote_types(phase.dtype, torch.float32))
     for start in range(0, len(depths_m), JUDGE_CHUNK):

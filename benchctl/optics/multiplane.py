@@ -111,7 +111,7 @@ class MultiPlanePropagator:
         return slice(col, col + cols)
 
     def _one_by_one(self, field: torch.Tensor, kernels: Sequence[torch.Tensor]) -> torch.Tensor:
-        """The planes one at a time, outside autograd: a working set of two padded grids, not K (K at once took 30 %
+        """The planes one at a time, building no graph: a working set of two padded grids, not K (K at once took 30 %
         longer; an inverse FFT written into its input, 15 % longer than into a new grid: docs/depth.md)."""
         spectrum = torch.fft.fft2(self._padded(field))
         product = self._work_buffer(spectrum)
@@ -132,6 +132,7 @@ class MultiPlanePropagator:
             total.addcmul_(torch.fft.fft2(placed), kernel.conj())
         h, w = self.plan.shape
         return torch.fft.ifft2(total)[..., :h, :w]
+
     def _work_buffer(self, like: torch.Tensor) -> torch.Tensor:
         buffer = self._buffer
         if buffer is None or buffer.shape != like.shape or buffer.dtype != like.dtype or buffer.device != like.device:
