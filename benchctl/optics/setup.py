@@ -100,8 +100,9 @@ class OpticalSetup(Geometry):
         return propagator
 
     def release_planes(self) -> None:
-        """Drops the cached multi-plane propagators (shared with this setup's display twins): a deep scene's sweep
-        holds GiBs of transfer functions, which the next colour must not find still held."""
+        """Drops this setup's cached multi-plane propagators (and so those of any display twin made after they were
+        cached, which shares them): a deep scene's sweep holds GiBs of transfer functions, which the next colour must
+        not find still held."""
         self.__dict__.get("_planes", {}).clear()
 
     def at_distance(self, distance_m: float) -> OpticalSetup:
