@@ -23,13 +23,15 @@ from __future__ import annotations
 import math
 import os
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from benchctl.devices.camera import frame_size
 from benchctl.errors import BadValueError
-from benchctl.optics.plan import plan_propagation
+from benchctl.optics.metrics import centred_slices
+from benchctl.optics.plan import plan_propagation, window_plan
 from benchctl.profiles import Profile
 
 MAX_MEMORY_ENV = "BENCHCTL_MAX_MEMORY"
@@ -57,6 +59,11 @@ HOLOGRAM_BYTES_PER_PADDED_PX = 130
 FIT_BYTES_PER_PADDED_PX = 160
 FIT_BYTES_PER_PATTERN_PX = 36
 FIT_BYTES_PER_STEP = 200  # each step's loss: in the fit, its step result and the report's plot
+# A hologram of a scene with depth, on top of a hologram's: per depth whose transfer function its optimiser holds (a
+# sweep's depths, else its planes), one complex64 grid the size of the ROI's propagation grid; per plane scored at
+# once, the ROI's fields, amplitudes, masks and their gradients (measured about 38 B per ROI pixel).
+TRANSFER_BYTES_PER_ROI_GRID_PX = 8
+PLANE_BYTES_PER_ROI_PX = 40
 _UNITS = {"": 1, "K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
 
 
@@ -189,6 +196,18 @@ def padded_pixels(profile: Profile) -> int:
                for channel in profile.channels)
 
 
+def roi_grid_pixels(profile: Profile) -> int:
+    """The largest grid, in pixels, on which the profile's channels propagate to the ROI alone (`window_plan`: what
+    focal stacks use)."""
+    slm, optics = profile.section("slm"), profile.section("optics")
+    rows, cols = centred_slices(slm.shape, optics.roi)
+    window = (rows.start, optics.roi[0], cols.start, optics.roi[1])
+    return max(math.prod(window_plan(plan_propagation(slm.shape, optics.distance_m, channel.wavelength_m,
+                                                      slm.pitch_m, aperture=optics.iris_fraction),
+                                     window).padded_shape)
+               for channel in profile.channels)
+
+
 def run_bytes(profile: Profile, colours: int) -> float:
     """What every run on `profile` holds beside the interpreter, with `colours` laser colours in use."""
     return RUN_BYTES + RETAINED_BYTES_PER_PADDED_PX * padded_pixels(profile) * colours
@@ -222,6 +241,31 @@ def hologram_estimate(profile: Profile, colours: int = 1) -> Estimate:
     padded = padded_pixels(profile)
     return Estimate(f"a hologram on a padded grid of {padded / 1e6:.3g} Mpx",
                     run_bytes(profile, colours) + HOLOGRAM_BYTES_PER_PADDED_PX * padded, {}, {})
+
+
+def depth_estimate(profile: Profile, depths: int, planes: int, colours: int = 1) -> Estimate:
+    """One colour's hologram of a scene with depth shown at `planes` planes, its optimiser holding the transfer
+    functions of `depths` depths (a sweep's; without one, the planes)."""
+    profile.require("slm", "optics", "laser")
+    flat = hologram_estimate(profile, colours)
+    return Estimate(f"a hologram holding {depths} depth(s) for {planes} plane(s)", flat.fixed,
+                    {"depths": TRANSFER_BYTES_PER_ROI_GRID_PX * roi_grid_pixels(profile),
+                     "planes": PLANE_BYTES_PER_ROI_PX * math.prod(profile.section("optics").roi)},
+                    {"depths": depths, "planes": planes})
+
+
+def check_depth_memory(estimate: Estimate, what: str, advice: str) -> None:
+    """BadValueError (one line: `what`, the estimate, the limit and the most fixed planes that fit, as `advice`
+    formats a count) when a `depth_estimate` does not fit the memory limit."""
+    limit = memory_limit()
+    if limit is None or estimate.peak <= limit:
+        return
+    each = estimate.per["depths"] + estimate.per["planes"]  # a fixed plane holds one depth
+    fixed = max(0, math.floor((limit - INTERPRETER_BYTES - estimate.fixed) / each))
+    raise BadValueError(f"{what}: {estimate.what} needs about {size_text(estimate.peak)}, above the "
+                        f"{size_text(limit)} {limit_words()}: "
+                        + (f"{fixed} fixed plane(s) fit ({advice.format(fixed)}, no sweep)" if fixed >= 1 else
+                           "not even one plane fits") + f" (${MAX_MEMORY_ENV} sets the limit)")
 
 
 def fit_estimate(profile: Profile, patterns: int, flat: bool, fit_steps: int, colours: int = 1,
@@ -295,13 +339,10 @@ def run_estimates(profile: Profile, params: Any) -> list[Estimate]:
     return estimates
 
 
-def check_memory(profile: Profile, params: Any, where: str) -> list[str]:
-    """The peak memory of a procedure with parameters `params` on `profile`, for a dry run (one line: the run's peak
-    and the kind of step it comes from); a BadValueError naming `where` and the count (or the kind of step) when it
-    does not fit the limit."""
+def check_memory(profile: Profile, params: Any, where: str) -> list[Estimate]:
+    """The kinds of step of a procedure with parameters `params` on `profile` (`run_estimates`), checked before it
+    plans: a BadValueError naming `where` and the count (or the kind of step) when one does not fit the limit."""
     estimates = run_estimates(profile, params)
-    if not estimates:
-        return []
     limit = memory_limit()
     for estimate in estimates:
         if limit is None or estimate.peak <= limit:
@@ -317,6 +358,15 @@ def check_memory(profile: Profile, params: Any, where: str) -> list[str]:
             f"{where}: {key} = {estimate.counts[key]} (with {others}) needs about {size_text(estimate.peak)} {words}: "
             + (f"at most {key} = {largest}" if largest >= 1 else f"not even {key} = 1 fits")
             + f" (${MAX_MEMORY_ENV} sets the limit)")
+    return estimates
+
+
+def peak_lines(estimates: Sequence[Estimate]) -> list[str]:
+    """The dry run's line on memory: the run's peak, the kind of step it comes from, and the limit (none without
+    estimates)."""
+    if not estimates:
+        return []
+    limit = memory_limit()
     top = max(estimates, key=lambda estimate: estimate.peak)
     return [f"memory: about {size_text(top.peak)} at the run's peak, {top.what}"
             + (f"; limit {size_text(limit)} {limit_words()}" if limit is not None else "")]

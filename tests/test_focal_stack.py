@@ -7,6 +7,7 @@ browser."""
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Callable
 from pathlib import Path
 
@@ -325,3 +326,28 @@ def test_the_report_steps_through_depth(tmp_path: Path, ready_bench: Profile, br
     assert output.text == f"plane 1 of 3: {PLANES_MM[0]:.2f} mm"
     table = browser.find_element(By.CSS_SELECTOR, "table").text
     assert "mean" in table and "captured PSNR dB" in table and "green focus steps" in table
+
+
+def test_a_scenes_hologram_sets_the_dry_runs_memory_and_a_sweep_beyond_the_limit_is_refused(
+        tmp_path: Path, ready_bench: Profile, capsys: pytest.CaptureFixture[str],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    from benchctl.memory import INTERPRETER_BYTES, depth_estimate, size_text
+
+    tilted = write(tmp_path, STACK + 'scenes = ["rgbd:tilted"]\n')
+    monkeypatch.setenv("BENCHCTL_MAX_MEMORY", "1T")
+    assert main(["run", str(tilted), "--profile", str(ready_bench.path), "--dry-run"]) == 0
+    line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("memory: "))
+    depths, planes = (int(n) for n in re.search(r"holding (\d+) depth\(s\) for (\d+) plane\(s\)", line).groups())
+    assert depths > planes > 1  # swept
+    swept = depth_estimate(ready_bench, depths, planes)
+    assert line == (f"memory: about {size_text(swept.peak)} at the run's peak, a hologram holding {depths} depth(s) "
+                    f"for {planes} plane(s); limit 1.1 TB of memory here")
+    limit = int(INTERPRETER_BYTES + swept.fixed + 1.5 * (swept.per["depths"] + swept.per["planes"]))
+    monkeypatch.setenv("BENCHCTL_MAX_MEMORY", str(limit))
+    line = one_error_line(capsys, ["run", str(tilted), "--profile", str(ready_bench.path), "--dry-run"])
+    assert line == (f"benchctl: error: {tilted}: parameters.scenes: rgbd:tilted: a hologram holding {depths} depth(s) "
+                    f"for {planes} plane(s) needs about {size_text(swept.peak)}, above the {size_text(limit)} of "
+                    "memory here: 1 fixed plane(s) fit (parameters.planes = 1, no sweep) ($BENCHCTL_MAX_MEMORY sets "
+                    "the limit)")
+    one = write(tmp_path, STACK + 'scenes = ["rgbd:tilted"]\nplanes = 1\n', "one.toml")
+    assert main(["run", str(one), "--profile", str(ready_bench.path), "--dry-run"]) == 0

@@ -248,3 +248,71 @@ def test_the_readme_depth_example_runs_on_a_small_bench(depth_profile):
     lines = printed.getvalue().splitlines()
     assert "2 plane(s) at 16.80, 23.20 mm" in lines[0]
     assert re.fullmatch(r"mean in-focus PSNR \d+\.\d\d dB over 2 planes", lines[1])
+
+
+def _tilted_green(depth_profile: Path):
+    """The small bench, the tilted scene on its SLM grid and its green plane choice (auto)."""
+    from benchctl.calibration.calibrated import Calibrated
+    from benchctl.holograms.depth import scene_planes
+    from benchctl.profiles import load_profile
+    from benchctl.scenes import load_scene, prepare_scene
+
+    profile = load_profile(depth_profile)
+    optics, grid = profile.section("optics"), profile.section("slm").shape
+    amplitude, depth = prepare_scene(load_scene("rgbd:tilted", optics.roi, optics.depth_range_m), grid, optics.roi)
+    setup = Calibrated(profile).setup("green")
+    rows, cols = setup.roi_slices
+    return profile, amplitude, depth, scene_planes(depth[rows, cols], amplitude[1, rows, cols] ** 2,
+                                                   {"green": setup}, None)
+
+
+def test_a_sweep_beyond_the_memory_is_one_line_naming_the_fixed_planes_that_fit(capsys, tmp_path, depth_profile,
+                                                                                  monkeypatch):
+    from benchctl.memory import INTERPRETER_BYTES, depth_estimate, size_text
+
+    profile, _, _, choice = _tilted_green(depth_profile)
+    depths, planes = len(choice.depths_m), len(choice.planes_m)
+    assert choice.sweep is not None and depths > planes == 6
+    swept = depth_estimate(profile, depths, planes)
+    each = swept.per["depths"] + swept.per["planes"]
+    limit = int(INTERPRETER_BYTES + swept.fixed + 3.5 * each)  # three fixed planes fit, not four, nor the sweep
+    monkeypatch.setenv("BENCHCTL_MAX_MEMORY", str(limit))
+    base = ["generate", "rgbd:tilted", "-m", "sgd", "-n", "2", "--colours", "green", "-p", str(depth_profile)]
+    code, _, stderr = _run(capsys, *base, "-o", str(tmp_path / "auto"))
+    assert code != 0 and "Traceback" not in stderr and not (tmp_path / "auto").exists()
+    assert stderr.strip().splitlines() == [
+        f"benchctl: error: --planes auto: a hologram holding {depths} depth(s) for {planes} plane(s) needs about "
+        f"{size_text(swept.peak)}, above the {size_text(limit)} of memory here: 3 fixed plane(s) fit (--planes 3, "
+        "no sweep) ($BENCHCTL_MAX_MEMORY sets the limit)"]
+    code, _, stderr = _run(capsys, *base, "--planes", "4", "-o", str(tmp_path / "four"))
+    assert code != 0 and "--planes 4: a hologram holding 4 depth(s) for 4 plane(s)" in stderr
+    assert _run(capsys, *base, "--planes", "3", "-o", str(tmp_path / "three"))[0] == 0
+    assert len(json.loads((tmp_path / "three" / "metrics.json").read_text())["planes"]) == 3
+
+
+def test_the_sweep_is_released_before_the_planes_are_judged(depth_profile, monkeypatch):
+    import gc
+    import weakref
+
+    from benchctl.calibration.calibrated import Calibrated
+    from benchctl.holograms.depth import compute_depth_scene
+    from benchctl.optics.multiplane import MultiPlanePropagator
+
+    profile, amplitude, depth, choice = _tilted_green(depth_profile)
+    sweeps: list[weakref.ref] = []
+    alive_when_judged: list[bool] = []
+    original = MultiPlanePropagator.kernels
+
+    def recorded(self, dtype, device):
+        if len(self.plans) == len(choice.planes_m):
+            gc.collect()
+            alive_when_judged.extend(ref() is not None for ref in sweeps)
+        kernels = original(self, dtype, device)
+        if len(self.plans) == len(choice.depths_m):
+            sweeps.append(weakref.ref(kernels))
+        return kernels
+
+    monkeypatch.setattr(MultiPlanePropagator, "kernels", recorded)
+    compute_depth_scene(amplitude, depth, Calibrated(profile), "sgd", iterations=2, colours=["green"],
+                        perceptual=False)
+    assert sweeps and alive_when_judged == [False] * len(sweeps)  # the sweep's kernels were built, then freed

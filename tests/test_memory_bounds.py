@@ -110,11 +110,11 @@ def test_model_calibration_patterns_and_fit_steps_are_bounded(tmp_path: Path, be
 def test_a_procedure_parameter_of_the_same_name_but_another_kind_is_no_count(small_profile_path: Path) -> None:
     from types import SimpleNamespace
 
-    from benchctl.memory import check_memory, run_estimates
+    from benchctl.memory import check_memory, peak_lines, run_estimates
 
     profile = load_profile(small_profile_path)
     assert check_memory(profile, SimpleNamespace(frames=["first.dng"], patterns="grid"), "mine.py") == []
-    (line,) = check_memory(profile, SimpleNamespace(frames=3, dark_frames=1), "mine.py")
+    (line,) = peak_lines(check_memory(profile, SimpleNamespace(frames=3, dark_frames=1), "mine.py"))
     assert line.startswith("memory: about ") and "RAW frames of 5280 x 3528 px" in line
     kinds = [e.what for e in run_estimates(profile, SimpleNamespace(frames=3, dark_frames=1, method="dpac"))]
     assert [kind.split(" ")[0] for kind in kinds] == ["an", "decoding", "a"], kinds  # exposure, decoding, hologram

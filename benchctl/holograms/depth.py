@@ -18,6 +18,7 @@ import torch
 
 from benchctl.calibration.calibrated import Calibrated
 from benchctl.errors import BenchctlError
+from benchctl.memory import check_depth_memory, depth_estimate
 from benchctl.holograms.scene import ColourResult, resolve_method, select_channels
 from benchctl.optics.focal_stack import (FocalStackTarget, all_in_focus_psnr, focal_stack_scores, mean_scores,
                                          nearest_plane, scaled_psnr, stack_scale)
@@ -124,6 +125,9 @@ def compute_depth_scene(
     light = sum((target_roi[target_plane(c)].square() for c in lit), torch.zeros(roi))
     choice = scene_planes(depth_roi, light, {c.name: setups[c.name] for c in lit} or setups, planes)
     count = len(choice.planes_m)
+    if not isinstance(planes, PlaneChoice):  # a procedure checks the planes it chose when it plans them
+        check_depth_memory(depth_estimate(profile, len(choice.depths_m), count, len(lit) or 1),
+                           f"--planes {planes or 'auto'}", "--planes {}")
     stacks: dict[int, torch.Tensor] = {}
     results = []
     previous: OpticalSetup | None = None
@@ -142,15 +146,17 @@ def compute_depth_scene(
         seconds = time.perf_counter() - start
         gray = slm.encode(phase, channel.name)
         shown = torch.from_numpy(slm.driven(gray, channel.name))
+        wanted = target_roi[target_plane(channel)]
+        if choice.sweep is not None:  # the sweep's transfer functions go before the planes' are made
+            seen = scaled_psnr(swept_image(setup, shown, choice.sweep.all_m, depth_roi), wanted)
+            setup.release_planes()
         stack = focal_stack_roi(setup, shown, choice.planes_m)
-        masks, wanted = target.masks[:, rows, cols], target_roi[target_plane(channel)]
+        masks = target.masks[:, rows, cols]
         stack = stack * stack_scale(stack, wanted, masks)
         stacks[target_plane(channel)] = stack
         scores = focal_stack_scores(stack, wanted, masks, choice.planes_m, perceptual=perceptual)
         if choice.sweep is None:  # seen at its planes: each pixel where the per-plane scores take it
             seen = all_in_focus_psnr(stack, wanted, masks.argmax(dim=0))
-        else:
-            seen = scaled_psnr(swept_image(setup, shown, choice.sweep.all_m, depth_roi), wanted)
         scores.mean["all_in_focus_psnr_db"] = seen
         results.append(ColourResult(channel.name, channel.wavelength_nm, skipped=False, seconds=seconds, gray=gray,
                                     reconstruction=stack, scores=scores.mean, plane_scores=scores.per_plane))

@@ -81,6 +81,11 @@ class PlaneChoice:
     reason: str
     sweep: DepthSweep | None = None
 
+    @property
+    def depths_m(self) -> tuple[float, ...]:
+        """Every depth an optimiser propagates to: the sweep's, else the planes."""
+        return self.planes_m if self.sweep is None else self.sweep.all_m
+
 
 def _sweep(spans: Sequence[tuple[float, float]], resolution_m: float) -> DepthSweep | None:
     """Per span (nearest, farthest depth of a plane's pixels), depths SWEEP_STEP resolutions apart from end to end,

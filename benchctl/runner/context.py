@@ -24,6 +24,7 @@ from benchctl.devices.power import format_power
 from benchctl.devices.slm import SLM
 from benchctl.errors import BenchctlError
 from benchctl.files import file_sha256
+from benchctl.memory import Estimate
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import Profile
 from benchctl.runner import layout
@@ -96,6 +97,7 @@ class Step:
     action: Callable[[Context], dict[str, Any]]
     exposes: tuple[Expose, ...] = ()
     focus: tuple[FocusAt, ...] = ()
+    memory: Estimate | None = None  # its peak, where the procedure's parameters alone do not tell it (`run_estimates`)
 
     @property
     def devices(self) -> tuple[str, ...]:

@@ -30,7 +30,7 @@ from benchctl.calibration.store import FOCUS_FILE, REGISTRATION_FILE, Calibratio
 from benchctl.devices.power import format_power
 from benchctl.errors import BenchctlError
 from benchctl.files import file_sha256, folder_problem, write_json
-from benchctl.memory import check_memory
+from benchctl.memory import check_memory, peak_lines
 from benchctl.profiles import Profile, load_profile, resolve_profile_path
 from benchctl.runner.context import Context, Expose, FocusAt, Step, StepRedo
 from benchctl.runner.estimates import RunEstimate, duration_text
@@ -140,7 +140,7 @@ def _run(path: Path | None, profile: str | None, out: Path, dry_run: bool, resum
         record = None
     bench, checked = _checked_calibration(calibration, procedure, bench_profile)
     effective = bench.profile
-    checked += check_memory(effective, procedure.params, str(path or procedure.name))  # counts that scale memory
+    estimates = check_memory(effective, procedure.params, str(path or procedure.name))  # counts that scale memory
     with Instruments(effective, say) as instruments:
         context = Context(bench, procedure.params, instruments, record, say)
         try:
@@ -150,6 +150,7 @@ def _run(path: Path | None, profile: str | None, out: Path, dry_run: bool, resum
                 raise
             where = path if record is None else record.folder / record.info()["procedure_file"]
             raise BenchctlError(f"{where}: {exc}") from None
+        checked += peak_lines([*estimates, *(step.memory for step in steps if step.memory is not None)])
         estimate = RunEstimate(steps, effective)
         problem = folder_problem(Path(out)) if record is None else None
         if problem:

@@ -122,7 +122,8 @@ def plan(context: Context) -> list[Step]:
             base = focal_stack.scene_label(spec, labels)
             for method in methods:
                 label = base if len(methods) == 1 else target_label(f"{base}-{method.replace('+', '-')}", labels)
-                scene = focal_stack.stack_scene(context, spec, label, None, False, used, "parameters.targets")
+                scene = focal_stack.stack_scene(context, spec, label, None, False, used, "parameters.targets",
+                                                "procedures/focal_stack.toml with planes = {}")
                 steps += focal_stack.stack_steps(context, scene, options[method], params.exposure, params.peak_goal,
                                                  params.max_exposure_power)
                 stacks.append(label)

@@ -29,6 +29,7 @@ from msgspec import Meta
 from benchctl.capture.colour_planes import PEAK_PERCENTILE, capture_warnings, captured_amplitude, merge_colours
 from benchctl.cgh import get_method, method_names
 from benchctl.holograms.depth import scene_planes
+from benchctl.memory import Estimate, check_depth_memory, depth_estimate
 from benchctl.optics.focal_stack import FocalStackTarget, masked_colour_scores, masked_scores, mean_scores
 from benchctl.optics.metrics import centred_slices
 from benchctl.optics.planes import MAX_PLANES, PlaneChoice
@@ -111,6 +112,7 @@ class StackScene:
     owner: torch.Tensor
     roi: tuple[slice, slice]
     note: str | None
+    memory: Estimate  # one colour's hologram of it
 
     @property
     def target_roi(self) -> torch.Tensor:
@@ -126,9 +128,11 @@ class StackScene:
 
 
 def stack_scene(context: Context, spec: str, label: str, planes: int | None, fit_depth: bool,
-                used: list[LaserChannel], key: str = "parameters.scenes") -> StackScene:
+                used: list[LaserChannel], key: str = "parameters.scenes",
+                advice: str = "parameters.planes = {}") -> StackScene:
     """`spec` put on the bench: loaded, prepared on the SLM grid, its planes chosen (None: auto) for the colours of
-    `used` present in it; errors name the parameter `key`."""
+    `used` present in it, their hologram's memory checked (a refusal says, with `advice`, how many fixed planes fit);
+    errors name the parameter `key`."""
     profile = context.profile
     slm, optics = profile.section("slm"), profile.section("optics")
     if not is_scene(spec):
@@ -146,9 +150,11 @@ def stack_scene(context: Context, spec: str, label: str, planes: int | None, fit
     rows, cols = centred_slices(slm.shape, optics.roi)
     light = sum((amplitude[target_plane(c), rows, cols].square() for c in lit), torch.zeros(optics.roi))
     choice = scene_planes(depth[rows, cols], light, context.bench.setups([c.name for c in lit]), planes)
+    memory = depth_estimate(profile, len(choice.depths_m), len(choice.planes_m), len(used))
+    check_depth_memory(memory, f"{key}: {spec}", advice)
     masks = FocalStackTarget(amplitude[target_plane(lit[0])], depth, choice.planes_m).masks
     return StackScene(spec, label, amplitude, depth, choice, lit, masks[:, rows, cols].argmax(0), (rows, cols),
-                      loaded.note)
+                      loaded.note, memory)
 
 
 def plan(context: Context) -> list[Step]:
@@ -183,7 +189,7 @@ def stack_steps(context: Context, scene: StackScene, options: HologramParameters
         raise BenchctlError(f"parameters.method: {options.method!r} makes holograms of one plane; {scene.spec} is "
                             f"shown on {len(planes)} planes and needs one of: {able}")
     steps = [Step(f"hologram/{label}/{c.name}", f"3D hologram {label} {c.name} ({options.method}, {len(planes)} "
-                  f"plane(s))", _hologram(scene, c, options)) for c in scene.lit]
+                  f"plane(s))", _hologram(scene, c, options), memory=scene.memory) for c in scene.lit]
     powers: dict[str, Any] = {c.name: power_w(context, c) for c in scene.lit}
     caps = {c.name: exposure_cap_w(context, c, cap) for c in scene.lit}
     if exposure == "auto":
