@@ -56,6 +56,7 @@ from benchctl.holograms.checkpoints import RESUME_SUFFIX, WEIGHT_DTYPES, Checkpo
 from benchctl.memory import Estimate, check_training_memory, size_text, training_estimate
 from benchctl.optics.focal_stack import FocalStackScores, focal_stack_loss, focal_stack_scores, in_focus_masks
 from benchctl.optics.metrics import amplitude_scores, centred_slices, crop_roi, lsq_scale, psnr, psnr_of_mse
+from benchctl.optics.planes import MAX_PLANES
 from benchctl.optics.setup import OpticalSetup
 from benchctl.profiles import Profile
 from benchctl.scenes import Scene, prepare_scene
@@ -69,7 +70,6 @@ from benchctl.training.schedule import Schedule
 
 LOSSES = ("mse", "l2-perceptual")
 MAX_LR = 0.1  # Adam on these networks diverges far below this; above it a value is a typo
-MAX_PLANES = 16
 BACKEND_ENV = "BENCHCTL_DDP_BACKEND"
 
 
