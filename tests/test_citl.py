@@ -308,8 +308,11 @@ def test_citl_optimises_a_focal_stack_plane_by_plane(tmp_path: Path, make_bench_
     procedure = tmp_path / "citl.toml"
     procedure.write_text(STACK_CITL % (5, 0, "true"))
     assert main(["run", str(procedure), "--profile", str(profile.path), "--dry-run"]) == 0
-    line = next(x for x in capsys.readouterr().out.splitlines() if "citl/green/0002:" in x)
+    out = capsys.readouterr().out.splitlines()
+    line = next(x for x in out if "citl/green/0002:" in x)
     assert [f"focus green at {z:.2f} mm" in line for z in (17, 20, 23)] == [True] * 3
+    memory = next(x for x in out if x.startswith("memory: "))  # the start hologram's, the run's largest step
+    assert "at the run's peak, a hologram holding 3 depth(s) for 3 plane(s); limit " in memory
     assert "3 x green alone" in line
     outcome = run_procedure(procedure, profile=str(profile.path), out=tmp_path / "runs", say=lambda line: None)
     assert outcome.folder is not None

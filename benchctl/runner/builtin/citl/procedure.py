@@ -172,7 +172,7 @@ def plan(context: Context) -> list[Step]:
     for channel in used:
         name, focus = channel.name, views[channel.name]
         steps.append(Step(f"citl/{name}/start", f"start hologram {name} ({params.start})",
-                          _starter(target, channel, scene)))
+                          _starter(target, channel, scene), memory=scene.memory if scene is not None else None))
         cap = exposure_cap_w(context, channel, params.max_exposure_power)
         power: Any = None if params.exposure == "auto" else power_w(context, channel)
         if params.exposure == "auto" and scene is None:
