@@ -32,6 +32,7 @@ from benchctl.devices.camera import frame_size
 from benchctl.errors import BadValueError
 from benchctl.optics.metrics import centred_slices
 from benchctl.optics.plan import plan_propagation, window_plan
+from benchctl.optics.planes import MAX_PLANES
 from benchctl.profiles import Profile
 
 MAX_MEMORY_ENV = "BENCHCTL_MAX_MEMORY"
@@ -255,13 +256,13 @@ def depth_estimate(profile: Profile, depths: int, planes: int, colours: int = 1)
 
 
 def check_depth_memory(estimate: Estimate, what: str, advice: str) -> None:
-    """BadValueError (one line: `what`, the estimate, the limit and the most fixed planes that fit, as `advice`
-    formats a count) when a `depth_estimate` does not fit the memory limit."""
+    """BadValueError (one line: `what`, the estimate, the limit and the most fixed planes that fit, up to MAX_PLANES,
+    as `advice` formats a count) when a `depth_estimate` does not fit the memory limit."""
     limit = memory_limit()
     if limit is None or estimate.peak <= limit:
         return
     each = estimate.per["depths"] + estimate.per["planes"]  # a fixed plane holds one depth
-    fixed = max(0, math.floor((limit - INTERPRETER_BYTES - estimate.fixed) / each))
+    fixed = min(MAX_PLANES, max(0, math.floor((limit - INTERPRETER_BYTES - estimate.fixed) / each)))
     raise BadValueError(f"{what}: {estimate.what} needs about {size_text(estimate.peak)}, above the "
                         f"{size_text(limit)} {limit_words()}: "
                         + (f"{fixed} fixed plane(s) fit ({advice.format(fixed)}, no sweep)" if fixed >= 1 else

@@ -316,3 +316,17 @@ def test_the_sweep_is_released_before_the_planes_are_judged(depth_profile, monke
     compute_depth_scene(amplitude, depth, Calibrated(profile), "sgd", iterations=2, colours=["green"],
                         perceptual=False)
     assert sweeps and alive_when_judged == [False] * len(sweeps)  # the sweep's kernels were built, then freed
+
+
+def test_the_fixed_planes_offered_are_at_most_the_most_a_scene_is_shown_at(depth_profile, monkeypatch):
+    from benchctl.errors import BadValueError
+    from benchctl.memory import INTERPRETER_BYTES, check_depth_memory, depth_estimate
+    from benchctl.optics.planes import MAX_PLANES
+    from benchctl.profiles import load_profile
+
+    deep = depth_estimate(load_profile(depth_profile), 1000, 16)  # depths no memory below holds
+    each = deep.per["depths"] + deep.per["planes"]
+    for fits, offered in ((3, 3), (MAX_PLANES, MAX_PLANES), (40, MAX_PLANES)):
+        monkeypatch.setenv("BENCHCTL_MAX_MEMORY", str(int(INTERPRETER_BYTES + deep.fixed + (fits + 0.5) * each)))
+        with pytest.raises(BadValueError, match=rf"here: {offered} fixed plane\(s\) fit \(--planes {offered}, no "):
+            check_depth_memory(deep, "--planes auto", "--planes {}")

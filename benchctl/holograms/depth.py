@@ -18,8 +18,8 @@ import torch
 
 from benchctl.calibration.calibrated import Calibrated
 from benchctl.errors import BenchctlError
-from benchctl.memory import check_depth_memory, depth_estimate
 from benchctl.holograms.scene import ColourResult, resolve_method, select_channels
+from benchctl.memory import check_depth_memory, depth_estimate
 from benchctl.optics.focal_stack import (FocalStackTarget, all_in_focus_psnr, focal_stack_scores, mean_scores,
                                          nearest_plane, scaled_psnr, stack_scale)
 from benchctl.optics.metrics import centred_slices
