@@ -97,13 +97,11 @@ def test_auto_sweeps_a_tilted_scenes_planes_and_scores_it_all_in_focus(capsys, t
     assert metrics["sweep_mm"] is None and 10 < metrics["mean"]["all_in_focus_psnr_db"] < 60
 
 
-def test_the_swept_all_in_focus_image_is_the_whole_stacks_a_few_depths_at_a_time(depth_profile, monkeypatch):
-    import torch
-
-    import benchctl.holograms.depth as depth_module
+def _tilted_green(depth_profile: Path):
+    """The small bench, its green setup, the tilted scene on its SLM grid (amplitude, depth) and its green plane
+    choice (auto)."""
     from benchctl.calibration.calibrated import Calibrated
-    from benchctl.holograms.depth import focal_stack_roi, scene_planes, swept_image
-    from benchctl.optics.focal_stack import nearest_plane
+    from benchctl.holograms.depth import scene_planes
     from benchctl.profiles import load_profile
     from benchctl.scenes import load_scene, prepare_scene
 
@@ -112,9 +110,22 @@ def test_the_swept_all_in_focus_image_is_the_whole_stacks_a_few_depths_at_a_time
     amplitude, depth = prepare_scene(load_scene("rgbd:tilted", optics.roi, optics.depth_range_m), grid, optics.roi)
     setup = Calibrated(profile).setup("green")
     rows, cols = setup.roi_slices
-    sweep = scene_planes(depth[rows, cols], amplitude[1, rows, cols] ** 2, {"green": setup}, None).sweep
+    return profile, setup, amplitude, depth, scene_planes(depth[rows, cols], amplitude[1, rows, cols] ** 2,
+                                                          {"green": setup}, None)
+
+
+def test_the_swept_all_in_focus_image_is_the_whole_stacks_a_few_depths_at_a_time(depth_profile, monkeypatch):
+    import torch
+
+    import benchctl.holograms.depth as depth_module
+    from benchctl.holograms.depth import focal_stack_roi, swept_image
+    from benchctl.optics.focal_stack import nearest_plane
+
+    _, setup, _, depth, choice = _tilted_green(depth_profile)
+    rows, cols = setup.roi_slices
+    sweep = choice.sweep
     assert sweep is not None and len(sweep.all_m) > 7
-    phase = torch.rand(grid, generator=torch.Generator().manual_seed(3)) * 6
+    phase = torch.rand(setup.shape, generator=torch.Generator().manual_seed(3)) * 6
     monkeypatch.setattr(depth_module, "JUDGE_CHUNK", 3)  # several chunks, the last one short
     image = swept_image(setup, phase, sweep.all_m, depth[rows, cols])
     stack = focal_stack_roi(setup, phase, sweep.all_m)
@@ -129,8 +140,6 @@ def test_a_colours_plane_propagators_are_released_before_the_next_colour(depth_p
     from benchctl.calibration.calibrated import Calibrated
     from benchctl.holograms.depth import compute_depth_scene
     from benchctl.optics.multiplane import MultiPlanePropagator
-    from benchctl.profiles import load_profile
-    from benchctl.scenes import load_scene, prepare_scene
 
     held: dict[float, list[weakref.ref]] = {}
     original = MultiPlanePropagator.kernels
@@ -141,11 +150,8 @@ def test_a_colours_plane_propagators_are_released_before_the_next_colour(depth_p
         return kernels
 
     monkeypatch.setattr(MultiPlanePropagator, "kernels", recorded)
-    profile = load_profile(depth_profile)
-    bench, optics = Calibrated(profile), profile.section("optics")
-    grid, roi = profile.section("slm").shape, optics.roi
-    amplitude, depth = prepare_scene(load_scene("rgbd:tilted", roi, optics.depth_range_m), grid, roi)
-    result = compute_depth_scene(amplitude, depth, bench, "sgd", iterations=2, colours=["red", "green"],
+    profile, _, amplitude, depth, _ = _tilted_green(depth_profile)
+    result = compute_depth_scene(amplitude, depth, Calibrated(profile), "sgd", iterations=2, colours=["red", "green"],
                                  perceptual=False)
     gc.collect()
     assert result.planes.sweep is not None and [c.channel for c in result.colours] == ["red", "green"]
@@ -250,27 +256,11 @@ def test_the_readme_depth_example_runs_on_a_small_bench(depth_profile):
     assert re.fullmatch(r"mean in-focus PSNR \d+\.\d\d dB over 2 planes", lines[1])
 
 
-def _tilted_green(depth_profile: Path):
-    """The small bench, the tilted scene on its SLM grid and its green plane choice (auto)."""
-    from benchctl.calibration.calibrated import Calibrated
-    from benchctl.holograms.depth import scene_planes
-    from benchctl.profiles import load_profile
-    from benchctl.scenes import load_scene, prepare_scene
-
-    profile = load_profile(depth_profile)
-    optics, grid = profile.section("optics"), profile.section("slm").shape
-    amplitude, depth = prepare_scene(load_scene("rgbd:tilted", optics.roi, optics.depth_range_m), grid, optics.roi)
-    setup = Calibrated(profile).setup("green")
-    rows, cols = setup.roi_slices
-    return profile, amplitude, depth, scene_planes(depth[rows, cols], amplitude[1, rows, cols] ** 2,
-                                                   {"green": setup}, None)
-
-
 def test_a_sweep_beyond_the_memory_is_one_line_naming_the_fixed_planes_that_fit(capsys, tmp_path, depth_profile,
                                                                                   monkeypatch):
     from benchctl.memory import INTERPRETER_BYTES, depth_estimate, size_text
 
-    profile, _, _, choice = _tilted_green(depth_profile)
+    profile, _, _, _, choice = _tilted_green(depth_profile)
     depths, planes = len(choice.depths_m), len(choice.planes_m)
     assert choice.sweep is not None and depths > planes == 6
     swept = depth_estimate(profile, depths, planes)
@@ -298,7 +288,7 @@ def test_the_sweep_is_released_before_the_planes_are_judged(depth_profile, monke
     from benchctl.holograms.depth import compute_depth_scene
     from benchctl.optics.multiplane import MultiPlanePropagator
 
-    profile, amplitude, depth, choice = _tilted_green(depth_profile)
+    profile, _, amplitude, depth, choice = _tilted_green(depth_profile)
     sweeps: list[weakref.ref] = []
     alive_when_judged: list[bool] = []
     original = MultiPlanePropagator.kernels
