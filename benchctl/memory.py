@@ -342,8 +342,13 @@ def run_estimates(profile: Profile, params: Any) -> list[Estimate]:
 
 def check_memory(profile: Profile, params: Any, where: str) -> list[Estimate]:
     """The kinds of step of a procedure with parameters `params` on `profile` (`run_estimates`), checked before it
-    plans: a BadValueError naming `where` and the count (or the kind of step) when one does not fit the limit."""
-    estimates = run_estimates(profile, params)
+    plans (`check_estimates`)."""
+    return check_estimates(run_estimates(profile, params), where)
+
+
+def check_estimates(estimates: list[Estimate], where: str) -> list[Estimate]:
+    """`estimates`, each checked against the memory limit: a BadValueError naming `where` and the count (or the kind
+    of step) when one does not fit."""
     limit = memory_limit()
     for estimate in estimates:
         if limit is None or estimate.peak <= limit:

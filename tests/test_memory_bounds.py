@@ -17,7 +17,7 @@ from benchctl.capture.raw import RawImage, average_frames, decode_raw
 from benchctl.cli import main
 from benchctl.dng import dng_bytes
 from benchctl.errors import BadValueError
-from benchctl.memory import decode_estimate, exposure_estimate, fit_estimate, memory_limit
+from benchctl.memory import decode_estimate, exposure_estimate, fit_estimate, hologram_estimate, memory_limit, size_text
 from benchctl.profiles import load_profile
 
 
@@ -105,6 +105,26 @@ def test_model_calibration_patterns_and_fit_steps_are_bounded(tmp_path: Path, be
     procedure.write_text('procedure = "model-calibration"\n[parameters]\nregistration = "stored"\n')
     line = one_error_line(capsys, ["run", str(procedure), "-p", str(bench_profile_path), "--dry-run"])
     assert line.endswith("not even patterns = 1 fits ($BENCHCTL_MAX_MEMORY sets the limit)"), line
+
+
+def test_a_hologram_beyond_the_memory_is_refused_before_anything_is_written(
+        tmp_path: Path, small_profile_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """Each colour keeps its optical setup: the three colours do not fit a limit that one does."""
+    profile = load_profile(small_profile_path)
+    one, three = hologram_estimate(profile, 1), hologram_estimate(profile, len(profile.channels))
+    assert len(profile.channels) == 3 and three.peak > one.peak
+    limit = int(one.peak) + 1
+    monkeypatch.setenv("BENCHCTL_MAX_MEMORY", str(limit))
+    argv = ["generate", "chart:siemens", "-m", "dpac", "-p", str(small_profile_path), "-o"]
+    line = one_error_line(capsys, argv + [str(tmp_path / "all")])
+    assert line == (f"benchctl: error: generate chart:siemens: the run needs about {size_text(three.peak)} at the peak "
+                    f"of {three.what}, above the {size_text(limit)} of memory here ($BENCHCTL_MAX_MEMORY sets the "
+                    "limit)")
+    assert not (tmp_path / "all").exists()
+    assert main(argv + [str(tmp_path / "green"), "--colours", "green"]) == 0
+    assert sorted(path.name for path in (tmp_path / "green").iterdir()) == [
+        "metrics.json", "phase_green.png", "reconstruction.png", "target.png"]
 
 
 def test_a_procedure_parameter_of_the_same_name_but_another_kind_is_no_count(small_profile_path: Path) -> None:

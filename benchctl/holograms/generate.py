@@ -15,8 +15,9 @@ from benchctl.calibration.files import calibration_used
 from benchctl.cgh import DEFAULT_METHOD
 from benchctl.files import ensure_dir, write_json
 from benchctl.holograms.depth import DepthSceneResult, compute_depth_scene
-from benchctl.holograms.scene import SceneResult, compute_scene
+from benchctl.holograms.scene import SceneResult, compute_scene, select_channels
 from benchctl.images import write_png
+from benchctl.memory import check_estimates, hologram_estimate
 from benchctl.optics import linear_to_srgb
 from benchctl.profiles import Profile
 from benchctl.provenance import code_identity
@@ -64,7 +65,8 @@ def run_generate(
 
     A scene with depth (`rgbd:...`, `benchctl.scenes`) is shown at `planes` planes evenly over its depth, or at
     those its depth content needs (None: auto); its focal stack is written as one image per plane, and scored per
-    plane (`compute_depth_scene`). `fit_depth` maps a scene file's depth onto the bench's depth range.
+    plane (`compute_depth_scene`). `fit_depth` maps a scene file's depth onto the bench's depth range. Either is
+    refused before it starts when its estimated memory is above the limit (`benchctl.memory`).
 
     A learned method uses `checkpoint`, else the one shipped for the profile (see `compute_scene`). What
     calibration/<profile>/ holds is used as a run uses it: the measured lookup tables (for the channels whose
@@ -87,6 +89,7 @@ def run_generate(
             "optical_model": str(optics.model) if optics.model else None,
             "calibration": calibration_used(profile, own_tables), "seed": seed, "started_unix": round(started, 3)})
     srgb = load_target(target, size=optics.roi)
+    check_estimates([hologram_estimate(profile, len(select_channels(profile, colours)))], f"generate {target}")
     amplitude = prepare_target(srgb, slm.shape, optics.roi)
     scene = compute_scene(amplitude, bench, method, iterations=iterations, colours=colours, seed=seed,
                           progress=progress, checkpoint=checkpoint)
