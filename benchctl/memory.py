@@ -255,18 +255,19 @@ def depth_estimate(profile: Profile, depths: int, planes: int, colours: int = 1)
                     {"depths": depths, "planes": planes})
 
 
-def check_depth_memory(estimate: Estimate, what: str, advice: str) -> None:
+def check_depth_memory(estimate: Estimate, what: str, advice: str | None) -> None:
     """BadValueError (one line: `what`, the estimate, the limit and the most fixed planes that fit, up to MAX_PLANES,
-    as `advice` formats a count) when a `depth_estimate` does not fit the memory limit."""
+    as `advice` formats a count) when a `depth_estimate` does not fit the memory limit. `advice` None: the caller
+    offers no fixed planes (a benchmark chooses its own), so the line ends at the limit and `what` names the knob."""
     limit = memory_limit()
     if limit is None or estimate.peak <= limit:
         return
     each = estimate.per["depths"] + estimate.per["planes"]  # a fixed plane holds one depth
     fixed = min(MAX_PLANES, max(0, math.floor((limit - INTERPRETER_BYTES - estimate.fixed) / each)))
+    offer = "" if advice is None else ": " + (f"{fixed} fixed plane(s) fit ({advice.format(fixed)}, no sweep)"
+                                               if fixed >= 1 else "not even one plane fits")
     raise BadValueError(f"{what}: {estimate.what} needs about {size_text(estimate.peak)}, above the "
-                        f"{size_text(limit)} {limit_words()}: "
-                        + (f"{fixed} fixed plane(s) fit ({advice.format(fixed)}, no sweep)" if fixed >= 1 else
-                           "not even one plane fits") + f" (${MAX_MEMORY_ENV} sets the limit)")
+                        f"{size_text(limit)} {limit_words()}{offer} (${MAX_MEMORY_ENV} sets the limit)")
 
 
 def fit_estimate(profile: Profile, patterns: int, flat: bool, fit_steps: int, colours: int = 1,

@@ -23,8 +23,10 @@ import torch
 from benchctl.calibration.calibrated import Calibrated
 from benchctl.calibration.setups import optical_setup
 from benchctl.cgh import get_method
+from benchctl.benchmarks.speed_vs_error import size_refusal
 from benchctl.holograms.depth import compute_depth_scene, scene_planes
 from benchctl.holograms.scene import compute_scene
+from benchctl.memory import check_depth_memory, depth_estimate
 from benchctl.optics.focal_stack import FocalStackTarget, focal_stack_scores
 from benchctl.optics.focal_stack import all_in_focus_psnr as stack_all_in_focus_psnr
 from benchctl.optics.metrics import centred_slices
@@ -103,16 +105,22 @@ def run_depth_bench(
     out(f"grid {grid[0]}x{grid[1]}, ROI {roi[0]}x{roi[1]}, distance {optics.distance_mm:g} mm, depth range "
         f"{optics.depth_range_mm}, {colour}, {method} {_budget(iterations)}, device {device}; judged on the "
         f"all-in-focus image from {EVALUATION_PLANES} planes evenly over each scene's depth")
-    results: list[dict[str, Any]] = []
-    for spec in scenes:
+    planned = []
+    for spec in scenes:  # every scene's planes chosen and their memory checked before any is computed
         amplitude, depth = prepare_scene(load_scene(spec, roi, optics.depth_range_m), grid, roi)
         amplitude, depth = amplitude[channel_plane].to(device), depth.to(device)
         light = amplitude[rows, cols].square()
-        judge_planes = even_planes(depth[rows, cols], light, EVALUATION_PLANES)
-        judge = FocalStackTarget(amplitude, depth, judge_planes.planes_m)  # masks: the nearest judging plane
         auto = scene_planes(depth[rows, cols], light, {colour: setup}, None)
         choices: list[tuple[int | str, PlaneChoice]] = [(k, even_planes(depth[rows, cols], light, k)) for k in counts]
         choices.append((AUTO, auto))
+        for _, choice in choices:
+            check_depth_memory(depth_estimate(profile, len(choice.depths_m), len(choice.planes_m)),
+                               f"{spec} at {size_refusal(profile)[0]}", None)
+        judging = even_planes(depth[rows, cols], light, EVALUATION_PLANES)
+        planned.append((spec, amplitude, depth, judging, auto, choices))
+    results: list[dict[str, Any]] = []
+    for spec, amplitude, depth, judge_planes, auto, choices in planned:
+        judge = FocalStackTarget(amplitude, depth, judge_planes.planes_m)  # masks: the nearest judging plane
         warm_up = 2 if generate.default_iterations is not None else None  # kernels and caches built outside the timing
         generate(FocalStackTarget(amplitude, depth, auto.planes_m, sweep=auto.sweep), setup, iterations=warm_up)
         seen: set[tuple[float, ...]] = set()
@@ -153,7 +161,7 @@ def flat_scene_check(profile: Profile, method: str, iterations: int | None, colo
         start = time.perf_counter()
         amplitude, depth = prepare_scene(load_scene("rgbd:flat", roi, optics.depth_range_m), grid, roi)
         deep = compute_depth_scene(amplitude, depth, bench, method, iterations=iterations, colours=[colour],
-                                   perceptual=False)
+                                   perceptual=False, refusal=size_refusal(profile))
         deep_total = time.perf_counter() - start
         ratios_hologram.append(deep.colours[0].seconds / flat.colours[0].seconds)
         ratios_total.append(deep_total / flat_total)

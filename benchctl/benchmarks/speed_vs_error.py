@@ -57,6 +57,13 @@ def resized_profile(profile: Profile, size: tuple[int, int]) -> Profile:
     return grid_profile(profile, size, scale_distance=True)
 
 
+def size_refusal(profile: Profile) -> tuple[str, None]:
+    """What a benchmark's memory refusal for a scene with depth names: the grid as --size, the knob that shrinks it
+    (a benchmark chooses its own planes, so it offers no fixed ones)."""
+    rows, cols = profile.section("slm").shape
+    return f"--size {rows}x{cols}", None
+
+
 def budgets_for(method: str, budgets: Sequence[int]) -> list[int | None]:
     """One-shot methods (DPAC, trained networks) run once; iterative ones (refined networks too) at every budget."""
     return [None] if get_method(method).default_iterations is None else list(budgets)
@@ -173,7 +180,8 @@ def run_speed_vs_error(
                 continue
             shortest = budgets_for(method, (1,))[0]
             if isinstance(first, tuple):
-                compute_depth_scene(*first, bench, method, iterations=shortest, colours=colours, perceptual=False)
+                compute_depth_scene(*first, bench, method, iterations=shortest, colours=colours, perceptual=False,
+                                    refusal=size_refusal(profile))
             else:
                 compute_scene(first, bench, method, iterations=shortest, colours=colours)
     out(f"grid {grid[0]}x{grid[1]}, ROI {roi[0]}x{roi[1]}, distance {optics.distance_mm:g} mm, "
@@ -193,7 +201,8 @@ def run_speed_vs_error(
                     continue
                 if isinstance(amplitude, tuple):  # all-in-focus PSNR, SSIM over the planes; no merged sRGB image
                     stack = compute_depth_scene(*amplitude, bench, method, iterations=iterations, colours=colours,
-                                                seed=seed, progress=_recording(progress, last), perceptual=False)
+                                                seed=seed, progress=_recording(progress, last), perceptual=False,
+                                                refusal=size_refusal(profile))
                     done = [c for c in stack.colours if not c.skipped]
                     planes, srgb = len(stack.planes.planes_m), {"psnr_srgb_db": math.nan, "ssim_srgb": math.nan}
                     psnr_key = "all_in_focus_psnr_db"

@@ -115,14 +115,14 @@ def hologram(bench: Calibrated, target: torch.Tensor, channel: str, method: str,
             return Hologram(data["gray"], data["reconstruction"], json.loads(str(data["scores"])),
                             float(data["seconds"]), cached=True,
                             plane_scores=json.loads(str(data["plane_scores"])))
-    extra = {"checkpoint": Path(checkpoint)} if checkpoint else {}
+    chosen = Path(checkpoint) if checkpoint else None
     if depth_m is None:
         result = compute_scene(target, bench, method, iterations=iterations, colours=[channel], seed=seed,
-                               progress=progress, **extra).colours[0]
+                               progress=progress, checkpoint=chosen).colours[0]
     else:
         result = compute_depth_scene(target, depth_m, bench, method, planes=planes, iterations=iterations,
                                      colours=[channel], seed=seed, progress=progress, perceptual=False,
-                                     **extra).colours[0]
+                                     checkpoint=chosen).colours[0]
     assert not result.skipped and result.gray is not None and result.reconstruction is not None
     entry = Hologram(result.gray, result.reconstruction.numpy(), result.scores, result.seconds, cached=False,
                      plane_scores=result.plane_scores if depth_m is not None else None)

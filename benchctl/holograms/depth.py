@@ -103,12 +103,14 @@ def compute_depth_scene(
     progress: Callable[[str], Callable[[int, int], None]] | None = None,
     checkpoint: Path | None = None,
     perceptual: bool = True,
+    refusal: tuple[str, str | None] | None = None,
 ) -> DepthSceneResult:
     """Choose the planes, then generate, quantise, display (in simulation) and score a hologram for each requested,
     non-black colour of a scene with depth (`benchctl.scenes.prepare_scene`: amplitude (3, H, W), depth (H, W) in
     metres). `planes`: a number of planes evenly over the scene's lit depth, the planes themselves (metres), or None
     (auto). The rest as
-    `compute_scene`; `perceptual` adds FLIP and speckle contrast to the scores."""
+    `compute_scene`; `perceptual` adds FLIP and speckle contrast to the scores. `refusal`: what a memory refusal
+    names and offers (`check_depth_memory`'s `what` and `advice`), for callers whose knob is not --planes."""
     profile = bench.profile
     grid, roi = profile.section("slm").shape, profile.section("optics").roi
     if tuple(target_amplitude.shape) != (3, *grid) or tuple(depth_m.shape) != tuple(grid):
@@ -127,7 +129,7 @@ def compute_depth_scene(
     count = len(choice.planes_m)
     if not isinstance(planes, PlaneChoice):  # a procedure checks the planes it chose when it plans them
         check_depth_memory(depth_estimate(profile, len(choice.depths_m), count, len(lit) or 1),
-                           f"--planes {planes or 'auto'}", "--planes {}")
+                           *(refusal or (f"--planes {planes or 'auto'}", "--planes {}")))
     stacks: dict[int, torch.Tensor] = {}
     results = []
     previous: OpticalSetup | None = None
