@@ -308,27 +308,25 @@ def test_the_sweep_is_released_before_the_planes_are_judged(depth_profile, monke
     assert sweeps and alive_when_judged == [False] * len(sweeps)  # the sweep's kernels were built, then freed
 
 
-def test_a_benchmark_beyond_the_memory_names_its_size_not_planes_it_does_not_take(capsys, tmp_path, depth_profile,
+def test_a_benchmark_beyond_the_memory_names_its_size_not_planes_it_does_not_take(capsys, depth_profile,
                                                                                   monkeypatch):
     from benchctl.benchmarks.speed_vs_error import resized_profile
     from benchctl.memory import depth_estimate
     from benchctl.profiles import load_profile
 
-    monkeypatch.setenv("BENCHCTL_MAX_MEMORY", "1M")
-    code, _, stderr = _run(capsys, "bench", "speed-vs-error", "--size", "32x48", "--methods", "dpac",
-                           "--targets", "rgbd:tilted", "-p", str(depth_profile), "-o", str(tmp_path / "bench"))
-    lines = stderr.strip().splitlines()
-    assert code != 0 and len(lines) == 1 and "Traceback" not in stderr
-    assert lines[0].startswith("benchctl: error: --size 32x48: a hologram holding ")
-    assert lines[0].endswith("above the 1.05 MB of memory here ($BENCHCTL_MAX_MEMORY sets the limit)")
-    assert "--planes" not in stderr and "fixed plane" not in stderr
     small = resized_profile(load_profile(depth_profile), (32, 48))
-    monkeypatch.setenv("BENCHCTL_MAX_MEMORY", str(depth_estimate(small, 2, 2).peak))  # rgbd:flat fits, tilted not
-    code, stdout, stderr = _run(capsys, "bench", "depth", "--size", "32x48", "--scenes", "rgbd:flat", "rgbd:tilted",
-                                "--planes", "1,2", "-p", str(depth_profile))
-    assert code != 0 and stderr.startswith("benchctl: error: rgbd:tilted at --size 32x48: a hologram holding ")
-    assert len(stderr.strip().splitlines()) == 1 and "fixed plane" not in stderr
-    assert len(stdout.strip().splitlines()) == 1 and stdout.startswith("grid 32x48")  # flat not computed first
+    for colours, command in ((3, ("speed-vs-error", "--methods", "dpac", "--targets", "chart:siemens")),
+                             (1, ("depth", "--planes", "1,2", "--scenes"))):
+        # rgbd:flat (one plane) fits, rgbd:tilted (a sweep of many depths) does not: refused before flat is computed
+        monkeypatch.setenv("BENCHCTL_MAX_MEMORY", str(depth_estimate(small, 2, 2, colours).peak))
+        code, stdout, stderr = _run(capsys, "bench", *command, "rgbd:flat", "rgbd:tilted", "--size", "32x48",
+                                    "-p", str(depth_profile))
+        lines = stderr.strip().splitlines()
+        assert code != 0 and len(lines) == 1 and "Traceback" not in stderr
+        assert lines[0].startswith("benchctl: error: rgbd:tilted at --size 32x48: a hologram holding ")
+        assert lines[0].endswith(" of memory here ($BENCHCTL_MAX_MEMORY sets the limit)")
+        assert "--planes" not in stderr and "fixed plane" not in stderr
+        assert len(stdout.strip().splitlines()) == (colours == 1) and "PSNR" not in stdout
 
 
 def test_the_fixed_planes_offered_are_at_most_the_most_a_scene_is_shown_at(depth_profile, monkeypatch):

@@ -115,7 +115,7 @@ def run_depth_bench(
         choices.append((AUTO, auto))
         for _, choice in choices:
             check_depth_memory(depth_estimate(profile, len(choice.depths_m), len(choice.planes_m)),
-                               f"{spec} at {size_refusal(profile)[0]}", None)
+                               *size_refusal(profile, spec))
         judging = even_planes(depth[rows, cols], light, EVALUATION_PLANES)
         planned.append((spec, amplitude, depth, judging, auto, choices))
     results: list[dict[str, Any]] = []
@@ -161,7 +161,7 @@ def flat_scene_check(profile: Profile, method: str, iterations: int | None, colo
         start = time.perf_counter()
         amplitude, depth = prepare_scene(load_scene("rgbd:flat", roi, optics.depth_range_m), grid, roi)
         deep = compute_depth_scene(amplitude, depth, bench, method, iterations=iterations, colours=[colour],
-                                   perceptual=False, refusal=size_refusal(profile))
+                                   perceptual=False, refusal=size_refusal(profile, "rgbd:flat"))
         deep_total = time.perf_counter() - start
         ratios_hologram.append(deep.colours[0].seconds / flat.colours[0].seconds)
         ratios_total.append(deep_total / flat_total)

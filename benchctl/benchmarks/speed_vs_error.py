@@ -30,7 +30,7 @@ from benchctl.calibration.setups import optical_setup
 from benchctl.cgh import get_method, method_names
 from benchctl.errors import BenchctlError
 from benchctl.files import atomic_write_bytes, ensure_dir, write_csv
-from benchctl.holograms.depth import compute_depth_scene
+from benchctl.holograms.depth import compute_depth_scene, depth_scene_planes
 from benchctl.holograms.scene import checkpoint_status, compute_scene, usable_methods
 from benchctl.optics.metrics import pareto_front
 from benchctl.profiles import Profile
@@ -57,11 +57,11 @@ def resized_profile(profile: Profile, size: tuple[int, int]) -> Profile:
     return grid_profile(profile, size, scale_distance=True)
 
 
-def size_refusal(profile: Profile) -> tuple[str, None]:
-    """What a benchmark's memory refusal for a scene with depth names: the grid as --size, the knob that shrinks it
-    (a benchmark chooses its own planes, so it offers no fixed ones)."""
+def size_refusal(profile: Profile, scene: str) -> tuple[str, None]:
+    """What a benchmark's memory refusal for `scene` (one with depth) names: the scene and the grid as --size, the
+    knob that shrinks it (a benchmark chooses its own planes, so it offers no fixed ones)."""
     rows, cols = profile.section("slm").shape
-    return f"--size {rows}x{cols}", None
+    return f"{scene} at --size {rows}x{cols}", None
 
 
 def budgets_for(method: str, budgets: Sequence[int]) -> list[int | None]:
@@ -172,6 +172,9 @@ def run_speed_vs_error(
     grid, roi = slm.shape, optics.roi
     unit = _propagation_seconds(profile, colours[0] if colours else profile.channels[0].name)
     bench = Calibrated(profile)  # the profile as configured: nothing measured applies to a scaled grid
+    for spec, amplitude in amplitudes.items():  # every scene's memory checked before any target is computed
+        if isinstance(amplitude, tuple):
+            depth_scene_planes(*amplitude, bench, colours=colours, refusal=size_refusal(profile, spec))
     # Warm-up, outside the timed frames: every colour's transfer functions, and each method's first call (the first
     # Adam step alone took 8 s: lazy imports), once on each kind of target.
     for first in {isinstance(a, tuple): a for a in amplitudes.values()}.values():
@@ -180,8 +183,7 @@ def run_speed_vs_error(
                 continue
             shortest = budgets_for(method, (1,))[0]
             if isinstance(first, tuple):
-                compute_depth_scene(*first, bench, method, iterations=shortest, colours=colours, perceptual=False,
-                                    refusal=size_refusal(profile))
+                compute_depth_scene(*first, bench, method, iterations=shortest, colours=colours, perceptual=False)
             else:
                 compute_scene(first, bench, method, iterations=shortest, colours=colours)
     out(f"grid {grid[0]}x{grid[1]}, ROI {roi[0]}x{roi[1]}, distance {optics.distance_mm:g} mm, "
@@ -201,8 +203,7 @@ def run_speed_vs_error(
                     continue
                 if isinstance(amplitude, tuple):  # all-in-focus PSNR, SSIM over the planes; no merged sRGB image
                     stack = compute_depth_scene(*amplitude, bench, method, iterations=iterations, colours=colours,
-                                                seed=seed, progress=_recording(progress, last), perceptual=False,
-                                                refusal=size_refusal(profile))
+                                                seed=seed, progress=_recording(progress, last), perceptual=False)
                     done = [c for c in stack.colours if not c.skipped]
                     planes, srgb = len(stack.planes.planes_m), {"psnr_srgb_db": math.nan, "ssim_srgb": math.nan}
                     psnr_key = "all_in_focus_psnr_db"

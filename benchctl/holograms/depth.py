@@ -25,6 +25,7 @@ from benchctl.optics.focal_stack import (FocalStackTarget, all_in_focus_psnr, fo
 from benchctl.optics.metrics import centred_slices
 from benchctl.optics.planes import PlaneChoice, choose_planes, even_planes, finest_resolution_m
 from benchctl.optics.setup import OpticalSetup
+from benchctl.profiles import LaserChannel
 from benchctl.targets import active_channels, target_plane
 
 
@@ -90,6 +91,36 @@ def scene_planes(depth_m: torch.Tensor, light: torch.Tensor, setups: Mapping[str
     return choose_planes(depth_m, light, finest_resolution_m([s.geometry for s in setups.values()]))
 
 
+def depth_scene_planes(
+    target_amplitude: torch.Tensor,
+    depth_m: torch.Tensor,
+    bench: Calibrated,
+    *,
+    planes: int | Sequence[float] | PlaneChoice | None = None,
+    colours: list[str] | None = None,
+    refusal: tuple[str, str | None] | None = None,
+) -> tuple[list[LaserChannel], PlaneChoice]:
+    """The requested colours a scene lights and the planes `compute_depth_scene` shows it at, their hologram's memory
+    checked (not a PlaneChoice's: a procedure checks the planes it chose when it plans them), so that a caller with
+    several scenes can refuse before it computes any. `refusal`: what a refusal names and offers
+    (`check_depth_memory`'s `what` and `advice`); None: --planes."""
+    profile = bench.profile
+    grid, roi = profile.section("slm").shape, profile.section("optics").roi
+    if tuple(target_amplitude.shape) != (3, *grid) or tuple(depth_m.shape) != tuple(grid):
+        raise BenchctlError(f"scene is {tuple(target_amplitude.shape)} with depth {tuple(depth_m.shape)}, the SLM grid "
+                            f"needs (3, {grid[0]}, {grid[1]}) and ({grid[0]}, {grid[1]})")
+    present = active_channels(target_amplitude)
+    lit = [channel for channel in select_channels(profile, colours) if present[target_plane(channel)]]
+    rows, cols = centred_slices(grid, roi)
+    setups = bench.setups([channel.name for channel in lit] or None)
+    light = sum((target_amplitude[target_plane(c), rows, cols].square() for c in lit), torch.zeros(roi))
+    choice = scene_planes(depth_m[rows, cols], light, {c.name: setups[c.name] for c in lit} or setups, planes)
+    if not isinstance(planes, PlaneChoice):
+        check_depth_memory(depth_estimate(profile, len(choice.depths_m), len(choice.planes_m), len(lit) or 1),
+                           *(refusal or (f"--planes {planes or 'auto'}", "--planes {}")))
+    return lit, choice
+
+
 def compute_depth_scene(
     target_amplitude: torch.Tensor,
     depth_m: torch.Tensor,
@@ -109,27 +140,17 @@ def compute_depth_scene(
     non-black colour of a scene with depth (`benchctl.scenes.prepare_scene`: amplitude (3, H, W), depth (H, W) in
     metres). `planes`: a number of planes evenly over the scene's lit depth, the planes themselves (metres), or None
     (auto). The rest as
-    `compute_scene`; `perceptual` adds FLIP and speckle contrast to the scores. `refusal`: what a memory refusal
-    names and offers (`check_depth_memory`'s `what` and `advice`), for callers whose knob is not --planes."""
+    `compute_scene`; `perceptual` adds FLIP and speckle contrast to the scores; `refusal` as `depth_scene_planes`."""
     profile = bench.profile
-    grid, roi = profile.section("slm").shape, profile.section("optics").roi
-    if tuple(target_amplitude.shape) != (3, *grid) or tuple(depth_m.shape) != tuple(grid):
-        raise BenchctlError(f"scene is {tuple(target_amplitude.shape)} with depth {tuple(depth_m.shape)}, the SLM grid "
-                            f"needs (3, {grid[0]}, {grid[1]}) and ({grid[0]}, {grid[1]})")
-    present = active_channels(target_amplitude)
+    roi = profile.section("optics").roi
     channels = select_channels(profile, colours)
-    lit = [channel for channel in channels if present[target_plane(channel)]]
+    lit, choice = depth_scene_planes(target_amplitude, depth_m, bench, planes=planes, colours=colours,
+                                     refusal=refusal)
     generate, used_checkpoint = resolve_method(method, profile, checkpoint, [c.name for c in lit])
     slm = bench.slm
-    rows, cols = centred_slices(grid, roi)
+    rows, cols = centred_slices(profile.section("slm").shape, roi)
     target_roi, depth_roi = target_amplitude[:, rows, cols], depth_m[rows, cols]
-    setups = bench.setups([channel.name for channel in lit] or None)
-    light = sum((target_roi[target_plane(c)].square() for c in lit), torch.zeros(roi))
-    choice = scene_planes(depth_roi, light, {c.name: setups[c.name] for c in lit} or setups, planes)
     count = len(choice.planes_m)
-    if not isinstance(planes, PlaneChoice):  # a procedure checks the planes it chose when it plans them
-        check_depth_memory(depth_estimate(profile, len(choice.depths_m), count, len(lit) or 1),
-                           *(refusal or (f"--planes {planes or 'auto'}", "--planes {}")))
     stacks: dict[int, torch.Tensor] = {}
     results = []
     previous: OpticalSetup | None = None
