@@ -94,6 +94,12 @@ def test_reproduce_runs_end_to_end_and_writes_table_comparisons_curves_and_plots
     assert [(c["job"], int(c["step"])) for c in curves] == [(j["name"], 3) for j in plan["jobs"]]  # the cap
     report = (out / "reproduction.md").read_text()
     assert "| method | seeds | ended by |" in report and "| dpac (classical reference) |" in report
+    scored = list(csv.DictReader((out / "per_image_seeds.csv").open()))  # each job's held-out images
+    assert sorted((r["job"], r["image"]) for r in scored) == sorted((j["name"], image) for j in plan["jobs"]
+                                                                    for image in photo_specs("eval"))
+    means = {(r["image"], r["method"]): float(r["psnr_db"]) for r in csv.DictReader((out / "per_image.csv").open())}
+    coffee = [float(r["psnr_db"]) for r in scored if r["method"] == "ccnn" and r["image"] == "photo:coffee"]
+    assert len(coffee) == 2 and means["photo:coffee", "ccnn"] == pytest.approx(sum(coffee) / 2)
     assert "benchctl bench reproduce" in report and "| CCNN x4 about equal to CCNN |" in report
     for name in ("psnr_vs_step.png", "psnr_vs_seconds.png"):
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -217,3 +217,20 @@ def test_the_shipped_reproduction_is_reported_again_from_its_csvs(tmp_path: Path
     assert "| holonet-dcm2 (no iris) | 1 | flat (stopping rule) | 2048 |" in table
     assert "No per-image scores: this run was reported from its CSVs" in table
     assert (tmp_path / "curves.csv").read_bytes() == (shipped / "curves.csv").read_bytes()  # its data, unchanged
+
+
+def test_x2_against_holonet_is_reported_again_from_its_csvs_with_its_per_image_scores(tmp_path: Path) -> None:
+    """docs/reproduction/x2-vs-holonet: the converged run's jobs are gone; its CSVs rebuild the report, the
+    per-image tables included, byte for byte."""
+    shipped = Path(__file__).resolve().parents[1] / "docs" / "reproduction" / "x2-vs-holonet"
+    for name in ("plan.json", "curves.csv", "reproduction.csv", "per_image_seeds.csv", "dpac.json"):
+        (tmp_path / name).write_bytes((shipped / name).read_bytes())
+    write_report(tmp_path, out=lambda _: None)
+    claim = next(csv.DictReader((tmp_path / "comparisons.csv").open()))
+    assert (claim["claim"], claim["seeds"], claim["per_seed_db"], claim["verdict"]) == (
+        "x2 about equal to HoloNet", "42 43 44", "-0.37 -0.35 -0.53", "disagrees")
+    assert [round(float(claim[k]), 2) for k in ("here_db", "ci_low_db", "ci_high_db")] == [-0.42, -0.65, -0.18]
+    images = list(csv.DictReader((tmp_path / "per_image.csv").open()))
+    assert len(images) == 3 * 32 and {r["seeds"] for r in images if r["method"] != "dpac"} == {"3"}
+    for name in ("comparisons.csv", "per_image.csv", "reproduction.md"):
+        assert (tmp_path / name).read_bytes() == (shipped / name).read_bytes(), name

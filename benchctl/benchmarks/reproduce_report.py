@@ -362,7 +362,8 @@ def dpac_reference(run_dir: Path, plan: dict[str, Any]) -> dict[str, Any]:
 def _from_csvs(run_dir: Path, plan: dict[str, Any]) -> list[dict[str, Any] | None]:
     """The jobs' records rebuilt from a report's CSVs, for a run whose job folders are gone: each job's curve from
     curves.csv, its ending from its last step and the method's 'ended_by', inference time from reproduction.csv
-    (per method). None for a job the CSVs do not hold as finished."""
+    (per method), its per-image scores from per_image_seeds.csv where the run has one. None for a job the CSVs do not
+    hold as finished."""
     curves: dict[str, list[dict[str, Any]]] = {}
     finished: set[str] = set()
     for row in _csv_rows(Path(run_dir) / "curves.csv"):
@@ -373,6 +374,11 @@ def _from_csvs(run_dir: Path, plan: dict[str, Any]) -> list[dict[str, Any] | Non
         if row["finished"] == "True":
             finished.add(row["job"])
     methods = {row["method"]: row for row in _csv_rows(Path(run_dir) / "reproduction.csv")}
+    scored: dict[str, list[dict[str, Any]]] = {}
+    if (Path(run_dir) / "per_image_seeds.csv").is_file():
+        for row in _csv_rows(Path(run_dir) / "per_image_seeds.csv"):
+            scored.setdefault(row["job"], []).append(
+                {"image": row["image"], "psnr": float(row["psnr_db"]), "ssim": float(row["ssim"])})
     records: list[dict[str, Any] | None] = []
     for job in plan["jobs"]:
         curve = curves.get(job["name"], [])
@@ -386,13 +392,15 @@ def _from_csvs(run_dir: Path, plan: dict[str, Any]) -> list[dict[str, Any] | Non
         records.append({"name": job["name"], "method": job["method"], "seed": job["seed"], "iris": job["iris"],
                         "reason": reason, "steps": steps, "cpu_seconds": curve[-1]["cpu_seconds"],
                         "wall_seconds": curve[-1]["wall_seconds"], "curve": curve,
-                        "inference_seconds": float(row["inference_seconds"])})
+                        "inference_seconds": float(row["inference_seconds"])}
+                       | ({"per_image": scored[job["name"]]} if job["name"] in scored else {}))
     return records
 
 
 def write_report(run_dir: Path, out: Callable[[str], None] = print) -> list[dict[str, Any]]:
-    """reproduction.md / .csv, comparisons.csv, per_image.csv, curves.csv and the plots from the finished jobs;
-    the rows. A run reported from its CSVs keeps its reproduction.csv and curves.csv (they are its data)."""
+    """reproduction.md / .csv, comparisons.csv, per_image.csv (mean over seeds), per_image_seeds.csv (each job's),
+    curves.csv and the plots from the finished jobs; the rows. A run reported from its CSVs keeps its
+    reproduction.csv, curves.csv and per_image_seeds.csv (they are its data)."""
     run_dir = Path(run_dir)
     plan, groups, unfinished = collect(run_dir)
     from_csvs = not (run_dir / "jobs").is_dir()
@@ -433,6 +441,9 @@ def write_report(run_dir: Path, out: Callable[[str], None] = print) -> list[dict
                     | {f"{k}_sd": f"{v[1]:.3f}" for k, v in r.items() if isinstance(v, tuple)} for r in rows]
         written += [write_csv(run_dir / "reproduction.csv", rows_csv),
                     write_csv(run_dir / "curves.csv", _curves(plan, run_dir))]
+        seeds_rows = _image_scores(groups)
+        if seeds_rows:
+            written.append(write_csv(run_dir / "per_image_seeds.csv", seeds_rows))
     text = "\n".join(header + lines + claims + images) + "\n"
     written.append(atomic_write_bytes(run_dir / "reproduction.md", text.encode()))
     key = clock(groups)
@@ -461,6 +472,13 @@ def _curves(plan: dict[str, Any], run_dir: Path) -> list[dict[str, Any]]:
             rows.append({"job": job["name"], "method": job["method"], "seed": job["seed"], "iris": job["iris"],
                          "finished": done is not None} | e)
     return rows
+
+
+def _image_scores(groups: dict[tuple[str, bool], list[dict[str, Any]]]) -> list[dict[str, Any]]:
+    """Each finished job's held-out scores per image, where training ended (one row per job and image)."""
+    return [{"job": d["name"], "method": d["method"], "seed": d["seed"], "iris": d["iris"], "image": e["image"],
+             "psnr_db": e["psnr"], "ssim": e["ssim"]}
+            for runs in groups.values() for d in runs for e in d.get("per_image") or []]
 
 
 def seed_curve(runs: Sequence[dict[str, Any]], key: str) -> tuple[list[float], list[list[float]], int]:
