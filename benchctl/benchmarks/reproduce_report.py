@@ -513,7 +513,7 @@ def _plot(groups: dict[tuple[str, bool], list[dict[str, Any]]], key: str, label:
     ax.axhline(dpac, color="black", linewidth=0.8, linestyle="-.", label="DPAC")
     ax.set_xscale("log", base=2)
     ax.set_xlabel(label)
-    ax.set_ylabel("PSNR, amplitude, held-out photographs (dB)")
+    ax.set_ylabel("PSNR, amplitude, mean over the held-out images (dB)")
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize=7, ncol=2)
     fig.tight_layout()

@@ -350,7 +350,9 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     reproduce.add_argument("--out", "-o", type=Path, metavar="DIR", help="folder of a new run")
     reproduce.add_argument("--resume", type=Path, metavar="DIR", help="continue the run in DIR (its own settings)")
     reproduce.add_argument("--report", type=Path, metavar="DIR",
-                           help="write the report from the finished jobs in DIR and exit (trains nothing)")
+                           help="write the report from the finished jobs in DIR (or from its CSVs once the jobs "
+                                "are deleted) and exit, training nothing: the table, the paper's claims with paired "
+                                "95%% intervals and verdicts, per-image scores, curves and plots")
     reproduce.add_argument("--methods", type=name_list, metavar="LIST",
                            help="comma-separated learned methods (default: those of Tables 1, 2, 4)")
     reproduce.add_argument("--seeds", type=int_list, default=(42, 43, 44), metavar="LIST",
