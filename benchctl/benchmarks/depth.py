@@ -20,10 +20,10 @@ from typing import Any, Callable
 
 import torch
 
+from benchctl.benchmarks.speed_vs_error import size_refusal
 from benchctl.calibration.calibrated import Calibrated
 from benchctl.calibration.setups import optical_setup
 from benchctl.cgh import get_method
-from benchctl.benchmarks.speed_vs_error import size_refusal
 from benchctl.holograms.depth import compute_depth_scene, scene_planes
 from benchctl.holograms.scene import compute_scene
 from benchctl.memory import check_depth_memory, depth_estimate
