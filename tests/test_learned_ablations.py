@@ -234,3 +234,14 @@ def test_one_dip_of_a_noisy_curve_does_not_end_a_job_two_flat_doublings_do() -> 
     assert flat_doublings(flat, 1024, 0.2) == 2
     assert flat_doublings(_curve(rising | {1448: 25.0, 2048: 25.4}), 1024, 0.2) == 0  # rising again
     assert flat_doublings(flat, 2048, 0.2) == 1  # evaluations before min_steps do not count
+
+
+def test_a_report_of_a_folder_without_a_readable_plan_is_one_line(capsys, tmp_path: Path) -> None:
+    code, _, err = _run(capsys, "bench", "reproduce", "--report", str(tmp_path / "none"))
+    assert code != 0 and err.strip() == (f"benchctl: error: {tmp_path / 'none'}: not a reproduction run (no "
+                                         f"plan.json); start one with --out {tmp_path / 'none'}")
+    for text, reason in (("{", "Expecting property name"), ("[1, 2]", "a JSON object is expected")):
+        (tmp_path / "plan.json").write_text(text)
+        code, _, err = _run(capsys, "bench", "reproduce", "--report", str(tmp_path))
+        assert code != 0 and "Traceback" not in err and len(err.strip().splitlines()) == 1
+        assert err.startswith(f"benchctl: error: {tmp_path / 'plan.json'}: not a readable plan (") and reason in err

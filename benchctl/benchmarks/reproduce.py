@@ -30,7 +30,8 @@ from typing import Any
 import torch
 
 from benchctl.benchmarks.learned import measure_training_step
-from benchctl.benchmarks.reproduce_job import DEFAULT_HELD_OUT, JOB_DEVICE_ENV, bench_for, job_dir, read_done
+from benchctl.benchmarks.reproduce_job import (DEFAULT_HELD_OUT, JOB_DEVICE_ENV, bench_for, job_dir, read_done,
+                                               read_plan)
 from benchctl.benchmarks.reproduce_report import write_report
 from benchctl.benchmarks.reproduce_slurm import check_partition, collect
 from benchctl.calibration.setups import optical_setup
@@ -139,13 +140,6 @@ def new_plan(run_dir: Path, profile: Profile, *, size: tuple[int, int] = DEFAULT
             "torch": torch.__version__}
     write_json(ensure_dir(run_dir) / "plan.json", plan)
     return plan
-
-
-def read_plan(run_dir: Path) -> dict[str, Any]:
-    path = Path(run_dir) / "plan.json"
-    if not path.is_file():
-        raise BenchctlError(f"{run_dir}: not a reproduction run (no plan.json); start one with --out {run_dir}")
-    return json.loads(path.read_text())
 
 
 def job_env(plan: dict[str, Any], gpu: str | None) -> dict[str, str]:

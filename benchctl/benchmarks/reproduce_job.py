@@ -39,6 +39,7 @@ from benchctl.benchmarks.speed_vs_error import resized_profile
 from benchctl.calibration.setups import optical_setup
 from benchctl.cgh.learned import build_model
 from benchctl.devices.slm import slm_for
+from benchctl.errors import BenchctlError
 from benchctl.files import atomic_write_bytes, ensure_dir, write_json
 from benchctl.optics import amplitude_scores, crop_roi, lsq_scale
 from benchctl.profiles import Profile, load_profile
@@ -162,6 +163,20 @@ def job_dir(run_dir: Path, name: str) -> Path:
     return Path(run_dir) / "jobs" / name
 
 
+def read_plan(run_dir: Path) -> dict[str, Any]:
+    """A run's plan.json; a folder without one, or a plan that is not JSON, is one line naming the file."""
+    path = Path(run_dir) / "plan.json"
+    if not path.is_file():
+        raise BenchctlError(f"{run_dir}: not a reproduction run (no plan.json); start one with --out {run_dir}")
+    try:
+        plan = json.loads(path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise BenchctlError(f"{path}: not a readable plan ({exc})") from None
+    if not isinstance(plan, dict):
+        raise BenchctlError(f"{path}: not a readable plan (a JSON object is expected)")
+    return plan
+
+
 def read_done(run_dir: Path, name: str) -> dict[str, Any] | None:
     """A finished job's record (reason, steps, clocks, curve, inference time), None while it is not finished."""
     path = job_dir(run_dir, name) / "done.json"
@@ -183,7 +198,7 @@ def job_device(plan: dict[str, Any]) -> torch.device:
 def run_job(run_dir: Path, name: str, out: Any = print) -> dict[str, Any]:
     """Train job `name` of the plan in `run_dir` to its end (resuming its saved state); its done record."""
     run_dir = Path(run_dir)
-    plan = json.loads((run_dir / "plan.json").read_text())
+    plan = read_plan(run_dir)
     job = next(j for j in plan["jobs"] if j["name"] == name)
     folder = ensure_dir(job_dir(run_dir, name))
     torch.set_num_threads(int(plan["threads"]))

@@ -31,6 +31,7 @@ from benchctl.benchmarks.reproduce_job import (
     VALIDATION_FIRST,
     bench_for,
     read_done,
+    read_plan,
     read_progress,
 )
 from benchctl.calibration.calibrated import Calibrated
@@ -106,7 +107,7 @@ def _spread(values: Sequence[float]) -> tuple[float, float]:
 def collect(run_dir: Path) -> tuple[dict[str, Any], dict[tuple[str, bool], list[dict[str, Any]]], list[str]]:
     """The plan, the finished jobs grouped by (method, iris) in plan order, and the names of unfinished jobs (from
     the jobs' records, or from the report's CSVs where the job folders are gone)."""
-    plan = json.loads((Path(run_dir) / "plan.json").read_text())
+    plan = read_plan(run_dir)
     groups: dict[tuple[str, bool], list[dict[str, Any]]] = {}
     unfinished = []
     from_csvs = not (Path(run_dir) / "jobs").is_dir() and (Path(run_dir) / "curves.csv").is_file()

@@ -18,8 +18,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from benchctl.benchmarks.reproduce import new_plan, read_plan, run_reproduction
-from benchctl.benchmarks.reproduce_job import read_done
+from benchctl.benchmarks.reproduce import new_plan, run_reproduction
+from benchctl.benchmarks.reproduce_job import read_done, read_plan
 from benchctl.errors import BadValueError, BenchctlError
 from benchctl.files import ensure_dir, write_json
 from benchctl.profiles import Profile
