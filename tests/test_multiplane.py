@@ -223,6 +223,7 @@ def test_picked_planes_are_those_planes_of_the_whole_stack_in_the_order_asked():
             propagator(field, bad)
 
 
+@pytest.mark.slow  # float64 finite differences: 3-6 s on two cores
 @pytest.mark.parametrize("window", [None, (3, 8, 5, 10)])
 def test_the_gradient_of_the_planes_one_by_one_is_the_finite_difference_one(window):
     """On a CPU under autograd the planes go one at a time both ways (a hand-written adjoint): checked against

@@ -219,6 +219,7 @@ def test_the_shipped_reproduction_is_reported_again_from_its_csvs(tmp_path: Path
     assert (tmp_path / "curves.csv").read_bytes() == (shipped / "curves.csv").read_bytes()  # its data, unchanged
 
 
+@pytest.mark.slow  # the report's two plots
 def test_x2_against_holonet_is_reported_again_from_its_csvs_with_its_per_image_scores(tmp_path: Path) -> None:
     """docs/reproduction/x2-vs-holonet: the converged run's jobs are gone; its CSVs rebuild the report, the
     per-image tables included, byte for byte."""
